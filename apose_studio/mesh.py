@@ -1,0 +1,202 @@
+"""CAD loading and per-part geometry: diameter, bounding boxes, surface samples, symmetry sets.
+
+Meshes are read with trimesh and scaled to metres here; nothing past this module sees file units.
+"""
+
+from __future__ import annotations
+
+import logging
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from . import se3
+from .assembly import Assembly, Part, StepView, Symmetry
+from .errors import MeshError
+from .units import UNIT_TO_M, suspicious_unit
+
+log = logging.getLogger(__name__)
+
+MESH_EXTENSIONS = (".stl", ".ply", ".obj", ".off", ".glb", ".gltf")
+STEP_EXTENSIONS = (".step", ".stp")
+BOP_SYMMETRY_STEP = 0.01  # BOP: max surface travel per discretisation step, as a fraction of diameter
+
+
+def supported_extensions() -> tuple[str, ...]:
+    return MESH_EXTENSIONS + (STEP_EXTENSIONS if step_supported() else ())
+
+
+def step_supported() -> bool:
+    """STEP goes through trimesh's cascadio (OpenCASCADE) loader when that package is installed."""
+    try:
+        import cascadio  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def load_mesh(path: str | Path, unit: str = "m") -> trimesh.Trimesh:
+    """Read a surface mesh and scale it to metres. Raises MeshError naming the file and the fix."""
+    path = Path(path)
+    ext = path.suffix.lower()
+    if not path.exists():
+        raise MeshError(f"{path}: file not found")
+    if not path.is_file():
+        raise MeshError(f"{path}: not a file")
+    if ext in STEP_EXTENSIONS and not step_supported():
+        raise MeshError(f"{path}: STEP needs the optional package cascadio (pip install cascadio), "
+                        "or export the part as STL/PLY/OBJ/GLB")
+    if ext not in supported_extensions():
+        raise MeshError(f"{path}: unsupported file type {ext or '(none)'}; "
+                        f"use one of {', '.join(supported_extensions())}")
+    if path.stat().st_size == 0:
+        raise MeshError(f"{path}: the file is empty")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            loaded = trimesh.load(str(path), force="mesh", process=False)
+    except Exception as e:  # trimesh raises many types on corrupt input
+        raise MeshError(f"{path}: could not be read as a {ext[1:].upper()} mesh (corrupt or truncated?): "
+                        f"{type(e).__name__}: {e}") from None
+    if not isinstance(loaded, trimesh.Trimesh):
+        kind = type(loaded).__name__
+        raise MeshError(f"{path}: holds a {kind} with no triangles, not a surface mesh; export the part's surface")
+    if len(loaded.faces) == 0:
+        raise MeshError(f"{path}: has no triangles (a point cloud or empty mesh); export the part's surface")
+    if not np.all(np.isfinite(loaded.vertices)):
+        raise MeshError(f"{path}: has NaN or infinite vertex coordinates; re-export the mesh")
+    mesh = trimesh.Trimesh(loaded.vertices * UNIT_TO_M[unit], loaded.faces, process=True)
+    mesh.remove_unreferenced_vertices()
+    if len(mesh.faces) == 0 or float(np.max(mesh.extents)) <= 0:
+        raise MeshError(f"{path}: all triangles are degenerate (zero area); export the part's surface")
+    return mesh
+
+
+def diameter(points: np.ndarray) -> float:
+    """Largest distance between two points (BOP's object diameter), via the convex hull."""
+    pts = np.asarray(points, dtype=float)
+    try:
+        from scipy.spatial import ConvexHull
+
+        pts = pts[ConvexHull(pts).vertices]
+    except Exception:  # flat or tiny sets: fall back to all points
+        pass
+    pts = pts - pts.mean(axis=0)
+    sq = np.einsum("ij,ij->i", pts, pts)
+    best = 0.0
+    for i in range(0, len(pts), 4096):  # |a-b|^2 = |a|^2 + |b|^2 - 2ab, a block of rows at a time
+        d2 = sq[i:i + 4096, None] + sq[None, :] - 2.0 * pts[i:i + 4096] @ pts.T
+        best = max(best, float(d2.max()))
+    return float(np.sqrt(max(best, 0.0)))
+
+
+def sample_surface(mesh: trimesh.Trimesh, n: int, seed: int = 0) -> np.ndarray:
+    """n points on the surface, area-weighted, deterministic for a seed. (n, 3) in the mesh frame."""
+    rng = np.random.default_rng(seed)
+    areas = mesh.area_faces
+    face = rng.choice(len(areas), size=n, p=areas / areas.sum())
+    u, v = rng.random(n), rng.random(n)
+    flip = u + v > 1
+    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
+    tri = mesh.triangles[face]
+    return tri[:, 0] + u[:, None] * (tri[:, 1] - tri[:, 0]) + v[:, None] * (tri[:, 2] - tri[:, 0])
+
+
+def symmetry_transforms(symmetry: Symmetry | None, max_step: float = BOP_SYMMETRY_STEP) -> np.ndarray:
+    """The discrete symmetry set (n, 4, 4) of T_part_part, identity first.
+
+    order n: the n rotations by 2*pi*k/n. order 0 (continuous): discretised as BOP does, in
+    ceil(pi / max_step) steps, so no surface point moves more than max_step * diameter per step.
+    """
+    if symmetry is None:
+        return np.eye(4)[None]
+    n = symmetry.order if symmetry.order >= 2 else int(np.ceil(np.pi / max_step))
+    origin = np.asarray(symmetry.origin)
+    out = []
+    for k in range(n):
+        R = se3.axis_angle_matrix(symmetry.axis, 2.0 * np.pi * k / n)
+        out.append(se3.make_T(R, origin - R @ origin))
+    return np.stack(out)
+
+
+@dataclass(frozen=True, eq=False)
+class PartModel:
+    """A part's mesh (metres, part frame) and what the pipeline derives from it once."""
+
+    id: str
+    mesh: trimesh.Trimesh
+    diameter: float
+    aabb: np.ndarray  # (2, 3): min and max corner in the part frame
+    T_part_obb: np.ndarray  # oriented box pose in the part frame
+    obb_extents: np.ndarray  # (3,) full side lengths of the oriented box
+    samples: np.ndarray  # (N, 3) surface points
+    symmetries: np.ndarray  # (n, 4, 4) T_part_part, identity first
+    color: tuple[float, float, float]
+    unit_warning: str | None = None
+
+    @property
+    def size(self) -> np.ndarray:
+        return self.aabb[1] - self.aabb[0]
+
+    def box_corners(self) -> np.ndarray:
+        """(8, 3) corners of the axis-aligned box in the part frame."""
+        lo, hi = self.aabb
+        return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+
+
+# Distinct, colour-blind-friendly defaults (Okabe-Ito) for parts that set no colour.
+PALETTE = [(0.90, 0.62, 0.0), (0.34, 0.71, 0.91), (0.0, 0.62, 0.45), (0.94, 0.89, 0.26),
+           (0.0, 0.45, 0.70), (0.84, 0.37, 0.0), (0.80, 0.47, 0.65), (0.6, 0.6, 0.6)]
+
+
+def build_part_model(part_id: str, mesh: trimesh.Trimesh, symmetry: Symmetry | None = None,
+                     color=None, index: int = 0, n_samples: int = 4000, unit_warning: str | None = None,
+                     diameter_m: float | None = None) -> PartModel:
+    obb = mesh.bounding_box_oriented
+    return PartModel(
+        id=part_id, mesh=mesh, diameter=diameter(mesh.vertices) if diameter_m is None else diameter_m, aabb=np.array(mesh.bounds, dtype=float),
+        T_part_obb=np.array(obb.primitive.transform, dtype=float), obb_extents=np.array(obb.primitive.extents),
+        samples=sample_surface(mesh, n_samples, seed=index), symmetries=symmetry_transforms(symmetry),
+        color=tuple(color) if color is not None else PALETTE[index % len(PALETTE)], unit_warning=unit_warning)
+
+
+def load_part(part: Part, unit: str, index: int = 0) -> PartModel:
+    """Load one part of an assembly: mesh in metres plus derived geometry and a unit sanity check."""
+    mesh = load_mesh(part.mesh, unit)
+    d = diameter(mesh.vertices)
+    guess = suspicious_unit(d / UNIT_TO_M[unit], unit)
+    warning = None
+    if guess is not None:
+        warning = (f"part {part.id!r} ({part.mesh.name}) is {d:.4g} m across when read as {unit}; "
+                   f"it looks like it is in {guess} — set `units: {guess}` or rescale the mesh")
+        log.warning(warning)
+    return build_part_model(part.id, mesh, part.symmetry, part.color, index, unit_warning=warning, diameter_m=d)
+
+
+def load_parts(asm: Assembly) -> dict[str, PartModel]:
+    """Every part of an assembly, in file order. Raises MeshError naming the part on the first bad mesh."""
+    out = {}
+    for i, (pid, part) in enumerate(asm.parts.items()):
+        try:
+            out[pid] = load_part(part, asm.units, i)
+        except MeshError as e:
+            raise MeshError(f"part {pid!r}: {e}") from None
+    return out
+
+
+def merged_mesh(models: dict[str, PartModel], poses: dict[str, np.ndarray]) -> trimesh.Trimesh:
+    """One mesh of several parts, each moved by its pose (e.g. T_base_member)."""
+    meshes = []
+    for pid, T in poses.items():
+        m = models[pid].mesh.copy()
+        m.apply_transform(T)
+        meshes.append(m)
+    return trimesh.util.concatenate(meshes)
+
+
+def base_mesh(models: dict[str, PartModel], view: StepView) -> trimesh.Trimesh:
+    """The base object of a step as one mesh in the frame of base[0]."""
+    return merged_mesh(models, view.T_base_members)

@@ -1,0 +1,74 @@
+"""SE(3) helpers over numpy. A 4x4 matrix is named T_<to>_<from>; quaternions are wxyz (as viser)."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def make_T(R: np.ndarray | None = None, t: np.ndarray | None = None) -> np.ndarray:
+    """4x4 homogeneous transform from a 3x3 rotation and a 3-vector translation."""
+    T = np.eye(4)
+    if R is not None:
+        T[:3, :3] = R
+    if t is not None:
+        T[:3, 3] = np.asarray(t, dtype=float).reshape(3)
+    return T
+
+
+def inv(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid transform (exact, no general matrix inverse)."""
+    R, t = T[:3, :3], T[:3, 3]
+    Ti = np.eye(4)
+    Ti[:3, :3] = R.T
+    Ti[:3, 3] = -R.T @ t
+    return Ti
+
+
+def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply T (4x4) to points (N, 3); returns (N, 3)."""
+    return points @ T[:3, :3].T + T[:3, 3]
+
+
+def quat_wxyz_to_matrix(q) -> np.ndarray:
+    """3x3 rotation from a quaternion [w, x, y, z] (normalised here)."""
+    w, x, y, z = np.asarray(q, dtype=float)
+    return Rotation.from_quat([x, y, z, w]).as_matrix()
+
+
+def matrix_to_quat_wxyz(R: np.ndarray) -> np.ndarray:
+    """Quaternion [w, x, y, z] with w >= 0 from a 3x3 rotation."""
+    x, y, z, w = Rotation.from_matrix(R).as_quat()
+    q = np.array([w, x, y, z])
+    return -q if q[0] < 0 else q
+
+
+def euler_deg_to_matrix(angles, order: str) -> np.ndarray:
+    """3x3 rotation from Euler angles in degrees; scipy's order string (lower = extrinsic)."""
+    return Rotation.from_euler(order, angles, degrees=True).as_matrix()
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """Angle of a rotation matrix in degrees, in [0, 180]."""
+    c = (np.trace(R) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def axis_angle_matrix(axis, angle_rad: float) -> np.ndarray:
+    """3x3 rotation about a (not necessarily unit) axis."""
+    a = np.asarray(axis, dtype=float)
+    return Rotation.from_rotvec(a / np.linalg.norm(a) * angle_rad).as_matrix()
+
+
+def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """T_world_camera for an OpenCV camera (x right, y down, z forward) at `eye` looking at `target`."""
+    eye = np.asarray(eye, dtype=float)
+    z = np.asarray(target, dtype=float) - eye
+    z /= np.linalg.norm(z)
+    up = np.asarray(up, dtype=float)
+    if abs(np.dot(z, up / np.linalg.norm(up))) > 0.999:  # looking straight along `up`: pick another
+        up = np.array([0.0, 1.0, 0.0]) if abs(z[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    x = np.cross(z, up)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return make_T(np.stack([x, y, z], axis=1), eye)

@@ -1,0 +1,340 @@
+#!/usr/bin/env python3
+"""Generate the project's sample assemblies (deterministic, re-runnable).
+
+    python sample_assemblies/generate.py [--out sample_assemblies]
+
+Two assemblies with real-looking geometry, meshes in millimetres (to exercise unit handling):
+  helical_gearbox/    casing, helical pinion, helical wheel, lid          (4 parts, 3 steps)
+  planetary_reducer/  motor block, sun gear, ring-gear housing,
+                      planet carrier with planets, cover                   (5 parts, 4 steps)
+The solids are built with manifold3d (exact CSG, always watertight); gear teeth are extruded from a
+2D involute-like profile, with a twist for the helical gears.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import trimesh
+from manifold3d import CrossSection, JoinType, Manifold, OpType
+
+HERE = Path(__file__).resolve().parent
+SEGMENTS = 48  # circular segments for bores and bosses
+
+
+# ----------------------------------------------------------------------------------- 2D profiles
+
+
+def gear_profile(teeth: int, module: float, internal: bool = False, flank_points: int = 5) -> np.ndarray:
+    """Closed outline (N, 2) of a gear: each tooth a curved flank up, a tip land, a flank down, a root land.
+
+    The flank bulges like an involute (radius grows faster near the root). For the bore of an
+    internal (ring) gear the outline's bumps are the ring's tooth spaces, so only the radii change.
+    """
+    r = module * teeth / 2
+    r_tip, r_root = (r + 1.25 * module, r - module) if internal else (r + module, r - 1.25 * module)
+    pitch = 2 * math.pi / teeth
+    half = (math.pi * module / 2) / r / 2  # half the tooth (or space) angle at the pitch circle
+    a_root, a_tip = half * 1.25, half * 0.55
+    s = np.linspace(0, 1, flank_points)
+    rad = r_root + (r_tip - r_root) * (1 - (1 - s) ** 1.6)
+    ang = a_root + (a_tip - a_root) * s
+    pts = []
+    for i in range(teeth):
+        c = i * pitch
+        flank = [(c - a, rr) for a, rr in zip(ang, rad)] + [(c + a, rr) for a, rr in zip(ang[::-1], rad[::-1])]
+        land = [(a, r_root) for a in np.linspace(c + a_root, c + pitch - a_root, 4)[1:-1]]
+        pts += [(rr * math.cos(a), rr * math.sin(a)) for a, rr in flank + land]
+    return np.array(pts)
+
+
+def circle(radius: float, x: float = 0.0, y: float = 0.0) -> CrossSection:
+    return CrossSection.circle(radius, SEGMENTS).translate((x, y))
+
+
+def rect(w: float, h: float, x: float = 0.0, y: float = 0.0) -> CrossSection:
+    return CrossSection.square((w, h), center=True).translate((x, y))
+
+
+def rounded_rect(w: float, h: float, r: float) -> CrossSection:
+    return rect(w - 2 * r, h - 2 * r).offset(r, JoinType.Round, circular_segments=SEGMENTS)
+
+
+def prism(section: CrossSection, z0: float, z1: float, twist_deg: float = 0.0, divisions: int = 0) -> Manifold:
+    return Manifold.extrude(section, z1 - z0, divisions, twist_deg).translate((0, 0, z0))
+
+
+def cylinder(radius: float, z0: float, z1: float, x: float = 0.0, y: float = 0.0) -> Manifold:
+    return Manifold.cylinder(z1 - z0, radius, radius, SEGMENTS).translate((x, y, z0))
+
+
+def union(*ms: Manifold) -> Manifold:
+    return Manifold.batch_boolean(list(ms), OpType.Add)
+
+
+# ----------------------------------------------------------------------------------- parts
+
+
+def helical_gear(teeth: int, module: float, face: float, helix_deg: float, bore: float,
+                 hub_r: float, keyway: bool) -> Manifold:
+    """Helical gear centred on its origin (axis z, mid-face at z=0), with a bore, hub and keyway."""
+    r_pitch = module * teeth / 2
+    twist = math.degrees(face * math.tan(math.radians(helix_deg)) / r_pitch)
+    body = prism(CrossSection([gear_profile(teeth, module)]), -face / 2, face / 2, twist, divisions=10)
+    # lightening recess on both faces, a hub standing out 1.5 mm
+    recess_r = r_pitch - 2.5 * module
+    if recess_r > hub_r + 2:
+        ring = circle(recess_r) - circle(hub_r)
+        body = body - prism(ring, face / 2 - 2, face / 2 + 1) - prism(ring, -face / 2 - 1, -face / 2 + 2)
+    body = body + cylinder(hub_r, -face / 2 - 1.5, face / 2 + 1.5)
+    hole = circle(bore)
+    if keyway:
+        hole = hole + rect(bore * 0.5, bore * 0.9, x=0, y=bore * 0.75)
+    return body - prism(hole, -face, face)
+
+
+def gearbox_casing() -> Manifold:
+    """Open-top casing 92 x 64 x 24 mm, origin at the bottom centre; shafts at x=-20 and x=+16."""
+    outer = prism(rounded_rect(92, 64, 5), 0, 24)
+    cavity = prism(rounded_rect(84, 56, 3), 4, 30)
+    body = outer - cavity
+    # bearing bosses with shaft pins for the two gears (z 4..7), pins up to z 20
+    for x, r in ((-20.0, 9.0), (16.0, 11.0)):
+        body = body + cylinder(r, 3.5, 7, x=x) + cylinder(3.9, 6, 20, x=x)
+    # mounting ears with bolt holes (outside, at the floor)
+    for x in (-52.0, 52.0):
+        ear = prism(rect(14, 30, x=x), 0, 5) - cylinder(3.2, -1, 6, x=x)
+        body = body + ear
+    # input-shaft boss through the -x wall, only on one side: the casing is not 2-fold symmetric
+    body = body + Manifold.cylinder(8, 8, 8, SEGMENTS).rotate((0, 90, 0)).translate((-50, 0, 14))
+    body = body - Manifold.cylinder(20, 4, 4, SEGMENTS).rotate((0, 90, 0)).translate((-55, 0, 14))
+    # oil drain plug on the +y wall near +x
+    body = body + Manifold.cylinder(4, 4.5, 4.5, SEGMENTS).rotate((-90, 0, 0)).translate((30, 31, 6))
+    # bolt holes for the lid in the four corners (blind, from the top)
+    for x in (-40.0, 40.0):
+        for y in (-26.0, 26.0):
+            body = body + cylinder(4, 0, 24, x=x, y=y) - cylinder(1.6, 14, 25, x=x, y=y)
+    return body
+
+
+def gearbox_lid() -> Manifold:
+    """Lid plate 92 x 64 x 4 mm with a locating lip below and bearing caps above; origin at its bottom."""
+    plate = prism(rounded_rect(92, 64, 5), 0, 4)
+    lip = prism(rounded_rect(83.4, 55.4, 2.7) - rounded_rect(79, 51, 1), -3, 0)
+    for x in (-40.0, 40.0):
+        for y in (-26.0, 26.0):
+            lip = lip - cylinder(4.3, -4, 1, x=x, y=y)  # clear the casing's corner bolt bosses
+    body = plate + lip
+    for x, r in ((-20.0, 9.0), (16.0, 11.0)):
+        body = body + cylinder(r, 4, 7, x=x)
+    body = body + cylinder(5, 4, 12, x=30, y=-18) - cylinder(2, 6, 13, x=30, y=-18)  # breather
+    for x in (-40.0, 40.0):
+        for y in (-26.0, 26.0):
+            body = body - cylinder(1.8, -1, 5, x=x, y=y) - cylinder(3.2, 3, 5, x=x, y=y)
+    return body
+
+
+def motor_block() -> Manifold:
+    """NEMA-17-like stepper: 42.3 mm square, 40 mm long, chamfered, boss and 5 mm D-shaft; origin at bottom centre."""
+    s = 42.3
+    section = CrossSection([np.array([(-s / 2 + 4, -s / 2), (s / 2 - 4, -s / 2), (s / 2, -s / 2 + 4),
+                                      (s / 2, s / 2 - 4), (s / 2 - 4, s / 2), (-s / 2 + 4, s / 2),
+                                      (-s / 2, s / 2 - 4), (-s / 2, -s / 2 + 4)])])
+    body = prism(section, 0, 40)
+    # the seams between end caps and the stator stack
+    for z in (8.0, 32.0):
+        body = body - (prism(section, z - 0.4, z + 0.4) - prism(section.offset(-0.6, JoinType.Miter), z - 1, z + 1))
+    body = body + cylinder(11, 40, 42)
+    shaft = prism(circle(2.5) - rect(6, 3, y=2.5 + 1.5 - 0.5), 42, 62)
+    body = body + shaft
+    for x in (-15.5, 15.5):
+        for y in (-15.5, 15.5):
+            body = body - cylinder(1.5, 35, 41, x=x, y=y)
+    # cable connector on one side
+    body = body + prism(rect(16, 6, y=-s / 2 - 3), 2, 10)
+    return body
+
+
+def ring_housing() -> Manifold:
+    """Square flange (42 x 42 x 4) and a ring gear (36 internal teeth, m=1) above it; origin at the flange bottom."""
+    flange = prism(rounded_rect(42.3, 42.3, 4), 0, 4) - cylinder(12, -1, 5)
+    for x in (-15.5, 15.5):
+        for y in (-15.5, 15.5):
+            flange = flange - cylinder(1.7, -1, 5, x=x, y=y) - cylinder(3, 2.5, 5, x=x, y=y)
+    ring_section = circle(25) - CrossSection([gear_profile(36, 1.0, internal=True)])
+    ring = prism(ring_section, 4, 22)
+    ribs = union(*[prism(rect(4, 6, x=0, y=26).rotate(a), 4, 20) for a in (0, 90, 180, 270)])
+    return flange + ring + ribs
+
+
+def planet_carrier() -> Manifold:
+    """Carrier plate with three 12-tooth planets (m=1) on pins and an output shaft; origin mid-planet."""
+    planets = []
+    for k in range(3):
+        a = 2 * math.pi * k / 3
+        x, y = 12 * math.cos(a), 12 * math.sin(a)
+        planet = prism(CrossSection([gear_profile(12, 1.0)]).rotate(math.degrees(a) + 15), -5, 5)
+        planets.append(planet.translate((x, y, 0)))
+        planets.append(cylinder(2.5, 4.9, 5.6, x=x, y=y))  # spacer between planet and plate
+    plate = prism(circle(16.5) - circle(3.0), 5.3, 7.3)
+    lightening = union(*[cylinder(2.2, 5, 9, x=9.5 * math.cos(a), y=9.5 * math.sin(a))
+                         for a in np.radians([60, 180, 300])])
+    shaft = cylinder(4, 7.3, 20) - prism(rect(10, 3, y=4 - 1), 14, 21)
+    return union(*planets, plate - lightening, shaft)
+
+
+def sun_gear() -> Manifold:
+    """Spur sun gear, 12 teeth m=1, 10 mm face, D-bore for the 5 mm shaft; origin at its centre."""
+    body = prism(CrossSection([gear_profile(12, 1.0)]), -5, 5) + cylinder(4.5, -7, -5)
+    d_bore = circle(2.55) - rect(6, 3, y=2.55 + 1.5 - 0.5)
+    return body - prism(d_bore, -8, 6)
+
+
+def reducer_cover() -> Manifold:
+    """Round cover, 50 mm across, with an output-shaft bearing boss and four screw bosses; origin at its bottom."""
+    disc = prism(circle(25), 0, 3) + cylinder(8, 3, 7) - cylinder(4.4, -1, 8)
+    lip = prism(circle(16.8) - circle(15.5), -2, 0)  # centres on the ring's tooth tips
+    body = disc + lip
+    for k in range(4):
+        a = math.pi / 4 + k * math.pi / 2
+        x, y = 21 * math.cos(a), 21 * math.sin(a)
+        body = body - cylinder(1.6, -1, 4, x=x, y=y)
+    body = body + prism(rect(10, 2, x=0, y=16), 3, 4.5)  # an arrow-like rib that marks the front
+    return body
+
+
+# ----------------------------------------------------------------------------------- writing
+
+
+def to_trimesh(m: Manifold) -> trimesh.Trimesh:
+    mesh = m.to_mesh()
+    tm = trimesh.Trimesh(np.asarray(mesh.vert_properties)[:, :3], np.asarray(mesh.tri_verts), process=False)
+    if not tm.is_watertight:
+        raise RuntimeError("generated mesh is not watertight")
+    return tm
+
+
+def write_mesh(m: Manifold, path: Path) -> None:
+    tm = to_trimesh(m)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    data = tm.export(file_type=path.suffix[1:])
+    path.write_bytes(data if isinstance(data, bytes) else data.encode())
+
+
+HELICAL_YAML = """\
+# Helical gearbox sample assembly, generated by sample_assemblies/generate.py (do not edit by hand).
+format: apose-assembly/1
+name: helical_gearbox
+units: mm                 # the meshes are in millimetres
+parts:
+  casing:
+    mesh: casing.stl
+    color: [0.55, 0.58, 0.62]
+  pinion:                 # 14 teeth, m=2, 15 deg helix, keyed bore: no symmetry
+    mesh: pinion.stl
+    color: [0.90, 0.62, 0.0]
+  wheel:                  # 22 teeth, plain bore: 22-fold symmetric about its axis
+    mesh: wheel.stl
+    color: [0.34, 0.71, 0.91]
+    symmetry: {axis: [0, 0, 1], order: 22}
+  lid:
+    mesh: lid.obj
+    color: [0.0, 0.62, 0.45]
+steps:
+  - part: pinion
+    base: [casing]
+    pose_in_base:
+      translation: [-20.0, 0.0, 14.5]
+      rotation: {quat_wxyz: [1, 0, 0, 0]}
+  - part: wheel
+    base: [casing, pinion]
+    pose_in_base:
+      translation: [16.0, 0.0, 14.5]
+      rotation: {euler_deg: [0, 0, 8.1818], order: xyz}   # half a tooth, so the teeth mesh
+  - part: lid
+    base: [casing, pinion, wheel]
+    pose_in_base:
+      translation: [0.0, 0.0, 24.0]
+camera:
+  width: 640
+  height: 480
+  fx: 615.0
+  fy: 615.0
+  cx: 320.0
+  cy: 240.0
+"""
+
+PLANETARY_YAML = """\
+# Planetary reducer sample assembly, generated by sample_assemblies/generate.py (do not edit by hand).
+format: apose-assembly/1
+name: planetary_reducer
+units: mm
+parts:
+  motor:
+    mesh: motor.ply
+    color: [0.25, 0.25, 0.28]
+  sun_gear:               # hidden inside the ring housing once that is on: occluded in later steps
+    mesh: sun_gear.ply
+    color: [0.90, 0.62, 0.0]
+  housing:
+    mesh: housing.ply
+    color: [0.55, 0.58, 0.62]
+  carrier:                # planet carrier with its three planets, one rigid part
+    mesh: carrier.ply
+    color: [0.34, 0.71, 0.91]
+  cover:
+    mesh: cover.stl
+    color: [0.0, 0.62, 0.45]
+steps:
+  - part: sun_gear
+    base: [motor]
+    pose_in_base:
+      translation: [0.0, 0.0, 52.0]
+  - part: housing
+    base: [motor, sun_gear]
+    pose_in_base:
+      translation: [0.0, 0.0, 40.0]
+  - part: carrier          # placed in the housing's frame; planets mesh inside the ring
+    base: [housing, motor, sun_gear]
+    pose_in_base:
+      translation: [0.0, 0.0, 12.0]
+      rotation: {euler_deg: [0, 0, 0], order: xyz}
+  - part: cover
+    base: [motor, sun_gear, housing, carrier]
+    pose_in_base:
+      translation: [0.0, 0.0, 62.0]
+"""
+
+
+def generate(out: Path) -> list[Path]:
+    """Write both sample assemblies under `out`; returns the assembly files."""
+    hg, pr = out / "helical_gearbox", out / "planetary_reducer"
+    write_mesh(gearbox_casing(), hg / "casing.stl")
+    write_mesh(helical_gear(14, 2.0, 12.0, 15.0, 4.0, 7.0, keyway=True), hg / "pinion.stl")
+    write_mesh(helical_gear(22, 2.0, 12.0, -15.0, 4.0, 8.5, keyway=False), hg / "wheel.stl")
+    write_mesh(gearbox_lid(), hg / "lid.obj")
+    (hg / "assembly.yaml").write_text(HELICAL_YAML)
+    write_mesh(motor_block(), pr / "motor.ply")
+    write_mesh(sun_gear(), pr / "sun_gear.ply")
+    write_mesh(ring_housing(), pr / "housing.ply")
+    write_mesh(planet_carrier(), pr / "carrier.ply")
+    write_mesh(reducer_cover(), pr / "cover.stl")
+    (pr / "assembly.yaml").write_text(PLANETARY_YAML)
+    return [hg / "assembly.yaml", pr / "assembly.yaml"]
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=HERE, help="folder to write into (default: this folder)")
+    args = ap.parse_args(argv)
+    for f in generate(args.out):
+        print(f"wrote {f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

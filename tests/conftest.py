@@ -1,0 +1,55 @@
+"""Shared fixtures: paths to the real test data beside the repo, and tiny synthetic assemblies."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+import trimesh
+
+REPO = Path(__file__).resolve().parent.parent
+SHARED = Path(os.environ.get("APOSE_SHARED", REPO.parent / "shared"))
+FIDGET = SHARED / "data" / "fidget_helical" / "assembly.yaml"
+SAMPLES = REPO / "sample_assemblies"
+
+
+@pytest.fixture
+def fidget_yaml() -> Path:
+    if not FIDGET.is_file():
+        pytest.skip(f"real CAD test data not found at {FIDGET} (the ../shared folder beside the repo)")
+    return FIDGET
+
+
+TINY_YAML = """\
+format: apose-assembly/1
+name: tiny
+units: mm
+parts:
+  plate: {mesh: plate.stl}
+  peg:
+    mesh: peg.stl
+    color: [1, 0, 0]
+    symmetry: {axis: [0, 0, 1], order: 0}
+  cap: {mesh: cap.stl}
+steps:
+  - part: peg
+    base: [plate]
+    pose_in_base:
+      translation: [10, 0, 5]
+      rotation: {euler_deg: [0, 0, 90], order: xyz}
+  - part: cap
+    base: [peg, plate]
+    pose_in_base:
+      translation: [0, 10, 0]
+"""
+
+
+@pytest.fixture
+def tiny_dir(tmp_path) -> Path:
+    """A 3-part assembly in millimetres: a plate, a peg on it, a cap on the peg."""
+    trimesh.creation.box((60, 40, 4)).export(tmp_path / "plate.stl")
+    trimesh.creation.cylinder(radius=4, height=20, sections=32).export(tmp_path / "peg.stl")
+    trimesh.creation.box((12, 12, 3)).export(tmp_path / "cap.stl")
+    (tmp_path / "assembly.yaml").write_text(TINY_YAML)
+    return tmp_path

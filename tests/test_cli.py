@@ -1,0 +1,75 @@
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from .conftest import SAMPLES
+
+APOSE = [sys.executable, "-m", "apose_studio.cli"]
+
+
+def run(*args, cwd=None):
+    return subprocess.run([*APOSE, *map(str, args)], capture_output=True, text=True, cwd=cwd, timeout=300)
+
+
+def test_console_script_installed_and_help_lists_commands():
+    exe = Path(sys.executable).parent / "apose"
+    assert exe.exists(), "the `apose` console script is not installed in this environment"
+    out = subprocess.run([str(exe), "--help"], capture_output=True, text=True).stdout
+    for cmd in ("show", "demo"):
+        assert cmd in out
+
+
+def test_show_json_shape(tiny_dir):
+    r = run("show", tiny_dir / "assembly.yaml", "--json")
+    assert r.returncode == 0, r.stderr
+    doc = json.loads(r.stdout)
+    assert doc["name"] == "tiny"
+    assert set(doc["parts"]) == {"plate", "peg", "cap"}
+    cap = doc["parts"]["cap"]
+    assert cap["root"] == "plate" and Path(cap["mesh"]).name == "cap.stl"
+    np.testing.assert_allclose(np.array(cap["T_root_part"])[:3, 3], [0, 0, 0.005], atol=1e-12)
+    assert cap["diameter"] == pytest.approx(np.sqrt(0.012**2 * 2 + 0.003**2))
+    assert [s["step"] for s in doc["steps"]] == [1, 2]
+    assert doc["steps"][1]["base"] == ["peg", "plate"] and np.array(doc["steps"][0]["T_base_part"]).shape == (4, 4)
+
+
+def test_show_text(tiny_dir):
+    r = run("show", tiny_dir / "assembly.yaml")
+    assert r.returncode == 0, r.stderr
+    assert "peg.stl" in r.stdout and "continuous symmetry" in r.stdout
+    assert "1. place peg on [plate]" in r.stdout and "t = (+10.00, +0.00, +5.00) mm" in r.stdout
+
+
+def test_show_invalid_file_one_line_per_problem(tiny_dir):
+    bad = tiny_dir / "bad.yaml"
+    bad.write_text((tiny_dir / "assembly.yaml").read_text().replace("[10, 0, 5]", "[10, 0]").replace("units: mm", "units: yd"))
+    r = run("show", bad)
+    assert r.returncode == 1
+    lines = r.stderr.strip().splitlines()
+    assert lines == [f"error: {bad}: units: expected one of m, cm, mm, in, got the text 'yd'",
+                     f"error: {bad}: steps[0].pose_in_base.translation: expected 3 numbers, got 2"]
+    assert "Traceback" not in r.stderr
+
+
+def test_show_bad_mesh_is_one_line(tiny_dir):
+    (tiny_dir / "peg.stl").write_bytes(b"\x00" * 10)
+    r = run("show", tiny_dir / "assembly.yaml")
+    assert r.returncode == 1 and "Traceback" not in r.stderr
+    assert r.stderr.startswith("error: part 'peg': ") and "peg.stl" in r.stderr
+
+
+def test_demo_runs_on_the_sample():
+    r = run("demo")
+    assert r.returncode == 0, r.stderr
+    assert "helical_gearbox" in r.stdout and "place lid on [casing, pinion, wheel]" in r.stdout
+
+
+def test_fidget_show_json(fidget_yaml):
+    r = run("show", fidget_yaml, "--json")
+    assert r.returncode == 0, r.stderr
+    top = json.loads(r.stdout)["steps"][2]
+    np.testing.assert_allclose(np.array(top["T_base_part"])[:3, 3], [0, 0, 0.012])
