@@ -73,3 +73,20 @@ def test_fidget_show_json(fidget_yaml):
     assert r.returncode == 0, r.stderr
     top = json.loads(r.stdout)["steps"][2]
     np.testing.assert_allclose(np.array(top["T_base_part"])[:3, 3], [0, 0, 0.012])
+
+
+def test_render_cli(tmp_path):
+    out = tmp_path / "ds"
+    r = run("render", SAMPLES / "helical_gearbox" / "assembly.yaml", "--out", out, "--frames", "2", "--steps", "1,3",
+            "--noise", "gaussian", "--base-pose", "fixed", "--pitch-range", "30,60", "-q")
+    assert r.returncode == 0, r.stderr
+    assert "rendered 4 frames of helical_gearbox" in r.stdout
+    assert sorted(p.name for p in (out / "test").iterdir()) == ["000001", "000003"]
+    info = json.loads((out / "dataset_info.json").read_text())
+    assert info["settings"]["base_pose"] == "fixed" and info["settings"]["pitch_range_deg"] == [30.0, 60.0]
+    again = run("render", SAMPLES / "helical_gearbox" / "assembly.yaml", "--out", out)
+    assert again.returncode == 1 and again.stderr.startswith(f"error: {out}: folder is not empty")
+    bad = run("render", SAMPLES / "helical_gearbox" / "assembly.yaml", "--out", tmp_path / "x", "--steps", "0")
+    assert bad.returncode == 1 and "step 0 does not exist" in bad.stderr and "Traceback" not in bad.stderr
+    bad = run("render", SAMPLES / "helical_gearbox" / "assembly.yaml", "--out", tmp_path / "x", "--yaw-range", "oops")
+    assert bad.returncode == 2 and "expected two numbers as min,max" in bad.stderr

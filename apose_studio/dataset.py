@@ -1,0 +1,342 @@
+"""Datasets in the BOP layout, extended for assembly steps; and the reader the rest of the code uses.
+
+Layout (one BOP scene per assembly step; BOP's own files keep BOP's units, millimetres):
+
+    DIR/
+      dataset_info.json       apose extension: assembly name, part -> obj_id, steps, render settings
+      assembly.yaml           the assembly, with meshes pointing at models/ (units: mm)
+      camera.json             BOP: default intrinsics and depth_scale
+      models/obj_000001.ply   BOP: one mesh per part, in mm; models_info.json (diameter, symmetries)
+      test/000001/            BOP scene = assembly step 1
+        rgb/000000.jpg (JPEG q95, as BOP's PBR sets)  depth/000000.png (uint16, depth_mm = value * depth_scale)
+        mask_visib/000000_000000.png   (image id, index into scene_gt's list)
+        scene_camera.json  scene_gt.json  scene_gt_info.json
+        scene_assembly.json   apose extension, metres: the step's base, part, T_base_part, and per
+                              image T_world_base, T_world_part (ground-truth assembly pose),
+                              T_world_camera
+A frame is listed in the scene's JSON files only after its images are on disk, so an interrupted
+render leaves every listed frame readable.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from . import se3
+from .assembly import Assembly, atomic_write_text, load_assembly
+from .config import CameraIntrinsics
+from .errors import AposeError, DatasetError
+
+FORMAT = "apose-bop/1"
+SPLIT = "test"
+DEPTH_SCALE = 0.1  # BOP: depth in mm = PNG value * depth_scale; 0.1 mm steps up to 6.5 m
+
+
+def write_json(path: Path, data) -> None:
+    atomic_write_text(Path(path), json.dumps(data, indent=1))
+
+
+def read_json(path: Path):
+    try:
+        return json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: missing") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise DatasetError(f"{path}: not valid JSON ({e})") from None
+
+
+def scene_dir(root: Path, step: int) -> Path:
+    return Path(root) / SPLIT / f"{step:06d}"
+
+
+# ----------------------------------------------------------------------------------- frames
+
+
+@dataclass
+class Frame:
+    """One RGB-D view, in metres. For a real capture `poses`, `masks` and `step` may be empty."""
+
+    rgb: np.ndarray  # (H, W, 3) uint8
+    depth: np.ndarray  # (H, W) float32 metres; 0 where the sensor gave nothing
+    camera: CameraIntrinsics
+    T_world_camera: np.ndarray
+    masks: dict[str, np.ndarray] = field(default_factory=dict)  # part id -> (H, W) bool visible mask
+    poses: dict[str, np.ndarray] = field(default_factory=dict)  # part id -> T_world_part in this view
+    step: int | None = None
+    part: str | None = None  # the part to place
+    base: tuple[str, ...] = ()
+    T_base_part: np.ndarray | None = None
+    T_world_base: np.ndarray | None = None  # ground truth, pose of base[0]
+    T_world_part: np.ndarray | None = None  # ground-truth assembly pose
+    im_id: int = 0
+    source: str = ""
+
+    @property
+    def K(self) -> np.ndarray:
+        return self.camera.K
+
+    def base_mask(self) -> np.ndarray:
+        """Union of the visible masks of the base parts."""
+        out = np.zeros(self.depth.shape, bool)
+        for p in self.base:
+            if p in self.masks:
+                out |= self.masks[p]
+        return out
+
+
+def _read_image(path: Path, flags: int) -> np.ndarray:
+    if not path.is_file():
+        raise DatasetError(f"{path}: missing")
+    img = cv2.imread(str(path), flags)
+    if img is None:
+        raise DatasetError(f"{path}: not a readable image (corrupt?)")
+    return img
+
+
+def read_rgb(path: Path) -> np.ndarray:
+    img = _read_image(path, cv2.IMREAD_COLOR)
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def read_depth(path: Path, depth_scale_mm: float) -> np.ndarray:
+    """uint16 depth PNG -> metres (float32); NaN, negative and missing become 0."""
+    raw = _read_image(path, cv2.IMREAD_ANYDEPTH)
+    if raw.ndim != 2:
+        raise DatasetError(f"{path}: expected a single-channel 16-bit depth image, got {raw.ndim} channels")
+    d = raw.astype(np.float32) * np.float32(depth_scale_mm / 1000.0)
+    d[~np.isfinite(d) | (d < 0)] = 0.0
+    return d
+
+
+def _T_from_Rt(R_flat, t_mm) -> np.ndarray:
+    return se3.make_T(np.asarray(R_flat, float).reshape(3, 3), np.asarray(t_mm, float).reshape(3) / 1000.0)
+
+
+def _Rt_from_T(T: np.ndarray) -> tuple[list, list]:
+    return T[:3, :3].reshape(-1).tolist(), (T[:3, 3] * 1000.0).tolist()
+
+
+class Dataset:
+    """Read access to a rendered dataset (cheap to open; frames are read on demand)."""
+
+    def __init__(self, root: str | Path):
+        self.root = Path(root)
+        info_path = self.root / "dataset_info.json"
+        if not info_path.is_file():
+            hint = " (a real capture folder? open it with load_capture)" if (self.root / "rgb.png").exists() else ""
+            raise DatasetError(f"{self.root}: not an apose dataset, dataset_info.json is missing{hint}; "
+                               "make one with `apose render`")
+        self.info = read_json(info_path)
+        if self.info.get("format") != FORMAT:
+            raise DatasetError(f"{info_path}: format {self.info.get('format')!r}, expected {FORMAT!r}")
+        self.obj_ids: dict[str, int] = self.info["obj_ids"]
+        self.part_of_obj = {v: k for k, v in self.obj_ids.items()}
+        self._scenes: dict[int, dict] = {}
+        self._assembly: Assembly | None = None
+
+    @property
+    def assembly(self) -> Assembly:
+        if self._assembly is None:
+            self._assembly = load_assembly(self.root / "assembly.yaml")
+        return self._assembly
+
+    @property
+    def steps(self) -> list[int]:
+        return [s for s in self.info["steps_rendered"] if scene_dir(self.root, s).is_dir()]
+
+    def _scene(self, step: int) -> dict:
+        if step not in self._scenes:
+            d = scene_dir(self.root, step)
+            if not d.is_dir():
+                raise DatasetError(f"{self.root}: step {step} was not rendered; rendered steps: "
+                                   f"{', '.join(map(str, self.steps)) or 'none'}")
+            self._scenes[step] = {name: read_json(d / f"{name}.json") for name in
+                                  ("scene_camera", "scene_gt", "scene_gt_info", "scene_assembly")}
+        return self._scenes[step]
+
+    def image_ids(self, step: int) -> list[int]:
+        """Frames complete on disk (listed in every JSON file of the scene)."""
+        sc = self._scene(step)
+        ids = set(sc["scene_gt"]) & set(sc["scene_camera"]) & set(sc["scene_assembly"]["frames"])
+        return sorted(int(i) for i in ids)
+
+    def frame(self, step: int, im_id: int) -> Frame:
+        sc = self._scene(step)
+        key = str(im_id)
+        if key not in sc["scene_gt"]:
+            ids = self.image_ids(step)
+            raise DatasetError(f"{self.root}: step {step} has no frame {im_id}; frames are "
+                               f"{ids[0]}..{ids[-1]}" if ids else f"{self.root}: step {step} has no frames")
+        d = scene_dir(self.root, step)
+        cam = sc["scene_camera"][key]
+        K = np.asarray(cam["cam_K"], float).reshape(3, 3)
+        T_cam_world = _T_from_Rt(cam["cam_R_w2c"], cam["cam_t_w2c"])
+        T_world_camera = se3.inv(T_cam_world)
+        rgb_path = d / "rgb" / f"{im_id:06d}.jpg"
+        rgb = read_rgb(rgb_path if rgb_path.exists() else rgb_path.with_suffix(".png"))
+        depth = read_depth(d / "depth" / f"{im_id:06d}.png", cam["depth_scale"])
+        masks, poses = {}, {}
+        for i, gt in enumerate(sc["scene_gt"][key]):
+            pid = self.part_of_obj[gt["obj_id"]]
+            poses[pid] = T_world_camera @ _T_from_Rt(gt["cam_R_m2c"], gt["cam_t_m2c"])
+            mpath = d / "mask_visib" / f"{im_id:06d}_{i:06d}.png"
+            masks[pid] = _read_image(mpath, cv2.IMREAD_GRAYSCALE) > 127
+        asm = sc["scene_assembly"]
+        fr = asm["frames"][key]
+        return Frame(rgb=rgb, depth=depth, camera=CameraIntrinsics.from_K(K, rgb.shape[1], rgb.shape[0]),
+                     T_world_camera=T_world_camera, masks=masks, poses=poses, step=step, part=asm["part"],
+                     base=tuple(asm["base"]), T_base_part=np.asarray(asm["T_base_part"]),
+                     T_world_base=np.asarray(fr["T_world_base"]), T_world_part=np.asarray(fr["T_world_part"]),
+                     im_id=im_id, source=str(rgb_path))
+
+
+def load_capture(folder: str | Path) -> Frame:
+    """A real capture: rgb.png, depth.png (uint16) and camera.json (fx, fy, cx, cy, depth_scale [mm per
+    unit]; optional cam_R_w2c and cam_t_w2c [mm] giving the camera pose, else the camera is the world)."""
+    folder = Path(folder)
+    cam = read_json(folder / "camera.json")
+    missing = [k for k in ("fx", "fy", "cx", "cy", "depth_scale") if k not in cam]
+    if missing:
+        raise DatasetError(f"{folder / 'camera.json'}: missing {', '.join(missing)} "
+                           "(intrinsics in pixels; depth_scale = millimetres per depth unit, 1.0 for RealSense)")
+    rgb = read_rgb(folder / "rgb.png")
+    depth = read_depth(folder / "depth.png", float(cam["depth_scale"]))
+    if depth.shape != rgb.shape[:2]:
+        raise DatasetError(f"{folder}: depth.png is {depth.shape[1]}x{depth.shape[0]} but rgb.png is "
+                           f"{rgb.shape[1]}x{rgb.shape[0]}; align depth to colour first")
+    T_world_camera = np.eye(4)
+    if "cam_R_w2c" in cam and "cam_t_w2c" in cam:
+        T_world_camera = se3.inv(_T_from_Rt(cam["cam_R_w2c"], cam["cam_t_w2c"]))
+    intr = CameraIntrinsics(rgb.shape[1], rgb.shape[0], float(cam["fx"]), float(cam["fy"]),
+                            float(cam["cx"]), float(cam["cy"]))
+    return Frame(rgb=rgb, depth=depth, camera=intr, T_world_camera=T_world_camera, source=str(folder))
+
+
+def open_frames(path: str | Path):
+    """A Dataset for a rendered folder, or a single Frame for a real-capture folder."""
+    path = Path(path)
+    if (path / "dataset_info.json").is_file():
+        return Dataset(path)
+    if (path / "rgb.png").is_file():
+        return load_capture(path)
+    raise DatasetError(f"{path}: neither a dataset (dataset_info.json) nor a capture (rgb.png, depth.png, camera.json)")
+
+
+# ----------------------------------------------------------------------------------- writing
+
+
+@dataclass
+class AnnotatedObject:
+    """An object with ground truth in a frame; masks are kept only inside its image window."""
+
+    obj_id: int
+    T_world_obj: np.ndarray
+    visible: np.ndarray  # (v1-v0, u1-u0) bool
+    full: np.ndarray  # same shape: the object as if alone
+    window: tuple[int, int, int, int] | None  # (v0, v1, u0, u1); None when off-image
+
+    def paste(self, m: np.ndarray, shape) -> np.ndarray:
+        out = np.zeros(shape, np.uint8)
+        if self.window is not None:
+            v0, v1, u0, u1 = self.window
+            out[v0:v1, u0:u1] = m
+        return out
+
+    def bbox(self, m: np.ndarray) -> list[int]:
+        """BOP bbox [x, y, w, h] of a window mask in image coordinates; [-1]*4 when empty."""
+        if self.window is None or not m.any():
+            return [-1, -1, -1, -1]
+        rows, cols = np.flatnonzero(m.any(axis=1)), np.flatnonzero(m.any(axis=0))
+        v0, _, u0, _ = self.window
+        return [int(u0 + cols[0]), int(v0 + rows[0]), int(cols[-1] - cols[0] + 1), int(rows[-1] - rows[0] + 1)]
+
+
+class SceneWriter:
+    """Accumulates one BOP scene (= one assembly step) and keeps its JSON files in step with the images."""
+
+    def __init__(self, root: Path, step: int, view_info: dict):
+        self.dir = scene_dir(root, step)
+        for sub in ("rgb", "depth", "mask_visib"):
+            (self.dir / sub).mkdir(parents=True, exist_ok=True)
+        self.camera, self.gt, self.gt_info = {}, {}, {}
+        self.assembly = dict(view_info, frames={})
+
+    def write_images(self, im_id: int, rgb: np.ndarray, depth_m: np.ndarray, objects: list["AnnotatedObject"]) -> np.ndarray:
+        """Write one frame's images (thread-safe: touches only this frame's files); returns the uint16 depth."""
+        name = f"{im_id:06d}"
+        depth_u16 = np.clip(np.round(depth_m * (1000.0 / DEPTH_SCALE)), 0, 65535).astype(np.uint16)
+        # JPEG (quality 95) as in BOP's PBR sets: ~10x faster to encode than PNG for a noisy render
+        _imwrite(self.dir / "rgb" / f"{name}.jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 95])
+        _imwrite(self.dir / "depth" / f"{name}.png", depth_u16)
+        for i, o in enumerate(objects):
+            _imwrite(self.dir / "mask_visib" / f"{name}_{i:06d}.png", o.paste(o.visible, depth_u16.shape) * np.uint8(255))
+        return depth_u16
+
+    def record(self, im_id: int, cam: CameraIntrinsics, T_world_camera: np.ndarray, depth_u16: np.ndarray,
+               objects: list["AnnotatedObject"], extra: dict) -> None:
+        """List a frame whose images are on disk (BOP scene_camera, scene_gt, scene_gt_info entries)."""
+        T_cam_world = se3.inv(T_world_camera)
+        R, t = _Rt_from_T(T_cam_world)
+        self.camera[str(im_id)] = {"cam_K": cam.K.reshape(-1).tolist(), "depth_scale": DEPTH_SCALE,
+                                   "cam_R_w2c": R, "cam_t_w2c": t}
+        gts, infos = [], []
+        for o in objects:
+            R, t = _Rt_from_T(T_cam_world @ o.T_world_obj)
+            gts.append({"cam_R_m2c": R, "cam_t_m2c": t, "obj_id": o.obj_id})
+            n_all, n_vis = int(o.full.sum()), int(o.visible.sum())
+            valid = 0
+            if o.window is not None:
+                v0, v1, u0, u1 = o.window
+                valid = int((o.visible & (depth_u16[v0:v1, u0:u1] > 0)).sum())
+            infos.append({"bbox_obj": o.bbox(o.full), "bbox_visib": o.bbox(o.visible), "px_count_all": n_all,
+                          "px_count_valid": valid, "px_count_visib": n_vis,
+                          "visib_fract": n_vis / n_all if n_all else 0.0})
+        self.gt[str(im_id)], self.gt_info[str(im_id)] = gts, infos
+        self.assembly["frames"][str(im_id)] = {k: np.asarray(v).tolist() for k, v in extra.items()}
+
+    def flush(self) -> None:
+        write_json(self.dir / "scene_camera.json", self.camera)
+        write_json(self.dir / "scene_gt.json", self.gt)
+        write_json(self.dir / "scene_gt_info.json", self.gt_info)
+        write_json(self.dir / "scene_assembly.json", self.assembly)
+
+
+def _imwrite(path: Path, img: np.ndarray, params=(cv2.IMWRITE_PNG_COMPRESSION, 1)) -> None:
+    # fast PNG compression by default: renders are written far more often than they are read
+    if not cv2.imwrite(str(path), img, list(params)):
+        raise AposeError(f"{path}: could not write the image (disk full or no permission?)")
+
+
+def check_output_dir(out: Path, overwrite: bool) -> None:
+    """Refuse to mix a new render into an existing folder unless asked: nothing the user made is lost."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise AposeError(f"{out}: exists and is not a folder; choose another --out")
+    if out.is_dir() and any(out.iterdir()) and not overwrite:
+        raise AposeError(f"{out}: folder is not empty; choose another --out, or pass --overwrite to "
+                         "replace the dataset in it")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / ".apose-write-test"
+        probe.write_text("")
+        probe.unlink()
+    except OSError as e:
+        raise AposeError(f"{out}: cannot write here ({e.strerror}); choose another --out") from None
+
+
+def remove_previous_dataset(out: Path) -> None:
+    """With --overwrite: remove only what a previous render made (never other files)."""
+    import shutil
+
+    for name in ("test", "models"):
+        if (out / name).is_dir():
+            shutil.rmtree(out / name)
+    for name in ("dataset_info.json", "assembly.yaml", "camera.json"):
+        if (out / name).exists():
+            os.unlink(out / name)

@@ -1,0 +1,584 @@
+"""Synthetic RGB-D of assembly steps by ray casting (Open3D's RaycastingScene): no GUI, no GPU.
+
+A frame shows the base object of a step resting on a table (at a fixed or random pose), the part
+to place lying loose beside it, and optional distractor shapes; the camera sits on a hemisphere
+around the base (yaw, pitch, distance) and looks at it. Everything is in metres and OpenCV camera
+convention (x right, y down, z forward).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import trimesh
+
+from . import se3
+from .assembly import Assembly, StepView
+from .config import CameraIntrinsics
+from .errors import RenderError
+from .mesh import PartModel, base_mesh
+
+NOISE_MODELS = ("none", "gaussian", "realsense")
+BASE_POSES = ("yaw", "fixed")
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """What `apose render` varies. Angles in degrees, lengths in metres."""
+
+    frames: int = 10
+    seed: int = 0
+    noise: str = "none"
+    noise_sigma_at_05m: float = 0.001  # axial depth noise at 0.5 m; grows with z^2 (RealSense-like)
+    yaw_range_deg: tuple[float, float] = (0.0, 360.0)
+    pitch_range_deg: tuple[float, float] = (25.0, 75.0)  # camera elevation above the table
+    distance_range_m: tuple[float, float] | None = None  # None: chosen so the base fills 25-50 % of the image
+    base_pose: str = "yaw"
+    distractors: int = 2
+    camera: CameraIntrinsics = field(default_factory=CameraIntrinsics)
+
+    def validate(self) -> None:
+        def rng_ok(r, lo, hi, name, unit):
+            if r is None:
+                return
+            a, b = r
+            if not (lo <= a <= b <= hi) or (a == b and name != "distance"):
+                raise RenderError(f"--{name}-range {a:g},{b:g}: expected min,max with {lo:g} <= min "
+                                  f"{'<=' if name == 'distance' else '<'} max <= {hi:g} {unit}")
+        if self.frames < 1:
+            raise RenderError(f"--frames {self.frames}: expected at least 1 frame per step")
+        if self.noise not in NOISE_MODELS:
+            raise RenderError(f"--noise {self.noise}: expected one of {', '.join(NOISE_MODELS)}")
+        if self.base_pose not in BASE_POSES:
+            raise RenderError(f"--base-pose {self.base_pose}: expected one of {', '.join(BASE_POSES)}")
+        if not 0 <= self.noise_sigma_at_05m < 0.05:
+            raise RenderError(f"--noise-sigma {self.noise_sigma_at_05m}: expected metres at 0.5 m, in [0, 0.05)")
+        if self.distractors < 0:
+            raise RenderError("--distractors: expected 0 or more")
+        rng_ok(self.yaw_range_deg, -360, 720, "yaw", "degrees")
+        rng_ok(self.pitch_range_deg, 1, 90, "pitch", "degrees")
+        if self.distance_range_m is not None and self.distance_range_m[0] <= 0:
+            raise RenderError("--distance-range: expected positive distances in metres")
+        rng_ok(self.distance_range_m, 1e-3, 100, "distance", "m")
+
+
+@dataclass
+class SceneObject:
+    """One body in a rendered scene. `part` is the part id, or None for the table and distractors."""
+
+    part: str | None
+    mesh: trimesh.Trimesh  # in the object's own frame
+    T_world_obj: np.ndarray
+    color: tuple[float, float, float]
+
+
+@dataclass
+class Scene:
+    objects: list[SceneObject]  # bodies on the table; the table itself is the plane z = 0
+    T_world_base: np.ndarray  # pose of base[0]
+    base_centre: np.ndarray  # world point the camera looks at
+    base_diameter: float
+    table_color: tuple[float, float, float] = (0.6, 0.58, 0.55)
+    table_radius: float = 2.0  # the table is a disc of this radius around the base
+
+    @property
+    def table_label(self) -> int:
+        """Label of table pixels: one past the last object."""
+        return len(self.objects)
+
+
+@dataclass
+class RenderedFrame:
+    """A rendered view. depth in metres (0 = no return), labels index into the scene's objects."""
+
+    rgb: np.ndarray  # (H, W, 3) uint8
+    depth: np.ndarray  # (H, W) float32 metres, after noise; 0 where invalid
+    labels: np.ndarray  # (H, W) int32: index into scene.objects, -1 where nothing was hit
+    T_world_camera: np.ndarray
+    scene: Scene
+    hits: "Hits"
+    noise_seed: int = 0
+
+
+# --------------------------------------------------------------------------------- scene sampling
+
+
+def _resting_pose(mesh: trimesh.Trimesh, yaw: float, xy) -> np.ndarray:
+    """Pose that turns a mesh by `yaw` about z and sets it on the table (its lowest point at z = 0)."""
+    R = se3.axis_angle_matrix((0, 0, 1), yaw)
+    z_min = float((mesh.vertices @ R.T)[:, 2].min())
+    return se3.make_T(R, (xy[0], xy[1], -z_min))
+
+
+_DISTRACTORS: dict[float, list[trimesh.Trimesh]] = {}
+
+
+def distractor_pool(base_diameter: float) -> list[trimesh.Trimesh]:
+    """24 boxes, cylinders and balls sized for a base object, made once (their BVHs stay cached)."""
+    key = round(base_diameter, 6)
+    if key not in _DISTRACTORS:
+        rng = np.random.default_rng(7)
+        pool = []
+        for k in range(24):
+            size = base_diameter * rng.uniform(0.25, 0.5)
+            if k % 3 == 0:
+                pool.append(trimesh.creation.box(rng.uniform(0.4, 1.0, 3) * size))
+            elif k % 3 == 1:
+                pool.append(trimesh.creation.cylinder(radius=size * rng.uniform(0.2, 0.45),
+                                                      height=size * rng.uniform(0.4, 1.2), sections=24))
+            else:
+                pool.append(trimesh.creation.icosphere(subdivisions=2, radius=size * rng.uniform(0.2, 0.4)))
+        if len(_DISTRACTORS) > 16:
+            _DISTRACTORS.clear()
+        _DISTRACTORS[key] = pool
+    return _DISTRACTORS[key]
+
+
+def sample_scene(models: dict[str, PartModel], view: StepView, settings: RenderSettings,
+                 rng: np.random.Generator, base: trimesh.Trimesh | None = None) -> Scene:
+    """Base object on the table (fixed or random yaw and position), the loose part beside it, distractors."""
+    base = base if base is not None else base_mesh(models, view)
+    if settings.base_pose == "fixed":
+        T_world_base = _resting_pose(base, 0.0, (0.0, 0.0))
+    else:
+        T_world_base = _resting_pose(base, rng.uniform(0, 2 * np.pi), rng.uniform(-0.1, 0.1, 2))
+    base_world = se3.transform_points(T_world_base, base.vertices)
+    centre = (base_world.min(axis=0) + base_world.max(axis=0)) / 2
+    base_d = float(np.linalg.norm(base.extents))
+    objects = [SceneObject(pid, models[pid].mesh, T_world_base @ T, models[pid].color)
+               for pid, T in view.T_base_members.items()]
+
+    placed = [(centre[:2], base_d / 2)]  # discs already taken on the table
+
+    def free_spot(radius: float) -> np.ndarray:
+        for _ in range(100):
+            ang, dist = rng.uniform(0, 2 * np.pi), rng.uniform(1.05, 1.6) * (base_d / 2 + radius)
+            xy = centre[:2] + dist * np.array([math.cos(ang), math.sin(ang)])
+            if all(np.linalg.norm(xy - c) > r + radius for c, r in placed):
+                placed.append((xy, radius))
+                return xy
+        return centre[:2] + np.array([3 * base_d + 3 * radius, 0.0])  # crowded: far away
+
+    part = models[view.part]
+    loose_r = float(np.linalg.norm(part.mesh.extents[:2])) / 2
+    objects.append(SceneObject(view.part, part.mesh, _resting_pose(part.mesh, rng.uniform(0, 2 * np.pi),
+                                                                     free_spot(loose_r)), part.color))
+    pool = distractor_pool(base_d)
+    for _ in range(settings.distractors):
+        mesh = pool[rng.integers(len(pool))]
+        r = float(np.linalg.norm(mesh.extents[:2])) / 2
+        color = tuple(float(c) for c in rng.uniform(0.15, 0.95, 3))
+        objects.append(SceneObject(None, mesh, _resting_pose(mesh, rng.uniform(0, 2 * np.pi), free_spot(r)), color))
+    grey = float(rng.uniform(0.45, 0.75))
+    return Scene(objects, T_world_base, centre, base_d, (grey, grey * 0.97, grey * 0.92), max(2.0, 20 * base_d))
+
+
+def auto_distance_range(base_diameter: float, cam: CameraIntrinsics) -> tuple[float, float]:
+    """Distances at which the base object fills 50 % down to 25 % of the image's short side."""
+    side = min(cam.width / cam.fx, cam.height / cam.fy)  # tan-extent of the short side at z = 1
+    return base_diameter / (0.5 * side), base_diameter / (0.25 * side)
+
+
+def sample_camera(rng: np.random.Generator, target: np.ndarray, settings: RenderSettings,
+                  base_diameter: float) -> np.ndarray:
+    """T_world_camera on the hemisphere around `target`, looking at it."""
+    yaw = math.radians(rng.uniform(*settings.yaw_range_deg))
+    pitch = math.radians(rng.uniform(*settings.pitch_range_deg))
+    lo, hi = settings.distance_range_m or auto_distance_range(base_diameter, settings.camera)
+    dist = rng.uniform(lo, hi)
+    eye = target + dist * np.array([math.cos(pitch) * math.cos(yaw), math.cos(pitch) * math.sin(yaw), math.sin(pitch)])
+    return se3.look_at(eye, target)
+
+
+# --------------------------------------------------------------------------------- ray casting
+
+
+class RayGrid:
+    """Per-pixel camera-frame ray directions with z = 1, so a hit's t is its depth. Pixel (u, v) at its centre."""
+
+    def __init__(self, cam: CameraIntrinsics):
+        self.cam = cam
+        u, v = np.meshgrid(np.arange(cam.width, dtype=np.float32), np.arange(cam.height, dtype=np.float32))
+        self.dirs = np.stack([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, np.ones_like(u)], axis=-1)
+
+    def rays(self, T_frame_camera: np.ndarray, window=None) -> np.ndarray:
+        """(h, w, 6) rays in some frame, for the whole image or a window (v0, v1, u0, u1)."""
+        d = self.dirs if window is None else self.dirs[window[0]:window[1], window[2]:window[3]]
+        R, t = T_frame_camera[:3, :3].astype(np.float32), T_frame_camera[:3, 3].astype(np.float32)
+        out = np.empty(d.shape[:2] + (6,), np.float32)
+        out[..., :3] = t
+        out[..., 3:] = d @ R.T
+        return out
+
+
+class _Body:
+    """A mesh prepared once for ray casting and shading: its BVH in its own frame and plain arrays."""
+
+    def __init__(self, mesh: trimesh.Trimesh):
+        import open3d as o3d
+
+        self.mesh = mesh  # keeps id(mesh) valid while cached
+        v = np.asarray(mesh.vertices, dtype=np.float64)
+        f = np.asarray(mesh.faces, dtype=np.int64)
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)), o3d.core.Tensor(f.astype(np.uint32)))
+        self.normals = np.asarray(mesh.face_normals, dtype=np.float64)
+        self.first = v[f[:, 0]]
+        lo, hi = v.min(axis=0), v.max(axis=0)
+        self.corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        self.n_faces = len(f)
+
+
+_BODIES: dict[int, _Body] = {}
+
+
+def _body(mesh: trimesh.Trimesh) -> _Body:
+    b = _BODIES.get(id(mesh))
+    if b is None or b.mesh is not mesh:
+        if len(_BODIES) > 256:  # bounded: a long session may see many assemblies
+            _BODIES.clear()
+        b = _BODIES[id(mesh)] = _Body(mesh)
+    return b
+
+
+def _pixel_window(corners: np.ndarray, T_cam_obj: np.ndarray, cam: CameraIntrinsics):
+    """(v0, v1, u0, u1) pixel box holding the projection of a body's box corners; None when off-image.
+
+    The whole image when the box reaches behind the camera.
+    """
+    p = se3.transform_points(T_cam_obj, corners)
+    if np.any(p[:, 2] <= 1e-6):
+        return 0, cam.height, 0, cam.width
+    u = cam.fx * p[:, 0] / p[:, 2] + cam.cx
+    v = cam.fy * p[:, 1] / p[:, 2] + cam.cy
+    u0, u1 = int(max(0, np.floor(u.min()))), int(min(cam.width, np.ceil(u.max()) + 1))
+    v0, v1 = int(max(0, np.floor(v.min()))), int(min(cam.height, np.ceil(v.max()) + 1))
+    return (v0, v1, u0, u1) if v1 > v0 and u1 > u0 else None
+
+
+@dataclass
+class Hits:
+    depth: np.ndarray  # (H, W) float32 metres, 0 where no hit
+    labels: np.ndarray  # (H, W) int32 index into the scene's objects, scene.table_label, or -1 (no hit)
+    primitive_ids: np.ndarray  # (H, W) int32 triangle index within the object hit, 0 elsewhere
+    windows: dict[int, tuple[tuple[int, int, int, int], np.ndarray]]  # object -> (window, its full mask there)
+
+    def object_stats(self, i: int) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int, int] | None]:
+        """(visible mask within the window, full mask within the window, window) of object i."""
+        if i not in self.windows:
+            return np.zeros((0, 0), bool), np.zeros((0, 0), bool), None
+        (v0, v1, u0, u1), full = self.windows[i]
+        return self.labels[v0:v1, u0:u1] == i, full, (v0, v1, u0, u1)
+
+    def full_mask(self, i: int) -> np.ndarray:
+        """Object i's mask as if alone in the scene (BOP's mask, for px_count_all)."""
+        out = np.zeros(self.labels.shape, bool)
+        if i in self.windows:
+            (v0, v1, u0, u1), m = self.windows[i]
+            out[v0:v1, u0:u1] = m
+        return out
+
+
+def cast(scene: Scene, grid: RayGrid, T_world_camera: np.ndarray) -> Hits:
+    """One ray per pixel, nearest hit wins. Each body is cast alone, in its own frame against its
+    cached BVH, over its image box only; that also yields its unoccluded mask. The table is the plane
+    z = 0, intersected in closed form where no body was hit (bodies stand on it, so are always nearer).
+    """
+    import open3d as o3d
+
+    cam = grid.cam
+    T_cam_world = se3.inv(T_world_camera)
+    depth = np.full((cam.height, cam.width), np.inf, np.float32)
+    labels = np.full((cam.height, cam.width), -1, np.int32)
+    prims = np.zeros((cam.height, cam.width), np.int32)
+    windows = {}
+    for i, o in enumerate(scene.objects):
+        body = _body(o.mesh)
+        w = _pixel_window(body.corners, T_cam_world @ o.T_world_obj, cam)
+        if w is None:
+            continue
+        rays = grid.rays(se3.inv(o.T_world_obj) @ T_world_camera, w)  # rigid: t along the ray is unchanged
+        hit = body.scene.cast_rays(o3d.core.Tensor(rays), nthreads=0)
+        t = hit["t_hit"].numpy()
+        found = np.isfinite(t)
+        windows[i] = (w, found)
+        sl = (slice(w[0], w[1]), slice(w[2], w[3]))
+        nearer = found & (t < depth[sl])
+        depth[sl][nearer] = t[nearer]
+        labels[sl][nearer] = i
+        prims[sl][nearer] = hit["primitive_ids"].numpy().view(np.int32)[nearer]
+    miss = labels < 0
+    R, o_z = T_world_camera[:3, :3].astype(np.float32), np.float32(T_world_camera[2, 3])
+    dz = grid.dirs[..., 0] * R[2, 0] + grid.dirs[..., 1] * R[2, 1] + R[2, 2]  # world z per unit depth
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_table = -o_z / dz
+    on = miss & (dz < 0) & (t_table < scene.table_radius)
+    labels[on] = scene.table_label
+    depth[miss] = 0.0
+    depth[on] = t_table[on]
+    return Hits(depth, labels, prims, windows)
+
+
+# --------------------------------------------------------------------------------- appearance and noise
+
+
+def shade(hit: "Hits", scene: Scene, T_world_camera: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Flat Lambert shading with a random key light, ambient and a weak headlight; slight sensor noise.
+
+    Computed only for the pixels each body covers, from its face normals (flat shading).
+    """
+    elev, azim = rng.uniform(0.5, 1.4), rng.uniform(0, 2 * np.pi)
+    light = np.array([math.cos(elev) * math.cos(azim), math.cos(elev) * math.sin(azim), math.sin(elev)])
+    ambient, key, gain = rng.uniform(0.25, 0.4), rng.uniform(0.55, 0.85), rng.uniform(0.85, 1.1)
+    eye = T_world_camera[:3, 3]
+    rgb = np.empty(hit.labels.shape + (3,), np.float32)
+    rgb[:] = (0.08, 0.08, 0.1)  # background
+    table_lit = ambient + key * max(light[2], 0.0) + 0.2 * max(float(-T_world_camera[2, 2]), 0.0)
+    rgb[hit.labels == scene.table_label] = np.asarray(scene.table_color) * table_lit
+    for i, o in enumerate(scene.objects):
+        if i not in hit.windows:
+            continue
+        (v0, v1, u0, u1), _ = hit.windows[i]
+        lab = hit.labels[v0:v1, u0:u1]
+        sel = lab == i
+        if not sel.any():
+            continue
+        # per hit pixel, in the object's frame with its cached face normals
+        body = _body(o.mesh)
+        faces = hit.primitive_ids[v0:v1, u0:u1][sel]
+        R, t = o.T_world_obj[:3, :3], o.T_world_obj[:3, 3]
+        n = body.normals[faces]
+        to_eye = R.T @ (eye - t) - body.first[faces]
+        facing = np.einsum("ij,ij->i", n, to_eye)
+        sign = np.where(facing < 0, -1.0, 1.0)  # light the side that faces the camera
+        lit = (ambient + key * np.clip(sign * (n @ (R.T @ light)), 0, None)
+               + 0.2 * np.abs(facing) / np.maximum(np.linalg.norm(to_eye, axis=1), 1e-20))
+        block = rgb[v0:v1, u0:u1]
+        block[sel] = np.asarray(o.color, np.float32)[None, :] * lit[:, None].astype(np.float32)
+    rgb = (np.clip(rgb * gain, 0, 1) * 255 + 0.5).astype(np.int16)
+    h, w = rgb.shape[:2]
+    dv, du = rng.integers(0, 64, 2)  # sensor noise: a random window of a fixed noise texture
+    rgb += _noise_texture(h, w)[dv:dv + h, du:du + w, None]
+    return np.clip(rgb, 0, 255).astype(np.uint8)
+
+
+_NOISE: dict[tuple[int, int], np.ndarray] = {}
+
+
+def _noise_texture(h: int, w: int) -> np.ndarray:
+    if (h, w) not in _NOISE:
+        _NOISE[(h, w)] = np.round(np.random.default_rng(12345).normal(0, 3.0, (h + 64, w + 64))).astype(np.int16)
+    return _NOISE[(h, w)]
+
+
+def add_depth_noise(depth: np.ndarray, model: str, sigma_at_05m: float, rng: np.random.Generator,
+                    fx: float = 615.0) -> np.ndarray:
+    """Depth noise, metres in and out; 0 stays 0.
+
+    gaussian: axial N(0, sigma(z)), sigma(z) = sigma_at_05m * (z / 0.5)^2 (stereo error grows with z^2).
+    realsense: that, plus dropouts at depth edges (stereo matching fails at occlusion borders), a few
+    random holes, and quantisation in disparity (baseline 50 mm, 1/12-pixel subpixel steps).
+    """
+    if model == "none":
+        return depth
+    z = depth
+    valid = z > 0
+    noisy = z + rng.standard_normal(z.shape, dtype=np.float32) * np.float32(sigma_at_05m / 0.25) * z * z
+    if model == "realsense":
+        jump = np.zeros_like(z)
+        jump[:, :-1] = np.abs(np.diff(z, axis=1))
+        jump[:, 1:] = np.maximum(jump[:, 1:], jump[:, :-1])
+        dv = np.abs(np.diff(z, axis=0))
+        jump[:-1] = np.maximum(jump[:-1], dv)
+        jump[1:] = np.maximum(jump[1:], dv)
+        edge = jump > np.maximum(0.004, 0.02 * z)
+        u = rng.random(z.shape, dtype=np.float32)
+        drop = (edge & (u < 0.6)) | (u > 0.998)
+        fb, subpixel = np.float32(fx * 0.05), np.float32(1.0 / 12)  # baseline 50 mm, 1/12 px disparity steps
+        disparity = np.round(fb / np.maximum(noisy, 1e-6) / subpixel) * subpixel
+        noisy = fb / np.maximum(disparity, 1e-6)
+        valid &= ~drop
+    return np.where(valid & (noisy > 0), noisy, 0.0).astype(np.float32)
+
+
+# --------------------------------------------------------------------------------- one frame
+
+
+def render_frame(models: dict[str, PartModel], view: StepView, settings: RenderSettings, grid: RayGrid,
+                 rng: np.random.Generator, base: trimesh.Trimesh | None = None, noise: bool = True) -> RenderedFrame:
+    """One view of a step. With noise=False the depth is clean and `noisy_depth(frame, settings)` adds
+    the noise later (the dataset writer does that in its threads); the result is the same either way."""
+    scene = sample_scene(models, view, settings, rng, base)
+    T_world_camera = sample_camera(rng, scene.base_centre, settings, scene.base_diameter)
+    hit = cast(scene, grid, T_world_camera)
+    rgb = shade(hit, scene, T_world_camera, rng)
+    frame = RenderedFrame(rgb, hit.depth, hit.labels, T_world_camera, scene, hit, int(rng.integers(2**62)))
+    if noise:
+        frame.depth = noisy_depth(frame, settings)
+    return frame
+
+
+def noisy_depth(frame: RenderedFrame, settings: RenderSettings) -> np.ndarray:
+    return add_depth_noise(frame.hits.depth, settings.noise, settings.noise_sigma_at_05m,
+                           np.random.default_rng(frame.noise_seed), settings.camera.fx)
+
+
+def step_numbers(asm: Assembly, steps: list[int] | None) -> list[int]:
+    """Validate a user's step list (1-based) against the assembly."""
+    if not asm.steps:
+        raise RenderError(f"{asm.path}: the assembly has no steps to render")
+    if not steps:
+        return list(range(1, len(asm.steps) + 1))
+    bad = [s for s in steps if not 1 <= s <= len(asm.steps)]
+    if bad:
+        raise RenderError(f"--steps: step {bad[0]} does not exist; {asm.name} has steps 1..{len(asm.steps)}")
+    return sorted(set(steps))
+
+
+# --------------------------------------------------------------------------------- whole datasets
+
+
+def _models_info(model: PartModel) -> dict:
+    """BOP models_info entry (millimetres)."""
+    lo, hi = model.aabb * 1000.0
+    info = {"diameter": model.diameter * 1000.0, "min_x": lo[0], "min_y": lo[1], "min_z": lo[2],
+            "size_x": hi[0] - lo[0], "size_y": hi[1] - lo[1], "size_z": hi[2] - lo[2]}
+    return {k: float(v) for k, v in info.items()}
+
+
+def _symmetry_info(part, model: PartModel) -> dict:
+    if part.symmetry is None:
+        return {}
+    if part.symmetry.order == 0:
+        return {"symmetries_continuous": [{"axis": list(part.symmetry.axis),
+                                           "offset": [v * 1000.0 for v in part.symmetry.origin]}]}
+    out = []
+    for S in model.symmetries[1:]:
+        S = S.copy()
+        S[:3, 3] *= 1000.0
+        out.append(S.reshape(-1).tolist())
+    return {"symmetries_discrete": out}
+
+
+def write_models(asm: Assembly, models: dict[str, PartModel], out) -> tuple[dict[str, int], Assembly]:
+    """models/ in BOP form and the assembly rewritten to point at them (units mm)."""
+    from dataclasses import replace
+    from pathlib import Path
+
+    from .assembly import save_assembly
+    from .dataset import write_json
+
+    mdir = Path(out) / "models"
+    mdir.mkdir(parents=True, exist_ok=True)
+    obj_ids, infos, parts = {}, {}, {}
+    for i, (pid, part) in enumerate(asm.parts.items(), start=1):
+        obj_ids[pid] = i
+        path = mdir / f"obj_{i:06d}.ply"
+        mm = models[pid].mesh.copy()
+        mm.apply_scale(1000.0)
+        path.write_bytes(mm.export(file_type="ply"))
+        infos[str(i)] = {**_models_info(models[pid]), **_symmetry_info(part, models[pid])}
+        parts[pid] = replace(part, mesh=path.resolve())
+    write_json(mdir / "models_info.json", infos)
+    ds_asm = replace(asm, units="mm", parts=parts)
+    save_assembly(ds_asm, Path(out) / "assembly.yaml")
+    return obj_ids, ds_asm
+
+
+def render_dataset(asm: Assembly, out, settings: RenderSettings, steps: list[int] | None = None,
+                   overwrite: bool = False, progress: bool = True, models: dict[str, PartModel] | None = None) -> dict:
+    """Render `settings.frames` views of every chosen step into a BOP-layout dataset at `out`.
+
+    Returns a summary {"frames": n, "seconds": s, "fps": f, "setup_seconds": s0}: frames/s over the
+    frame loop; loading parts and writing models/ is setup. An interrupt (Ctrl-C) stops after the
+    frame in hand; every frame already listed in the JSON files is complete on disk.
+    """
+    import time
+    from concurrent.futures import ThreadPoolExecutor
+    from pathlib import Path
+
+    from tqdm import tqdm
+
+    from .dataset import FORMAT, AnnotatedObject, SceneWriter, check_output_dir, remove_previous_dataset, write_json
+    from .mesh import load_parts
+
+    t_setup = time.perf_counter()
+    settings.validate()
+    numbers = step_numbers(asm, steps)
+    out = Path(out)
+    check_output_dir(out, overwrite)
+    remove_previous_dataset(out)
+    models = models or load_parts(asm)
+    obj_ids, _ = write_models(asm, models, out)
+    cam = settings.camera
+    write_json(out / "camera.json", {"cx": cam.cx, "cy": cam.cy, "depth_scale": 0.1, "fx": cam.fx, "fy": cam.fy,
+                                     "height": cam.height, "width": cam.width})
+    info = {"format": FORMAT, "assembly": asm.name, "source_assembly": str(asm.path) if asm.path else None,
+            "obj_ids": obj_ids, "steps_rendered": numbers, "units_of_apose_files": "m",
+            "settings": {"frames": settings.frames, "seed": settings.seed, "noise": settings.noise,
+                         "noise_sigma_at_05m": settings.noise_sigma_at_05m, "base_pose": settings.base_pose,
+                         "yaw_range_deg": list(settings.yaw_range_deg),
+                         "pitch_range_deg": list(settings.pitch_range_deg),
+                         "distance_range_m": list(settings.distance_range_m) if settings.distance_range_m else "auto",
+                         "distractors": settings.distractors}}
+    write_json(out / "dataset_info.json", info)
+
+    grid = RayGrid(cam)
+    total = len(numbers) * settings.frames
+    bar = tqdm(total=total, unit="frame", desc=f"render {asm.name}", disable=not progress, leave=False)
+    t0, done = time.perf_counter(), 0
+    pool = ThreadPoolExecutor(2)  # PNG encoding releases the GIL: overlaps the next frame's casting
+    pending: list = []  # (writer, future of the images, what to record once they are on disk)
+
+    def settle(keep: int) -> None:
+        """Record finished frames in order, keeping at most `keep` in flight."""
+        while len(pending) > keep:
+            w, fut, args = pending.pop(0)
+            w.record(args[0], args[1], args[2], fut.result(), *args[3:])
+
+    writer = None
+    try:
+        for number in numbers:
+            view = asm.step_view(number)
+            base = base_mesh(models, view)
+            writer = SceneWriter(out, number, {
+                "step": number, "part": view.part, "base": list(view.base),
+                "part_obj_id": obj_ids[view.part], "base_obj_ids": [obj_ids[p] for p in view.base],
+                "T_base_part": view.T_base_part.tolist()})
+            for im_id in range(settings.frames):
+                rng = np.random.default_rng([settings.seed, number, im_id])
+                fr = render_frame(models, view, settings, grid, rng, base, noise=False)
+                annotated = [i for i, o in enumerate(fr.scene.objects) if o.part is not None]
+                objects = [AnnotatedObject(obj_ids[fr.scene.objects[i].part], fr.scene.objects[i].T_world_obj,
+                                           *fr.hits.object_stats(i)) for i in annotated]
+                extra = {"T_world_base": fr.scene.T_world_base,
+                         "T_world_part": fr.scene.T_world_base @ view.T_base_part,
+                         "T_world_camera": fr.T_world_camera}
+                fut = pool.submit(lambda w, i, f, objs: w.write_images(i, f.rgb, noisy_depth(f, settings), objs),
+                                  writer, im_id, fr, objects)
+                pending.append((writer, fut, (im_id, cam, fr.T_world_camera, objects, extra)))
+                settle(keep=4)
+                if im_id % 25 == 24:
+                    settle(keep=0)
+                    writer.flush()
+                done += 1
+                bar.update(1)
+            settle(keep=0)
+            writer.flush()
+    finally:
+        try:
+            for w, fut, args in pending:  # an interrupt: keep every frame whose images made it to disk
+                try:
+                    w.record(args[0], args[1], args[2], fut.result(), *args[3:])
+                except Exception:
+                    pass
+            if writer is not None:
+                writer.flush()
+        finally:
+            pool.shutdown(wait=True)
+            bar.close()
+    seconds = time.perf_counter() - t0
+    return {"frames": done, "seconds": seconds, "fps": done / seconds if seconds > 0 else float("inf"),
+            "setup_seconds": t0 - t_setup}

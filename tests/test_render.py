@@ -1,0 +1,234 @@
+"""Rendering and the BOP dataset: geometry is exact, files load, bad input is refused clearly."""
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from apose_studio import se3
+from apose_studio.assembly import load_assembly
+from apose_studio.config import CameraIntrinsics
+from apose_studio.dataset import Dataset, load_capture, open_frames
+from apose_studio.errors import AposeError, DatasetError, RenderError
+from apose_studio.mesh import load_parts
+from apose_studio.render import RenderSettings, add_depth_noise, render_dataset
+
+from .conftest import SAMPLES
+
+SMALL_CAM = CameraIntrinsics(320, 240, 300.0, 300.0, 160.0, 120.0)
+
+
+def surface_distance(mesh, pts):
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(mesh.vertices.astype(np.float32)), o3d.core.Tensor(mesh.faces.astype(np.uint32)))
+    return scene.compute_distance(o3d.core.Tensor(pts.astype(np.float32))).numpy()
+
+
+def back_project(frame, mask):
+    vs, us = np.nonzero(mask & (frame.depth > 0))
+    z = frame.depth[vs, us]
+    K = frame.K
+    pc = np.stack([(us - K[0, 2]) * z / K[0, 0], (vs - K[1, 2]) * z / K[1, 1], z], axis=1)
+    return se3.transform_points(frame.T_world_camera, pc)
+
+
+@pytest.fixture(scope="module")
+def planetary():
+    asm = load_assembly(SAMPLES / "planetary_reducer" / "assembly.yaml")
+    return asm, load_parts(asm)
+
+
+@pytest.fixture(scope="module")
+def planetary_ds(planetary, tmp_path_factory):
+    asm, models = planetary
+    out = tmp_path_factory.mktemp("ds") / "planetary"
+    render_dataset(asm, out, RenderSettings(frames=3, seed=1, camera=SMALL_CAM), progress=False, models=models)
+    return Dataset(out), models
+
+
+def test_back_projected_depth_lands_on_the_right_part(planetary_ds):
+    ds, models = planetary_ds
+    assert ds.steps == [1, 2, 3, 4]
+    checked = 0
+    for step in ds.steps:
+        for im_id in ds.image_ids(step):
+            f = ds.frame(step, im_id)
+            for pid, mask in f.masks.items():
+                if mask.sum() < 20:
+                    continue
+                pts = se3.transform_points(se3.inv(f.poses[pid]), back_project(f, mask))
+                d = surface_distance(models[pid].mesh, pts)
+                assert d.max() < 1e-4, (step, im_id, pid, d.max())  # depth is stored in 0.1 mm steps
+                checked += 1
+    assert checked >= 20
+
+
+def test_frames_are_consistent(planetary_ds):
+    ds, _ = planetary_ds
+    f = ds.frame(3, 1)
+    assert f.rgb.shape == (240, 320, 3) and f.depth.shape == (240, 320) and f.depth.dtype == np.float32
+    np.testing.assert_allclose(f.K, SMALL_CAM.K)
+    assert f.part == "carrier" and f.base == ("housing", "motor", "sun_gear")
+    np.testing.assert_allclose(f.T_world_part, f.T_world_base @ f.T_base_part, atol=1e-9)
+    np.testing.assert_allclose(f.poses["housing"], f.T_world_base, atol=1e-6)  # base[0] is the housing
+    # masks: inside the depth, disjoint, base mask is their union
+    masks = list(f.masks.values())
+    assert all(np.all(f.depth[m] > 0) for m in masks)
+    assert sum(m.astype(int) for m in masks).max() <= 1
+    assert f.base_mask().sum() == sum(f.masks[p].sum() for p in f.base)
+    # the camera looks at the base: the base is near the image centre and in front of the camera
+    p_cam = se3.transform_points(se3.inv(f.T_world_camera), f.T_world_base[None, :3, 3])[0]
+    assert p_cam[2] > 0
+
+
+def test_bop_files(planetary_ds):
+    ds, models = planetary_ds
+    root = ds.root
+    info = json.loads((root / "models" / "models_info.json").read_text())
+    assert set(info) == {"1", "2", "3", "4", "5"}
+    assert info["1"]["diameter"] == pytest.approx(models["motor"].diameter * 1000)
+    cam = json.loads((root / "camera.json").read_text())
+    assert cam["width"] == 320 and cam["depth_scale"] == 0.1
+    sc = root / "test" / "000002"
+    gt = json.loads((sc / "scene_gt.json").read_text())
+    gt_info = json.loads((sc / "scene_gt_info.json").read_text())
+    scam = json.loads((sc / "scene_camera.json").read_text())
+    assert set(gt) == set(gt_info) == set(scam) == {"0", "1", "2"}
+    assert {g["obj_id"] for g in gt["0"]} == {1, 2, 3}  # motor, sun gear (base), housing (loose)
+    for entry in gt_info["0"]:
+        assert 0.0 <= entry["visib_fract"] <= 1.0 and entry["px_count_visib"] <= entry["px_count_all"]
+        assert entry["px_count_valid"] <= entry["px_count_visib"]
+    import cv2
+    for i, entry in enumerate(gt_info["1"]):
+        m = cv2.imread(str(sc / "mask_visib" / f"000001_{i:06d}.png"), cv2.IMREAD_GRAYSCALE) > 0
+        assert m.sum() == entry["px_count_visib"]
+        if m.any():
+            x, y, w, h = entry["bbox_visib"]
+            ys, xs = np.nonzero(m)
+            assert (x, y, w, h) == (xs.min(), ys.min(), xs.max() - xs.min() + 1, ys.max() - ys.min() + 1)
+    # the occluded sun gear: once the housing is on (step 3 base), the ring hides much of it
+    fracs = [e["visib_fract"] for fid, es in json.loads((root / "test" / "000003" / "scene_gt_info.json").read_text()).items()
+             for g, e in zip(json.loads((root / "test" / "000003" / "scene_gt.json").read_text())[fid], es) if g["obj_id"] == 2]
+    assert min(fracs) < 0.5 and np.mean(fracs) < 0.8
+
+
+def test_same_seed_same_data_fixed_vs_yaw(planetary, tmp_path):
+    asm, models = planetary
+    s = RenderSettings(frames=2, seed=5, camera=SMALL_CAM, noise="realsense")
+    a, b, c = tmp_path / "a", tmp_path / "b", tmp_path / "c"
+    for out, seed in ((a, 5), (b, 5), (c, 6)):
+        render_dataset(asm, out, replace(s, seed=seed), steps=[1], progress=False, models=models)
+    fa, fb, fc = (Dataset(p).frame(1, 1) for p in (a, b, c))
+    np.testing.assert_array_equal(fa.depth, fb.depth)
+    np.testing.assert_array_equal(fa.rgb, fb.rgb)
+    assert not np.array_equal(fa.depth, fc.depth)
+    # fixed: the base stays put, only the camera moves; yaw: the base moves
+    render_dataset(asm, tmp_path / "fixed", replace(s, base_pose="fixed", frames=3), steps=[1], progress=False, models=models)
+    ds = Dataset(tmp_path / "fixed")
+    poses = [ds.frame(1, i).T_world_base for i in range(3)]
+    cams = [ds.frame(1, i).T_world_camera for i in range(3)]
+    assert all(np.allclose(p, poses[0]) for p in poses) and not np.allclose(cams[0], cams[1])
+    yaw = [Dataset(a).frame(1, i).T_world_base for i in range(2)]
+    assert not np.allclose(yaw[0], yaw[1])
+
+
+def test_depth_noise_models():
+    rng = np.random.default_rng(0)
+    flat = np.full((200, 200), 0.5, np.float32)
+    assert add_depth_noise(flat, "none", 0.001, rng) is flat
+    s05 = np.std(add_depth_noise(flat, "gaussian", 0.001, rng) - flat)
+    s10 = np.std(add_depth_noise(flat * 2, "gaussian", 0.001, rng) - flat * 2)
+    assert s05 == pytest.approx(0.001, rel=0.05) and s10 / s05 == pytest.approx(4.0, rel=0.1)  # grows with z^2
+    step = flat.copy()
+    step[:, 100:] = 0.8  # a depth edge
+    rs = add_depth_noise(step, "realsense", 0.0, rng, fx=615.0)
+    edge_drop = np.mean(rs[:, 99:101] == 0)
+    assert 0.4 < edge_drop < 0.8 and np.mean(rs[:, :90] == 0) < 0.01
+    assert len(np.unique(rs[rs > 0])) <= 3  # disparity quantisation: a flat depth keeps a few levels
+
+
+def test_bad_inputs_are_refused(planetary, tmp_path):
+    asm, models = planetary
+    ok = RenderSettings(frames=1, camera=SMALL_CAM)
+    with pytest.raises(RenderError, match="step 9 does not exist; planetary_reducer has steps 1..4"):
+        render_dataset(asm, tmp_path / "x", ok, steps=[9], progress=False, models=models)
+    with pytest.raises(RenderError, match="--pitch-range 40,40: expected min,max"):
+        render_dataset(asm, tmp_path / "x", replace(ok, pitch_range_deg=(40, 40)), progress=False, models=models)
+    with pytest.raises(RenderError, match="--frames 0"):
+        render_dataset(asm, tmp_path / "x", replace(ok, frames=0), progress=False, models=models)
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    with pytest.raises(AposeError, match="exists and is not a folder"):
+        render_dataset(asm, blocker, ok, progress=False, models=models)
+    full = tmp_path / "full"
+    full.mkdir()
+    (full / "mine.txt").write_text("precious")
+    with pytest.raises(AposeError, match="folder is not empty; .* --overwrite"):
+        render_dataset(asm, full, ok, progress=False, models=models)
+    render_dataset(asm, full, ok, steps=[1], overwrite=True, progress=False, models=models)
+    assert (full / "mine.txt").read_text() == "precious"  # --overwrite replaces only the dataset
+    with pytest.raises(AposeError, match="cannot write here"):  # a file where a folder must go
+        render_dataset(asm, blocker / "ds", ok, progress=False, models=models)
+
+
+def test_interrupted_render_leaves_finished_frames_readable(planetary, tmp_path, monkeypatch):
+    import apose_studio.render as R
+
+    asm, models = planetary
+    real, calls = R.render_frame, []
+
+    def flaky(*a, **k):
+        calls.append(1)
+        if len(calls) == 4:
+            raise KeyboardInterrupt
+        return real(*a, **k)
+    monkeypatch.setattr(R, "render_frame", flaky)
+    with pytest.raises(KeyboardInterrupt):
+        render_dataset(asm, tmp_path / "ds", RenderSettings(frames=10, camera=SMALL_CAM), steps=[2], progress=False, models=models)
+    ds = Dataset(tmp_path / "ds")
+    assert ds.image_ids(2) == [0, 1, 2]
+    assert ds.frame(2, 2).depth.max() > 0
+
+
+def test_reader_errors(planetary_ds, tmp_path):
+    ds, _ = planetary_ds
+    with pytest.raises(DatasetError, match="step 2 has no frame 99; frames are 0..2"):
+        ds.frame(2, 99)
+    with pytest.raises(DatasetError, match="not an apose dataset"):
+        Dataset(tmp_path)
+
+
+def test_real_capture_folder(tmp_path):
+    import cv2
+
+    rgb = np.zeros((48, 64, 3), np.uint8)
+    rgb[..., 0] = 200
+    depth = np.full((48, 64), 500, np.uint16)  # 500 mm at depth_scale 1.0
+    cv2.imwrite(str(tmp_path / "rgb.png"), rgb[..., ::-1])
+    cv2.imwrite(str(tmp_path / "depth.png"), depth)
+    (tmp_path / "camera.json").write_text(json.dumps({"fx": 60, "fy": 60, "cx": 32, "cy": 24, "depth_scale": 1.0}))
+    f = open_frames(tmp_path)
+    assert f.rgb[0, 0, 0] == 200 and f.depth[0, 0] == pytest.approx(0.5)
+    assert f.camera.width == 64 and np.allclose(f.T_world_camera, np.eye(4)) and f.masks == {}
+    (tmp_path / "camera.json").write_text(json.dumps({"fx": 60}))
+    with pytest.raises(DatasetError, match="missing fy, cx, cy, depth_scale"):
+        load_capture(tmp_path)
+    (tmp_path / "camera.json").write_text(json.dumps({"fx": 60, "fy": 60, "cx": 32, "cy": 24, "depth_scale": 1.0}))
+    cv2.imwrite(str(tmp_path / "depth.png"), depth[:40])
+    with pytest.raises(DatasetError, match="depth.png is 64x40 but rgb.png is 64x48"):
+        load_capture(tmp_path)
+
+
+@pytest.mark.parametrize("name", ["helical_gearbox", "planetary_reducer", "fidget"])
+def test_five_frames_per_step_at_full_size(name, tmp_path, request):
+    path = request.getfixturevalue("fidget_yaml") if name == "fidget" else SAMPLES / name / "assembly.yaml"
+    asm = load_assembly(path)
+    summary = render_dataset(asm, tmp_path / "ds", RenderSettings(frames=5, noise="realsense"), progress=False)
+    ds = Dataset(tmp_path / "ds")
+    assert summary["frames"] == 5 * len(asm.steps)
+    for step in ds.steps:
+        f = ds.frame(step, 4)
+        assert f.rgb.shape == (480, 640, 3)
+        assert f.base_mask().sum() > 500, (step, f.base_mask().sum())  # the base object is in view
