@@ -75,13 +75,45 @@ def cmd_show(args) -> int:
 
 
 def cmd_demo(args) -> int:
+    """The slice end to end on a sample: summary, a small rendered dataset, one estimate per step."""
+    from .assembly import load_assembly
+    from .dataset import Dataset
+    from .evaluate import StepContext, estimate_frame, score_frame
+    from .mesh import load_parts
+    from .register import resolve_params
+    from .render import RenderSettings, render_dataset
+
     path = Path(args.assembly) if args.assembly else DEFAULT_SAMPLE
     if not path.is_file():
         raise AposeError(f"{path}: sample assembly not found; run `python sample_assemblies/generate.py` "
                          "in the repository to create it")
-    print(f"apose demo: the sample assembly {path.relative_to(REPO) if path.is_relative_to(REPO) else path}\n")
-    args.assembly, args.json = path, False
-    return cmd_show(args)
+    shown = path.relative_to(REPO) if path.is_relative_to(REPO) else path
+    print(f"apose demo: the sample assembly {shown}\n")
+    asm = load_assembly(path)
+    models = load_parts(asm)
+    print(show_text(asm, models))
+    out = Path(args.out)
+    settings = RenderSettings(frames=args.frames, noise="realsense", seed=1)
+    print(f"\nrendering {args.frames} RealSense-like views per step into {out} ...")
+    summary = render_dataset(asm, out, settings, overwrite=True, progress=sys.stderr.isatty(), models=models)
+    print(f"  {summary['frames']} frames in {summary['seconds']:.1f} s")
+    ds = Dataset(out)
+    params = resolve_params("default", asm.registration)
+    print("\nestimating each step's assembly pose (preset default, no orientation prior, ground-truth masks):")
+    for step in ds.steps:
+        ctx = StepContext(ds, models, step)
+        frame = ds.frame(step, 0)
+        r = estimate_frame(frame, ctx, params)
+        sc = score_frame(frame, r, ctx.part)
+        if not r.ok:
+            print(f"  step {step}: place {ctx.part.id}: failed: {r.reason}")
+            continue
+        t = r.T_world_part[:3, 3] * 1000
+        print(f"  step {step}: place {ctx.part.id:<8} at ({t[0]:+7.1f}, {t[1]:+7.1f}, {t[2]:+7.1f}) mm in the world; "
+              f"error vs truth: MSSD {sc.mssd * 1000:.2f} mm, ADI {sc.adi * 1000:.2f} mm; {r.seconds * 1000:.0f} ms"
+              + ("  (ambiguous: symmetric base)" if r.ambiguous else ""))
+    print(f"\nnext: `apose eval {out}` for the per-step table, `apose estimate {out} --step 1` for one frame")
+    return 0
 
 
 def _pair(text: str, what: str) -> tuple[float, float]:
@@ -118,6 +150,78 @@ def cmd_render(args) -> int:
                              progress=not args.quiet and sys.stderr.isatty())
     print(f"rendered {summary['frames']} frames of {asm.name} into {args.out} in {summary['seconds']:.1f} s "
           f"({summary['fps']:.1f} frames/s, plus {summary['setup_seconds']:.1f} s loading parts)")
+    return 0
+
+
+def _pose_lines(T: np.ndarray) -> list[str]:
+    q = se3.matrix_to_quat_wxyz(T[:3, :3])
+    rows = [" ".join(f"{v:+.6f}" for v in row) for row in T]
+    return [f"  [{r}]" for r in rows] + [
+        f"  xyz (m)     = ({T[0, 3]:+.5f}, {T[1, 3]:+.5f}, {T[2, 3]:+.5f})",
+        f"  q (w,x,y,z) = ({q[0]:+.5f}, {q[1]:+.5f}, {q[2]:+.5f}, {q[3]:+.5f})"]
+
+
+def cmd_estimate(args) -> int:
+    from .dataset import Dataset
+    from .evaluate import StepContext, estimate_frame, score_frame
+    from .mesh import load_parts
+    from .register import resolve_params
+
+    ds = Dataset(args.dataset)
+    asm = ds.assembly
+    params = resolve_params(args.preset, asm.registration)
+    ctx = StepContext(ds, load_parts(asm), args.step) if args.step in ds.steps else None
+    if ctx is None:
+        raise AposeError(f"{ds.root}: step {args.step} was not rendered; rendered steps: {', '.join(map(str, ds.steps))}")
+    frame = ds.frame(args.step, args.frame)
+    r = estimate_frame(frame, ctx, params, args.mask, args.orientation_prior, trace_iterations=True)
+    sc = score_frame(frame, r, ctx.part)
+    if args.json:
+        doc = sc.to_json()
+        doc.update(preset=params.preset, part=ctx.part.id, base=list(ctx.view.base), reason=r.reason,
+                   stages=[{"name": st.name, "T_world_base": st.T_world_base.tolist(), "fitness": st.fitness,
+                            "inlier_rmse": st.inlier_rmse} for st in r.stages],
+                   timings_s=r.timings, voxel_m=r.voxel)
+        print(json.dumps(doc, indent=1))
+        return 0 if r.ok else 1
+    print(f"step {args.step}, frame {args.frame}: place {ctx.part.id} on [{', '.join(ctx.view.base)}]  (preset {params.preset})")
+    if not r.ok:
+        print(f"estimation failed: {r.reason}")
+        return 1
+    print("T_world_part (estimated assembly pose):")
+    print("\n".join(_pose_lines(r.T_world_part)))
+    print(f"registration: fitness {r.fitness:.4f}, inlier RMSE {r.inlier_rmse * 1000:.3f} mm, voxel {r.voxel * 1000:.2f} mm, "
+          f"{len(r.stages) - 3} ICP iterations, {r.seconds * 1000:.0f} ms "
+          f"({', '.join(f'{k} {v * 1000:.0f}' for k, v in r.timings.items())} ms)")
+    if r.ambiguous:
+        print(f"ambiguous: {len(r.candidates)} placements fit about equally (the base object is nearly symmetric); "
+              "candidates by score:")
+        for c in r.candidates:
+            t = c.T_world_part[:3, 3]
+            print(f"  score {c.score:.3f}  xyz ({t[0]:+.4f}, {t[1]:+.4f}, {t[2]:+.4f})")
+    print(f"against ground truth: ADI {sc.adi * 1000:.3f} mm, MSSD {sc.mssd * 1000:.3f} mm, "
+          f"te {sc.te * 1000:.3f} mm, re {sc.re_deg:.3f}°")
+    return 0
+
+
+def cmd_eval(args) -> int:
+    from .dataset import Dataset
+    from .evaluate import evaluate, format_table
+    from .register import resolve_params
+
+    ds = Dataset(args.dataset)
+    params = resolve_params(args.preset, ds.assembly.registration)
+    if args.frames is not None and args.frames < 1:
+        raise AposeError(f"--frames {args.frames}: expected at least 1")
+    if args.workers < 1:
+        raise AposeError(f"--workers {args.workers}: expected at least 1")
+    doc = evaluate(ds, params, args.steps, args.frames, args.mask, args.orientation_prior,
+                   progress=sys.stderr.isatty(), workers=args.workers)
+    print(format_table(doc))
+    if args.json:
+        from .dataset import write_json
+        write_json(Path(args.json), doc)
+        print(f"wrote {args.json}")
     return 0
 
 
@@ -159,8 +263,33 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_render)
 
-    p = sub.add_parser("demo", help="run the main job on the embedded sample assembly")
+    p = sub.add_parser("estimate", help="estimate the assembly pose in one frame of a dataset")
+    p.add_argument("dataset", help="dataset folder made by `apose render`")
+    p.add_argument("--step", type=int, required=True, help="assembly step (1-based)")
+    p.add_argument("--frame", type=int, default=0, help="image id within the step (default 0)")
+    p.add_argument("--preset", default="default", choices=["default", "paper"], help="estimator settings (default: ours)")
+    p.add_argument("--mask", default="gt", choices=["gt"], help="where the base object's mask comes from")
+    p.add_argument("--orientation-prior", action="store_true",
+                   help="take the CAD's orientation as the base's orientation in the world (true for --base-pose fixed renders)")
+    p.add_argument("--json", action="store_true", help="print JSON (metres), with every registration stage")
+    p.set_defaults(func=cmd_estimate)
+
+    p = sub.add_parser("eval", help="evaluate the estimator on a dataset: the paper's per-step table")
+    p.add_argument("dataset", help="dataset folder made by `apose render`")
+    p.add_argument("--preset", default="default", choices=["default", "paper"])
+    p.add_argument("--steps", type=_steps, help="only these steps, e.g. 1,3")
+    p.add_argument("--frames", type=int, help="at most this many frames per step (default: all)")
+    p.add_argument("--workers", type=int, default=1, help="processes in parallel (default 1)")
+    p.add_argument("--mask", default="gt", choices=["gt"], help="where the base object's mask comes from")
+    p.add_argument("--orientation-prior", action="store_true",
+                   help="take the CAD's orientation as the base's orientation in the world")
+    p.add_argument("--json", metavar="OUT", help="also write the full results (per frame) as JSON")
+    p.set_defaults(func=cmd_eval)
+
+    p = sub.add_parser("demo", help="run the main job on the embedded sample assembly: show, render, estimate")
     p.add_argument("assembly", nargs="?", help="another assembly file instead of the sample")
+    p.add_argument("--out", default="out/demo", help="where the demo dataset goes (default out/demo; replaced)")
+    p.add_argument("--frames", type=int, default=2, help="views per step (default 2)")
     p.set_defaults(func=cmd_demo)
     return ap
 

@@ -582,3 +582,39 @@ def render_dataset(asm: Assembly, out, settings: RenderSettings, steps: list[int
     seconds = time.perf_counter() - t0
     return {"frames": done, "seconds": seconds, "fps": done / seconds if seconds > 0 else float("inf"),
             "setup_seconds": t0 - t_setup}
+
+
+# --------------------------------------------------------------------------------- for the estimator
+
+_GRIDS: dict[CameraIntrinsics, RayGrid] = {}
+
+
+def ray_grid(cam: CameraIntrinsics) -> RayGrid:
+    if cam not in _GRIDS:
+        if len(_GRIDS) > 8:
+            _GRIDS.clear()
+        _GRIDS[cam] = RayGrid(cam)
+    return _GRIDS[cam]
+
+
+def raycast_points(mesh: trimesh.Trimesh, T_world_mesh: np.ndarray, T_world_camera: np.ndarray,
+                   cam: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray]:
+    """What a camera sees of a mesh alone: (N, 3) points and (N, 3) unit normals facing the camera, world frame.
+
+    One ray per pixel of `cam`, cast only over the mesh's image box, against its cached BVH.
+    """
+    import open3d as o3d
+
+    body = _body(mesh)
+    w = _pixel_window(body.corners, se3.inv(T_world_camera) @ T_world_mesh, cam)
+    if w is None:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    T_mesh_camera = se3.inv(T_world_mesh) @ T_world_camera
+    rays = ray_grid(cam).rays(T_mesh_camera, w).reshape(-1, 6)
+    hit = body.scene.cast_rays(o3d.core.Tensor(rays), nthreads=0)
+    t = hit["t_hit"].numpy()
+    ok = np.isfinite(t)
+    pts = rays[ok, :3] + t[ok, None] * rays[ok, 3:]
+    n = body.normals[hit["primitive_ids"].numpy().view(np.int32)[ok]]
+    n = n * np.where(np.einsum("ij,ij->i", n, rays[ok, 3:]) > 0, -1.0, 1.0)[:, None]
+    return se3.transform_points(T_world_mesh, pts), n @ T_world_mesh[:3, :3].T

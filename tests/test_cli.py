@@ -62,10 +62,13 @@ def test_show_bad_mesh_is_one_line(tiny_dir):
     assert r.stderr.startswith("error: part 'peg': ") and "peg.stl" in r.stderr
 
 
-def test_demo_runs_on_the_sample():
-    r = run("demo")
+def test_demo_runs_on_the_sample(tmp_path):
+    r = run("demo", "--out", tmp_path / "demo", "--frames", "1")
     assert r.returncode == 0, r.stderr
     assert "helical_gearbox" in r.stdout and "place lid on [casing, pinion, wheel]" in r.stdout
+    assert "rendering 1 RealSense-like views per step" in r.stdout
+    assert r.stdout.count("error vs truth: MSSD") + r.stdout.count("failed:") == 3
+    assert (tmp_path / "demo" / "test" / "000003" / "scene_gt.json").is_file()
 
 
 def test_fidget_show_json(fidget_yaml):

@@ -1,0 +1,593 @@
+"""Assembly pose estimation by point-cloud registration (the paper's Alg. 1), with every step kept.
+
+Stages, each a function: PROJ3D (masked depth -> world cloud), TFORM + RCAST (base mesh moved to the
+target's centre and ray-cast from the real camera -> source cloud and T_world_source), PCDREG (global
+FPFH + RANSAC, then point-to-plane ICP), and the composition T_world_part = T_world_base @ T_base_part.
+
+Two presets:
+- `paper`: the authors' settings (voxel 8 mm, FPFH on the full clouds, RANSAC 100000 / 0.899, ICP
+  at 0.4 voxel, source ray-cast at 1280x720, fov 60 deg). It trusts the CAD's orientation: the mesh is
+  only translated to the target.
+- `default`: ours. Scale-aware voxel from the base diameter, FPFH on down-sampled clouds, RANSAC
+  against the whole model (no orientation prior needed), early-terminating, ICP coarse to fine
+  against what the camera can see of the model at each candidate pose, and the base object's
+  (near-)symmetries turned into candidate poses that are scored and reported.
+Frames: T_<to>_<from>, metres.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from . import se3
+from .config import CameraIntrinsics, RegistrationConfig
+from .errors import AposeError
+from .metrics import fitness_rmse
+
+MIN_POINTS = 30  # fewer target points than this cannot constrain 6 DoF with any confidence
+
+
+# ----------------------------------------------------------------------------------- parameters
+
+
+@dataclass(frozen=True)
+class Params:
+    preset: str
+    voxel_size_m: float | None  # None: base diameter / voxels_per_diameter
+    voxels_per_diameter: float
+    normal_radius_factor: float
+    feature_radius_factor: float
+    downsample: bool  # FPFH on voxel-down-sampled clouds (ours) or on the full clouds (paper)
+    ransac_max_iterations: int
+    ransac_confidence: float
+    ransac_edge_length: float
+    ransac_distance_factor: float
+    mutual_filter: bool
+    icp_threshold_factor: float
+    icp_max_iterations: int
+    global_source: str  # "raycast": the paper's partial view; "model": the whole model (orientation-free)
+    source_camera: CameraIntrinsics | None  # None: the real camera
+    use_symmetries: bool
+    use_orientation_prior: bool
+    seed: int = 0
+    global_voxel_factor: float = 1.0  # the global step works at voxel x this (ours: coarser, faster)
+    feature_matches: int = 1  # >1 (ours): RANSAC draws from the k nearest model features of each target point
+    ransac_retry_iterations: int = 0  # ours: when the fast RANSAC explains < 60 % of the target, retry this long
+    use_flips: bool = False  # ours: also start ICP from the global pose turned half round about each principal axis
+    retry_below: float = 0.95  # retry RANSAC when the best start explains less than this share of what it shows
+
+    def voxel(self, diameter: float) -> float:
+        return self.voxel_size_m if self.voxel_size_m else diameter / self.voxels_per_diameter
+
+
+def _fov_camera(width: int, height: int, hfov_deg: float) -> CameraIntrinsics:
+    f = (width / 2) / np.tan(np.radians(hfov_deg) / 2)
+    return CameraIntrinsics(width, height, f, f, width / 2, height / 2)
+
+
+PRESET_PARAMS = {
+    "paper": Params("paper", 0.008, 40.0, 2.0, 3.0, False, 100000, 0.899, 0.09, 1.2, False, 0.4, 30,
+                    "raycast", _fov_camera(1280, 720, 60.0), False, True),
+    "default": Params("default", None, 50.0, 2.5, 5.0, True, 3000, 0.999, 0.9, 1.5, False, 0.6, 15,
+                      "model", None, True, False, global_voxel_factor=2.0, ransac_retry_iterations=30000, use_flips=True),
+}
+
+
+def resolve_params(preset: str = "default", config: RegistrationConfig | None = None, **overrides) -> Params:
+    """The preset's parameters, overridden by the assembly file's `registration` section and the caller."""
+    cfg = config.overrides() if config else {}
+    preset = overrides.pop("preset", None) or cfg.pop("preset", None) or preset
+    cfg.pop("preset", None)
+    if preset not in PRESET_PARAMS:
+        raise AposeError(f"unknown preset {preset!r}; choose one of {', '.join(PRESET_PARAMS)}")
+    return replace(PRESET_PARAMS[preset], **{**cfg, **overrides})
+
+
+# ----------------------------------------------------------------------------------- the base object
+
+
+@dataclass(frozen=True, eq=False)
+class BaseObject:
+    """The base object of a step, prepared once: merged mesh in the frame of base[0] and what derives from it."""
+
+    mesh: object  # trimesh.Trimesh, base frame, metres
+    diameter: float
+    centre: np.ndarray  # (3,) centre of its bounding box, base frame
+    samples: np.ndarray  # (N, 3) surface points, base frame
+    sample_normals: np.ndarray  # (N, 3) outward unit normals at the samples
+    symmetries: np.ndarray  # (n, 4, 4) T_base_base that map the base (nearly) onto itself, identity first
+    symmetry_residuals: np.ndarray  # (n,) mean surface distance after each symmetry, metres
+    _features: dict = field(default_factory=dict, repr=False)  # voxel -> (model cloud, FPFH): per step, not per frame
+
+    def model_features(self, voxel: float, p: "Params"):
+        key = (round(voxel, 9), p.normal_radius_factor, p.feature_radius_factor)
+        if key not in self._features:
+            pts, normals = self.outer_surface()
+            model = _cloud(pts, normals).voxel_down_sample(voxel)
+            self._features[key] = (model, _normals_fpfh(model, voxel, p, None))
+        return self._features[key]
+
+    def warm_up(self, p: "Params") -> None:
+        """Compute the per-step pieces (model features, flips) now, so per-frame timings are per frame."""
+        if p.global_source == "model":
+            self.model_features(p.voxel(self.diameter) * p.global_voxel_factor, p)
+            self.flips()
+
+    def flips(self) -> np.ndarray:
+        """(4, 4, 4) T_base_base: identity and the half turns about the principal axes through the centre.
+
+        A partial view of a flat or box-like object often matches the model upside down or turned
+        round; these are the starting points that undo such a global result.
+        """
+        if "flips" not in self._features:
+            pts = self.samples
+            c = pts.mean(axis=0)
+            _, vecs = np.linalg.eigh(np.cov((pts - c).T))
+            out = [np.eye(4)]
+            for i in range(3):
+                R = se3.axis_angle_matrix(vecs[:, i], np.pi)
+                out.append(se3.make_T(R, c - R @ c))
+            self._features["flips"] = np.stack(out)
+        return self._features["flips"]
+
+    def outer_surface(self) -> tuple[np.ndarray, np.ndarray]:
+        """What cameras all around can see: ray-cast from 26 directions (cube corners, edges, faces).
+
+        Drops hidden and internal surfaces, and gives normals that face outwards whatever the mesh's
+        triangle winding: the model that a partial view is matched against.
+        """
+        if "outer" not in self._features:
+            from .render import raycast_points
+
+            cam = CameraIntrinsics(200, 200, 250.0, 250.0, 100.0, 100.0)  # 44 deg field of view
+            dirs = [np.array([x, y, z], float) for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1) if x or y or z]
+            pts, nrm = [], []
+            for d in dirs:
+                eye = self.centre + 1.5 * self.diameter * d / np.linalg.norm(d)
+                p_, n_ = raycast_points(self.mesh, np.eye(4), se3.look_at(eye, self.centre), cam)
+                pts.append(p_)
+                nrm.append(n_)
+            self._features["outer"] = (np.concatenate(pts), np.concatenate(nrm))
+        return self._features["outer"]
+
+
+def prepare_base(mesh, n_samples: int = 20000, seed: int = 0, detect: bool = True) -> BaseObject:
+    from .mesh import diameter
+
+    rng = np.random.default_rng(seed)
+    areas = mesh.area_faces
+    face = rng.choice(len(areas), size=n_samples, p=areas / areas.sum())
+    u, v = rng.random(n_samples), rng.random(n_samples)
+    flip = u + v > 1
+    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
+    tri = mesh.triangles[face]
+    pts = tri[:, 0] + u[:, None] * (tri[:, 1] - tri[:, 0]) + v[:, None] * (tri[:, 2] - tri[:, 0])
+    normals = np.asarray(mesh.face_normals)[face]
+    d = diameter(mesh.vertices)
+    lo, hi = mesh.bounds
+    syms, res = detect_symmetries(pts, d) if detect else (np.eye(4)[None], np.zeros(1))
+    return BaseObject(mesh, d, (lo + hi) / 2, pts, normals, syms, res)
+
+
+def detect_symmetries(points: np.ndarray, diameter: float, tolerance: float = 0.005,
+                      orders=(2, 3, 4, 6, 8, 12), max_count: int = 12) -> tuple[np.ndarray, np.ndarray]:
+    """Rotations that map a surface (nearly) onto itself: (n, 4, 4) with identity first, and residuals.
+
+    Candidate axes are the principal axes and the frame axes through the centroid; a rotation by
+    360/n degrees is kept when the mean distance of the moved surface to the original stays below
+    `tolerance` x diameter (0.5 % by default: the fidget casing's 2-fold turn leaves 0.16 mm of 38 mm).
+    For each axis the largest passing order is kept (all its multiples join the set).
+    """
+    rng = np.random.default_rng(0)
+    # two independent halves of the samples: moved half B against half A, so that the sampling's own
+    # spacing (the distance B has to A with no motion at all) can be subtracted
+    tree = cKDTree(points[0::2])
+    half = points[1::2]
+    pts = half[rng.choice(len(half), size=min(3000, len(half)), replace=False)]
+    baseline = float(np.mean(tree.query(pts)[0]))
+    c = pts.mean(axis=0)
+    _, vecs = np.linalg.eigh(np.cov((pts - c).T))
+    axes = [vecs[:, i] for i in range(3)] + [np.eye(3)[i] for i in range(3)]
+    unique = []
+    for a in axes:
+        if all(abs(np.dot(a, b)) < 0.999 for b in unique):
+            unique.append(a / np.linalg.norm(a))
+    found: list[tuple[np.ndarray, float]] = []
+    for a in unique:
+        best = None
+        for n in orders:
+            R = se3.axis_angle_matrix(a, 2 * np.pi / n)
+            T = se3.make_T(R, c - R @ c)
+            res = float(np.mean(tree.query(se3.transform_points(T, pts))[0])) - baseline
+            if res < tolerance * diameter:
+                best = (n, a)
+        if best:
+            n, a = best
+            for k in range(1, n):
+                R = se3.axis_angle_matrix(a, 2 * np.pi * k / n)
+                T = se3.make_T(R, c - R @ c)
+                res = max(0.0, float(np.mean(tree.query(se3.transform_points(T, pts))[0])) - baseline)
+                if all(se3.rotation_angle_deg(T[:3, :3].T @ F[:3, :3]) > 1.0 for F, _ in found):
+                    found.append((T, res))
+    found.sort(key=lambda x: x[1])
+    found = found[: max_count - 1]
+    syms = np.stack([np.eye(4)] + [T for T, _ in found])
+    return syms, np.array([0.0] + [r for _, r in found])
+
+
+# ----------------------------------------------------------------------------------- results
+
+
+@dataclass
+class Stage:
+    """One step of the registration, for the studio's replay."""
+
+    name: str  # "initial", "global", "icp 1", ..., "final"
+    T_world_base: np.ndarray
+    fitness: float
+    inlier_rmse: float
+
+
+@dataclass
+class Candidate:
+    T_world_base: np.ndarray
+    T_world_part: np.ndarray
+    fitness: float  # share of target points explained by the model
+    source_fitness: float  # share of what the model shows the camera that the target confirms
+    inlier_rmse: float
+    score: float
+    symmetry: int  # index into BaseObject.symmetries it came from (0 = as registered)
+
+
+@dataclass
+class RegistrationResult:
+    ok: bool
+    reason: str = ""
+    T_world_base: np.ndarray | None = None
+    T_world_part: np.ndarray | None = None
+    T_world_source: np.ndarray | None = None  # the source's initial pose (TFORM)
+    target_cloud: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # world
+    source_cloud: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # base frame
+    stages: list[Stage] = field(default_factory=list)
+    fitness: float = 0.0
+    inlier_rmse: float = 0.0
+    timings: dict[str, float] = field(default_factory=dict)
+    candidates: list[Candidate] = field(default_factory=list)
+    ambiguous: bool = False
+    preset: str = ""
+    voxel: float = 0.0
+
+    @property
+    def seconds(self) -> float:
+        return float(sum(self.timings.values()))
+
+
+def failed(reason: str, **kw) -> RegistrationResult:
+    return RegistrationResult(ok=False, reason=reason, **kw)
+
+
+# ----------------------------------------------------------------------------------- stages
+
+
+def project_to_cloud(depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray) -> np.ndarray:
+    """PROJ3D: masked depth pixels (metres; 0, NaN and inf ignored) back-projected to world points (N, 3)."""
+    if depth.shape != mask.shape:
+        raise AposeError(f"mask is {mask.shape[1]}x{mask.shape[0]} but depth is {depth.shape[1]}x{depth.shape[0]}")
+    vs, us = np.nonzero(mask & np.isfinite(depth) & (depth > 0))
+    z = depth[vs, us].astype(np.float64)
+    pc = np.stack([(us - cam.cx) * z / cam.fx, (vs - cam.cy) * z / cam.fy, z], axis=1)
+    return se3.transform_points(T_world_camera, pc)
+
+
+def place_source(base: BaseObject, target_centre: np.ndarray, R_world_base: np.ndarray | None = None) -> np.ndarray:
+    """TFORM: T_world_source that puts the base's box centre on the target's centre, orientation kept."""
+    R = np.eye(3) if R_world_base is None else R_world_base
+    return se3.make_T(R, target_centre - R @ base.centre)
+
+
+def raycast_source(base: BaseObject, T_world_source: np.ndarray, T_world_camera: np.ndarray,
+                   cam: CameraIntrinsics, look_at: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """RCAST: the base mesh at T_world_source seen by a pinhole camera at the real camera's position.
+
+    With `look_at`, the virtual camera turns to look at that point (the paper's virtual camera looks
+    at the target's centre); otherwise it is the real camera. Returns world points and normals.
+    """
+    from .render import raycast_points
+
+    T_cam = T_world_camera if look_at is None else se3.look_at(T_world_camera[:3, 3], look_at)
+    return raycast_points(base.mesh, T_world_source, T_cam, cam)
+
+
+def _cloud(points: np.ndarray, normals: np.ndarray | None = None):
+    import open3d as o3d
+
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
+    if normals is not None:
+        pc.normals = o3d.utility.Vector3dVector(np.asarray(normals, dtype=np.float64))
+    return pc
+
+
+def _normals_fpfh(pc, voxel: float, p: Params, camera_pos: np.ndarray | None):
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    if not pc.has_normals():
+        pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=p.normal_radius_factor * voxel, max_nn=30))
+        if camera_pos is not None:
+            pc.orient_normals_towards_camera_location(camera_pos)
+    return reg.compute_fpfh_feature(pc, o3d.geometry.KDTreeSearchParamHybrid(radius=p.feature_radius_factor * voxel, max_nn=100))
+
+
+def global_registration(source, target, f_source, f_target, voxel: float, p: Params) -> np.ndarray:
+    """PCDREG, global part: RANSAC on FPFH matches. Returns T_target_source."""
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    o3d.utility.random.seed(p.seed)
+    dist = p.ransac_distance_factor * voxel
+    checkers = [reg.CorrespondenceCheckerBasedOnEdgeLength(p.ransac_edge_length), reg.CorrespondenceCheckerBasedOnDistance(dist)]
+    if p.feature_matches > 1:
+        # repetitive geometry (gear teeth) makes the single nearest feature often wrong: offer k of them
+        fs, ft = np.asarray(f_source.data).T, np.asarray(f_target.data).T
+        _, idx = cKDTree(fs).query(ft, k=p.feature_matches)
+        corr = np.stack([idx.reshape(-1), np.repeat(np.arange(len(ft)), p.feature_matches)], axis=1)
+        res = reg.registration_ransac_based_on_correspondence(
+            source, target, o3d.utility.Vector2iVector(corr.astype(np.int32)), dist,
+            reg.TransformationEstimationPointToPoint(False), 3, checkers,
+            reg.RANSACConvergenceCriteria(p.ransac_max_iterations, p.ransac_confidence))
+        return np.asarray(res.transformation)
+    res = reg.registration_ransac_based_on_feature_matching(
+        source, target, f_source, f_target, p.mutual_filter, dist,
+        reg.TransformationEstimationPointToPoint(False), 3,
+        [reg.CorrespondenceCheckerBasedOnEdgeLength(p.ransac_edge_length), reg.CorrespondenceCheckerBasedOnDistance(dist)],
+        reg.RANSACConvergenceCriteria(p.ransac_max_iterations, p.ransac_confidence))
+    return np.asarray(res.transformation)
+
+
+def icp(source, target, T_init: np.ndarray, threshold: float, iterations: int, trace: list | None = None) -> np.ndarray:
+    """Point-to-plane ICP, L(T) = sum ((p - T q) . n_p)^2 with target normals n_p. Returns T_target_source.
+
+    With `trace`, runs one iteration at a time and appends each T (same result, for replay).
+    """
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    est = reg.TransformationEstimationPointToPlane()
+    if trace is None:
+        res = reg.registration_icp(source, target, threshold, T_init, est,
+                                   reg.ICPConvergenceCriteria(1e-6, 1e-6, iterations))
+        return np.asarray(res.transformation)
+    T = T_init
+    prev = None
+    for _ in range(iterations):
+        res = reg.registration_icp(source, target, threshold, T, est, reg.ICPConvergenceCriteria(1e-6, 1e-6, 1))
+        T = np.asarray(res.transformation)
+        trace.append(T.copy())
+        if prev is not None and abs(prev - res.inlier_rmse) < 1e-7:
+            break
+        prev = res.inlier_rmse
+    return T
+
+
+# ----------------------------------------------------------------------------------- the pipeline
+
+
+def estimate(depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray,
+             base: BaseObject, T_base_part: np.ndarray, params: Params,
+             prior_T_world_base: np.ndarray | None = None, trace_iterations: bool = True) -> RegistrationResult:
+    """T_world_part for one frame. Never raises on bad data: a degenerate input gives ok=False and a reason."""
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    if mask is None or not np.any(mask):
+        return failed("empty mask: no pixels of the base object in this frame", preset=params.preset)
+    target_pts = project_to_cloud(depth, mask, cam, T_world_camera)
+    timings["proj3d"] = time.perf_counter() - t0
+    if len(target_pts) < MIN_POINTS:
+        return failed(f"only {len(target_pts)} valid depth points under the mask (need {MIN_POINTS}); "
+                      "the base object is too small, occluded or without depth here", preset=params.preset,
+                      target_cloud=target_pts, timings=timings)
+    voxel = params.voxel(base.diameter)
+    kw = dict(preset=params.preset, voxel=voxel)
+    inner = dict(preset=params.preset)
+    try:
+        if params.global_source == "raycast":
+            return _estimate_paper(target_pts, cam, T_world_camera, base, T_base_part, params, voxel,
+                                   prior_T_world_base, trace_iterations, timings, **inner)
+        return _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, params, voxel,
+                                 prior_T_world_base, trace_iterations, timings, (mask, depth), **inner)
+    except _Degenerate as e:
+        return failed(str(e), target_cloud=target_pts, timings=timings, **kw)
+
+
+class _Degenerate(Exception):
+    pass
+
+
+def _stage(name, T, target, source_base, threshold) -> Stage:
+    f, r = fitness_rmse(target, se3.transform_points(T, source_base), threshold)
+    return Stage(name, T, f, r)
+
+
+def _estimate_paper(target_pts, cam, T_world_camera, base, T_base_part, p: Params, voxel, prior, trace_iterations,
+                    timings, **kw) -> RegistrationResult:
+    """The authors' pipeline: translate the CAD to the target, ray-cast it, FPFH + RANSAC, ICP."""
+    t = time.perf_counter()
+    centre = target_pts.mean(axis=0)
+    R_prior = prior[:3, :3] if (prior is not None and p.use_orientation_prior) else None
+    T_world_source = place_source(base, centre, R_prior)
+    src_world, _ = raycast_source(base, T_world_source, T_world_camera, p.source_camera or cam, look_at=centre)
+    timings["rcast"] = time.perf_counter() - t
+    if len(src_world) < MIN_POINTS:
+        raise _Degenerate("the camera cannot see the base mesh placed at the target (ray-cast gave "
+                          f"{len(src_world)} points)")
+    src_base = se3.transform_points(se3.inv(T_world_source), src_world)
+    t = time.perf_counter()
+    source, target = _cloud(src_world), _cloud(target_pts)
+    if p.downsample:
+        source, target = source.voxel_down_sample(voxel), target.voxel_down_sample(voxel)
+    cam_pos = T_world_camera[:3, 3]
+    f_s = _normals_fpfh(source, voxel, p, cam_pos)
+    f_t = _normals_fpfh(target, voxel, p, cam_pos)
+    timings["features"] = time.perf_counter() - t
+    t = time.perf_counter()
+    T_g = global_registration(source, target, f_s, f_t, voxel, p)
+    timings["global"] = time.perf_counter() - t
+    t = time.perf_counter()
+    trace: list | None = [] if trace_iterations else None
+    T_i = icp(source, target, T_g, p.icp_threshold_factor * voxel, p.icp_max_iterations, trace)
+    timings["icp"] = time.perf_counter() - t
+    thr = p.icp_threshold_factor * voxel
+    T_world_base = T_i @ T_world_source
+    stages = [_stage("initial", T_world_source, target_pts, src_base, thr),
+              _stage("global", T_g @ T_world_source, target_pts, src_base, thr)]
+    stages += [_stage(f"icp {k + 1}", T @ T_world_source, target_pts, src_base, thr) for k, T in enumerate(trace or [])]
+    final = _stage("final", T_world_base, target_pts, src_base, thr)
+    stages.append(final)
+    T_world_part = T_world_base @ T_base_part
+    cand = Candidate(T_world_base, T_world_part, final.fitness, float("nan"), final.inlier_rmse, final.fitness, 0)
+    return RegistrationResult(True, "", T_world_base, T_world_part, T_world_source, target_pts, src_base, stages,
+                              final.fitness, final.inlier_rmse, timings, [cand], False, voxel=voxel, **kw)
+
+
+def _visible_agreement(points_world: np.ndarray, T_world_camera: np.ndarray, cam: CameraIntrinsics,
+                       depth_obs: np.ndarray, mask: np.ndarray, tol: float) -> float:
+    """Share of model points seen at a candidate pose that the observation confirms (inside the mask,
+    at the observed depth within `tol`)."""
+    if len(points_world) == 0:
+        return 0.0
+    pc = se3.transform_points(se3.inv(T_world_camera), points_world)
+    z = pc[:, 2]
+    u = np.round(cam.fx * pc[:, 0] / z + cam.cx).astype(int)
+    v = np.round(cam.fy * pc[:, 1] / z + cam.cy).astype(int)
+    inside = (z > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+    ok = np.zeros(len(z), bool)
+    ui, vi = u[inside], v[inside]
+    d = depth_obs[vi, ui]
+    ok[inside] = mask[vi, ui] & (np.abs(d - z[inside]) < tol)
+    return float(ok.mean())
+
+
+def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Params, voxel, prior, trace_iterations,
+                      timings, observation, **kw) -> RegistrationResult:
+    import open3d as o3d
+
+    cam_pos = T_world_camera[:3, 3]
+    vg = voxel * p.global_voxel_factor
+    t = time.perf_counter()
+    target_full = _cloud(target_pts)
+    target = target_full.voxel_down_sample(vg)
+    if len(target.points) >= 40:  # flying pixels and speckle: drop points far from their neighbours
+        target, _ = target.remove_statistical_outlier(nb_neighbors=12, std_ratio=3.0)
+    if len(target.points) < 10:
+        raise _Degenerate(f"the target is degenerate: {len(target.points)} points after down-sampling to "
+                          f"{vg * 1000:.2f} mm (a flat speck or a few pixels?)")
+    tp = np.asarray(target.points)
+    if np.linalg.svd(tp - tp.mean(axis=0), compute_uv=False)[1] < 0.05 * vg:
+        raise _Degenerate("the target is degenerate: its points lie on a line")
+    f_t = _normals_fpfh(target, vg, p, cam_pos)
+    # the whole model (features cached per step): no assumption about the side seen or the orientation
+    model, f_m = base.model_features(vg, p)
+    fine = target_full.voxel_down_sample(voxel)
+    fine.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=p.normal_radius_factor * voxel, max_nn=30))
+    fine.orient_normals_towards_camera_location(cam_pos)
+    fine_pts = np.asarray(fine.points)
+    fine_tree = cKDTree(fine_pts)
+    timings["features"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    centre = tp.mean(axis=0)
+    R_prior = prior[:3, :3] if (prior is not None and p.use_orientation_prior) else None
+    T_world_source = place_source(base, centre, R_prior)  # TFORM, kept as the replay's starting point
+    T_g = global_registration(model, target, f_m, f_t, vg, p)  # T_world_base directly (model is in base frame)
+
+    def coarse_starts(T_g) -> list:
+        """(explained share, symmetry index, start pose, pose after a few coarse ICP iterations) per start:
+        the global result, its half turns (partial views often match upside down), the base's symmetries."""
+        starts = [(0, T_g @ F) for F in base.flips()] if p.use_flips else [(0, T_g)]
+        if p.use_symmetries:
+            starts += [(k, T_g @ S) for k, S in enumerate(base.symmetries) if k > 0]
+        if R_prior is not None:
+            starts += prior_starts
+        out = []
+        for k, T0 in starts:
+            src_w, _ = raycast_source(base, T0, T_world_camera, cam)
+            if len(src_w) < MIN_POINTS:
+                continue
+            src = _cloud(se3.transform_points(se3.inv(T0), src_w)).voxel_down_sample(vg)
+            T = icp(src, target, T0, 2.0 * vg, 8, None)
+            seen, _ = raycast_source(base, T, T_world_camera, cam)
+            f_quick = float(np.mean(fine_tree.query(seen, distance_upper_bound=vg)[0] < np.inf)) if len(seen) else 0.0
+            out.append((f_quick, k, T0, T))
+        return sorted(out, key=lambda x: -x[0])
+
+    prior_starts = []
+    if R_prior is not None:
+        # the paper's way, on down-sampled clouds: the CAD in the prior orientation, seen from the camera,
+        # registered to the target; plus the plain translated CAD
+        src_w, _ = raycast_source(base, T_world_source, T_world_camera, cam)
+        if len(src_w) >= MIN_POINTS:
+            src = _cloud(src_w).voxel_down_sample(vg)
+            f_s = _normals_fpfh(src, vg, p, cam_pos)
+            T_p = global_registration(src, target, f_s, f_t, vg, p)
+            prior_starts.append((-1, T_p @ T_world_source))
+        prior_starts.append((-1, T_world_source))
+    coarse = coarse_starts(T_g)
+    if p.ransac_retry_iterations and (not coarse or coarse[0][0] < p.retry_below):  # the fast RANSAC missed: try harder
+        T_g = global_registration(model, target, f_m, f_t, vg,
+                                  replace(p, ransac_max_iterations=p.ransac_retry_iterations, seed=p.seed + 1))
+        coarse = sorted(coarse + coarse_starts(T_g), key=lambda x: -x[0])
+    timings["global"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    mask_img, depth_img = observation
+    thr = p.icp_threshold_factor * voxel
+    keep = [c for c in coarse if c[0] >= coarse[0][0] - 0.1][:3] if coarse else []
+    if p.use_symmetries:  # every symmetric twin of the best survives to be scored and reported
+        keep += [c for c in coarse if c[1] > 0 and c not in keep]
+    cands, traces = [], {}
+    for _, k, T0, T1 in keep:
+        trace: list | None = [] if trace_iterations else None
+        src_w, _ = raycast_source(base, T1, T_world_camera, cam)  # what the camera would see at this pose
+        src = _cloud(se3.transform_points(se3.inv(T1), src_w)).voxel_down_sample(voxel)
+        T = icp(src, fine, T1, vg, p.icp_max_iterations, trace)
+        T = icp(src, fine, T, thr, p.icp_max_iterations, trace)
+        src_w, _ = raycast_source(base, T, T_world_camera, cam)
+        fit, rmse = fitness_rmse(fine_pts, src_w, thr)
+        agree = _visible_agreement(src_w, T_world_camera, cam, depth_img, mask_img, max(2 * voxel, 0.002))
+        cands.append(Candidate(T, T @ T_base_part, fit, agree, rmse, 0.5 * (fit + agree), k))
+        traces[len(cands) - 1] = (T0, trace or [], src_w)
+    timings["icp"] = time.perf_counter() - t
+    if not cands:
+        raise _Degenerate("the camera cannot see the base mesh at any candidate pose")
+
+    best_score = max(c.score for c in cands)
+    close = [i for i, c in enumerate(cands) if c.score >= best_score - 0.03]
+    # several placements explain the data equally: the prior (if any) decides, else the best score
+    if R_prior is not None and len(close) > 1:
+        chosen = min(close, key=lambda i: se3.rotation_angle_deg(cands[i].T_world_base[:3, :3].T @ R_prior))
+    else:
+        chosen = max(close, key=lambda i: cands[i].score)
+    distinct = _distinct_parts([cands[i] for i in close], voxel)
+    c = cands[chosen]
+    T0, trace, src_w = traces[chosen]
+    src_b = se3.transform_points(se3.inv(c.T_world_base), src_w)
+    stages = [_stage("initial", T_world_source, fine_pts, src_b, thr), _stage("global", T0, fine_pts, src_b, thr)]
+    stages += [_stage(f"icp {k + 1}", T, fine_pts, src_b, thr) for k, T in enumerate(trace)]
+    stages.append(Stage("final", c.T_world_base, c.fitness, c.inlier_rmse))
+    order = sorted(range(len(cands)), key=lambda i: -cands[i].score)
+    return RegistrationResult(True, "", c.T_world_base, c.T_world_part, T_world_source, fine_pts, src_b, stages,
+                              c.fitness, c.inlier_rmse, timings, [cands[i] for i in order], distinct > 1, voxel=voxel, **kw)
+
+
+def _distinct_parts(cands: list[Candidate], voxel: float) -> int:
+    """How many clearly different part placements (more than 3 voxels apart) the candidates give."""
+    reps: list[np.ndarray] = []
+    for c in cands:
+        if all(np.linalg.norm(c.T_world_part[:3, 3] - r[:3, 3]) > 3 * voxel
+               or se3.rotation_angle_deg(c.T_world_part[:3, :3].T @ r[:3, :3]) > 5 for r in reps):
+            reps.append(c.T_world_part)
+    return len(reps)

@@ -1,0 +1,71 @@
+"""The evaluation loop, its JSON document and table, and the estimate/eval commands."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from apose_studio.assembly import load_assembly
+from apose_studio.dataset import Dataset
+from apose_studio.evaluate import evaluate, format_table
+from apose_studio.register import RegistrationResult, resolve_params
+from apose_studio.render import RenderSettings, render_dataset
+
+from .conftest import SAMPLES
+
+
+@pytest.fixture(scope="module")
+def gearbox_fixed(tmp_path_factory):
+    out = tmp_path_factory.mktemp("eval") / "ds"
+    asm = load_assembly(SAMPLES / "helical_gearbox" / "assembly.yaml")
+    render_dataset(asm, out, RenderSettings(frames=2, base_pose="fixed", seed=3), steps=[2], progress=False)
+    return Dataset(out)
+
+
+def test_evaluate_document(gearbox_fixed):
+    doc = evaluate(gearbox_fixed, resolve_params("default"), orientation_prior=True, progress=False)
+    assert doc["preset"] == "default" and doc["mask"] == "gt" and len(doc["steps"]) == 1
+    st = doc["steps"][0]
+    assert st["step"] == 2 and st["n_frames"] == 2 and st["part"] == "wheel" and len(st["frames"]) == 2
+    for key in ("fitness", "inlier_rmse", "adi", "mssd", "te", "re_deg"):
+        assert set(st[key]) == {"mean", "std"}
+    assert set(st["time_s"]) == {"mean", "median"} and 0 <= st["recall_mssd"] <= 1
+    fr = st["frames"][0]
+    assert {"scene_id", "im_id", "T_world_part_est", "T_world_part_gt", "adi", "mssd", "fitness", "time_s", "ok"} <= set(fr)
+    assert np.array(fr["T_world_part_gt"]).shape == (4, 4)
+    json.dumps(doc)  # plain JSON all the way down
+    table = format_table(doc)
+    assert "MSSD mm" in table and table.splitlines()[2].split()[0] == "2"
+
+
+def test_failed_frames_count_as_misses(gearbox_fixed, monkeypatch):
+    import apose_studio.evaluate as E
+
+    monkeypatch.setattr(E, "estimate", lambda *a, **k: RegistrationResult(ok=False, reason="empty mask: test"))
+    doc = evaluate(gearbox_fixed, resolve_params("default"), progress=False)
+    st = doc["steps"][0]
+    assert st["failed"] == 2 and st["recall_mssd"] == 0.0 and st["adi"]["mean"] is None
+    assert st["frames"][0]["ok"] is False and st["frames"][0]["reason"] == "empty mask: test"
+
+
+def test_estimate_and_eval_commands(gearbox_fixed, tmp_path):
+    cli = [sys.executable, "-m", "apose_studio.cli"]
+    r = subprocess.run(cli + ["estimate", str(gearbox_fixed.root), "--step", "2", "--frame", "1", "--json",
+                              "--orientation-prior"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    doc = json.loads(r.stdout)
+    assert doc["ok"] and np.array(doc["T_world_part_est"]).shape == (4, 4) and doc["stages"][-1]["name"] == "final"
+    r = subprocess.run(cli + ["estimate", str(gearbox_fixed.root), "--step", "2", "--frame", "1"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0 and "T_world_part (estimated assembly pose):" in r.stdout and "q (w,x,y,z)" in r.stdout
+    r = subprocess.run(cli + ["estimate", str(gearbox_fixed.root), "--step", "3"], capture_output=True, text=True)
+    assert r.returncode == 1 and "step 3 was not rendered; rendered steps: 2" in r.stderr
+    out = tmp_path / "eval.json"
+    r = subprocess.run(cli + ["eval", str(gearbox_fixed.root), "--preset", "paper", "--frames", "1", "--json", str(out),
+                              "--orientation-prior"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "preset paper" in r.stdout and json.loads(out.read_text())["steps"][0]["n_frames"] == 1
+    r = subprocess.run(cli + ["eval", str(tmp_path)], capture_output=True, text=True)
+    assert r.returncode == 1 and "not an apose dataset" in r.stderr and "Traceback" not in r.stderr

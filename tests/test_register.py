@@ -1,0 +1,151 @@
+"""The estimator's stages on small data, and degenerate inputs that must fail cleanly."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import trimesh
+
+from apose_studio import se3
+from apose_studio.assembly import load_assembly
+from apose_studio.config import CameraIntrinsics, RegistrationConfig
+from apose_studio.errors import AposeError
+from apose_studio.mesh import base_mesh, load_parts
+from apose_studio.metrics import mssd
+from apose_studio.register import (detect_symmetries, estimate, icp, prepare_base, project_to_cloud,
+                                   raycast_source, resolve_params, _cloud)
+
+from .conftest import SAMPLES
+
+CAM = CameraIntrinsics(640, 480, 615.0, 615.0, 320.0, 240.0)
+
+
+def test_project_to_cloud_by_hand():
+    depth = np.zeros((480, 640), np.float32)
+    depth[240, 320] = 0.5  # the principal point: straight ahead
+    depth[240, 443] = 1.0  # 123 px right of it at 1 m: x = 123 / 615 = 0.2 m
+    depth[0, 0] = np.nan
+    mask = np.ones_like(depth, bool)
+    T_world_camera = se3.make_T(t=[0, 0, 2.0])
+    pts = project_to_cloud(depth, mask, CAM, T_world_camera)
+    np.testing.assert_allclose(sorted(pts.tolist()), [[0, 0, 2.5], [0.2, 0, 3.0]], atol=1e-6)
+    with pytest.raises(AposeError, match="mask is 2x2 but depth is 640x480"):
+        project_to_cloud(depth, np.ones((2, 2), bool), CAM, T_world_camera)
+
+
+@pytest.fixture(scope="module")
+def gearbox_step2():
+    asm = load_assembly(SAMPLES / "helical_gearbox" / "assembly.yaml")
+    models = load_parts(asm)
+    view = asm.step_view(2)
+    return view, prepare_base(base_mesh(models, view)), models
+
+
+def synthetic_view(base, T_world_base, T_world_camera):
+    """Depth and mask of the base alone, ray-cast exactly (no table, no noise)."""
+    from apose_studio.render import raycast_points
+
+    pts, _ = raycast_points(base.mesh, T_world_base, T_world_camera, CAM)
+    pc = se3.transform_points(se3.inv(T_world_camera), pts)
+    u = np.round(CAM.fx * pc[:, 0] / pc[:, 2] + CAM.cx).astype(int)
+    v = np.round(CAM.fy * pc[:, 1] / pc[:, 2] + CAM.cy).astype(int)
+    depth = np.zeros((CAM.height, CAM.width), np.float32)
+    depth[v, u] = pc[:, 2]
+    return depth, depth > 0
+
+
+def test_icp_recovers_a_known_small_motion(gearbox_step2):
+    _, base, _ = gearbox_step2
+    T_world_camera = se3.look_at([0.25, -0.2, 0.3], [0, 0, 0.01])
+    T_true = se3.make_T(se3.axis_angle_matrix([0.3, 0.2, 1.0], np.radians(40)), [0.01, -0.02, 0.0])
+    target_w, target_n = raycast_source(base, T_true, T_world_camera, CAM)
+    target = _cloud(target_w, target_n)
+    source = _cloud(se3.transform_points(se3.inv(T_true), target_w)).voxel_down_sample(0.001)
+    T0 = T_true @ se3.make_T(se3.axis_angle_matrix([1, 0, 0], np.radians(3)), [0.002, -0.001, 0.0015])
+    T = icp(source, target, T0, 0.005, 60)
+    assert np.linalg.norm(T[:3, 3] - T_true[:3, 3]) < 5e-4
+    assert se3.rotation_angle_deg(T[:3, :3].T @ T_true[:3, :3]) < 0.2
+    trace = []
+    icp(source, target, T0, 0.005, 60, trace)
+    assert len(trace) >= 2 and np.linalg.norm(trace[-1][:3, 3] - T_true[:3, 3]) < 5e-4
+
+
+@pytest.mark.parametrize("preset", ["default", "paper"])
+def test_pose_recovered_with_the_cad_orientation_known(gearbox_step2, preset):
+    view, base, models = gearbox_step2
+    T_world_base = se3.make_T(np.eye(3), [0.05, 0.02, 0.0])  # the paper's protocol: orientation as in the CAD
+    T_world_camera = se3.look_at([0.35, -0.25, 0.3], [0.05, 0.02, 0.01])
+    depth, mask = synthetic_view(base, T_world_base, T_world_camera)
+    p = resolve_params(preset, use_orientation_prior=True)
+    r = estimate(depth, mask, CAM, T_world_camera, base, view.T_base_part, p, prior_T_world_base=np.eye(4))
+    assert r.ok, r.reason
+    part = models[view.part]
+    err = mssd(r.T_world_part, T_world_base @ view.T_base_part, part.samples, part.symmetries)
+    assert err < 1e-3, err
+    # the trace replays: initial, global, ICP iterations, final (= the result)
+    names = [s.name for s in r.stages]
+    assert names[0] == "initial" and names[1] == "global" and names[-1] == "final" and len(names) >= 4
+    np.testing.assert_allclose(r.stages[-1].T_world_base, r.T_world_base)
+    assert r.fitness > 0.95 and r.inlier_rmse < r.voxel and set(r.timings) >= {"proj3d", "global", "icp"}
+    assert len(r.target_cloud) > 100 and len(r.source_cloud) > 100
+
+
+def test_degenerate_inputs_fail_with_reasons(gearbox_step2):
+    view, base, _ = gearbox_step2
+    p = resolve_params("default")
+    T_wc = se3.look_at([0.3, 0, 0.3], [0, 0, 0])
+    depth = np.full((480, 640), 0.4, np.float32)
+    empty = np.zeros((480, 640), bool)
+    r = estimate(depth, empty, CAM, T_wc, base, view.T_base_part, p)
+    assert not r.ok and "empty mask" in r.reason
+    few = empty.copy()
+    few[100, 100:102] = True
+    r = estimate(depth, few, CAM, T_wc, base, view.T_base_part, p)
+    assert not r.ok and "only 2 valid depth points" in r.reason
+    nan_depth = np.full((480, 640), np.nan, np.float32)
+    r = estimate(nan_depth, ~empty, CAM, T_wc, base, view.T_base_part, p)
+    assert not r.ok and "only 0 valid depth points" in r.reason
+    line = empty.copy()
+    line[240, 100:500] = True  # a single row of pixels on a plane: a line in 3D
+    r = estimate(depth, line, CAM, T_wc, base, view.T_base_part, p)
+    assert not r.ok and "degenerate" in r.reason
+    # a base far too small for the camera to see: a 0.2 mm cube
+    speck = prepare_base(trimesh.creation.box((0.0002, 0.0002, 0.0002)), n_samples=500)
+    blob = empty.copy()
+    blob[200:260, 300:360] = True
+    r = estimate(depth, blob, CAM, T_wc, speck, view.T_base_part, resolve_params("paper"))
+    assert not r.ok and "cannot see the base mesh" in r.reason
+
+
+def test_symmetry_detection():
+    box = trimesh.creation.box((0.04, 0.02, 0.01))
+    syms, res = detect_symmetries(trimesh.sample.sample_surface_even(box, 6000, seed=1)[0], 0.046)
+    assert len(syms) == 4  # identity and the three half turns
+    assert np.all(res < 0.0005)
+    l_shape = trimesh.util.concatenate([box, trimesh.creation.box((0.01, 0.03, 0.01)).apply_translation([0.015, 0.02, 0])])
+    syms, _ = detect_symmetries(trimesh.sample.sample_surface_even(l_shape, 6000, seed=1)[0], 0.06)
+    assert len(syms) == 1
+
+
+def test_fidget_casing_is_two_fold(fidget_yaml):
+    asm = load_assembly(fidget_yaml)
+    models = load_parts(asm)
+    base = prepare_base(base_mesh(models, asm.step_view(1)))
+    assert len(base.symmetries) == 2
+    axis = base.symmetries[1][:3, :3]
+    assert se3.rotation_angle_deg(axis) == pytest.approx(180, abs=1)
+    assert abs(axis[2, 2] - 1) < 1e-3  # about z
+    assert base.symmetry_residuals[1] < 0.0005
+
+
+def test_params_from_file_and_caller():
+    p = resolve_params("default", RegistrationConfig(voxel_size_m=0.002, seed=7))
+    assert p.voxel_size_m == 0.002 and p.seed == 7 and p.preset == "default"
+    assert p.voxel(1.0) == 0.002
+    assert resolve_params("default").voxel(0.05) == pytest.approx(0.001)  # diameter / 50
+    paper = resolve_params("paper")
+    assert (paper.voxel(1.0), paper.ransac_max_iterations, paper.ransac_confidence) == (0.008, 100000, 0.899)
+    assert resolve_params("default", RegistrationConfig(preset="paper")).preset == "paper"
+    assert replace(paper, seed=3).seed == 3
+    with pytest.raises(AposeError, match="unknown preset 'fast'"):
+        resolve_params("fast")
