@@ -225,6 +225,13 @@ def cmd_eval(args) -> int:
     return 0
 
 
+def _estimator_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--preset", default="default", choices=["default", "paper"], help="estimator settings (default: ours)")
+    p.add_argument("--mask", default="gt", choices=["gt"], help="where the base object's mask comes from")
+    p.add_argument("--orientation-prior", action="store_true",
+                   help="take the CAD's orientation as the base's orientation in the world (true for --base-pose fixed renders)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="apose", description="6D assembly pose estimation by point-cloud "
                                  "registration, with a browser studio.")
@@ -267,22 +274,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("dataset", help="dataset folder made by `apose render`")
     p.add_argument("--step", type=int, required=True, help="assembly step (1-based)")
     p.add_argument("--frame", type=int, default=0, help="image id within the step (default 0)")
-    p.add_argument("--preset", default="default", choices=["default", "paper"], help="estimator settings (default: ours)")
-    p.add_argument("--mask", default="gt", choices=["gt"], help="where the base object's mask comes from")
-    p.add_argument("--orientation-prior", action="store_true",
-                   help="take the CAD's orientation as the base's orientation in the world (true for --base-pose fixed renders)")
+    _estimator_args(p)
     p.add_argument("--json", action="store_true", help="print JSON (metres), with every registration stage")
     p.set_defaults(func=cmd_estimate)
 
     p = sub.add_parser("eval", help="evaluate the estimator on a dataset: the paper's per-step table")
     p.add_argument("dataset", help="dataset folder made by `apose render`")
-    p.add_argument("--preset", default="default", choices=["default", "paper"])
+    _estimator_args(p)
     p.add_argument("--steps", type=_steps, help="only these steps, e.g. 1,3")
     p.add_argument("--frames", type=int, help="at most this many frames per step (default: all)")
     p.add_argument("--workers", type=int, default=1, help="processes in parallel (default 1)")
-    p.add_argument("--mask", default="gt", choices=["gt"], help="where the base object's mask comes from")
-    p.add_argument("--orientation-prior", action="store_true",
-                   help="take the CAD's orientation as the base's orientation in the world")
     p.add_argument("--json", metavar="OUT", help="also write the full results (per frame) as JSON")
     p.set_defaults(func=cmd_eval)
 

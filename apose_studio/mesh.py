@@ -93,8 +93,9 @@ def diameter(points: np.ndarray) -> float:
     return float(np.sqrt(max(best, 0.0)))
 
 
-def sample_surface(mesh: trimesh.Trimesh, n: int, seed: int = 0) -> np.ndarray:
-    """n points on the surface, area-weighted, deterministic for a seed. (n, 3) in the mesh frame."""
+def sample_surface(mesh: trimesh.Trimesh, n: int, seed: int = 0, return_faces: bool = False):
+    """n points on the surface, area-weighted, deterministic for a seed. (n, 3) in the mesh frame,
+    and with return_faces the (n,) index of the triangle each point lies on."""
     rng = np.random.default_rng(seed)
     areas = mesh.area_faces
     face = rng.choice(len(areas), size=n, p=areas / areas.sum())
@@ -102,7 +103,8 @@ def sample_surface(mesh: trimesh.Trimesh, n: int, seed: int = 0) -> np.ndarray:
     flip = u + v > 1
     u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
     tri = mesh.triangles[face]
-    return tri[:, 0] + u[:, None] * (tri[:, 1] - tri[:, 0]) + v[:, None] * (tri[:, 2] - tri[:, 0])
+    pts = tri[:, 0] + u[:, None] * (tri[:, 1] - tri[:, 0]) + v[:, None] * (tri[:, 2] - tri[:, 0])
+    return (pts, face) if return_faces else pts
 
 
 def symmetry_transforms(symmetry: Symmetry | None, max_step: float = BOP_SYMMETRY_STEP) -> np.ndarray:

@@ -29,6 +29,8 @@ from .errors import AposeError
 from .metrics import fitness_rmse
 
 MIN_POINTS = 30  # fewer target points than this cannot constrain 6 DoF with any confidence
+SYMMETRY_TOLERANCE = 0.005  # a symmetry: mean surface distance after the turn < 0.5 % of the diameter
+NEAR_SYMMETRY_TOLERANCE = 0.03  # a near-symmetry (a starting pose worth trying): < 3 %
 
 
 # ----------------------------------------------------------------------------------- parameters
@@ -52,12 +54,13 @@ class Params:
     global_source: str  # "raycast": the paper's partial view; "model": the whole model (orientation-free)
     source_camera: CameraIntrinsics | None  # None: the real camera
     use_symmetries: bool
-    use_orientation_prior: bool
+    use_orientation_prior: bool  # with no prior from the caller, take the CAD's orientation as one (the paper does)
     seed: int = 0
     global_voxel_factor: float = 1.0  # the global step works at voxel x this (ours: coarser, faster)
     feature_matches: int = 1  # >1 (ours): RANSAC draws from the k nearest model features of each target point
     ransac_retry_iterations: int = 0  # ours: when the fast RANSAC explains < 60 % of the target, retry this long
     use_flips: bool = False  # ours: also start ICP from the global pose turned half round about each principal axis
+    max_starts: int = 6  # ours: ICP from this many of the screened starting poses
     retry_below: float = 0.95  # retry RANSAC when the best start explains less than this share of what it shows
 
     def voxel(self, diameter: float) -> float:
@@ -101,6 +104,8 @@ class BaseObject:
     sample_normals: np.ndarray  # (N, 3) outward unit normals at the samples
     symmetries: np.ndarray  # (n, 4, 4) T_base_base that map the base (nearly) onto itself, identity first
     symmetry_residuals: np.ndarray  # (n,) mean surface distance after each symmetry, metres
+    near_symmetries: np.ndarray = field(default_factory=lambda: np.eye(4)[None])  # looser: turns that almost fit,
+    # e.g. a motor block whose connector alone breaks its 4-fold symmetry; tried as starting poses
     _features: dict = field(default_factory=dict, repr=False)  # voxel -> (model cloud, FPFH): per step, not per frame
 
     def model_features(self, voxel: float, p: "Params"):
@@ -111,10 +116,16 @@ class BaseObject:
             self._features[key] = (model, _normals_fpfh(model, voxel, p, None))
         return self._features[key]
 
+    def model_tree(self, voxel: float, p: "Params") -> cKDTree:
+        key = ("tree", round(voxel, 9))
+        if key not in self._features:
+            self._features[key] = cKDTree(np.asarray(self.model_features(voxel, p)[0].points))
+        return self._features[key]
+
     def warm_up(self, p: "Params") -> None:
         """Compute the per-step pieces (model features, flips) now, so per-frame timings are per frame."""
         if p.global_source == "model":
-            self.model_features(p.voxel(self.diameter) * p.global_voxel_factor, p)
+            self.model_tree(p.voxel(self.diameter) * p.global_voxel_factor, p)
             self.flips()
 
     def flips(self) -> np.ndarray:
@@ -156,21 +167,17 @@ class BaseObject:
 
 
 def prepare_base(mesh, n_samples: int = 20000, seed: int = 0, detect: bool = True) -> BaseObject:
-    from .mesh import diameter
+    from .mesh import diameter, sample_surface
 
-    rng = np.random.default_rng(seed)
-    areas = mesh.area_faces
-    face = rng.choice(len(areas), size=n_samples, p=areas / areas.sum())
-    u, v = rng.random(n_samples), rng.random(n_samples)
-    flip = u + v > 1
-    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
-    tri = mesh.triangles[face]
-    pts = tri[:, 0] + u[:, None] * (tri[:, 1] - tri[:, 0]) + v[:, None] * (tri[:, 2] - tri[:, 0])
+    pts, face = sample_surface(mesh, n_samples, seed, return_faces=True)
     normals = np.asarray(mesh.face_normals)[face]
     d = diameter(mesh.vertices)
     lo, hi = mesh.bounds
-    syms, res = detect_symmetries(pts, d) if detect else (np.eye(4)[None], np.zeros(1))
-    return BaseObject(mesh, d, (lo + hi) / 2, pts, normals, syms, res)
+    if not detect:
+        return BaseObject(mesh, d, (lo + hi) / 2, pts, normals, np.eye(4)[None], np.zeros(1))
+    near, res = detect_symmetries(pts, d, tolerance=NEAR_SYMMETRY_TOLERANCE)
+    strict = res < SYMMETRY_TOLERANCE * d
+    return BaseObject(mesh, d, (lo + hi) / 2, pts, normals, near[strict], res[strict], near)
 
 
 def detect_symmetries(points: np.ndarray, diameter: float, tolerance: float = 0.005,
@@ -390,6 +397,8 @@ def estimate(depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics, T_world
         return failed(f"only {len(target_pts)} valid depth points under the mask (need {MIN_POINTS}); "
                       "the base object is too small, occluded or without depth here", preset=params.preset,
                       target_cloud=target_pts, timings=timings)
+    if prior_T_world_base is None and params.use_orientation_prior:
+        prior_T_world_base = np.eye(4)  # the CAD's orientation is the base's orientation in the world
     voxel = params.voxel(base.diameter)
     kw = dict(preset=params.preset, voxel=voxel)
     inner = dict(preset=params.preset)
@@ -417,7 +426,7 @@ def _estimate_paper(target_pts, cam, T_world_camera, base, T_base_part, p: Param
     """The authors' pipeline: translate the CAD to the target, ray-cast it, FPFH + RANSAC, ICP."""
     t = time.perf_counter()
     centre = target_pts.mean(axis=0)
-    R_prior = prior[:3, :3] if (prior is not None and p.use_orientation_prior) else None
+    R_prior = prior[:3, :3] if prior is not None else None
     T_world_source = place_source(base, centre, R_prior)
     src_world, _ = raycast_source(base, T_world_source, T_world_camera, p.source_camera or cam, look_at=centre)
     timings["rcast"] = time.perf_counter() - t
@@ -500,7 +509,7 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
 
     t = time.perf_counter()
     centre = tp.mean(axis=0)
-    R_prior = prior[:3, :3] if (prior is not None and p.use_orientation_prior) else None
+    R_prior = prior[:3, :3] if prior is not None else None
     T_world_source = place_source(base, centre, R_prior)  # TFORM, kept as the replay's starting point
     T_g = global_registration(model, target, f_m, f_t, vg, p)  # T_world_base directly (model is in base frame)
 
@@ -510,8 +519,18 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
         starts = [(0, T_g @ F) for F in base.flips()] if p.use_flips else [(0, T_g)]
         if p.use_symmetries:
             starts += [(k, T_g @ S) for k, S in enumerate(base.symmetries) if k > 0]
+            starts += [(0, T_g @ S) for S in base.near_symmetries[1:]
+                       if not any(np.allclose(S, Q, atol=1e-6) for Q in base.symmetries)]
         if R_prior is not None:
             starts += prior_starts
+        # screen every start cheaply (target points near the model's outer surface), refine the best few
+        tree = base.model_tree(vg, p)
+
+        def near(T0):
+            d = tree.query(se3.transform_points(se3.inv(T0), tp), distance_upper_bound=2 * vg)[0]
+            return float(np.mean(d < np.inf))
+        screened = sorted(starts, key=lambda s_: -near(s_[1]))
+        starts = screened[:p.max_starts] + [s_ for s_ in screened[p.max_starts:] if s_[0] == -1]
         out = []
         for k, T0 in starts:
             src_w, _ = raycast_source(base, T0, T_world_camera, cam)
