@@ -462,6 +462,12 @@ def _estimate_paper(target_pts, cam, T_world_camera, base, T_base_part, p: Param
                               final.fitness, final.inlier_rmse, timings, [cand], False, voxel=voxel, **kw)
 
 
+def _facing(points: np.ndarray, normals: np.ndarray, T_world_base: np.ndarray, cam_pos: np.ndarray) -> np.ndarray:
+    """Model points (base frame) whose outward normal faces the camera when the base is at T_world_base."""
+    eye = se3.transform_points(se3.inv(T_world_base), cam_pos[None])[0]
+    return points[np.einsum("ij,ij->i", normals, eye - points) > 0]
+
+
 def _visible_agreement(points_world: np.ndarray, T_world_camera: np.ndarray, cam: CameraIntrinsics,
                        depth_obs: np.ndarray, mask: np.ndarray, tol: float) -> float:
     """Share of model points seen at a candidate pose that the observation confirms (inside the mask,
@@ -532,13 +538,15 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
         screened = sorted(starts, key=lambda s_: -near(s_[1]))
         starts = screened[:p.max_starts] + [s_ for s_ in screened[p.max_starts:] if s_[0] == -1]
         out = []
+        model_pts = np.asarray(model.points)
+        model_nrm = np.asarray(model.normals)
         for k, T0 in starts:
-            src_w, _ = raycast_source(base, T0, T_world_camera, cam)
-            if len(src_w) < MIN_POINTS:
+            # cheap view of the model for screening: its outer surface, back faces culled (no occlusion)
+            src = _cloud(_facing(model_pts, model_nrm, T0, cam_pos))
+            if len(src.points) < MIN_POINTS:
                 continue
-            src = _cloud(se3.transform_points(se3.inv(T0), src_w)).voxel_down_sample(vg)
             T = icp(src, target, T0, 2.0 * vg, 8, None)
-            seen, _ = raycast_source(base, T, T_world_camera, cam)
+            seen = se3.transform_points(T, _facing(model_pts, model_nrm, T, cam_pos))
             f_quick = float(np.mean(fine_tree.query(seen, distance_upper_bound=vg)[0] < np.inf)) if len(seen) else 0.0
             out.append((f_quick, k, T0, T))
         return sorted(out, key=lambda x: -x[0])
