@@ -574,7 +574,9 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
     thr = p.icp_threshold_factor * voxel
     keep = [c for c in coarse if c[0] >= coarse[0][0] - 0.1][:3] if coarse else []
     if p.use_symmetries:  # every symmetric twin of the best survives to be scored and reported
-        keep += [c for c in coarse if c[1] > 0 and c not in keep]
+        keep += [c for c in coarse if c[1] > 0 and not any(c is q for q in keep)]
+    prior_best = [c for c in coarse if c[1] == -1][:1]  # the prior's best start is always refined and scored
+    keep += [c for c in prior_best if not any(c is q for q in keep)]
     cands, traces = [], {}
     for _, k, T0, T1 in keep:
         trace: list | None = [] if trace_iterations else None
