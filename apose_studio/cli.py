@@ -111,7 +111,8 @@ def cmd_demo(args) -> int:
         t = r.T_world_part[:3, 3] * 1000
         print(f"  step {step}: place {ctx.part.id:<8} at ({t[0]:+7.1f}, {t[1]:+7.1f}, {t[2]:+7.1f}) mm in the world; "
               f"error vs truth: MSSD {sc.mssd * 1000:.2f} mm, ADI {sc.adi * 1000:.2f} mm; {r.seconds * 1000:.0f} ms"
-              + ("  (ambiguous: symmetric base)" if r.ambiguous else ""))
+              + ("  (ambiguous: symmetric base)" if r.ambiguous else "")
+              + ("" if r.confident else f"  (low confidence: {r.coverage:.0%} of the target near the model, likely wrong)"))
     print(f"\nnext: `apose eval {out}` for the per-step table, `apose estimate {out} --step 1` for one frame")
     return 0
 
@@ -193,6 +194,8 @@ def cmd_estimate(args) -> int:
     print(f"registration: fitness {r.fitness:.4f}, inlier RMSE {r.inlier_rmse * 1000:.3f} mm, voxel {r.voxel * 1000:.2f} mm, "
           f"{len(r.stages) - 3} ICP iterations, {r.seconds * 1000:.0f} ms "
           f"({', '.join(f'{k} {v * 1000:.0f}' for k, v in r.timings.items())} ms)")
+    if not r.confident:
+        print(f"low confidence: only {r.coverage:.0%} of the target points lie near the model; this pose is likely wrong")
     if r.ambiguous:
         print(f"ambiguous: {len(r.candidates)} placements fit about equally (the base object is nearly symmetric); "
               "candidates by score:")

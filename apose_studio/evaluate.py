@@ -32,6 +32,7 @@ class FrameScore:
     inlier_rmse: float | None = None
     time_s: float = 0.0
     ambiguous: bool = False
+    confident: bool = False
     candidates: list = field(default_factory=list)
 
     def to_json(self) -> dict:
@@ -40,7 +41,8 @@ class FrameScore:
                "T_world_part_gt": None if self.T_world_part_gt is None else self.T_world_part_gt.tolist(),
                "adi": self.adi, "mssd": self.mssd, "mssd_mod_base_sym": self.mssd_mod_base_sym, "te": self.te,
                "re_deg": self.re_deg, "fitness": self.fitness, "inlier_rmse": self.inlier_rmse,
-               "time_s": self.time_s, "ambiguous": self.ambiguous, "candidates": self.candidates}
+               "time_s": self.time_s, "ambiguous": self.ambiguous, "confident": self.confident,
+               "candidates": self.candidates}
         if not self.ok:
             out["reason"] = self.reason
         return out
@@ -67,7 +69,7 @@ def score_frame(frame: Frame, result: RegistrationResult, part: PartModel) -> Fr
     s.mssd_mod_base_sym = min([s.mssd] + [metrics.mssd(c.T_world_part, G, part.samples, part.symmetries) for c in tied])
     s.te, s.re_deg = metrics.te(T, G), metrics.re_deg(T, G)
     s.fitness, s.inlier_rmse = result.fitness, result.inlier_rmse
-    s.ambiguous = result.ambiguous
+    s.ambiguous, s.confident = result.ambiguous, result.confident
     s.candidates = [{"T_world_part": c.T_world_part.tolist(), "score": c.score, "fitness": c.fitness,
                      "source_fitness": None if np.isnan(c.source_fitness) else c.source_fitness} for c in result.candidates]
     return s

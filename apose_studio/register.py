@@ -29,6 +29,7 @@ from .errors import AposeError
 from .metrics import fitness_rmse
 
 MIN_POINTS = 30  # fewer target points than this cannot constrain 6 DoF with any confidence
+CONFIDENT_COVERAGE = 0.85  # below this share of target points within 2 voxels of the model, flag a poor fit
 SYMMETRY_TOLERANCE = 0.005  # a symmetry: mean surface distance after the turn < 0.5 % of the diameter
 NEAR_SYMMETRY_TOLERANCE = 0.03  # a near-symmetry (a starting pose worth trying): < 3 %
 
@@ -267,10 +268,16 @@ class RegistrationResult:
     ambiguous: bool = False
     preset: str = ""
     voxel: float = 0.0
+    coverage: float = float("nan")  # share of target points within 2 voxels of what the model shows (loose fitness)
 
     @property
     def seconds(self) -> float:
         return float(sum(self.timings.values()))
+
+    @property
+    def confident(self) -> bool:
+        """The model explains most of the target; a poor fit is likely a wrong pose, whatever else it says."""
+        return self.ok and (np.isnan(self.coverage) or self.coverage >= CONFIDENT_COVERAGE)
 
 
 def failed(reason: str, **kw) -> RegistrationResult:
@@ -608,8 +615,10 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
     stages += [_stage(f"icp {k + 1}", T, fine_pts, src_b, thr) for k, T in enumerate(trace)]
     stages.append(Stage("final", c.T_world_base, c.fitness, c.inlier_rmse))
     order = sorted(range(len(cands)), key=lambda i: -cands[i].score)
+    coverage = fitness_rmse(fine_pts, src_w, 2 * voxel)[0]
     return RegistrationResult(True, "", c.T_world_base, c.T_world_part, T_world_source, fine_pts, src_b, stages,
-                              c.fitness, c.inlier_rmse, timings, [cands[i] for i in order], distinct > 1, voxel=voxel, **kw)
+                              c.fitness, c.inlier_rmse, timings, [cands[i] for i in order],
+                              distinct > 1 and coverage >= CONFIDENT_COVERAGE, voxel=voxel, coverage=coverage, **kw)
 
 
 def _distinct_parts(cands: list[Candidate], voxel: float) -> int:

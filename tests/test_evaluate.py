@@ -69,3 +69,9 @@ def test_estimate_and_eval_commands(gearbox_fixed, tmp_path):
     assert "preset paper" in r.stdout and json.loads(out.read_text())["steps"][0]["n_frames"] == 1
     r = subprocess.run(cli + ["eval", str(tmp_path)], capture_output=True, text=True)
     assert r.returncode == 1 and "not an apose dataset" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_confidence_flag_follows_coverage():
+    ok = RegistrationResult(ok=True, fitness=0.7, coverage=0.95)
+    poor = RegistrationResult(ok=True, fitness=0.9, coverage=0.5)
+    assert ok.confident and not poor.confident and not RegistrationResult(ok=False).confident
