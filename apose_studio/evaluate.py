@@ -69,7 +69,7 @@ def score_frame(frame: Frame, result: RegistrationResult, part: PartModel) -> Fr
     s.mssd_mod_base_sym = min([s.mssd] + [metrics.mssd(c.T_world_part, G, part.samples, part.symmetries) for c in tied])
     s.te, s.re_deg = metrics.te(T, G), metrics.re_deg(T, G)
     s.fitness, s.inlier_rmse = result.fitness, result.inlier_rmse
-    s.ambiguous, s.confident = result.ambiguous, result.confident
+    s.ambiguous, s.confident = bool(result.ambiguous), bool(result.confident)
     s.candidates = [{"T_world_part": c.T_world_part.tolist(), "score": c.score, "fitness": c.fitness,
                      "source_fitness": None if np.isnan(c.source_fitness) else c.source_fitness} for c in result.candidates]
     return s

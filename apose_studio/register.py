@@ -277,7 +277,7 @@ class RegistrationResult:
     @property
     def confident(self) -> bool:
         """The model explains most of the target; a poor fit is likely a wrong pose, whatever else it says."""
-        return self.ok and (np.isnan(self.coverage) or self.coverage >= CONFIDENT_COVERAGE)
+        return bool(self.ok and (np.isnan(self.coverage) or self.coverage >= CONFIDENT_COVERAGE))
 
 
 def failed(reason: str, **kw) -> RegistrationResult:
@@ -618,7 +618,8 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
     coverage = fitness_rmse(fine_pts, src_w, 2 * voxel)[0]
     return RegistrationResult(True, "", c.T_world_base, c.T_world_part, T_world_source, fine_pts, src_b, stages,
                               c.fitness, c.inlier_rmse, timings, [cands[i] for i in order],
-                              distinct > 1 and coverage >= CONFIDENT_COVERAGE, voxel=voxel, coverage=coverage, **kw)
+                              bool(distinct > 1 and coverage >= CONFIDENT_COVERAGE), voxel=voxel,
+                              coverage=float(coverage), **kw)
 
 
 def _distinct_parts(cands: list[Candidate], voxel: float) -> int:

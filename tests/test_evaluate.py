@@ -36,6 +36,7 @@ def test_evaluate_document(gearbox_fixed):
     assert {"scene_id", "im_id", "T_world_part_est", "T_world_part_gt", "adi", "mssd", "fitness", "time_s", "ok"} <= set(fr)
     assert np.array(fr["T_world_part_gt"]).shape == (4, 4)
     json.dumps(doc)  # plain JSON all the way down
+    assert all(isinstance(f[k], bool) for f in st["frames"] for k in ("ok", "ambiguous", "confident"))
     table = format_table(doc)
     assert "MSSD mm" in table and table.splitlines()[2].split()[0] == "2"
 
