@@ -105,8 +105,8 @@ class BaseObject:
     sample_normals: np.ndarray  # (N, 3) outward unit normals at the samples
     symmetries: np.ndarray  # (n, 4, 4) T_base_base that map the base (nearly) onto itself, identity first
     symmetry_residuals: np.ndarray  # (n,) mean surface distance after each symmetry, metres
-    near_symmetries: np.ndarray = field(default_factory=lambda: np.eye(4)[None])  # looser: turns that almost fit,
-    # e.g. a motor block whose connector alone breaks its 4-fold symmetry; tried as starting poses
+    near_symmetries: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))  # turns that almost fit but
+    # are not symmetries (a motor block whose connector alone breaks its 4-fold symmetry): extra starting poses
     _features: dict = field(default_factory=dict, repr=False)  # voxel -> (model cloud, FPFH): per step, not per frame
 
     def model_features(self, voxel: float, p: "Params"):
@@ -178,7 +178,7 @@ def prepare_base(mesh, n_samples: int = 20000, seed: int = 0, detect: bool = Tru
         return BaseObject(mesh, d, (lo + hi) / 2, pts, normals, np.eye(4)[None], np.zeros(1))
     near, res = detect_symmetries(pts, d, tolerance=NEAR_SYMMETRY_TOLERANCE)
     strict = res < SYMMETRY_TOLERANCE * d
-    return BaseObject(mesh, d, (lo + hi) / 2, pts, normals, near[strict], res[strict], near)
+    return BaseObject(mesh, d, (lo + hi) / 2, pts, normals, near[strict], res[strict], near[~strict])
 
 
 def detect_symmetries(points: np.ndarray, diameter: float, tolerance: float = 0.005,
@@ -526,28 +526,34 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
     T_world_source = place_source(base, centre, R_prior)  # TFORM, kept as the replay's starting point
     T_g = global_registration(model, target, f_m, f_t, vg, p)  # T_world_base directly (model is in base frame)
 
-    def coarse_starts(T_g) -> list:
+    prior_starts = []
+    if R_prior is not None:
+        # the paper's way, on down-sampled clouds: the CAD in the prior orientation, seen from the camera,
+        # registered to the target; plus the plain translated CAD
+        src_w, _ = raycast_source(base, T_world_source, T_world_camera, cam)
+        if len(src_w) >= MIN_POINTS:
+            src = _cloud(src_w).voxel_down_sample(vg)
+            T_p = global_registration(src, target, _normals_fpfh(src, vg, p, cam_pos), f_t, vg, p)
+            prior_starts.append((-1, T_p @ T_world_source))
+        prior_starts.append((-1, T_world_source))
+    tree = base.model_tree(vg, p)
+    model_pts, model_nrm = np.asarray(model.points), np.asarray(model.normals)
+
+    def near(T0) -> float:  # share of target points near the model's outer surface at T0
+        d = tree.query(se3.transform_points(se3.inv(T0), tp), distance_upper_bound=2 * vg)[0]
+        return float(np.mean(d < np.inf))
+
+    def coarse_starts(T_g, extra: list) -> list:
         """(explained share, symmetry index, start pose, pose after a few coarse ICP iterations) per start:
-        the global result, its half turns (partial views often match upside down), the base's symmetries."""
+        the global result, its half turns (partial views often match upside down), the base's
+        (near-)symmetries and `extra`; screened cheaply, the best few refined by coarse ICP."""
         starts = [(0, T_g @ F) for F in base.flips()] if p.use_flips else [(0, T_g)]
         if p.use_symmetries:
             starts += [(k, T_g @ S) for k, S in enumerate(base.symmetries) if k > 0]
-            starts += [(0, T_g @ S) for S in base.near_symmetries[1:]
-                       if not any(np.allclose(S, Q, atol=1e-6) for Q in base.symmetries)]
-        if R_prior is not None:
-            starts += prior_starts
-        # screen every start cheaply (target points near the model's outer surface), refine the best few
-        tree = base.model_tree(vg, p)
-
-        def near(T0):
-            d = tree.query(se3.transform_points(se3.inv(T0), tp), distance_upper_bound=2 * vg)[0]
-            return float(np.mean(d < np.inf))
-        screened = sorted(starts, key=lambda s_: -near(s_[1]))
-        starts = screened[:p.max_starts] + [s_ for s_ in screened[p.max_starts:] if s_[0] == -1]
+            starts += [(0, T_g @ S) for S in base.near_symmetries]
+        screened = sorted(starts + extra, key=lambda s_: -near(s_[1]))
         out = []
-        model_pts = np.asarray(model.points)
-        model_nrm = np.asarray(model.normals)
-        for k, T0 in starts:
+        for k, T0 in screened[:p.max_starts] + [s_ for s_ in screened[p.max_starts:] if s_[0] == -1]:
             # cheap view of the model for screening: its outer surface, back faces culled (no occlusion)
             src = _cloud(_facing(model_pts, model_nrm, T0, cam_pos))
             if len(src.points) < MIN_POINTS:
@@ -558,22 +564,11 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
             out.append((f_quick, k, T0, T))
         return sorted(out, key=lambda x: -x[0])
 
-    prior_starts = []
-    if R_prior is not None:
-        # the paper's way, on down-sampled clouds: the CAD in the prior orientation, seen from the camera,
-        # registered to the target; plus the plain translated CAD
-        src_w, _ = raycast_source(base, T_world_source, T_world_camera, cam)
-        if len(src_w) >= MIN_POINTS:
-            src = _cloud(src_w).voxel_down_sample(vg)
-            f_s = _normals_fpfh(src, vg, p, cam_pos)
-            T_p = global_registration(src, target, f_s, f_t, vg, p)
-            prior_starts.append((-1, T_p @ T_world_source))
-        prior_starts.append((-1, T_world_source))
-    coarse = coarse_starts(T_g)
+    coarse = coarse_starts(T_g, prior_starts)
     if p.ransac_retry_iterations and (not coarse or coarse[0][0] < p.retry_below):  # the fast RANSAC missed: try harder
         T_g = global_registration(model, target, f_m, f_t, vg,
                                   replace(p, ransac_max_iterations=p.ransac_retry_iterations, seed=p.seed + 1))
-        coarse = sorted(coarse + coarse_starts(T_g), key=lambda x: -x[0])
+        coarse = sorted(coarse + coarse_starts(T_g, []), key=lambda x: -x[0])  # the prior's starts are in already
     timings["global"] = time.perf_counter() - t
 
     t = time.perf_counter()

@@ -91,15 +91,19 @@ class Scene:
 
 @dataclass
 class RenderedFrame:
-    """A rendered view. depth in metres (0 = no return), labels index into the scene's objects."""
+    """A rendered view. depth in metres (0 = no return)."""
 
     rgb: np.ndarray  # (H, W, 3) uint8
     depth: np.ndarray  # (H, W) float32 metres, after noise; 0 where invalid
-    labels: np.ndarray  # (H, W) int32: index into scene.objects, -1 where nothing was hit
     T_world_camera: np.ndarray
     scene: Scene
     hits: "Hits"
     noise_seed: int = 0
+
+    @property
+    def labels(self) -> np.ndarray:
+        """(H, W) int32: index into scene.objects, scene.table_label, or -1 where nothing was hit."""
+        return self.hits.labels
 
 
 # --------------------------------------------------------------------------------- scene sampling
@@ -272,13 +276,6 @@ class Hits:
         (v0, v1, u0, u1), full = self.windows[i]
         return self.labels[v0:v1, u0:u1] == i, full, (v0, v1, u0, u1)
 
-    def full_mask(self, i: int) -> np.ndarray:
-        """Object i's mask as if alone in the scene (BOP's mask, for px_count_all)."""
-        out = np.zeros(self.labels.shape, bool)
-        if i in self.windows:
-            (v0, v1, u0, u1), m = self.windows[i]
-            out[v0:v1, u0:u1] = m
-        return out
 
 
 def cast(scene: Scene, grid: RayGrid, T_world_camera: np.ndarray) -> Hits:
@@ -414,7 +411,7 @@ def render_frame(models: dict[str, PartModel], view: StepView, settings: RenderS
     T_world_camera = sample_camera(rng, scene.base_centre, settings, scene.base_diameter)
     hit = cast(scene, grid, T_world_camera)
     rgb = shade(hit, scene, T_world_camera, rng)
-    frame = RenderedFrame(rgb, hit.depth, hit.labels, T_world_camera, scene, hit, int(rng.integers(2**62)))
+    frame = RenderedFrame(rgb, hit.depth, T_world_camera, scene, hit, int(rng.integers(2**62)))
     if noise:
         frame.depth = noisy_depth(frame, settings)
     return frame
