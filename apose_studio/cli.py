@@ -6,6 +6,7 @@ import argparse
 import json
 import logging
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -100,11 +101,15 @@ def cmd_demo(args) -> int:
     ds = Dataset(out)
     params = resolve_params("default", asm.registration)
     print("\nestimating each step's assembly pose (preset default, no orientation prior, ground-truth masks):")
+    from .inspection import ResultCache
+
+    cache = ResultCache()
     for step in ds.steps:
-        ctx = StepContext(ds, models, step)
+        ctx = StepContext(ds.assembly, models, step)
         frame = ds.frame(step, 0)
-        r = estimate_frame(frame, ctx, params)
+        r = estimate_frame(frame, ctx, params, trace_iterations=True)
         sc = score_frame(frame, r, ctx.part)
+        cache.put(cache.key(Path(out).resolve(), step, frame.im_id, "default", "gt", False), (r, sc if r.ok else None))
         if not r.ok:
             print(f"  step {step}: place {ctx.part.id}: failed: {r.reason}")
             continue
@@ -114,7 +119,33 @@ def cmd_demo(args) -> int:
               + ("  (ambiguous: symmetric base)" if r.ambiguous else "")
               + ("" if r.confident else f"  (low confidence: {r.coverage:.0%} of the target near the model, likely wrong)"))
     print(f"\nnext: `apose eval {out}` for the per-step table, `apose estimate {out} --step 1` for one frame")
+    if args.no_studio:
+        return 0
+    print("\nopening the studio on this assembly and dataset (the estimates above are cached in its Inspect tab)")
+    return _serve_studio(path, out, args.host, args.port, cache)
+
+
+def _serve_studio(assembly, dataset, host: str, port: int, cache=None) -> int:
+    from .studio import serve
+
+    server, _ = serve(assembly, dataset, host=host, port=port, cache=cache)
+    url = f"http://{'127.0.0.1' if host in ('127.0.0.1', 'localhost') else host}:{server.get_port()}"
+    print(f"studio: {url}  (Ctrl-C to stop)")
+    if host not in ("127.0.0.1", "localhost", "::1"):
+        print(f"warning: listening on {host}: anyone who can reach this machine can read and write files the "
+              "studio can (assembly paths, meshes, datasets) — use only on a trusted network", file=sys.stderr)
+    try:
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        server.stop()
     return 0
+
+
+def cmd_studio(args) -> int:
+    if args.assembly and not Path(args.assembly).is_file():
+        raise AposeError(f"{args.assembly}: no such assembly file")
+    return _serve_studio(args.assembly, args.dataset, args.host, args.port)
 
 
 def _pair(text: str, what: str) -> tuple[float, float]:
@@ -171,7 +202,7 @@ def cmd_estimate(args) -> int:
     ds = Dataset(args.dataset)
     asm = ds.assembly
     params = resolve_params(args.preset, asm.registration)
-    ctx = StepContext(ds, load_parts(asm), args.step) if args.step in ds.steps else None
+    ctx = StepContext(asm, load_parts(asm), args.step) if args.step in ds.steps else None
     if ctx is None:
         raise AposeError(f"{ds.root}: step {args.step} was not rendered; rendered steps: {', '.join(map(str, ds.steps))}")
     frame = ds.frame(args.step, args.frame)
@@ -235,6 +266,12 @@ def _estimator_args(p: argparse.ArgumentParser) -> None:
                    help="take the CAD's orientation as the base's orientation in the world (true for --base-pose fixed renders)")
 
 
+def _server_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to listen on (default 127.0.0.1: this machine only; 0.0.0.0 exposes the studio to the network)")
+    p.add_argument("--port", type=int, default=8080, help="port (default 8080; the next free one if taken)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="apose", description="6D assembly pose estimation by point-cloud "
                                  "registration, with a browser studio.")
@@ -290,11 +327,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", metavar="OUT", help="also write the full results (per frame) as JSON")
     p.set_defaults(func=cmd_eval)
 
-    p = sub.add_parser("demo", help="run the main job on the embedded sample assembly: show, render, estimate")
+    p = sub.add_parser("demo", help="run the main job on the embedded sample assembly: show, render, estimate, then open the studio")
     p.add_argument("assembly", nargs="?", help="another assembly file instead of the sample")
     p.add_argument("--out", default="out/demo", help="where the demo dataset goes (default out/demo; replaced)")
     p.add_argument("--frames", type=int, default=2, help="views per step (default 2)")
+    p.add_argument("--no-studio", action="store_true", help="stop after the estimates instead of opening the studio")
+    _server_args(p)
     p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("studio", help="open the browser studio: author assemblies, inspect datasets and registrations")
+    p.add_argument("assembly", nargs="?", help="assembly YAML file to open (default: a new, empty assembly)")
+    p.add_argument("--dataset", help="dataset folder (from `apose render`) or capture folder to open in the Inspect tab")
+    _server_args(p)
+    p.set_defaults(func=cmd_studio)
     return ap
 
 

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import metrics
+from .assembly import Assembly
 from .dataset import Dataset, Frame
 from .mesh import PartModel, base_mesh, load_parts
 from .register import BaseObject, Params, RegistrationResult, estimate, prepare_base
@@ -102,8 +103,8 @@ def summarise_step(step: int, scores: list[FrameScore], part: PartModel) -> dict
 class StepContext:
     """What a step's frames share: its base object (prepared once) and the part to place."""
 
-    def __init__(self, ds: Dataset, models: dict[str, PartModel], step: int):
-        self.view = ds.assembly.step_view(step)
+    def __init__(self, asm: Assembly, models: dict[str, PartModel], step: int):
+        self.view = asm.step_view(step)
         self.base: BaseObject = prepare_base(base_mesh(models, self.view))
         self.part = models[self.view.part]
 
@@ -130,7 +131,7 @@ def _worker_run(task) -> FrameScore:
     step, im_id, params, mask_source, orientation_prior = task
     ds, ctxs = _WORKER["ds"], _WORKER["ctx"]
     if step not in ctxs:
-        ctxs[step] = StepContext(ds, _WORKER["models"], step)
+        ctxs[step] = StepContext(ds.assembly, _WORKER["models"], step)
     frame = ds.frame(step, im_id)
     return score_frame(frame, estimate_frame(frame, ctxs[step], params, mask_source, orientation_prior), ctxs[step].part)
 
@@ -172,7 +173,7 @@ def evaluate(ds: Dataset, params: Params, steps: list[int] | None = None, frames
         return doc
     try:
         for step, ids in todo:
-            ctx = StepContext(ds, models, step)
+            ctx = StepContext(ds.assembly, models, step)
             scores = []
             for im_id in ids:
                 frame = ds.frame(step, im_id)

@@ -6,7 +6,7 @@ cd "$(dirname "$0")/.."
 
 # System libraries the open3d wheel links against (it fails to import without libusb-1.0-0), and
 # Debian's chromium for the browser tests.
-APT_PACKAGES=(libusb-1.0-0 libgl1 libegl1 libgomp1 libx11-6)
+APT_PACKAGES=(libusb-1.0-0 libgl1 libegl1 libgomp1 libx11-6 chromium)
 missing=()
 for p in "${APT_PACKAGES[@]}"; do dpkg -s "$p" >/dev/null 2>&1 || missing+=("$p"); done
 if [ ${#missing[@]} -gt 0 ]; then

@@ -53,3 +53,24 @@ def tiny_dir(tmp_path) -> Path:
     trimesh.creation.box((12, 12, 3)).export(tmp_path / "cap.stl")
     (tmp_path / "assembly.yaml").write_text(TINY_YAML)
     return tmp_path
+
+
+@pytest.fixture(scope="session")
+def gearbox_dataset(tmp_path_factory) -> Path:
+    """Two RealSense-like views of gearbox step 1 with the base at the CAD's orientation (rendered once)."""
+    from apose_studio.assembly import load_assembly
+    from apose_studio.render import RenderSettings, render_dataset
+
+    out = tmp_path_factory.mktemp("studio") / "ds"
+    asm = load_assembly(SAMPLES / "helical_gearbox" / "assembly.yaml")
+    render_dataset(asm, out, RenderSettings(frames=2, base_pose="fixed", noise="realsense", seed=5), steps=[1],
+                   progress=False)
+    return out
+
+
+def free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]

@@ -63,7 +63,7 @@ def test_show_bad_mesh_is_one_line(tiny_dir):
 
 
 def test_demo_runs_on_the_sample(tmp_path):
-    r = run("demo", "--out", tmp_path / "demo", "--frames", "1")
+    r = run("demo", "--out", tmp_path / "demo", "--frames", "1", "--no-studio")
     assert r.returncode == 0, r.stderr
     assert "helical_gearbox" in r.stdout and "place lid on [casing, pinion, wheel]" in r.stdout
     assert "rendering 1 RealSense-like views per step" in r.stdout

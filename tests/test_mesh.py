@@ -131,3 +131,34 @@ def test_real_parts_match_paper_diameters(fidget_yaml):
     for pid, d in paper_cm.items():
         assert models[pid].diameter * 100 == pytest.approx(d, abs=0.015), pid  # paper rounds to 0.01 cm
         assert models[pid].unit_warning is None
+
+
+def test_large_meshes_fast_diameter_and_box_agree_with_exact():
+    """Above EXACT_DIAMETER_POINTS the diameter comes from extreme points; check it against the exact one."""
+    from apose_studio import mesh as M
+
+    rng = np.random.default_rng(4)
+    pts = rng.normal(size=(30000, 3)) * [0.03, 0.01, 0.004]
+    fast = M.diameter(pts)
+    exact = M._max_pairwise(pts[__import__("scipy").spatial.ConvexHull(pts).vertices])[0]
+    assert exact * 0.999 <= fast <= exact + 1e-12
+    torus = trimesh.creation.torus(0.03, 0.01, major_sections=400, minor_sections=100)  # 40k vertices
+    assert len(torus.vertices) > M.EXACT_DIAMETER_POINTS
+    assert abs(M.diameter(torus.vertices) - 0.08) < 0.08 * 1e-3
+    T, ext = M.oriented_box(torus)
+    local = trimesh.transform_points(torus.vertices, np.linalg.inv(T))
+    assert (np.abs(local) <= ext / 2 + 1e-9).all()  # contains every vertex
+    np.testing.assert_allclose(sorted(ext), [0.02, 0.08, 0.08], rtol=1e-2)  # and nearly tight
+
+
+def test_merge_vertices_welds_stl_soup():
+    from apose_studio.mesh import merge_vertices
+
+    box = trimesh.creation.box((1, 2, 3))
+    soup_v = box.vertices[box.faces].reshape(-1, 3)  # three vertices per triangle, as STL stores them
+    soup_f = np.arange(len(soup_v)).reshape(-1, 3)
+    soup_f = np.vstack([soup_f, [[0, 0, 1]]])  # plus a collapsed triangle
+    v, f = merge_vertices(soup_v, soup_f)
+    assert len(v) == 8 and len(f) == 12
+    m = trimesh.Trimesh(v, f, process=False)
+    assert m.is_watertight and abs(m.volume - 6.0) < 1e-9

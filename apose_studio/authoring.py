@@ -1,0 +1,200 @@
+"""Editing an assembly as the studio does it: pure functions from one `Assembly` to the next.
+
+Every edit returns a new Assembly (the dataclasses are frozen), so the studio can keep the last
+valid one and never lose the user's work to a bad edit. `problems()` validates a draft with exactly
+the loader's rules, by a round trip through the YAML mapping, so what the studio accepts the
+headless core reads. Typed poses are millimetres and degrees (extrinsic xyz Euler), the core metres.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from . import se3
+from .assembly import Assembly, Part, Step, assembly_from_dict, assembly_to_dict
+from .errors import AposeError, AssemblyError, Problem
+
+EULER_ORDER = "xyz"
+
+
+def new_assembly(name: str = "untitled", units: str = "mm", folder: str | Path = ".") -> Assembly:
+    """An empty assembly whose file would live in `folder`."""
+    return Assembly(name=name, units=units, parts={}, steps=(), path=Path(folder).resolve() / f"{name}.yaml")
+
+
+def folder_of(asm: Assembly) -> Path:
+    return asm.path.parent if asm.path is not None else Path.cwd()
+
+
+def unique_part_id(asm: Assembly, wanted: str) -> str:
+    """A valid, unused part id from a file name ('Left Gear.stl' -> 'left_gear', then 'left_gear_2')."""
+    base = re.sub(r"[^0-9a-zA-Z_]+", "_", wanted).strip("_").lower() or "part"
+    pid, k = base, 2
+    while pid in asm.parts:
+        pid, k = f"{base}_{k}", k + 1
+    return pid
+
+
+def add_part(asm: Assembly, mesh_path: str | Path, part_id: str | None = None) -> tuple[Assembly, str]:
+    """Add a part by mesh path (the caller loads the mesh to check it). Returns the new assembly and id."""
+    path = Path(mesh_path).expanduser().resolve()
+    pid = unique_part_id(asm, part_id or path.stem)
+    parts = dict(asm.parts)
+    parts[pid] = Part(pid, path)
+    return replace(asm, parts=parts), pid
+
+
+def remove_part(asm: Assembly, part_id: str) -> Assembly:
+    users = [i + 1 for i, s in enumerate(asm.steps) if s.part == part_id or part_id in s.base]
+    if users:
+        raise AposeError(f"part {part_id!r} is used by step(s) {', '.join(map(str, users))}; delete or change those first")
+    parts = {k: v for k, v in asm.parts.items() if k != part_id}
+    return replace(asm, parts=parts)
+
+
+def set_part_color(asm: Assembly, part_id: str, color) -> Assembly:
+    parts = dict(asm.parts)
+    parts[part_id] = replace(parts[part_id], color=tuple(float(c) for c in color))
+    return replace(asm, parts=parts)
+
+
+def unplaced_parts(asm: Assembly) -> list[str]:
+    """Parts no step places yet, in file order (candidates for a new step's part)."""
+    placed = {s.part for s in asm.steps}
+    return [p for p in asm.parts if p not in placed]
+
+
+def default_new_step(asm: Assembly) -> Step:
+    """A sensible next step: place the first unplaced non-root-looking part on everything so far.
+
+    The base is the first root plus every part already placed on it; the part is the first part that
+    is neither a root in use nor placed. Raises AposeError when there is nothing left to place.
+    """
+    if len(asm.parts) < 2:
+        raise AposeError("add at least two parts first: a step places one part on another")
+    placed = [s.part for s in asm.steps]
+    first_root = asm.steps[0].base[0] if asm.steps else next(iter(asm.parts))
+    base = [first_root] + [p for p in placed if asm.root_of(p) == first_root and p != first_root]
+    free = [p for p in asm.parts if p not in placed and p not in base]
+    if not free:
+        raise AposeError("every part is already placed; add a part before adding a step")
+    return Step(free[0], tuple(base), np.eye(4))
+
+
+def add_step(asm: Assembly, step: Step | None = None, at: int | None = None) -> Assembly:
+    steps = list(asm.steps)
+    steps.insert(len(steps) if at is None else at, step if step is not None else default_new_step(asm))
+    return asm.with_steps(steps)
+
+
+def delete_step(asm: Assembly, index: int) -> Assembly:
+    steps = list(asm.steps)
+    del steps[index]
+    return asm.with_steps(steps)
+
+
+def move_step(asm: Assembly, index: int, delta: int) -> Assembly:
+    """Move step `index` (0-based) by `delta` places, clamped to the list."""
+    steps = list(asm.steps)
+    j = int(np.clip(index + delta, 0, len(steps) - 1))
+    steps.insert(j, steps.pop(index))
+    return asm.with_steps(steps)
+
+
+def edit_step(asm: Assembly, index: int, part: str | None = None, base=None, T_base_part=None) -> Assembly:
+    s = asm.steps[index]
+    steps = list(asm.steps)
+    steps[index] = Step(part if part is not None else s.part, tuple(base) if base is not None else s.base,
+                        np.array(T_base_part, dtype=float) if T_base_part is not None else s.T_base_part)
+    return asm.with_steps(steps)
+
+
+def problems(asm: Assembly) -> list[Problem]:
+    """Everything the loader would reject in this draft (empty when it would load)."""
+    file = str(asm.path) if asm.path is not None else "untitled.yaml"
+    folder = folder_of(asm)
+    try:
+        assembly_from_dict(assembly_to_dict(asm, folder), file, folder)
+    except AssemblyError as e:
+        return e.problems
+    if not asm.steps:
+        return [Problem(file, "steps", "no steps yet: add a step that places one part on another")]
+    return []
+
+
+_STEP_KEY = re.compile(r"^steps\[(\d+)\]")
+
+
+def problem_steps(found: list[Problem]) -> set[int]:
+    """0-based indices of the steps named by problems (to highlight them)."""
+    out = set()
+    for p in found:
+        m = _STEP_KEY.match(p.key)
+        if m:
+            out.add(int(m.group(1)))
+    return out
+
+
+# ------------------------------------------------------------------------------- typed poses
+
+
+def typed_pose(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(translation in mm, extrinsic xyz Euler angles in degrees) of a 4x4 pose in metres."""
+    from scipy.spatial.transform import Rotation
+
+    return T[:3, 3] * 1000.0, Rotation.from_matrix(T[:3, :3]).as_euler(EULER_ORDER, degrees=True)
+
+
+def pose_from_typed(t_mm, euler_deg) -> np.ndarray:
+    t = np.asarray(t_mm, dtype=float)
+    e = np.asarray(euler_deg, dtype=float)
+    if t.shape != (3,) or e.shape != (3,) or not (np.isfinite(t).all() and np.isfinite(e).all()):
+        raise AposeError("a pose needs three finite numbers for translation (mm) and three for rotation (deg)")
+    return se3.make_T(se3.euler_deg_to_matrix(e, EULER_ORDER), t / 1000.0)
+
+
+def snap_pose(T: np.ndarray, step_mm: float = 0.0, step_deg: float = 0.0) -> np.ndarray:
+    """Round translation to multiples of step_mm and the Euler angles to multiples of step_deg (0 = off)."""
+    t, e = typed_pose(T)
+    if step_mm > 0:
+        t = np.round(t / step_mm) * step_mm
+    if step_deg > 0:
+        e = np.round(e / step_deg) * step_deg
+    return pose_from_typed(t, e)
+
+
+# ----------------------------------------------------------------------------------- preview
+
+
+def preview_poses(asm: Assembly, upto: int, diameters: dict[str, float], explode: float = 0.0) -> dict[str, np.ndarray]:
+    """T_world_part of every part shown after the first `upto` steps (0 = only the roots).
+
+    Roots stand side by side along x (a gap of their diameter); parts placed by steps <= upto sit on
+    them; `explode` (0..1) pushes each placed part away from its root's centre, one step at a time, so
+    the order reads at a glance. Parts not placed yet are left out.
+    """
+    roots = [r for r in asm.roots if any(asm.root_of(p) == r for p in asm.parts)]
+    T_world_root, x = {}, 0.0
+    for r in roots:
+        d = diameters.get(r, 0.1)
+        T_world_root[r] = se3.make_T(t=np.array([x, 0.0, 0.0]))
+        x += 1.5 * d
+    out = {r: T_world_root[r] for r in roots}
+    for i, s in enumerate(asm.steps[:upto]):
+        root = asm.root_of(s.part)
+        if root not in T_world_root:
+            continue
+        T = T_world_root[root] @ asm.T_root_part(s.part)
+        if explode > 0:
+            centre = T_world_root[root][:3, 3]
+            d = T[:3, 3] - centre
+            n = np.linalg.norm(d)
+            direction = d / n if n > 1e-6 else np.array([0.0, 0.0, 1.0])
+            T = T.copy()
+            T[:3, 3] += direction * explode * diameters.get(root, 0.1) * (i + 1) / max(len(asm.steps), 1)
+        out[s.part] = T
+    return out

@@ -1,0 +1,968 @@
+"""The studio: a viser web GUI over the core. Tab "Assembly" authors assembly files, tab "Inspect"
+shows datasets, captures and registrations.
+
+Design: the GUI is an edge. Editing goes through `authoring` (pure, returns new Assemblies), drawing
+through `inspection` (pure). Every callback runs through `_guarded`, so bad input becomes a
+notification to the browser that caused it and the server keeps serving. The state is shared by all
+browser tabs (one studio, one draft); notifications go to the tab that acted.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+import traceback
+from functools import wraps
+from pathlib import Path
+
+import numpy as np
+
+from . import authoring, inspection, se3
+from .assembly import Assembly, dump_assembly, load_assembly, save_assembly
+from .errors import AposeError, AssemblyError
+from .mesh import PartModel, load_part, supported_extensions
+
+log = logging.getLogger(__name__)
+
+MAX_UPLOAD_BYTES = 200 * 1024 * 1024  # a CAD part above this is almost surely the wrong file
+UNITS = ("m", "cm", "mm", "in")
+PRESETS = ("default", "paper")
+
+
+def _hex(color) -> str:
+    return "#" + "".join(f"{int(round(255 * c)):02x}" for c in color)
+
+
+def _wxyz(T: np.ndarray) -> tuple:
+    return tuple(float(v) for v in se3.matrix_to_quat_wxyz(T[:3, :3]))
+
+
+def _pos(T: np.ndarray) -> tuple:
+    return tuple(float(v) for v in T[:3, 3])
+
+
+class Studio:
+    """One studio on one viser server. `assembly` and `dataset` are optional paths opened at start."""
+
+    def __init__(self, server, assembly: str | Path | None = None, dataset: str | Path | None = None,
+                 cache: inspection.ResultCache | None = None):
+        import viser  # noqa: F401  (imported here so the core never needs it)
+
+        self.server = server
+        self.lock = threading.RLock()  # one edit at a time, whichever tab it comes from
+        self.busy = threading.Lock()  # one estimation at a time
+        self.asm: Assembly = authoring.new_assembly()
+        self.valid_asm: Assembly = self.asm  # last draft without problems: what the preview shows
+        self.models: dict[tuple, PartModel] = {}  # (mesh path, units, colour) -> PartModel
+        self.mesh_handles: dict[str, object] = {}
+        self.nodes: dict[str, object] = {}  # scene nodes by name (tests look here)
+        self.step_index: int | None = None  # selected step, 0-based
+        self.problems: list = []
+        self._syncing = False
+        self.frames = None  # a Dataset or a capture Frame
+        self.frames_path: str | None = None
+        self.frame = None
+        self.cache = cache if cache is not None else inspection.ResultCache()
+        self.contexts: dict = {}  # (assembly identity, step) -> StepContext
+        self.result = None
+        self.score = None
+        self.stages: list = []
+        self.saved_path: Path | None = None
+        self.current_view = "Assembly"
+        self._notice_timer: threading.Timer | None = None
+        self._last_notice = ""
+        self._preview: dict = {}
+        self._part_models: dict = {}  # id(assembly) -> its PartModels, for the Inspect tab
+        self._build_gui()
+        server.on_client_connect(self._on_connect)
+        self._limit_uploads()
+        if assembly is not None:
+            self._open_assembly(Path(assembly))
+        if dataset is not None:
+            self._open_frames(str(dataset))
+
+    # ------------------------------------------------------------------------------------ plumbing
+
+    def notify(self, client, title: str, body: str, error: bool = False) -> None:
+        """Tell the tab that acted (or every tab when no one did)."""
+        (log.warning if error else log.info)("%s: %s", title, body)
+        clients = [client] if client is not None else list(self.server.get_clients().values())
+        for c in clients:
+            try:
+                c.add_notification(title, body, auto_close_seconds=None if error else 4.0,
+                                   color="red" if error else "green")
+            except Exception:  # a tab that just closed
+                pass
+
+    def _guarded(self, title: str):
+        """Decorator for callbacks: AposeError -> its message; anything else -> a short report. Never raises."""
+        def wrap(fn):
+            @wraps(fn)
+            def run(event=None):
+                client = getattr(event, "client", None)
+                try:
+                    with self.lock:
+                        fn(client)
+                except AssemblyError as e:
+                    lines = [str(p) for p in e.problems[:6]]
+                    more = f"\n(+{len(e.problems) - 6} more)" if len(e.problems) > 6 else ""
+                    self.notify(client, title, "\n".join(lines) + more, error=True)
+                except AposeError as e:
+                    self.notify(client, title, str(e), error=True)
+                except Exception as e:  # a bug: say so, keep serving
+                    log.error("%s failed:\n%s", title, traceback.format_exc())
+                    self.notify(client, title, f"internal error ({type(e).__name__}: {e}); the server log has details",
+                                error=True)
+            return run
+        return wrap
+
+    def _on_connect(self, client) -> None:
+        client.camera.up_direction = (0.0, 0.0, 1.0)
+
+    def _limit_uploads(self) -> None:
+        """Refuse an over-size upload when it starts, not after the server has buffered it all."""
+        try:
+            from viser import _messages
+
+            gui = self.server.gui
+
+            def check(client_id, message) -> None:
+                if message.size_bytes > MAX_UPLOAD_BYTES:
+                    gui._current_file_upload_states.pop(message.transfer_uuid, None)
+                    client = self.server.get_clients().get(client_id)
+                    self.notify(client, "Upload refused",
+                                f"{message.filename} is {message.size_bytes / 2**20:.0f} MB; the limit is "
+                                f"{MAX_UPLOAD_BYTES / 2**20:.0f} MB. Put the file on the server and type its path instead.",
+                                error=True)
+
+            gui._websock_interface.register_handler(_messages.FileTransferStartUpload, check)
+        except Exception:  # viser changed its internals: the size is still checked after the upload
+            log.info("early upload size check unavailable; checking after upload")
+
+    # ----------------------------------------------------------------------------------------- GUI
+
+    def _build_gui(self) -> None:
+        gui = self.server.gui
+        gui.configure_theme(control_layout="fixed", control_width="large", show_share_button=False,
+                            brand_color=(40, 90, 230))
+        self.server.scene.set_up_direction("+z")
+        self.view = gui.add_button_group("3D view", ("Assembly", "Inspect"))
+        self.view.on_click(lambda e: self._show_view(e.target.value))
+        tabs = gui.add_tab_group()
+        with tabs.add_tab("Assembly"):
+            self._build_assembly_tab()
+        with tabs.add_tab("Inspect"):
+            self._build_inspect_tab()
+        self.server.scene.add_grid("/grid", width=1.0, height=1.0, cell_size=0.01, section_size=0.1,
+                                   plane="xy", position=(0.0, 0.0, -0.0005))
+        self._show_view("Assembly")
+
+    def _show_view(self, which: str) -> None:
+        self.current_view = which
+        for name, handle in list(self.nodes.items()):
+            if name.startswith("/assembly") or name.startswith("/inspect"):
+                want = name.startswith("/assembly") == (which == "Assembly")
+                handle.visible = want and getattr(handle, "_apose_visible", True)
+        for pid, h in self.mesh_handles.items():
+            h.visible = which == "Assembly" and getattr(h, "_apose_visible", True)
+
+    def _node(self, name: str, handle, visible: bool = True):
+        handle._apose_visible = visible
+        handle.visible = visible and name.startswith("/" + self.current_view.lower())
+        self.nodes[name] = handle
+        return handle
+
+    def _build_assembly_tab(self) -> None:
+        gui = self.server.gui
+        with gui.add_folder("File"):
+            self.f_path = gui.add_text("Assembly file", "", hint="path on the server; relative mesh paths resolve against its folder")
+            row = gui.add_button_group("File actions", ("Open", "New", "Save", "Download"))
+            row.on_click(self._on_file_action)
+            self.f_name = gui.add_text("Name", self.asm.name)
+            self.f_units = gui.add_dropdown("Units", UNITS, initial_value=self.asm.units,
+                                            hint="unit of mesh coordinates and translations in the file")
+            self.f_name.on_update(self._guarded("Rename")(self._on_name))
+            self.f_units.on_update(self._guarded("Units")(self._on_units))
+        with gui.add_folder("Parts"):
+            self.parts_html = gui.add_html("")
+            self.f_mesh = gui.add_text("Mesh path or folder", "", hint=f"on the server: {', '.join(supported_extensions())}")
+            b = gui.add_button("Add part(s)")
+            b.on_click(self._guarded("Add part")(self._on_add_parts))
+            self.upload = gui.add_upload_button("Upload mesh", hint=f"up to {MAX_UPLOAD_BYTES // 2**20} MB; saved beside the assembly file")
+            self.upload.on_upload(self._guarded("Upload")(self._on_upload))
+            self.f_part = gui.add_dropdown("Part", ("—",))
+            self.f_color = gui.add_rgb("Colour", (230, 158, 0))
+            self.f_color.on_update(self._guarded("Colour")(self._on_color))
+            b = gui.add_button("Remove part", color="red")
+            b.on_click(self._guarded("Remove part")(self._on_remove_part))
+        with gui.add_folder("Steps"):
+            self.steps_html = gui.add_html("")
+            self.f_step = gui.add_dropdown("Step", ("—",))
+            self.f_step.on_update(self._guarded("Select step")(self._on_select_step))
+            row = gui.add_button_group("Step actions", ("Add", "Delete", "Up", "Down"))
+            row.on_click(self._on_step_action)
+            self.f_step_part = gui.add_dropdown("Part to place", ("—",))
+            self.f_step_part.on_update(self._guarded("Part to place")(self._on_step_part))
+            self.f_base = gui.add_text("Base parts", "", hint="comma-separated part ids; the first is the frame of the pose")
+            self.f_base.on_update(self._guarded("Base parts")(self._on_base))
+            self.f_t = gui.add_vector3("Translation (mm)", (0.0, 0.0, 0.0), step=0.1)
+            self.f_r = gui.add_vector3("Rotation xyz (°)", (0.0, 0.0, 0.0), step=0.1)
+            self.f_t.on_update(self._guarded("Translation")(self._on_typed_pose))
+            self.f_r.on_update(self._guarded("Rotation")(self._on_typed_pose))
+            self.f_snap_mm = gui.add_number("Snap (mm)", 0.5, min=0.0, step=0.1, hint="0 = off")
+            self.f_snap_deg = gui.add_number("Snap (°)", 5.0, min=0.0, step=1.0, hint="0 = off")
+        with gui.add_folder("Preview"):
+            self.f_upto = gui.add_slider("Assembled up to step", 0, 1, 1, 0)
+            self.f_upto.on_update(self._guarded("Preview")(lambda c: self._refresh_assembly_scene()))
+            self.f_explode = gui.add_slider("Explode", 0.0, 1.0, 0.05, 0.0)
+            self.f_explode.on_update(self._guarded("Preview")(lambda c: self._refresh_assembly_scene()))
+            b = gui.add_button("Play sequence")
+            b.on_click(self._guarded("Play")(self._on_play_sequence))
+        self.status_md = gui.add_markdown("")
+
+    def _build_inspect_tab(self) -> None:
+        gui = self.server.gui
+        with gui.add_folder("Data"):
+            self.i_path = gui.add_text("Dataset or capture", "", hint="a folder from `apose render`, or rgb.png + depth.png + camera.json")
+            b = gui.add_button("Open data")
+            b.on_click(self._guarded("Open data")(lambda c: self._open_frames(self.i_path.value.strip())))
+            self.i_step = gui.add_dropdown("Inspect step", ("—",))
+            self.i_step.on_update(self._guarded("Step")(lambda c: self._on_frame_changed()))
+            self.i_frame = gui.add_slider("Frame", 0, 1, 1, 0)
+            self.i_frame.on_update(self._guarded("Frame")(lambda c: self._on_frame_changed()))
+        with gui.add_folder("Estimate"):
+            self.i_preset = gui.add_dropdown("Preset", PRESETS, initial_value="default")
+            from .evaluate import MASK_SOURCES
+
+            self.i_mask = gui.add_dropdown("Mask", MASK_SOURCES, initial_value=MASK_SOURCES[0])
+            self.i_prior = gui.add_checkbox("Orientation prior", False, hint="take the CAD orientation as the base's (the paper's assumption)")
+            for w in (self.i_preset, self.i_mask, self.i_prior):
+                w.on_update(self._guarded("Estimator")(lambda c: self._on_frame_changed()))
+            row = gui.add_button_group("Run", ("Estimate frame", "Estimate step"))
+            row.on_click(self._on_estimate)
+            self.i_progress = gui.add_progress_bar(0.0, visible=False)
+        with gui.add_folder("Registration replay"):
+            self.i_stage = gui.add_slider("Stage", 0, 1, 1, 0, disabled=True)
+            self.i_stage.on_update(self._guarded("Stage")(lambda c: self._show_stage()))
+            b = gui.add_button("Play registration")
+            b.on_click(self._guarded("Play registration")(self._on_play_registration))
+            self.i_stage_md = gui.add_markdown("")
+        with gui.add_folder("Result"):
+            self.i_metrics = gui.add_markdown("")
+            self.i_image = gui.add_image(np.zeros((48, 64, 3), np.uint8), label="RGB: estimate (green), truth (red)")
+        with gui.add_folder("Layers", expand_by_default=False):
+            self.layers = {k: gui.add_checkbox(k, True) for k in ("scene cloud", "target (red)", "source (blue)", "boxes", "camera")}
+            for w in self.layers.values():
+                w.on_update(lambda e: self._apply_layers())
+
+    # ------------------------------------------------------------------------------- assembly side
+
+    def model(self, pid: str) -> PartModel:
+        part = self.asm.parts[pid]
+        key = (str(part.mesh), self.asm.units, part.color, list(self.asm.parts).index(pid))
+        if key not in self.models:
+            self.models[key] = load_part(part, self.asm.units, key[3])
+        return self.models[key]
+
+    def _set_assembly(self, asm: Assembly, client=None, quiet: bool = False) -> None:
+        """Adopt a new draft: validate, remember the last valid one, refresh every view of it."""
+        self.asm = asm
+        self.problems = authoring.problems(asm)
+        hard = [p for p in self.problems if p.key != "steps"]  # "no steps yet" is not an error
+        if not hard:
+            self.valid_asm = asm
+        elif not quiet:
+            self._notice_problems_later(client)
+        if self.step_index is not None and self.step_index >= len(asm.steps):
+            self.step_index = len(asm.steps) - 1 if asm.steps else None
+        self._refresh_assembly_widgets()
+        self._refresh_assembly_scene()
+
+    def _notice_problems_later(self, client, delay: float = 0.8) -> None:
+        """Notify about a draft's problems once typing pauses (a text field updates on every key)."""
+        if self._notice_timer is not None:
+            self._notice_timer.cancel()
+
+        def fire():
+            with self.lock:
+                hard = [p for p in self.problems if p.key != "steps"]
+                text = "\n".join(f"{p.key}: {p.what}" for p in hard[:4])
+                if hard and text != self._last_notice:
+                    self._last_notice = text
+                    self.notify(client, "Assembly has problems", text, error=True)
+                elif not hard:
+                    self._last_notice = ""
+
+        self._notice_timer = threading.Timer(delay, fire)
+        self._notice_timer.daemon = True
+        self._notice_timer.start()
+
+    def _open_assembly(self, path: Path, client=None) -> None:
+        asm = load_assembly(path)
+        for pid in asm.parts:  # load every mesh now: a bad one is reported before anything changes
+            part = asm.parts[pid]
+            key = (str(part.mesh), asm.units, part.color, list(asm.parts).index(pid))
+            if key not in self.models:
+                self.models[key] = load_part(part, asm.units, key[3])
+        for h in self.mesh_handles.values():
+            h.remove()
+        self.mesh_handles.clear()
+        self.step_index = 0 if asm.steps else None
+        self.saved_path = asm.path
+        self.f_path.value = str(asm.path)
+        self._set_assembly(asm, client)
+        self.f_upto.value = len(asm.steps)
+        self._frame_camera_on_assembly()
+        warnings = [self.model(p).unit_warning for p in asm.parts if self.model(p).unit_warning]
+        if warnings:
+            self.notify(client, "Units look wrong", "\n".join(warnings), error=True)
+
+    def _frame_camera_on_assembly(self) -> None:
+        d = max([self.model(p).diameter for p in self.asm.parts] or [0.1])
+        for c in self.server.get_clients().values():
+            c.camera.position = (1.6 * d, -1.6 * d, 1.2 * d)
+            c.camera.look_at = (0.0, 0.0, 0.0)
+        self.server.initial_camera.position = (1.6 * d, -1.6 * d, 1.2 * d)
+        self.server.initial_camera.look_at = (0.0, 0.0, 0.0)
+
+    def _on_file_action(self, event) -> None:
+        action = event.target.value
+        handler = {"Open": self._on_open, "New": self._on_new, "Save": self._on_save, "Download": self._on_download}[action]
+        self._guarded(action)(handler)(event)
+
+    def _on_open(self, client) -> None:
+        text = self.f_path.value.strip()
+        if not text:
+            raise AposeError("type the path of an assembly file (on the server) into 'Assembly file' first")
+        self._open_assembly(Path(text).expanduser(), client)
+        self.notify(client, "Opened", f"{self.asm.name}: {len(self.asm.parts)} parts, {len(self.asm.steps)} steps")
+
+    def _on_new(self, client) -> None:
+        folder = Path(self.f_path.value).expanduser().parent if self.f_path.value.strip() else Path.cwd()
+        for h in self.mesh_handles.values():
+            h.remove()
+        self.mesh_handles.clear()
+        self.step_index = None
+        self._set_assembly(authoring.new_assembly("untitled", self.f_units.value, folder), client, quiet=True)
+
+    def _save_target(self) -> Path:
+        text = self.f_path.value.strip()
+        if not text:
+            raise AposeError("type where to save into 'Assembly file' (a .yaml path on the server)")
+        path = Path(text).expanduser().resolve()
+        if path.suffix.lower() not in (".yaml", ".yml"):
+            raise AposeError(f"{path.name}: save as a .yaml file")
+        if not path.parent.is_dir():
+            raise AposeError(f"{path.parent}: folder does not exist; create it or pick another path")
+        return path
+
+    def _require_valid(self) -> None:
+        if self.problems:
+            raise AssemblyError(self.problems)
+
+    def _on_save(self, client) -> None:
+        self._require_valid()
+        path = save_assembly(self.asm, self._save_target())
+        self.saved_path = path
+        self.asm = load_assembly(path)  # what is on disk is what the studio now edits (paths re-anchored)
+        self.valid_asm = self.asm
+        self._refresh_status()
+        self.notify(client, "Saved", str(path))
+
+    def _on_download(self, client) -> None:
+        self._require_valid()
+        folder = self._save_target().parent if self.f_path.value.strip() else authoring.folder_of(self.asm)
+        text = dump_assembly(self.asm, folder)
+        if client is None:
+            raise AposeError("no browser to send the download to")
+        client.send_file_download(f"{self.asm.name}.yaml", text.encode("utf-8"))
+
+    def _on_name(self, client) -> None:
+        if self._syncing:
+            return
+        from dataclasses import replace
+
+        name = self.f_name.value.strip()
+        if not name:
+            raise AposeError("the assembly needs a name")
+        self._set_assembly(replace(self.asm, name=name), client)
+
+    def _on_units(self, client) -> None:
+        if self._syncing or self.f_units.value == self.asm.units:
+            return
+        from dataclasses import replace
+
+        for h in self.mesh_handles.values():
+            h.remove()
+        self.mesh_handles.clear()
+        self._set_assembly(replace(self.asm, units=self.f_units.value), client)
+        warnings = [self.model(p).unit_warning for p in self.asm.parts if self.model(p).unit_warning]
+        if warnings:
+            self.notify(client, "Units look wrong", "\n".join(warnings), error=True)
+
+    def _add_mesh_file(self, path: Path, client) -> str:
+        asm, pid = authoring.add_part(self.asm, path)
+        part = asm.parts[pid]
+        model = load_part(part, asm.units, len(asm.parts) - 1)  # raises MeshError before anything changes
+        self.models[(str(part.mesh), asm.units, part.color, len(asm.parts) - 1)] = model
+        self._set_assembly(asm, client, quiet=True)
+        if model.unit_warning:
+            self.notify(client, "Units look wrong", model.unit_warning, error=True)
+        return pid
+
+    def _on_add_parts(self, client) -> None:
+        text = self.f_mesh.value.strip()
+        if not text:
+            raise AposeError("type a mesh path or a folder of meshes (on the server) into 'Mesh path or folder'")
+        path = Path(text).expanduser()
+        if path.is_dir():
+            files = sorted(p for p in path.iterdir() if p.suffix.lower() in supported_extensions())
+            if not files:
+                raise AposeError(f"{path}: no meshes here ({', '.join(supported_extensions())})")
+        elif path.is_file():
+            files = [path]
+        else:
+            raise AposeError(f"{path}: no such file or folder on the server")
+        added, failed = [], []
+        for f in files:
+            try:
+                added.append(self._add_mesh_file(f, client))
+            except AposeError as e:
+                failed.append(str(e))
+        if added:
+            self.notify(client, "Parts added", ", ".join(added))
+        if failed:
+            self.notify(client, "Some meshes were not added", "\n".join(failed[:5]), error=True)
+        self._frame_camera_on_assembly()
+
+    def _on_upload(self, client) -> None:
+        f = self.upload.value
+        if f is None:
+            return
+        if len(f.content) > MAX_UPLOAD_BYTES:
+            raise AposeError(f"{f.name} is {len(f.content) / 2**20:.0f} MB; the limit is {MAX_UPLOAD_BYTES // 2**20} MB")
+        name = Path(f.name).name
+        if Path(name).suffix.lower() not in supported_extensions():
+            raise AposeError(f"{name}: not a mesh format the studio reads ({', '.join(supported_extensions())})")
+        folder = authoring.folder_of(self.asm) / "meshes"
+        folder.mkdir(parents=True, exist_ok=True)
+        target = folder / name
+        k = 2
+        while target.exists() and target.read_bytes() != f.content:
+            target = folder / f"{Path(name).stem}_{k}{Path(name).suffix}"
+            k += 1
+        if not target.exists():
+            tmp = target.with_name(f".{target.name}.part")
+            tmp.write_bytes(f.content)
+            tmp.replace(target)
+        try:
+            pid = self._add_mesh_file(target, client)
+        except AposeError:
+            target.unlink(missing_ok=True)  # a corrupt upload leaves nothing behind
+            raise
+        self.notify(client, "Part uploaded", f"{pid} ← {name} (saved as {target})")
+
+    def _on_color(self, client) -> None:
+        if self._syncing or self.f_part.value not in self.asm.parts:
+            return
+        pid = self.f_part.value
+        rgb = tuple(c / 255.0 for c in self.f_color.value)
+        if pid in self.mesh_handles:
+            self.mesh_handles.pop(pid).remove()
+        self._set_assembly(authoring.set_part_color(self.asm, pid, rgb), client)
+
+    def _on_remove_part(self, client) -> None:
+        pid = self.f_part.value
+        if pid not in self.asm.parts:
+            raise AposeError("choose a part to remove")
+        asm = authoring.remove_part(self.asm, pid)
+        if pid in self.mesh_handles:
+            self.mesh_handles.pop(pid).remove()
+        self._set_assembly(asm, client)
+
+    # steps
+
+    def _on_step_action(self, event) -> None:
+        action = event.target.value
+        self._guarded(f"{action} step")(lambda c: self._step_action(action, c))(event)
+
+    def _step_action(self, action: str, client) -> None:
+        i = self.step_index
+        if action == "Add":
+            asm = authoring.add_step(self.asm)
+            self.step_index = len(asm.steps) - 1
+        else:
+            if i is None:
+                raise AposeError("select a step first")
+            if action == "Delete":
+                asm = authoring.delete_step(self.asm, i)
+                self.step_index = min(i, len(asm.steps) - 1) if asm.steps else None
+            else:
+                asm = authoring.move_step(self.asm, i, -1 if action == "Up" else 1)
+                self.step_index = int(np.clip(i + (-1 if action == "Up" else 1), 0, len(asm.steps) - 1))
+        self._set_assembly(asm, client)
+        if self.step_index is not None:
+            self.f_upto.value = self.step_index + 1
+
+    def _on_select_step(self, client) -> None:
+        if self._syncing or not self.asm.steps:
+            return
+        self.step_index = int(self.f_step.value.split(".")[0]) - 1
+        self._refresh_assembly_widgets()
+        self.f_upto.value = self.step_index + 1
+
+    def _on_step_part(self, client) -> None:
+        if self._syncing or self.step_index is None:
+            return
+        self._set_assembly(authoring.edit_step(self.asm, self.step_index, part=self.f_step_part.value), client)
+
+    def _on_base(self, client) -> None:
+        if self._syncing or self.step_index is None:
+            return
+        base = [b.strip() for b in self.f_base.value.split(",") if b.strip()]
+        if not base:
+            raise AposeError("a step needs at least one base part")
+        self._set_assembly(authoring.edit_step(self.asm, self.step_index, base=base), client)
+
+    def _on_typed_pose(self, client) -> None:
+        if self._syncing or self.step_index is None:
+            return
+        T = authoring.pose_from_typed(self.f_t.value, self.f_r.value)
+        self._set_pose(T, client, from_typed=True)
+
+    def _set_pose(self, T: np.ndarray, client, from_typed: bool = False) -> None:
+        self.asm = authoring.edit_step(self.asm, self.step_index, T_base_part=T)
+        self.problems = authoring.problems(self.asm)
+        if not [p for p in self.problems if p.key != "steps"]:
+            self.valid_asm = self.asm
+        if not from_typed:
+            self._sync_typed_pose()
+        self._refresh_status()
+        self._refresh_assembly_scene(move_only=True)
+
+    def _on_gizmo(self, handle) -> None:
+        if self._syncing or self.step_index is None or not self.asm.steps:
+            return
+        with self.lock:
+            try:
+                step = self.asm.steps[self.step_index]
+                T_world_base = self._preview[step.base[0]]
+                T = se3.inv(T_world_base) @ se3.make_T(se3.quat_wxyz_to_matrix(handle.wxyz), np.asarray(handle.position))
+                T = authoring.snap_pose(T, float(self.f_snap_mm.value or 0), float(self.f_snap_deg.value or 0))
+                self._set_pose(T, None)
+            except Exception:
+                log.error("gizmo update failed:\n%s", traceback.format_exc())
+
+    def _sync_typed_pose(self) -> None:
+        if self.step_index is None:
+            return
+        t, e = authoring.typed_pose(self.asm.steps[self.step_index].T_base_part)
+        self._syncing = True
+        try:
+            self.f_t.value = tuple(round(float(v), 4) for v in t)
+            self.f_r.value = tuple(round(float(v), 4) for v in e)
+        finally:
+            self._syncing = False
+
+    def _on_play_sequence(self, client) -> None:
+        n = len(self.valid_asm.steps)
+        if n == 0:
+            raise AposeError("nothing to play: add steps first")
+
+        def play():
+            for k in range(n + 1):
+                self.f_upto.value = k
+                time.sleep(0.8)
+
+        threading.Thread(target=play, daemon=True).start()
+
+    # refreshers
+
+    def _refresh_assembly_widgets(self) -> None:
+        asm = self.asm
+        self._syncing = True
+        try:
+            self.f_name.value = asm.name
+            self.f_units.value = asm.units
+            parts = list(asm.parts) or ["—"]
+            self.f_part.options = parts
+            self.f_step_part.options = parts
+            steps = [f"{i + 1}. {s.part}" for i, s in enumerate(asm.steps)] or ["—"]
+            self.f_step.options = steps
+            if self.step_index is not None:
+                s = asm.steps[self.step_index]
+                self.f_step.value = steps[self.step_index]
+                self.f_step_part.value = s.part
+                self.f_base.value = ", ".join(s.base)
+                t, e = authoring.typed_pose(s.T_base_part)
+                self.f_t.value = tuple(round(float(v), 4) for v in t)
+                self.f_r.value = tuple(round(float(v), 4) for v in e)
+            self.f_upto.max = max(len(asm.steps), 1)
+        finally:
+            self._syncing = False
+        self._refresh_parts_table()
+        self._refresh_status()
+
+    def _refresh_parts_table(self) -> None:
+        rows = []
+        for pid, part in self.asm.parts.items():
+            try:
+                m = self.model(pid)
+            except AposeError as e:
+                rows.append(f"<tr><td>{pid}</td><td colspan=4 style='color:#c00'>{e}</td></tr>")
+                continue
+            size = " × ".join(f"{v * 1000:.1f}" for v in m.size)
+            warn = f"<br><span style='color:#c60'>⚠ {m.unit_warning}</span>" if m.unit_warning else ""
+            rows.append(f"<tr><td><span style='display:inline-block;width:10px;height:10px;background:{_hex(m.color)};"
+                        f"border-radius:2px'></span> {pid}</td><td>{part.mesh.name}</td><td>{self.asm.units}</td>"
+                        f"<td>{size}{warn}</td></tr>")
+        body = "".join(rows) or "<tr><td colspan=4><i>no parts yet: add a mesh path, a folder, or upload</i></td></tr>"
+        self.parts_html.content = (
+            "<table style='font-size:0.8em;width:100%;border-collapse:collapse'>"
+            "<tr style='text-align:left'><th>part</th><th>file</th><th>unit</th><th>size (mm)</th></tr>" + body + "</table>")
+
+    def _refresh_status(self) -> None:
+        bad = authoring.problem_steps(self.problems)
+        rows = []
+        for i, s in enumerate(self.asm.steps):
+            style = "background:#fde2e2;" if i in bad else ("background:#e3ecfc;" if i == self.step_index else "")
+            mark = "⚠ " if i in bad else ("▶ " if i == self.step_index else "")
+            t = s.T_base_part[:3, 3] * 1000
+            rows.append(f"<tr style='{style}'><td>{mark}{i + 1}</td><td>{s.part}</td><td>{', '.join(s.base)}</td>"
+                        f"<td>({t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f})</td></tr>")
+        body = "".join(rows) or "<tr><td colspan=4><i>no steps yet: press Add</i></td></tr>"
+        self.steps_html.content = (
+            "<table style='font-size:0.8em;width:100%;border-collapse:collapse'>"
+            "<tr style='text-align:left'><th>#</th><th>part</th><th>on base</th><th>t (mm)</th></tr>" + body + "</table>")
+        if not self.problems:
+            saved = f" Saved as `{self.saved_path}`." if self.saved_path else ""
+            self.status_md.content = f"✅ **Valid**: {len(self.asm.parts)} parts, {len(self.asm.steps)} steps.{saved}"
+        else:
+            lines = "\n".join(f"- `{p.key or 'file'}`: {p.what}" for p in self.problems[:6])
+            self.status_md.content = f"⚠ **{len(self.problems)} problem(s)**; saving is off until fixed:\n{lines}"
+
+    def _refresh_assembly_scene(self, move_only: bool = False) -> None:
+        """Meshes at their preview poses; the gizmo on the selected step's part."""
+        asm = self.valid_asm
+        diam = {}
+        for p in asm.parts:
+            try:
+                diam[p] = self.model(p).diameter
+            except AposeError:
+                pass
+        upto = int(self.f_upto.value)
+        self._preview = authoring.preview_poses(asm, min(upto, len(asm.steps)), diam, float(self.f_explode.value))
+        show = self.current_view == "Assembly"
+        for pid in asm.parts:
+            if pid not in diam:
+                continue
+            h = self.mesh_handles.get(pid)
+            if h is None:
+                m = self.model(pid)
+                color = tuple(int(255 * c) for c in m.color)
+                h = self.server.scene.add_mesh_simple(f"/parts/{pid}", m.mesh.vertices.astype(np.float32),
+                                                      m.mesh.faces.astype(np.uint32), color=color, flat_shading=False)
+                self.mesh_handles[pid] = h
+            T = self._preview.get(pid)
+            h._apose_visible = T is not None
+            h.visible = show and T is not None
+            if T is not None:
+                h.position, h.wxyz = _pos(T), _wxyz(T)
+        for pid in [p for p in self.mesh_handles if p not in asm.parts]:
+            self.mesh_handles.pop(pid).remove()
+        self._place_gizmo()
+
+    def _place_gizmo(self) -> None:
+        asm = self.valid_asm
+        i = self.step_index
+        editable = (i is not None and i < len(asm.steps) and asm.steps[i].part == self.asm.steps[i].part
+                    and float(self.f_explode.value) == 0.0 and asm.steps[i].base[0] in self._preview)
+        if not editable:
+            for name in ("/assembly/gizmo", "/assembly/base_frame"):
+                if name in self.nodes:
+                    self.nodes.pop(name).remove()
+            return
+        step = asm.steps[i]
+        T_world_base = self._preview[step.base[0]]
+        T = T_world_base @ step.T_base_part
+        d = self.model(step.part).diameter
+        frame = self.nodes.get("/assembly/base_frame")
+        if frame is None:
+            frame = self._node("/assembly/base_frame", self.server.scene.add_frame(
+                "/assembly/base_frame", axes_length=0.3 * d, axes_radius=0.01 * d))
+        frame.position, frame.wxyz = _pos(T_world_base), _wxyz(T_world_base)
+        g = self.nodes.get("/assembly/gizmo")
+        if g is None:
+            g = self._node("/assembly/gizmo", self.server.scene.add_transform_controls("/assembly/gizmo", scale=0.6 * d))
+            g.on_update(self._on_gizmo)
+        self._syncing = True
+        try:
+            g.position, g.wxyz = _pos(T), _wxyz(T)
+        finally:
+            self._syncing = False
+        if step.part in self.mesh_handles:  # the part shows where the draft puts it, even past the slider
+            h = self.mesh_handles[step.part]
+            h._apose_visible = True
+            h.visible = self.current_view == "Assembly"
+            h.position, h.wxyz = _pos(T), _wxyz(T)
+
+    # -------------------------------------------------------------------------------- inspect side
+
+    def _open_frames(self, text: str, client=None) -> None:
+        from .dataset import Dataset, open_frames
+
+        if not text:
+            raise AposeError("type a dataset folder (from `apose render`) or a capture folder into 'Dataset or capture'")
+        frames = open_frames(Path(text).expanduser())
+        self.frames, self.frames_path = frames, str(Path(text).expanduser().resolve())
+        self.i_path.value = self.frames_path
+        self._syncing = True
+        try:
+            if isinstance(frames, Dataset):
+                steps = [f"{s}. {frames.assembly.steps[s - 1].part}" for s in frames.steps]
+            else:
+                if not self.asm.steps:
+                    raise AposeError("a capture needs an assembly: open one in the Assembly tab first")
+                steps = [f"{i + 1}. {s.part}" for i, s in enumerate(self.asm.steps)]
+            self.i_step.options = steps
+            self.i_step.value = steps[0]
+        finally:
+            self._syncing = False
+        self._show_view("Inspect")
+        self._on_frame_changed()
+        self._frame_camera_on_frame()
+
+    def _frame_camera_on_frame(self) -> None:
+        """Look at the base object from a little behind and above the dataset's camera."""
+        fr = self.frame
+        if fr is None:
+            return
+        mask = fr.base_mask()
+        from .register import project_to_cloud
+
+        pts = project_to_cloud(fr.depth, mask if mask.any() else np.isfinite(fr.depth) & (fr.depth > 0),
+                               fr.camera, fr.T_world_camera)
+        if not len(pts):
+            return
+        centre = np.median(pts, axis=0)
+        # from beside the dataset's camera (turned 50° about the vertical through the base), so the
+        # frustum and its image are seen from the side instead of blocking the view
+        offset = se3.axis_angle_matrix([0.0, 0.0, 1.0], np.radians(50.0)) @ (fr.T_world_camera[:3, 3] - centre)
+        eye = centre + 1.1 * offset
+        for c in self.server.get_clients().values():
+            c.camera.position, c.camera.look_at = tuple(eye), tuple(centre)
+        self.server.initial_camera.position, self.server.initial_camera.look_at = tuple(eye), tuple(centre)
+
+    def _inspect_assembly(self) -> Assembly:
+        from .dataset import Dataset
+
+        return self.frames.assembly if isinstance(self.frames, Dataset) else self.valid_asm
+
+    def _current_step(self) -> int:
+        return int(str(self.i_step.value).split(".")[0])
+
+    def _cache_key(self, step: int, im_id: int) -> tuple:
+        return self.cache.key(self.frames_path, step, im_id, self.i_preset.value, self.i_mask.value, self.i_prior.value)
+
+    def _load_frame(self, step: int, im_id: int):
+        from .dataset import Dataset
+
+        if isinstance(self.frames, Dataset):
+            return self.frames.frame(step, im_id)
+        frame = self.frames
+        frame.base = self.valid_asm.steps[step - 1].base
+        return frame
+
+    def _on_frame_changed(self) -> None:
+        from .dataset import Dataset
+
+        if self._syncing or self.frames is None:
+            return
+        step = self._current_step()
+        if isinstance(self.frames, Dataset):
+            ids = self.frames.image_ids(step)
+            self._syncing = True
+            try:
+                self.i_frame.max = max(len(ids) - 1, 1)
+                self.i_frame.disabled = len(ids) <= 1
+                if self.i_frame.value > len(ids) - 1:
+                    self.i_frame.value = 0
+            finally:
+                self._syncing = False
+            im_id = ids[int(self.i_frame.value)]
+        else:
+            im_id = 0
+        self.frame = self._load_frame(step, im_id)
+        cached = self.cache.get(self._cache_key(step, im_id))
+        self.result, self.score = cached if cached is not None else (None, None)
+        self._draw_frame()
+
+    def _inspect_models(self) -> dict:
+        from .mesh import load_parts
+
+        asm = self._inspect_assembly()
+        if id(asm) not in self._part_models:
+            self._part_models = {id(asm): load_parts(asm)}  # keep one assembly's meshes, not every draft's
+        return self._part_models[id(asm)]
+
+    def _context(self, step: int):
+        from .evaluate import StepContext
+
+        asm = self._inspect_assembly()
+        key = (id(asm), step)
+        if key not in self.contexts:
+            self.contexts[key] = StepContext(asm, self._inspect_models(), step)
+        return self.contexts[key]
+
+    def _estimate(self, step: int, im_id: int):
+        from .evaluate import estimate_frame, score_frame
+        from .register import resolve_params
+
+        ctx = self._context(step)
+        frame = self.frame if (self.frame is not None and self.frame.im_id == im_id and self.frame.step in (step, None)) \
+            else self._load_frame(step, im_id)
+        asm = self._inspect_assembly()
+        params = resolve_params(self.i_preset.value, asm.registration)
+        result = estimate_frame(frame, ctx, params, self.i_mask.value, bool(self.i_prior.value), trace_iterations=True)
+        score = score_frame(frame, result, ctx.part) if (result.ok and frame.T_world_part is not None) else None
+        self.cache.put(self._cache_key(step, im_id), (result, score))
+        return result, score
+
+    def _on_estimate(self, event) -> None:
+        which = event.target.value
+        self._guarded(which)(lambda c: self._run_estimation(which == "Estimate step", c))(event)
+
+    def _run_estimation(self, whole_step: bool, client) -> None:
+        from .dataset import Dataset
+
+        if self.frames is None:
+            raise AposeError("open a dataset or capture first")
+        if not self.busy.acquire(blocking=False):
+            raise AposeError("an estimation is already running; wait for it to finish")
+        self.lock.release()  # estimation is long: let other tabs edit meanwhile
+        try:
+            step = self._current_step()
+            if whole_step and isinstance(self.frames, Dataset):
+                ids = self.frames.image_ids(step)
+            else:
+                ids = [self.frame.im_id]
+            self.i_progress.visible = True
+            self.i_progress.value = 0.0
+            failed, t0 = [], time.perf_counter()
+            for k, im_id in enumerate(ids):
+                if self.cache.get(self._cache_key(step, im_id)) is None:
+                    result, _ = self._estimate(step, im_id)
+                    if not result.ok:
+                        failed.append(f"frame {im_id}: {result.reason}")
+                self.i_progress.value = 100.0 * (k + 1) / len(ids)
+            dt = time.perf_counter() - t0
+        finally:
+            self.lock.acquire()
+            self.busy.release()
+            self.i_progress.visible = False
+        self._on_frame_changed()
+        if failed:
+            self.notify(client, "Estimation failed", "\n".join(failed[:5]), error=True)
+        else:
+            self.notify(client, "Estimated", f"{len(ids)} frame(s) in {dt:.1f} s")
+
+    def _draw_frame(self) -> None:
+        fr = self.frame
+        scene = self.server.scene
+        cam = fr.camera
+        asm = self._inspect_assembly()
+        step = self._current_step()
+        part_model = self._inspect_models()[asm.steps[step - 1].part]
+        # camera frustum with the (thumbnail) image
+        small = fr.rgb[::2, ::2] if fr.rgb.shape[1] > 400 else fr.rgb
+        fov = 2.0 * np.arctan2(cam.height / 2.0, cam.fy)
+        Tc = fr.T_world_camera
+        self._node("/inspect/camera", scene.add_camera_frustum("/inspect/camera", fov=float(fov), aspect=cam.width / cam.height,
+                                                               scale=0.03, image=small, format="jpeg", jpeg_quality=80,
+                                                               wxyz=_wxyz(Tc), position=_pos(Tc), color=(60, 60, 60)))
+        pts, cols = inspection.scene_cloud(fr.depth, fr.rgb, cam, Tc)
+        self._node("/inspect/scene", scene.add_point_cloud("/inspect/scene", pts, cols, point_size=0.001, point_shape="circle"))
+        boxes = []
+        segs = []
+        if part_model is not None:
+            corners = part_model.box_corners()
+            if fr.T_world_part is not None:
+                boxes.append((fr.T_world_part, inspection.RED))
+                segs.append(("/inspect/box_gt", inspection.box_segments(corners, fr.T_world_part), inspection.RED))
+            if self.result is not None and self.result.ok:
+                boxes.append((self.result.T_world_part, inspection.GREEN))
+                segs.append(("/inspect/box_est", inspection.box_segments(corners, self.result.T_world_part), inspection.GREEN))
+            image = inspection.draw_boxes(fr.rgb, cam, Tc, corners, boxes)
+        else:
+            image = fr.rgb
+        for name in ("/inspect/box_gt", "/inspect/box_est", "/inspect/target", "/inspect/source"):
+            if name in self.nodes:
+                self.nodes.pop(name).remove()
+        for name, seg, colour in segs:
+            self._node(name, scene.add_line_segments(name, seg.astype(np.float32), colour, thickness=3.0,
+                                                     thickness_units="screen"))
+        self.i_image.image = image
+        r = self.result
+        if r is not None and len(r.target_cloud):
+            self._node("/inspect/target", scene.add_point_cloud("/inspect/target", inspection.thin(r.target_cloud, 20000).astype(np.float32),
+                                                                inspection.RED, point_size=0.002, point_shape="circle"))
+        self.stages = inspection.replay(r) if (r is not None and r.ok) else []
+        self._syncing = True
+        try:
+            self.i_stage.max = max(len(self.stages) - 1, 1)
+            self.i_stage.value = max(len(self.stages) - 1, 0)
+            self.i_stage.disabled = len(self.stages) < 2
+        finally:
+            self._syncing = False
+        self._show_stage()
+        self.i_metrics.content = inspection.metrics_markdown(self.score, r)
+        self._apply_layers()
+
+    def _show_stage(self) -> None:
+        if self._syncing:
+            return
+        if not self.stages:
+            self.i_stage_md.content = "" if self.result is None else "_no registration trace (estimation failed)_"
+            return
+        k = int(np.clip(self.i_stage.value, 0, len(self.stages) - 1))
+        s = self.stages[k]
+        self._node("/inspect/source", self.server.scene.add_point_cloud(
+            "/inspect/source", s.source_world, inspection.BLUE, point_size=0.002, point_shape="circle"),
+            visible=bool(self.layers["source (blue)"].value))
+        self.i_stage_md.content = (f"**{s.name}** ({k + 1}/{len(self.stages)}): fitness {s.fitness:.3f}, "
+                                   f"inlier RMSE {s.inlier_rmse * 1000:.2f} mm")
+
+    def _on_play_registration(self, client) -> None:
+        if len(self.stages) < 2:
+            raise AposeError("estimate this frame first; then the registration can be replayed")
+        n = len(self.stages)
+
+        def play():
+            for k in range(n):
+                self.i_stage.value = k
+                time.sleep(max(0.08, 2.5 / n))
+
+        threading.Thread(target=play, daemon=True).start()
+
+    def _apply_layers(self) -> None:
+        which = {"/inspect/scene": "scene cloud", "/inspect/target": "target (red)", "/inspect/source": "source (blue)",
+                 "/inspect/box_gt": "boxes", "/inspect/box_est": "boxes", "/inspect/camera": "camera"}
+        for name, layer in which.items():
+            if name in self.nodes:
+                h = self.nodes[name]
+                h._apose_visible = bool(self.layers[layer].value)
+                h.visible = h._apose_visible and self.current_view == "Inspect"
+
+
+def serve(assembly=None, dataset=None, host: str = "127.0.0.1", port: int = 8080, cache=None):
+    """Start the studio in the background; returns (server, studio). `server.stop()` ends it."""
+    import viser
+
+    server = viser.ViserServer(host=host, port=port, label="apose studio", verbose=False)
+    try:
+        studio = Studio(server, assembly, dataset, cache)
+    except BaseException:
+        server.stop()
+        raise
+    return server, studio

@@ -1,0 +1,111 @@
+#!/usr/bin/env python3
+"""Studio responsiveness: loading a 500k-triangle part, and switching frames with cached results.
+
+    .venv/bin/python benchmarks/studio.py [--triangles 500000] [--frames 6] [--browser]
+
+Part load: from pressing "Add part(s)" (a binary STL path typed on the server, in mm) until the part
+is listed, checked (diameter, boxes, unit check, surface samples) and its mesh is a scene node: the
+same callback the button runs. Frame switch: moving the Frame slider to a frame whose estimate is
+cached: the frame is read from disk (JPEG, depth and mask PNGs), its scene cloud, boxes, 2D box
+projection, clouds and metrics panel are rebuilt and queued to the browser. With --browser, a
+headless Chromium is connected so the messages are really sent. Goals: < 2 s and < 200 ms.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+
+from apose_studio.assembly import load_assembly  # noqa: E402
+from apose_studio.render import RenderSettings, render_dataset  # noqa: E402
+from apose_studio.studio import serve  # noqa: E402
+
+
+def dense_torus(triangles: int):
+    """A torus of about `triangles` triangles, 80 mm across (a stand-in for a fine CAD export)."""
+    import trimesh
+
+    n = int(np.sqrt(triangles / 2))
+    u, v = np.meshgrid(np.linspace(0, 2 * np.pi, n, endpoint=False), np.linspace(0, 2 * np.pi, n, endpoint=False))
+    R, r = 30.0, 10.0
+    verts = np.stack([(R + r * np.cos(v)) * np.cos(u), (R + r * np.cos(v)) * np.sin(u), r * np.sin(v)], -1).reshape(-1, 3)
+    i, j = np.meshgrid(np.arange(n), np.arange(n))
+    a, b, c, d = i * n + j, i * n + (j + 1) % n, ((i + 1) % n) * n + j, ((i + 1) % n) * n + (j + 1) % n
+    faces = np.concatenate([np.stack([a, b, d], -1).reshape(-1, 3), np.stack([a, d, c], -1).reshape(-1, 3)])
+    return trimesh.Trimesh(verts, faces, process=False)
+
+
+class Click:
+    client = None
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--triangles", type=int, default=500_000)
+    ap.add_argument("--frames", type=int, default=6, help="frames to render and switch between (default 6)")
+    ap.add_argument("--browser", action="store_true", help="connect headless Chromium while measuring")
+    args = ap.parse_args()
+    tmp = Path(tempfile.mkdtemp(prefix="apose-bench-studio-"))
+    mesh = dense_torus(args.triangles)
+    stl = tmp / "dense_part.stl"
+    mesh.export(stl)
+    sample = REPO / "sample_assemblies" / "helical_gearbox" / "assembly.yaml"
+    ds = tmp / "ds"
+    render_dataset(load_assembly(sample), ds, RenderSettings(frames=args.frames, noise="realsense", base_pose="fixed", seed=2),
+                   steps=[2], progress=False)
+
+    server, st = serve(sample, ds, port=8765)
+    pw = browser = None
+    if args.browser:
+        from playwright.sync_api import sync_playwright
+
+        pw = sync_playwright().start()
+        browser = pw.chromium.launch(executable_path="/usr/bin/chromium", args=[
+            "--headless", "--no-sandbox", "--disable-gpu", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"])
+        page = browser.new_page()
+        page.goto(f"http://127.0.0.1:{server.get_port()}")
+        page.get_by_role("button", name="Add part(s)").wait_for(timeout=30000)
+    try:
+        loads = []
+        for k in range(3):  # each load adds a new part (dense_part, dense_part_2, ...): nothing is cached
+            st.f_mesh.value = str(stl)
+            t0 = time.perf_counter()
+            st._guarded("add")(lambda c: st._on_add_parts(c))(Click())
+            loads.append(time.perf_counter() - t0)
+            pid = [p for p in st.asm.parts if p.startswith("dense_part")][-1]
+            assert pid in st.mesh_handles, "the part did not load"
+        st.i_prior.value = True
+        st._guarded("estimate")(lambda c: st._run_estimation(True, c))(Click())  # fills the cache
+        assert len(st.cache) == args.frames, "estimation did not cache every frame"
+        switches = []
+        for rep in range(3):
+            for f in range(args.frames):
+                t0 = time.perf_counter()
+                st.i_frame.value = f
+                switches.append(time.perf_counter() - t0)
+                assert st.result is not None
+    finally:
+        if browser is not None:
+            browser.close()
+            pw.stop()
+        server.stop()
+    print(f"\nmachine: {os.cpu_count()} cores; browser connected: {'yes' if args.browser else 'no'}\n")
+    print(f"{'measure':<46} {'median':>9} {'max':>9} {'goal':>8}")
+    print(f"{f'load a {len(mesh.faces):,}-triangle STL part (3 cold loads)':<46} {statistics.median(loads):>8.2f}s {max(loads):>8.2f}s {'< 2 s':>8}")
+    print(f"{f'switch frame, cached estimate ({len(switches)} switches)':<46} {statistics.median(switches) * 1000:>7.0f}ms "
+          f"{max(switches) * 1000:>7.0f}ms {'< 200 ms':>8}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,85 @@
+"""Authoring edits (pure): every edit is a new Assembly, validated with the loader's own rules."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from apose_studio import authoring, se3
+from apose_studio.assembly import load_assembly, save_assembly
+from apose_studio.errors import AposeError
+
+
+def test_build_an_assembly_from_nothing_and_save_it(tmp_path):
+    trimesh.creation.box((60, 40, 4)).export(tmp_path / "Base Plate.stl")
+    trimesh.creation.cylinder(radius=4, height=20).export(tmp_path / "peg.stl")
+    asm = authoring.new_assembly("rig", "mm", tmp_path)
+    asm, plate = authoring.add_part(asm, tmp_path / "Base Plate.stl")
+    asm, peg = authoring.add_part(asm, tmp_path / "peg.stl")
+    assert (plate, peg) == ("base_plate", "peg")
+    assert [p.key for p in authoring.problems(asm)] == ["steps"]  # valid so far, but nothing to save
+    asm = authoring.add_step(asm)
+    assert asm.steps[0].part == "peg" and asm.steps[0].base == ("base_plate",)
+    T = authoring.pose_from_typed([10, -5, 12], [0, 0, 90])
+    asm = authoring.edit_step(asm, 0, T_base_part=T)
+    assert authoring.problems(asm) == []
+    path = save_assembly(asm, tmp_path / "rig.yaml")
+    back = load_assembly(path)
+    np.testing.assert_allclose(back.steps[0].T_base_part[:3, 3], [0.010, -0.005, 0.012], atol=1e-12)
+    np.testing.assert_allclose(back.steps[0].T_base_part[:3, :3], se3.euler_deg_to_matrix([0, 0, 90], "xyz"), atol=1e-9)
+    assert (tmp_path / "rig.yaml").read_text().count("mesh: ") == 2 and "Base Plate.stl" in (tmp_path / "rig.yaml").read_text()
+
+
+def test_unique_ids():
+    asm = authoring.new_assembly()
+    asm, a = authoring.add_part(asm, "/x/Left Gear.stl")
+    asm, b = authoring.add_part(asm, "/y/left-gear.ply")
+    asm, c = authoring.add_part(asm, "/z/###.stl")
+    assert (a, b, c) == ("left_gear", "left_gear_2", "part")
+
+
+def test_reorder_reports_the_offending_step(tiny_dir):
+    asm = load_assembly(tiny_dir / "assembly.yaml")
+    moved = authoring.move_step(asm, 1, -1)  # the cap now comes before the peg it sits on
+    assert [s.part for s in moved.steps] == ["cap", "peg"]
+    found = authoring.problems(moved)
+    assert authoring.problem_steps(found) == {0}
+    assert "placed only by a later step" in found[0].what
+    assert authoring.problems(authoring.move_step(moved, 0, +1)) == []
+    assert authoring.move_step(asm, 0, -5).steps == asm.steps  # clamped
+
+
+def test_edit_errors_are_reported_not_raised(tiny_dir):
+    asm = load_assembly(tiny_dir / "assembly.yaml")
+    bad = authoring.edit_step(asm, 0, base=["nope"])
+    assert [p.key for p in authoring.problems(bad)] == ["steps[0].base[0]"]
+    assert "unknown part 'nope'" in authoring.problems(bad)[0].what
+    with pytest.raises(AposeError, match="used by step"):
+        authoring.remove_part(asm, "peg")
+    assert "cap" not in authoring.remove_part(authoring.delete_step(asm, 1), "cap").parts
+    with pytest.raises(AposeError, match="every part is already placed"):
+        authoring.add_step(asm)
+
+
+def test_typed_pose_round_trip_and_snapping():
+    T = authoring.pose_from_typed([1.234, -20.06, 3.0], [10.0, -33.0, 170.0])
+    t, e = authoring.typed_pose(T)
+    np.testing.assert_allclose(t, [1.234, -20.06, 3.0], atol=1e-9)
+    np.testing.assert_allclose(e, [10.0, -33.0, 170.0], atol=1e-9)
+    t, e = authoring.typed_pose(authoring.snap_pose(T, 0.5, 5.0))
+    np.testing.assert_allclose(t, [1.0, -20.0, 3.0], atol=1e-9)
+    np.testing.assert_allclose(e, [10.0, -35.0, 170.0], atol=1e-9)
+    with pytest.raises(AposeError, match="finite"):
+        authoring.pose_from_typed([0, np.nan, 0], [0, 0, 0])
+
+
+def test_preview_places_parts_up_to_a_step(tiny_dir):
+    asm = load_assembly(tiny_dir / "assembly.yaml")
+    d = {"plate": 0.07, "peg": 0.02, "cap": 0.017}
+    assert set(authoring.preview_poses(asm, 0, d)) == {"plate"}
+    assert set(authoring.preview_poses(asm, 1, d)) == {"plate", "peg"}
+    full = authoring.preview_poses(asm, 2, d)
+    np.testing.assert_allclose(full["cap"], asm.T_root_part("cap"))
+    exploded = authoring.preview_poses(asm, 2, d, explode=1.0)
+    # exploded parts move away from the root's centre; the root stays
+    np.testing.assert_allclose(exploded["plate"], full["plate"])
+    assert np.linalg.norm(exploded["cap"][:3, 3]) > np.linalg.norm(full["cap"][:3, 3]) + 0.01

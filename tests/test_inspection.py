@@ -1,0 +1,60 @@
+"""The Inspect tab's pure parts: boxes, projection, clouds per registration stage, the result cache."""
+
+import numpy as np
+
+from apose_studio import inspection, se3
+from apose_studio.config import CameraIntrinsics
+from apose_studio.register import RegistrationResult, Stage
+
+CAM = CameraIntrinsics(640, 480, 500.0, 500.0, 320.0, 240.0)
+
+
+def test_box_segments_are_the_twelve_edges():
+    corners = np.array([[x, y, z] for x in (0, 1) for y in (0, 2) for z in (0, 3)], float)
+    seg = inspection.box_segments(corners, np.eye(4))
+    lengths = np.linalg.norm(seg[:, 1] - seg[:, 0], axis=1)
+    assert sorted(lengths.round(6)) == [1.0] * 4 + [2.0] * 4 + [3.0] * 4
+
+
+def test_projection_and_drawing():
+    T_world_camera = se3.make_T(t=np.array([0.0, 0.0, -1.0]))  # camera 1 m behind the origin, looking along +z
+    uv, front = inspection.project_points(np.array([[0.0, 0.0, 0.0], [0.1, -0.2, 0.0], [0, 0, -2.0]]), T_world_camera, CAM)
+    np.testing.assert_allclose(uv[:2], [[320, 240], [370, 140]])
+    assert front.tolist() == [True, True, False]
+    corners = np.array([[x, y, z] for x in (-0.05, 0.05) for y in (-0.05, 0.05) for z in (-0.05, 0.05)])
+    img = inspection.draw_boxes(np.zeros((480, 640, 3), np.uint8), CAM, T_world_camera, corners,
+                                [(np.eye(4), inspection.GREEN)])
+    ys, xs = np.nonzero(img[:, :, 1] > 100)
+    # the front face (z = -0.05, 0.95 m away) spans 500 * 0.05 / 0.95 = 26.3 px each side of the centre
+    assert abs(xs.min() - (320 - 26.3)) < 2 and abs(xs.max() - (320 + 26.3)) < 2
+    assert img[:, :, 0].max() == 0 or img[:, :, 0].max() <= inspection.GREEN[0]
+
+
+def test_scene_cloud_back_projects_and_thins():
+    depth = np.full((480, 640), 0.5, np.float32)
+    depth[0, 0] = np.nan
+    rgb = np.zeros((480, 640, 3), np.uint8)
+    rgb[..., 2] = 200
+    pts, cols = inspection.scene_cloud(depth, rgb, CAM, np.eye(4), max_points=20000)
+    assert len(pts) <= 20000 * 1.1 and np.allclose(pts[:, 2], 0.5) and (cols[:, 2] == 200).all()
+    assert np.isfinite(pts).all()
+
+
+def test_replay_moves_the_source_by_each_stage():
+    src = np.random.default_rng(0).random((50, 3))
+    stages = [Stage("initial", np.eye(4), 0.1, 0.01), Stage("global", se3.make_T(t=np.array([1.0, 0, 0])), 0.8, 0.002),
+              Stage("final", se3.make_T(t=np.array([1.0, 0.5, 0])), 0.9, 0.001)]
+    r = RegistrationResult(ok=True, source_cloud=src, stages=stages)
+    views = inspection.replay(r)
+    assert [v.name for v in views] == ["initial", "global", "final"]
+    np.testing.assert_allclose(views[2].source_world, src + [1.0, 0.5, 0], atol=1e-6)
+
+
+def test_metrics_panel_and_cache():
+    assert "Estimate frame" in inspection.metrics_markdown(None, None)
+    assert "failed" in inspection.metrics_markdown(None, RegistrationResult(ok=False, reason="empty mask"))
+    c = inspection.ResultCache()
+    k = c.key("/d", 1, 3, "default", "gt", False)
+    assert c.get(k) is None
+    c.put(k, ("r", "s"))
+    assert c.get(c.key("/d", 1, 3, "default", "gt", False)) == ("r", "s") and c.get(c.key("/d", 1, 3, "paper", "gt", False)) is None
