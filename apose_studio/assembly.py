@@ -223,7 +223,8 @@ def _rotation(c: _Checker, value, key: str) -> np.ndarray | None:
 def _parse_parts(c: _Checker, parts_raw, folder: Path, scale: float) -> dict[str, Part]:
     parts: dict[str, Part] = {}
     if not isinstance(parts_raw, dict) or not parts_raw:
-        c.add("parts", f"expected a mapping of part ids to {{mesh: path}}, got {_kind(parts_raw)}")
+        got = "an empty mapping (no parts yet)" if isinstance(parts_raw, dict) else _kind(parts_raw)
+        c.add("parts", f"expected a mapping of part ids to {{mesh: path}}, got {got}")
         return parts
     for pid, spec in parts_raw.items():
         key = f"parts.{pid}"

@@ -201,13 +201,17 @@ def cmd_estimate(args) -> int:
 
     ds = Dataset(args.dataset)
     asm = ds.assembly
-    params = resolve_params(args.preset, asm.registration)
+    params = resolve_params(args.preset, asm.registration, **_upright(args))
     ctx = StepContext(asm, load_parts(asm), args.step) if args.step in ds.steps else None
     if ctx is None:
         raise AposeError(f"{ds.root}: step {args.step} was not rendered; rendered steps: {', '.join(map(str, ds.steps))}")
+    from .evaluate import check_mask_source, frame_mask
+
+    source = check_mask_source(args.mask, asm)
     frame = ds.frame(args.step, args.frame)
-    r = estimate_frame(frame, ctx, params, args.mask, args.orientation_prior, trace_iterations=True)
-    sc = score_frame(frame, r, ctx.part)
+    mask = frame_mask(frame, source)
+    r = estimate_frame(frame, ctx, params, orientation_prior=args.orientation_prior, trace_iterations=True, mask=mask)
+    sc = score_frame(frame, r, ctx.part, mask if source != "gt" else None)
     if args.json:
         doc = sc.to_json()
         doc.update(preset=params.preset, part=ctx.part.id, base=list(ctx.view.base), reason=r.reason,
@@ -225,6 +229,8 @@ def cmd_estimate(args) -> int:
     print(f"registration: fitness {r.fitness:.4f}, inlier RMSE {r.inlier_rmse * 1000:.3f} mm, voxel {r.voxel * 1000:.2f} mm, "
           f"{len(r.stages) - 3} ICP iterations, {r.seconds * 1000:.0f} ms "
           f"({', '.join(f'{k} {v * 1000:.0f}' for k, v in r.timings.items())} ms)")
+    if sc.mask_iou is not None:
+        print(f"mask ({args.mask}): IoU {sc.mask_iou:.3f} against the ground-truth base mask")
     if not r.confident:
         print(f"low confidence: only {r.coverage:.0%} of the target points lie near the model; this pose is likely wrong")
     if r.ambiguous:
@@ -244,7 +250,7 @@ def cmd_eval(args) -> int:
     from .register import resolve_params
 
     ds = Dataset(args.dataset)
-    params = resolve_params(args.preset, ds.assembly.registration)
+    params = resolve_params(args.preset, ds.assembly.registration, **_upright(args))
     if args.frames is not None and args.frames < 1:
         raise AposeError(f"--frames {args.frames}: expected at least 1")
     if args.workers < 1:
@@ -252,6 +258,15 @@ def cmd_eval(args) -> int:
     doc = evaluate(ds, params, args.steps, args.frames, args.mask, args.orientation_prior,
                    progress=sys.stderr.isatty(), workers=args.workers)
     print(format_table(doc))
+    if args.mask != "gt" and not args.no_gt_compare:  # the same frames with ground-truth masks, beside
+        gt = evaluate(ds, params, args.steps, args.frames, "gt", args.orientation_prior,
+                      progress=sys.stderr.isatty(), workers=args.workers)
+        print(f"\nthe same frames with ground-truth masks (recall with {args.mask} masks -> with gt masks):")
+        for st, sg in zip(doc["steps"], gt["steps"]):
+            print(f"  step {st['step']}: recall {st['recall_mssd']:.2f} -> {sg['recall_mssd']:.2f} "
+                  f"({100 * (st['recall_mssd'] - sg['recall_mssd']):+.0f} points), mask IoU {st['mask_iou']:.3f}")
+        doc["gt_masks"] = [{"step": sg["step"], "recall_mssd": sg["recall_mssd"], "adi": sg["adi"], "mssd": sg["mssd"]}
+                           for sg in gt["steps"]]
     if args.json:
         from .dataset import write_json
         write_json(Path(args.json), doc)
@@ -259,11 +274,49 @@ def cmd_eval(args) -> int:
     return 0
 
 
+def _upright(args) -> dict:
+    if not args.upright:
+        return {}
+    if args.preset == "paper":
+        raise AposeError("--upright is a search of ours; the paper preset has no such mode (use --preset default)")
+    return {"upright": True}
+
+
 def _estimator_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", default="default", choices=["default", "paper"], help="estimator settings (default: ours)")
-    p.add_argument("--mask", default="gt", choices=["gt"], help="where the base object's mask comes from")
+    p.add_argument("--mask", default="gt", metavar="gt|depth|MODEL.pt",
+                   help="the base object's mask: gt (the dataset's ground truth, default), depth (table-plane "
+                   "removal and 3D clustering, no training) or a model from `apose train-seg`")
     p.add_argument("--orientation-prior", action="store_true",
                    help="take the CAD's orientation as the base's orientation in the world (true for --base-pose fixed renders)")
+    p.add_argument("--upright", action="store_true",
+                   help="the base stands on the table as modelled (its CAD z axis along the table's normal, any yaw): "
+                   "search only its yaw, no RANSAC (true for --base-pose yaw renders)")
+
+
+def cmd_train_seg(args) -> int:
+    from .dataset import Dataset
+    from .segment import save_model, train
+
+    ds = Dataset(args.dataset)
+    out = Path(args.out)
+    if out.suffix != ".pt":
+        raise AposeError(f"--out {out}: name the model file *.pt")
+    print(f"training a segmentation network for {ds.assembly.name} ({len(ds.assembly.parts)} parts + background) "
+          f"on {args.dataset}")
+    seg, rep = train(ds, epochs=args.epochs, device=args.device, batch=args.batch, seed=args.seed,
+                     max_minutes=args.max_minutes, progress=sys.stderr.isatty())
+    save_model(seg, out)
+    print(f"trained {rep['epochs']} epochs on {rep['train_frames']} frames in {rep['seconds']:.0f} s ({rep['device']}); "
+          f"loss {rep['losses'][0]:.3f} -> {rep['losses'][-1]:.3f}")
+    print(f"held-out frames ({rep['frames']}): mean IoU of the base object {rep['mean_base_iou']:.3f} "
+          f"(network alone {rep['mean_base_iou_raw']:.3f}; outlines sharpened with depth)")
+    for step, v in rep["base_iou"].items():
+        print(f"  step {step} base object: IoU {v:.3f}")
+    for pid, v in rep["part_iou"].items():
+        print(f"  part {pid}: IoU {v:.3f}")
+    print(f"wrote {out}; use it with --mask {out}")
+    return 0
 
 
 def _server_args(p: argparse.ArgumentParser) -> None:
@@ -325,7 +378,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, help="at most this many frames per step (default: all)")
     p.add_argument("--workers", type=int, default=1, help="processes in parallel (default 1)")
     p.add_argument("--json", metavar="OUT", help="also write the full results (per frame) as JSON")
+    p.add_argument("--no-gt-compare", action="store_true",
+                   help="with --mask depth|MODEL.pt, skip the second run with ground-truth masks")
     p.set_defaults(func=cmd_eval)
+
+    p = sub.add_parser("train-seg", help="train a segmentation network (torch) on a rendered dataset of one assembly")
+    p.add_argument("dataset", help="dataset folder made by `apose render` (noisy renders with --noise realsense transfer best)")
+    p.add_argument("--out", required=True, help="model file to write (*.pt)")
+    p.add_argument("--epochs", type=int, default=60, help="passes over the training frames (default 60)")
+    p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="default: cuda when torch sees a GPU")
+    p.add_argument("--batch", type=int, default=8, help="frames per step (default 8)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the split, the initial weights and the augmentation")
+    p.add_argument("--max-minutes", type=float, help="stop after the epoch that passes this wall time")
+    p.set_defaults(func=cmd_train_seg)
 
     p = sub.add_parser("demo", help="run the main job on the embedded sample assembly: show, render, estimate, then open the studio")
     p.add_argument("assembly", nargs="?", help="another assembly file instead of the sample")

@@ -51,6 +51,7 @@ class RegistrationConfig:
     icp_max_iterations: int | None = None
     seed: int | None = None
     use_orientation_prior: bool | None = None
+    upright: bool | None = None
 
     def overrides(self) -> dict:
         """The parameters that were set, by name."""
@@ -74,6 +75,7 @@ _REG_RULES: dict[str, tuple[str, object, str]] = {
     "icp_max_iterations": ("int", lambda v: v > 0, "a positive integer"),
     "seed": ("int", lambda v: v >= 0, "a non-negative integer"),
     "use_orientation_prior": ("bool", lambda v: True, "true or false"),
+    "upright": ("bool", lambda v: True, "true or false"),
 }
 
 

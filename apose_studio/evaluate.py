@@ -4,16 +4,18 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
 from . import metrics
 from .assembly import Assembly
 from .dataset import Dataset, Frame
+from .errors import AposeError
 from .mesh import PartModel, base_mesh, load_parts
 from .register import BaseObject, Params, RegistrationResult, estimate, prepare_base
 
-MASK_SOURCES = ("gt",)
+MASK_SOURCES = ("gt", "depth")  # or the path of a model from `apose train-seg`
 
 
 @dataclass
@@ -35,6 +37,7 @@ class FrameScore:
     ambiguous: bool = False
     confident: bool = False
     candidates: list = field(default_factory=list)
+    mask_iou: float | None = None  # predicted base mask against the ground truth (when not using gt)
 
     def to_json(self) -> dict:
         out = {"scene_id": self.scene_id, "im_id": self.im_id, "ok": self.ok,
@@ -43,22 +46,59 @@ class FrameScore:
                "adi": self.adi, "mssd": self.mssd, "mssd_mod_base_sym": self.mssd_mod_base_sym, "te": self.te,
                "re_deg": self.re_deg, "fitness": self.fitness, "inlier_rmse": self.inlier_rmse,
                "time_s": self.time_s, "ambiguous": self.ambiguous, "confident": self.confident,
-               "candidates": self.candidates}
+               "candidates": self.candidates, "mask_iou": self.mask_iou}
         if not self.ok:
             out["reason"] = self.reason
         return out
 
 
+def check_mask_source(source: str, asm: Assembly) -> str:
+    """'gt', 'depth', or a model file trained for this assembly (loaded once here, so a wrong one is
+    refused before any work). Raises AposeError naming the fix."""
+    if source in MASK_SOURCES:
+        return source
+    if source.endswith(".pt") or Path(source).exists():
+        _segmenter(str(Path(source).resolve()), asm)
+        return str(Path(source).resolve())
+    raise AposeError(f"--mask {source}: expected gt, depth, or a model file (.pt) from `apose train-seg`")
+
+
+_SEGMENTERS: dict = {}
+
+
+def _segmenter(path: str, asm: Assembly | None = None):
+    from .segment import load_model
+
+    key = (path, Path(path).stat().st_mtime if Path(path).exists() else 0)
+    if key not in _SEGMENTERS:
+        _SEGMENTERS[key] = load_model(path, asm)
+    elif asm is not None and list(asm.parts) != _SEGMENTERS[key].part_ids:
+        load_model(path, asm)  # raises with the explanation
+    return _SEGMENTERS[key]
+
+
 def frame_mask(frame: Frame, source: str) -> np.ndarray:
+    """The base object's mask in a frame: ground truth, from depth alone, or from a trained model."""
     if source == "gt":
         return frame.base_mask()
-    raise ValueError(f"unknown mask source {source!r}; available: {', '.join(MASK_SOURCES)}")
+    if source == "depth":
+        from .segment import depth_mask
+
+        return depth_mask(frame.depth, frame.camera)
+    if source.endswith(".pt") or Path(source).exists():
+        return _segmenter(str(Path(source).resolve())).mask(frame.rgb, frame.depth, frame.base, frame.camera)
+    raise ValueError(f"unknown mask source {source!r}; available: {', '.join(MASK_SOURCES)} or a .pt model")
 
 
-def score_frame(frame: Frame, result: RegistrationResult, part: PartModel) -> FrameScore:
-    """Metrics of one estimate against the frame's ground truth (metres, degrees)."""
+def score_frame(frame: Frame, result: RegistrationResult, part: PartModel, mask: np.ndarray | None = None) -> FrameScore:
+    """Metrics of one estimate against the frame's ground truth (metres, degrees); with the mask the
+    estimate used, also its IoU against the ground-truth base mask."""
     s = FrameScore(frame.step, frame.im_id, result.ok, result.reason, time_s=result.seconds,
                    T_world_part_gt=frame.T_world_part)
+    if mask is not None and frame.masks:
+        from .segment import iou
+
+        s.mask_iou = iou(mask, frame.base_mask())
     if not result.ok:
         return s
     T, G = result.T_world_part, frame.T_world_part
@@ -96,6 +136,7 @@ def summarise_step(step: int, scores: list[FrameScore], part: PartModel) -> dict
         "recall_mssd_mod_base_sym": metrics.recall(mssd_sym, part.diameter),
         "ar_mssd": metrics.average_recall(mssd, part.diameter),
         "ambiguous": int(sum(s.ambiguous for s in scores)),
+        "mask_iou": _stats(s.mask_iou for s in scores)["mean"],
         "frames": [s.to_json() for s in scores],
     }
 
@@ -110,12 +151,16 @@ class StepContext:
 
 
 def estimate_frame(frame: Frame, ctx: StepContext, params: Params, mask_source: str = "gt",
-                   orientation_prior: bool = False, trace_iterations: bool = False) -> RegistrationResult:
+                   orientation_prior: bool = False, trace_iterations: bool = False,
+                   mask: np.ndarray | None = None) -> RegistrationResult:
     """Run the estimator on one frame. With orientation_prior the CAD's orientation is taken as the
-    base's orientation in the world (what `--base-pose fixed` renders, and the paper assumes)."""
+    base's orientation in the world (what `--base-pose fixed` renders, and the paper assumes).
+    `mask` overrides `mask_source` (a caller that already computed it)."""
     ctx.base.warm_up(params)
     prior = np.eye(4) if orientation_prior else None
-    return estimate(frame.depth, frame_mask(frame, mask_source), frame.camera, frame.T_world_camera, ctx.base,
+    if mask is None:
+        mask = frame_mask(frame, mask_source)
+    return estimate(frame.depth, mask, frame.camera, frame.T_world_camera, ctx.base,
                     ctx.view.T_base_part, params, prior_T_world_base=prior, trace_iterations=trace_iterations)
 
 
@@ -133,7 +178,9 @@ def _worker_run(task) -> FrameScore:
     if step not in ctxs:
         ctxs[step] = StepContext(ds.assembly, _WORKER["models"], step)
     frame = ds.frame(step, im_id)
-    return score_frame(frame, estimate_frame(frame, ctxs[step], params, mask_source, orientation_prior), ctxs[step].part)
+    mask = frame_mask(frame, mask_source)
+    result = estimate_frame(frame, ctxs[step], params, orientation_prior=orientation_prior, mask=mask)
+    return score_frame(frame, result, ctxs[step].part, mask if mask_source != "gt" else None)
 
 
 def evaluate(ds: Dataset, params: Params, steps: list[int] | None = None, frames: int | None = None,
@@ -143,6 +190,7 @@ def evaluate(ds: Dataset, params: Params, steps: list[int] | None = None, frames
     from tqdm import tqdm
 
     models = models or load_parts(ds.assembly)
+    mask_source = check_mask_source(mask_source, ds.assembly)
     steps = steps or ds.steps
     for s in steps:
         if s not in ds.steps:
@@ -177,8 +225,9 @@ def evaluate(ds: Dataset, params: Params, steps: list[int] | None = None, frames
             scores = []
             for im_id in ids:
                 frame = ds.frame(step, im_id)
-                result = estimate_frame(frame, ctx, params, mask_source, orientation_prior)
-                scores.append(score_frame(frame, result, ctx.part))
+                mask = frame_mask(frame, mask_source)
+                result = estimate_frame(frame, ctx, params, orientation_prior=orientation_prior, mask=mask)
+                scores.append(score_frame(frame, result, ctx.part, mask if mask_source != "gt" else None))
                 bar.update(1)
             doc["steps"].append(summarise_step(step, scores, ctx.part))
     finally:
@@ -205,7 +254,7 @@ def format_table(doc: dict) -> str:
                      f"{fit if fit is not None else float('nan'):>8.4f} {mm(st, 'inlier_rmse'):>9} {mm(st, 'adi')} "
                      f"{mm_std(st, 'adi')} {mm(st, 'mssd')} {mm_std(st, 'mssd')} {st['time_s']['mean']:>8.3f} "
                      f"{st['time_s']['median']:>7.3f} {st['recall_mssd']:>6.2f} {st['recall_mssd_mod_base_sym']:>7.2f} "
-                     f"{st['ar_mssd']:>5.2f}")
+                     f"{st['ar_mssd']:>5.2f}" + (f"  mask IoU {st['mask_iou']:.3f}" if st.get("mask_iou") is not None else ""))
     lines.append("recall: share of frames with MSSD < 0.1 x part diameter (failures count as misses); "
                  "rec~sym: the same modulo the base object's symmetries; AR: BOP average over 0.05..0.5")
     return "\n".join(lines)

@@ -70,6 +70,18 @@ def scene_cloud(depth: np.ndarray, rgb: np.ndarray, cam: CameraIntrinsics, T_wor
     return se3.transform_points(T_world_camera, pc).astype(np.float32), rgb[v, u]
 
 
+def pixels_in_box(depth: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray, T_world_box: np.ndarray,
+                  size: np.ndarray) -> np.ndarray:
+    """(H, W) bool: pixels whose depth point lies inside a box (pose of its centre, full side lengths)."""
+    h, w = depth.shape
+    v, u = np.mgrid[0:h, 0:w]
+    z = np.where(np.isfinite(depth), depth, 0.0)
+    pc = np.stack([(u - cam.cx) * z / cam.fx, (v - cam.cy) * z / cam.fy, z], axis=-1).reshape(-1, 3)
+    local = se3.transform_points(se3.inv(T_world_box) @ T_world_camera, pc)
+    inside = (np.abs(local) <= np.asarray(size) / 2.0).all(axis=1).reshape(h, w)
+    return inside & (z > 0)
+
+
 def thin(points: np.ndarray, max_points: int, seed: int = 0) -> np.ndarray:
     if len(points) <= max_points:
         return points
@@ -106,6 +118,8 @@ def metrics_markdown(score, result: RegistrationResult | None) -> str:
     if score is not None and score.adi is not None:
         rows = [("ADI", f"{score.adi * 1000:.2f} mm"), ("MSSD", f"{score.mssd * 1000:.2f} mm"),
                 ("te", f"{score.te * 1000:.2f} mm"), ("re", f"{score.re_deg:.2f}°")] + rows
+    if score is not None and score.mask_iou is not None:
+        rows.append(("mask IoU", f"{score.mask_iou:.3f}"))
     flags = []
     if result.ambiguous:
         flags.append(f"ambiguous: {len(result.candidates)} placements fit (symmetric base)")
@@ -122,7 +136,7 @@ class ResultCache:
     entries: dict = field(default_factory=dict)
 
     @staticmethod
-    def key(dataset: str, step: int | None, im_id: int, preset: str, mask: str, prior: bool) -> tuple:
+    def key(dataset: str, step: int | None, im_id: int, preset: str, mask, prior: bool) -> tuple:
         return (str(dataset), step, int(im_id), preset, mask, bool(prior))
 
     def get(self, key):

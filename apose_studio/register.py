@@ -63,6 +63,8 @@ class Params:
     use_flips: bool = False  # ours: also start ICP from the global pose turned half round about each principal axis
     max_starts: int = 6  # ours: ICP from this many of the screened starting poses
     retry_below: float = 0.95  # retry RANSAC when the best start explains less than this share of what it shows
+    prior_fast_path: bool = False  # ours: with an orientation prior, try ICP from it first and stop if it fits
+    upright: bool = False  # the base stands on a plane as modelled (CAD +z along the plane's normal): search its yaw
 
     def voxel(self, diameter: float) -> float:
         return self.voxel_size_m if self.voxel_size_m else diameter / self.voxels_per_diameter
@@ -77,7 +79,8 @@ PRESET_PARAMS = {
     "paper": Params("paper", 0.008, 40.0, 2.0, 3.0, False, 100000, 0.899, 0.09, 1.2, False, 0.4, 30,
                     "raycast", _fov_camera(1280, 720, 60.0), False, True),
     "default": Params("default", None, 50.0, 2.5, 5.0, True, 3000, 0.999, 0.9, 1.5, False, 0.6, 15,
-                      "model", None, True, False, global_voxel_factor=2.0, ransac_retry_iterations=30000, use_flips=True),
+                      "model", None, True, False, global_voxel_factor=2.0, ransac_retry_iterations=30000, use_flips=True,
+                      prior_fast_path=True),
 }
 
 
@@ -493,6 +496,87 @@ def _visible_agreement(points_world: np.ndarray, T_world_camera: np.ndarray, cam
     return float(ok.mean())
 
 
+PRIOR_ACCEPT = 0.95  # the prior's pose is kept without a global search when both shares reach this
+UPRIGHT_YAW_STEP_DEG = 10.0
+UPRIGHT_FALLBACK = 0.6  # below this share explained by the best upright start, the base is not upright: search freely
+
+
+def table_normal(depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray,
+                 min_inlier_share: float = 0.3) -> np.ndarray | None:
+    """World unit normal of the plane the base stands on (pointing at the camera), fitted by RANSAC
+    to the depth outside the base's mask; None when no plane holds min_inlier_share of those points."""
+    outside = ~mask & np.isfinite(depth) & (depth > 0)
+    pts = project_to_cloud(depth, outside, cam, T_world_camera)
+    if len(pts) < 500:
+        return None
+    pts = pts[np.random.default_rng(0).choice(len(pts), min(len(pts), 20000), replace=False)]
+    tol = 0.004 * float(np.median(np.linalg.norm(pts - T_world_camera[:3, 3], axis=1)))
+    (a, b, c, d), inliers = _cloud(pts).segment_plane(tol, 3, 300)
+    if len(inliers) < min_inlier_share * len(pts):
+        return None
+    n = np.array([a, b, c]) / np.linalg.norm([a, b, c])
+    return n if n @ T_world_camera[:3, 3] + d / np.linalg.norm([a, b, c]) > 0 else -n
+
+
+def upright_starts(base: "BaseObject", up: np.ndarray, target_pts: np.ndarray, cam_pos: np.ndarray,
+                   model_pts: np.ndarray, model_nrm: np.ndarray) -> list:
+    """(0, T_world_base) starts with the CAD's +z along `up`, one per yaw step about it, each moved so
+    the part of the model facing the camera is centred on the target."""
+    z = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(z, up)
+    angle = float(np.arccos(np.clip(z @ up, -1.0, 1.0)))
+    R_up = se3.axis_angle_matrix(axis, angle) if np.linalg.norm(axis) > 1e-9 else (np.eye(3) if angle < 1 else np.diag([1.0, -1.0, -1.0]))
+    centre = target_pts.mean(axis=0)
+    out = []
+    for yaw in np.arange(0.0, 360.0, UPRIGHT_YAW_STEP_DEG):
+        R = se3.axis_angle_matrix(up, np.radians(yaw)) @ R_up
+        T = place_source(base, centre, R)
+        seen = _facing(model_pts, model_nrm, T, cam_pos)
+        if len(seen):
+            T[:3, 3] += centre - se3.transform_points(T, seen).mean(axis=0)
+        out.append((0, T))
+    return out
+
+
+def _try_prior(tp, fine, fine_pts, cam, T_world_camera, base, T_base_part, p: Params, voxel, prior, trace_iterations,
+               timings, observation, **kw) -> RegistrationResult | None:
+    """Early exit when the caller knows the base's orientation: put the CAD in that orientation where
+    what the camera would see of it lands on the target's centre, refine with ICP from coarse to fine,
+    and accept when the model explains the target and the depth confirms the model (both >= 95 %).
+    Otherwise None, and the full search runs (the prior still breaks its ties)."""
+    t = time.perf_counter()
+    thr = p.icp_threshold_factor * voxel
+    T_world_source = place_source(base, tp.mean(axis=0), prior[:3, :3])
+    src_w, _ = raycast_source(base, T_world_source, T_world_camera, cam)
+    if len(src_w) < MIN_POINTS:
+        return None
+    T0 = T_world_source.copy()
+    T0[:3, 3] += tp.mean(axis=0) - src_w.mean(axis=0)  # the visible part's centre on the target's centre
+    src = _cloud(se3.transform_points(se3.inv(T_world_source), src_w)).voxel_down_sample(voxel)
+    trace: list | None = [] if trace_iterations else None
+    T = T0
+    for factor in (8.0, 4.0, 2.0):
+        T = icp(src, fine, T, factor * voxel, 10, trace)
+    src_w, _ = raycast_source(base, T, T_world_camera, cam)  # what the camera sees at the refined pose
+    src = _cloud(se3.transform_points(se3.inv(T), src_w)).voxel_down_sample(voxel)
+    T = icp(src, fine, T, thr, p.icp_max_iterations, trace)
+    src_w, _ = raycast_source(base, T, T_world_camera, cam)
+    fit, rmse = fitness_rmse(fine_pts, src_w, thr)
+    coverage = fitness_rmse(fine_pts, src_w, 2 * voxel)[0]
+    mask_img, depth_img = observation
+    agree = _visible_agreement(src_w, T_world_camera, cam, depth_img, mask_img, max(2 * voxel, 0.002))
+    timings["prior"] = time.perf_counter() - t
+    if coverage < PRIOR_ACCEPT or agree < PRIOR_ACCEPT:
+        return None
+    src_b = se3.transform_points(se3.inv(T), src_w)
+    stages = [_stage("initial", T_world_source, fine_pts, src_b, thr), _stage("prior", T0, fine_pts, src_b, thr)]
+    stages += [_stage(f"icp {k + 1}", Tk, fine_pts, src_b, thr) for k, Tk in enumerate(trace or [])]
+    stages.append(Stage("final", T, fit, rmse))
+    cand = Candidate(T, T @ T_base_part, fit, agree, rmse, 0.5 * (fit + agree), 0)
+    return RegistrationResult(True, "", T, T @ T_base_part, T_world_source, fine_pts, src_b, stages, fit, rmse,
+                              timings, [cand], False, voxel=voxel, coverage=float(coverage), **kw)
+
+
 def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Params, voxel, prior, trace_iterations,
                       timings, observation, **kw) -> RegistrationResult:
     import open3d as o3d
@@ -510,21 +594,33 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
     tp = np.asarray(target.points)
     if np.linalg.svd(tp - tp.mean(axis=0), compute_uv=False)[1] < 0.05 * vg:
         raise _Degenerate("the target is degenerate: its points lie on a line")
-    f_t = _normals_fpfh(target, vg, p, cam_pos)
-    # the whole model (features cached per step): no assumption about the side seen or the orientation
-    model, f_m = base.model_features(vg, p)
     fine = target_full.voxel_down_sample(voxel)
     fine.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=p.normal_radius_factor * voxel, max_nn=30))
     fine.orient_normals_towards_camera_location(cam_pos)
     fine_pts = np.asarray(fine.points)
     fine_tree = cKDTree(fine_pts)
-    timings["features"] = time.perf_counter() - t
+    if prior is not None and p.prior_fast_path:
+        timings["features"] = time.perf_counter() - t
+        quick = _try_prior(tp, fine, fine_pts, cam, T_world_camera, base, T_base_part, p, voxel, prior,
+                           trace_iterations, timings, observation, **kw)
+        if quick is not None:
+            return quick
+        t = time.perf_counter()
+    f_t = _normals_fpfh(target, vg, p, cam_pos)
+    # the whole model (features cached per step): no assumption about the side seen or the orientation
+    model, f_m = base.model_features(vg, p)
+    timings["features"] = timings.get("features", 0.0) + time.perf_counter() - t
 
     t = time.perf_counter()
     centre = tp.mean(axis=0)
     R_prior = prior[:3, :3] if prior is not None else None
     T_world_source = place_source(base, centre, R_prior)  # TFORM, kept as the replay's starting point
-    T_g = global_registration(model, target, f_m, f_t, vg, p)  # T_world_base directly (model is in base frame)
+    up = None
+    if p.upright and prior is None:
+        mask_img, depth_img = observation
+        up = table_normal(depth_img, mask_img, cam, T_world_camera)
+    if up is None:
+        T_g = global_registration(model, target, f_m, f_t, vg, p)  # T_world_base directly (model is in base frame)
 
     prior_starts = []
     if R_prior is not None:
@@ -543,17 +639,20 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
         d = tree.query(se3.transform_points(se3.inv(T0), tp), distance_upper_bound=2 * vg)[0]
         return float(np.mean(d < np.inf))
 
-    def coarse_starts(T_g, extra: list) -> list:
+    def coarse_starts(T_g, extra: list, starts: list | None = None) -> list:
         """(explained share, symmetry index, start pose, pose after a few coarse ICP iterations) per start:
         the global result, its half turns (partial views often match upside down), the base's
-        (near-)symmetries and `extra`; screened cheaply, the best few refined by coarse ICP."""
-        starts = [(0, T_g @ F) for F in base.flips()] if p.use_flips else [(0, T_g)]
-        if p.use_symmetries:
-            starts += [(k, T_g @ S) for k, S in enumerate(base.symmetries) if k > 0]
-            starts += [(0, T_g @ S) for S in base.near_symmetries]
+        (near-)symmetries and `extra` (or the given `starts`); screened cheaply, the best few refined
+        by coarse ICP."""
+        if starts is None:
+            starts = [(0, T_g @ F) for F in base.flips()] if p.use_flips else [(0, T_g)]
+            if p.use_symmetries:
+                starts += [(k, T_g @ S) for k, S in enumerate(base.symmetries) if k > 0]
+                starts += [(0, T_g @ S) for S in base.near_symmetries]
         screened = sorted(starts + extra, key=lambda s_: -near(s_[1]))
+        n_try = p.max_starts if up is None else 2 * p.max_starts  # upright: many yaws look alike at first
         out = []
-        for k, T0 in screened[:p.max_starts] + [s_ for s_ in screened[p.max_starts:] if s_[0] == -1]:
+        for k, T0 in screened[:n_try] + [s_ for s_ in screened[n_try:] if s_[0] == -1]:
             # cheap view of the model for screening: its outer surface, back faces culled (no occlusion)
             src = _cloud(_facing(model_pts, model_nrm, T0, cam_pos))
             if len(src.points) < MIN_POINTS:
@@ -564,8 +663,15 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
             out.append((f_quick, k, T0, T))
         return sorted(out, key=lambda x: -x[0])
 
-    coarse = coarse_starts(T_g, prior_starts)
-    if p.ransac_retry_iterations and (not coarse or coarse[0][0] < p.retry_below):  # the fast RANSAC missed: try harder
+    if up is not None:  # upright on the table: every yaw about its normal, no RANSAC
+        coarse = coarse_starts(None, [], upright_starts(base, up, tp, cam_pos, model_pts, model_nrm))
+        if not coarse or coarse[0][0] < UPRIGHT_FALLBACK:  # nothing fits upright: it is not; search freely
+            up = None
+            T_g = global_registration(model, target, f_m, f_t, vg, p)
+            coarse = sorted(coarse + coarse_starts(T_g, []), key=lambda x: -x[0])
+    else:
+        coarse = coarse_starts(T_g, prior_starts)
+    if up is None and p.ransac_retry_iterations and (not coarse or coarse[0][0] < p.retry_below):  # the fast RANSAC missed: try harder
         T_g = global_registration(model, target, f_m, f_t, vg,
                                   replace(p, ransac_max_iterations=p.ransac_retry_iterations, seed=p.seed + 1))
         coarse = sorted(coarse + coarse_starts(T_g, []), key=lambda x: -x[0])  # the prior's starts are in already
@@ -574,7 +680,13 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
     t = time.perf_counter()
     mask_img, depth_img = observation
     thr = p.icp_threshold_factor * voxel
-    keep = [c for c in coarse if c[0] >= coarse[0][0] - 0.1][:3] if coarse else []
+    keep = []  # the best few *distinct* poses: several starts often converge to one (possibly wrong) pose
+    for c in coarse:
+        if len(keep) == 3 or c[0] < coarse[0][0] - 0.1:
+            break
+        if not any(np.linalg.norm(c[3][:3, 3] - q[3][:3, 3]) < 2 * voxel
+                   and se3.rotation_angle_deg(c[3][:3, :3].T @ q[3][:3, :3]) < 10.0 for q in keep):
+            keep.append(c)
     if p.use_symmetries:  # every symmetric twin of the best survives to be scored and reported
         keep += [c for c in coarse if c[1] > 0 and not any(c is q for q in keep)]
     prior_best = [c for c in coarse if c[1] == -1][:1]  # the prior's best start is always refined and scored
@@ -597,6 +709,8 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
 
     best_score = max(c.score for c in cands)
     close = [i for i, c in enumerate(cands) if c.score >= best_score - 0.03]
+    if R_prior is None and len(close) > 1:  # look where the placements differ: the evidence there decides
+        close = _discriminate(close, cands, traces, fine_pts, T_world_camera, cam, depth_img, mask_img, voxel, thr)
     # several placements explain the data equally: the prior (if any) decides, else the best score
     if R_prior is not None and len(close) > 1:
         chosen = min(close, key=lambda i: se3.rotation_angle_deg(cands[i].T_world_base[:3, :3].T @ R_prior))
@@ -615,6 +729,42 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
                               c.fitness, c.inlier_rmse, timings, [cands[i] for i in order],
                               bool(distinct > 1 and coverage >= CONFIDENT_COVERAGE), voxel=voxel,
                               coverage=float(coverage), **kw)
+
+
+DISCRIMINATE_MIN_POINTS = 15  # fewer distinguishing points than this: the placements are symmetric twins
+
+
+def _discriminate(close: list[int], cands: list[Candidate], traces: dict, fine_pts: np.ndarray, T_world_camera,
+                  cam: CameraIntrinsics, depth_img, mask_img, voxel: float, thr: float) -> list[int]:
+    """Break near-ties between placements by their differences only (a nearly symmetric casing differs
+    in one boss). For each pair, the evidence for a placement is the number of the points it shows that
+    the other does not and that the depth confirms, plus the target points only it explains. A placement
+    that loses to another by a clear margin (at least DISCRIMINATE_MIN_POINTS and 1.5x) is dropped;
+    the rest (true symmetric twins among them) stay tied."""
+    tol = max(2 * voxel, 0.002)
+    seen = {i: traces[i][2] for i in close}
+    trees = {i: cKDTree(seen[i]) if len(seen[i]) else None for i in close}
+    near_target = {i: (trees[i].query(fine_pts, distance_upper_bound=thr)[0] < np.inf) if trees[i] is not None
+                   else np.zeros(len(fine_pts), bool) for i in close}
+    lost = set()
+    for a_pos, a in enumerate(close):
+        for b in close[a_pos + 1:]:
+            if trees[a] is None or trees[b] is None:
+                continue
+            only_a = seen[a][trees[b].query(seen[a])[0] > tol]
+            only_b = seen[b][trees[a].query(seen[b])[0] > tol]
+            if len(only_a) < DISCRIMINATE_MIN_POINTS and len(only_b) < DISCRIMINATE_MIN_POINTS:
+                continue  # twins: nothing to tell them apart
+            ev_a = _visible_agreement(only_a, T_world_camera, cam, depth_img, mask_img, tol) * len(only_a)
+            ev_b = _visible_agreement(only_b, T_world_camera, cam, depth_img, mask_img, tol) * len(only_b)
+            ev_a += float(np.sum(near_target[a] & ~near_target[b]))
+            ev_b += float(np.sum(near_target[b] & ~near_target[a]))
+            if ev_a >= 1.5 * ev_b and ev_a - ev_b >= DISCRIMINATE_MIN_POINTS:
+                lost.add(b)
+            elif ev_b >= 1.5 * ev_a and ev_b - ev_a >= DISCRIMINATE_MIN_POINTS:
+                lost.add(a)
+    kept = [i for i in close if i not in lost]
+    return kept or close
 
 
 def _distinct_parts(cands: list[Candidate], voxel: float) -> int:

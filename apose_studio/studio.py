@@ -235,7 +235,15 @@ class Studio:
             self.i_preset = gui.add_dropdown("Preset", PRESETS, initial_value="default")
             from .evaluate import MASK_SOURCES
 
-            self.i_mask = gui.add_dropdown("Mask", MASK_SOURCES, initial_value=MASK_SOURCES[0])
+            self.i_mask = gui.add_dropdown("Mask", MASK_SOURCES, initial_value=MASK_SOURCES[0],
+                                           hint="gt: the dataset's masks; depth: table removal + 3D clustering; or a trained model")
+            self.i_model = gui.add_text("Mask model (.pt)", "", hint="a model from `apose train-seg` for this assembly")
+            b = gui.add_button("Use model")
+            b.on_click(self._guarded("Mask model")(self._on_use_model))
+            self.i_crop = gui.add_checkbox("Crop box", False, hint="limit depth masks to a box you drag around the base object")
+            self.i_crop_size = gui.add_vector3("Crop size (mm)", (150.0, 150.0, 100.0), min=(1.0, 1.0, 1.0), step=5.0)
+            self.i_crop.on_update(self._guarded("Crop box")(lambda c: self._show_crop()))
+            self.i_crop_size.on_update(self._guarded("Crop box")(lambda c: self._show_crop()))
             self.i_prior = gui.add_checkbox("Orientation prior", False, hint="take the CAD orientation as the base's (the paper's assumption)")
             for w in (self.i_preset, self.i_mask, self.i_prior):
                 w.on_update(self._guarded("Estimator")(lambda c: self._on_frame_changed()))
@@ -258,11 +266,13 @@ class Studio:
 
     # ------------------------------------------------------------------------------- assembly side
 
-    def model(self, pid: str) -> PartModel:
-        part = self.asm.parts[pid]
-        key = (str(part.mesh), self.asm.units, part.color, list(self.asm.parts).index(pid))
+    def model(self, pid: str, asm: Assembly | None = None) -> PartModel:
+        """A part's loaded mesh and derived geometry, cached by file, unit, colour and index."""
+        asm = asm if asm is not None else self.asm
+        part = asm.parts[pid]
+        key = (str(part.mesh), asm.units, part.color, list(asm.parts).index(pid))
         if key not in self.models:
-            self.models[key] = load_part(part, self.asm.units, key[3])
+            self.models[key] = load_part(part, asm.units, key[3])
         return self.models[key]
 
     def _set_assembly(self, asm: Assembly, client=None, quiet: bool = False) -> None:
@@ -344,7 +354,13 @@ class Studio:
             h.remove()
         self.mesh_handles.clear()
         self.step_index = None
-        self._set_assembly(authoring.new_assembly("untitled", self.f_units.value, folder), client, quiet=True)
+        self.valid_asm = authoring.new_assembly("untitled", self.f_units.value, folder)  # an empty preview
+        name, k = "untitled", 2
+        while (folder / f"{name}.yaml").exists():  # never point Save at a file that is already there
+            name, k = f"untitled_{k}", k + 1
+        self._set_assembly(authoring.new_assembly(name, self.f_units.value, folder), client, quiet=True)
+        self.saved_path = None
+        self.f_path.value = str(folder.resolve() / f"{name}.yaml")
 
     def _save_target(self) -> Path:
         text = self.f_path.value.strip()
@@ -648,7 +664,7 @@ class Studio:
         diam = {}
         for p in asm.parts:
             try:
-                diam[p] = self.model(p).diameter
+                diam[p] = self.model(p, asm).diameter
             except AposeError:
                 pass
         upto = int(self.f_upto.value)
@@ -659,7 +675,7 @@ class Studio:
                 continue
             h = self.mesh_handles.get(pid)
             if h is None:
-                m = self.model(pid)
+                m = self.model(pid, asm)
                 color = tuple(int(255 * c) for c in m.color)
                 h = self.server.scene.add_mesh_simple(f"/parts/{pid}", m.mesh.vertices.astype(np.float32),
                                                       m.mesh.faces.astype(np.uint32), color=color, flat_shading=False)
@@ -686,7 +702,7 @@ class Studio:
         step = asm.steps[i]
         T_world_base = self._preview[step.base[0]]
         T = T_world_base @ step.T_base_part
-        d = self.model(step.part).diameter
+        d = self.model(step.part, asm).diameter
         frame = self.nodes.get("/assembly/base_frame")
         if frame is None:
             frame = self._node("/assembly/base_frame", self.server.scene.add_frame(
@@ -763,7 +779,11 @@ class Studio:
         return int(str(self.i_step.value).split(".")[0])
 
     def _cache_key(self, step: int, im_id: int) -> tuple:
-        return self.cache.key(self.frames_path, step, im_id, self.i_preset.value, self.i_mask.value, self.i_prior.value)
+        mask = self.i_mask.value
+        if mask == "depth" and self.i_crop.value and "/inspect/crop" in self.nodes:  # the box is part of the mask
+            g = self.nodes["/inspect/crop"]
+            mask = (mask, tuple(np.round(g.position, 4)), tuple(np.round(g.wxyz, 4)), tuple(self.i_crop_size.value))
+        return self.cache.key(self.frames_path, step, im_id, self.i_preset.value, mask, self.i_prior.value)
 
     def _load_frame(self, step: int, im_id: int):
         from .dataset import Dataset
@@ -816,7 +836,7 @@ class Studio:
         return self.contexts[key]
 
     def _estimate(self, step: int, im_id: int):
-        from .evaluate import estimate_frame, score_frame
+        from .evaluate import estimate_frame, frame_mask, score_frame
         from .register import resolve_params
 
         ctx = self._context(step)
@@ -824,10 +844,65 @@ class Studio:
             else self._load_frame(step, im_id)
         asm = self._inspect_assembly()
         params = resolve_params(self.i_preset.value, asm.registration)
-        result = estimate_frame(frame, ctx, params, self.i_mask.value, bool(self.i_prior.value), trace_iterations=True)
-        score = score_frame(frame, result, ctx.part) if (result.ok and frame.T_world_part is not None) else None
+        if self.i_mask.value == "depth" and self.i_crop.value and "/inspect/crop" in self.nodes:
+            from .segment import depth_mask
+
+            mask = depth_mask(frame.depth, frame.camera, keep=self._crop_pixels(frame))
+        else:
+            mask = frame_mask(frame, self.i_mask.value)
+        result = estimate_frame(frame, ctx, params, orientation_prior=bool(self.i_prior.value), trace_iterations=True,
+                                mask=mask)
+        score = None
+        if frame.T_world_part is not None:
+            score = score_frame(frame, result, ctx.part, mask if self.i_mask.value != "gt" else None)
         self.cache.put(self._cache_key(step, im_id), (result, score))
         return result, score
+
+    def _crop_pixels(self, frame) -> np.ndarray:
+        g = self.nodes["/inspect/crop"]
+        T_world_box = se3.make_T(se3.quat_wxyz_to_matrix(g.wxyz), np.asarray(g.position))
+        return inspection.pixels_in_box(frame.depth, frame.camera, frame.T_world_camera, T_world_box,
+                                        np.asarray(self.i_crop_size.value) / 1000.0)
+
+    def _show_crop(self) -> None:
+        """The crop box: a gizmo with a wireframe box as its child, first placed on the base object's
+        likely spot (the depth point at the image centre)."""
+        for name in ("/inspect/crop/box",):
+            if name in self.nodes:
+                self.nodes.pop(name).remove()
+        if not self.i_crop.value or self.frame is None:
+            if "/inspect/crop" in self.nodes:
+                self.nodes.pop("/inspect/crop").remove()
+            return
+        size = np.asarray(self.i_crop_size.value, dtype=float) / 1000.0
+        g = self.nodes.get("/inspect/crop")
+        if g is None:
+            fr = self.frame
+            h, w = fr.depth.shape
+            win = fr.depth[h // 2 - 20:h // 2 + 20, w // 2 - 20:w // 2 + 20]
+            z = float(np.median(win[np.isfinite(win) & (win > 0)])) if (np.isfinite(win) & (win > 0)).any() else 0.5
+            centre = se3.transform_points(fr.T_world_camera, np.array([[0.0, 0.0, z]]))[0]
+            g = self._node("/inspect/crop", self.server.scene.add_transform_controls(
+                "/inspect/crop", scale=float(size.max()), position=tuple(centre)))
+        import trimesh
+
+        box = trimesh.creation.box(size)
+        self._node("/inspect/crop/box", self.server.scene.add_mesh_simple(
+            "/inspect/crop/box", box.vertices.astype(np.float32), box.faces.astype(np.uint32), color=(255, 170, 0),
+            wireframe=True))
+
+    def _on_use_model(self, client) -> None:
+        from .evaluate import check_mask_source
+
+        text = self.i_model.value.strip()
+        if not text:
+            raise AposeError("type the path of a model file (.pt) from `apose train-seg` into 'Mask model (.pt)'")
+        path = check_mask_source(str(Path(text).expanduser()), self._inspect_assembly())
+        options = list(self.i_mask.options)
+        if path not in options:
+            self.i_mask.options = options + [path]
+        self.i_mask.value = path
+        self.notify(client, "Mask model", f"using {Path(path).name} for masks")
 
     def _on_estimate(self, event) -> None:
         which = event.target.value

@@ -82,12 +82,27 @@ def test_pose_recovered_with_the_cad_orientation_known(gearbox_step2, preset):
     part = models[view.part]
     err = mssd(r.T_world_part, T_world_base @ view.T_base_part, part.samples, part.symmetries)
     assert err < 1e-3, err
-    # the trace replays: initial, global, ICP iterations, final (= the result)
+    # the trace replays: initial, global (or, ours, the prior's start), ICP iterations, final (= the result)
     names = [s.name for s in r.stages]
-    assert names[0] == "initial" and names[1] == "global" and names[-1] == "final" and len(names) >= 4
+    assert names[0] == "initial" and names[-1] == "final" and len(names) >= 4
+    if preset == "default":  # the prior fits, so ours stops there without a global search
+        assert names[1] == "prior" and set(r.timings) >= {"proj3d", "prior"} and "global" not in r.timings
+    else:
+        assert names[1] == "global" and set(r.timings) >= {"proj3d", "global", "icp"}
     np.testing.assert_allclose(r.stages[-1].T_world_base, r.T_world_base)
-    assert r.fitness > 0.95 and r.inlier_rmse < r.voxel and set(r.timings) >= {"proj3d", "global", "icp"}
+    assert r.fitness > 0.95 and r.inlier_rmse < r.voxel
     assert len(r.target_cloud) > 100 and len(r.source_cloud) > 100
+
+
+def test_a_wrong_prior_falls_back_to_the_global_search(gearbox_step2):
+    view, base, _ = gearbox_step2
+    T_world_base = se3.make_T(np.eye(3), [0.05, 0.02, 0.0])
+    T_world_camera = se3.look_at([0.35, -0.25, 0.3], [0.05, 0.02, 0.01])
+    depth, mask = synthetic_view(base, T_world_base, T_world_camera)
+    wrong = se3.make_T(se3.axis_angle_matrix([0, 0, 1], np.radians(90)))
+    r = estimate(depth, mask, CAM, T_world_camera, base, view.T_base_part, resolve_params("default"),
+                 prior_T_world_base=wrong)
+    assert r.ok and r.stages[1].name == "global" and {"prior", "global", "icp"} <= set(r.timings)
 
 
 def test_degenerate_inputs_fail_with_reasons(gearbox_step2):

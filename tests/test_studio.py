@@ -158,22 +158,77 @@ def test_inspect_estimate_replay_and_cache(studio, gearbox_dataset):
     assert st.result is not None and st.frame.im_id == 1  # cached: no estimation needed
 
 
-def test_capture_without_a_mask_fails_cleanly(studio, gearbox_dataset, tmp_path):
-    import cv2
+@pytest.fixture
+def capture(gearbox_dataset, tmp_path) -> Path:
+    """A real-capture folder (rgb.png, depth.png in mm, camera.json) made from a rendered frame."""
     import json
+
+    import cv2
 
     from apose_studio.dataset import Dataset
 
-    fr = Dataset(gearbox_dataset).frame(1, 0)
+    fr = Dataset(gearbox_dataset).frame(1, 1)
     cap = tmp_path / "capture"
     cap.mkdir()
     cv2.imwrite(str(cap / "rgb.png"), fr.rgb[..., ::-1])
     cv2.imwrite(str(cap / "depth.png"), (fr.depth * 1000).astype(np.uint16))
     (cap / "camera.json").write_text(json.dumps({"fx": fr.camera.fx, "fy": fr.camera.fy, "cx": fr.camera.cx,
                                                  "cy": fr.camera.cy, "depth_scale": 1.0}))
+    return cap
+
+
+def open_capture(studio, cap):
     st = studio(SAMPLES / "helical_gearbox" / "assembly.yaml")
     st.i_path.value = str(cap)
     act(st, lambda c: st._open_frames(st.i_path.value, c))
+    return st
+
+
+def test_capture_without_a_mask_fails_cleanly(studio, capture):
+    st = open_capture(studio, capture)
     assert "/inspect/scene" in st.nodes and "/inspect/box_gt" not in st.nodes
     act(st, st._run_estimation, False)
     assert "empty mask" in errors(st)[-1][1] and "failed" in st.i_metrics.content.lower()
+
+
+def test_capture_with_depth_masks_and_model_choice(studio, capture, tmp_path):
+    st = open_capture(studio, capture)
+    st.i_mask.value = "depth"
+    act(st, st._run_estimation, False)
+    assert st.result is not None and st.result.ok, st.notes
+    assert {"/inspect/target", "/inspect/source", "/inspect/box_est"} <= set(st.nodes)
+    # a model file that is not one: refused with the reason, the mask choice unchanged
+    (tmp_path / "junk.pt").write_bytes(b"junk")
+    st.i_model.value = str(tmp_path / "junk.pt")
+    act(st, st._on_use_model)
+    assert "not a readable model file" in errors(st)[-1][1] and st.i_mask.value == "depth"
+
+
+def test_new_assembly_never_overwrites_the_open_file(studio, gearbox_copy):
+    st = studio(gearbox_copy)
+    before = gearbox_copy.read_text()
+    act(st, st._on_new)
+    assert st.asm.parts == {} and Path(st.f_path.value) == gearbox_copy.parent.resolve() / "untitled.yaml"
+    act(st, st._on_save)  # an empty assembly is refused, and the sample is untouched
+    assert "no parts yet" in errors(st)[-1][1] and gearbox_copy.read_text() == before
+    assert not (gearbox_copy.parent / "untitled.yaml").exists()
+
+
+def test_crop_box_limits_depth_masks(studio, gearbox_dataset):
+    from apose_studio.dataset import Dataset
+
+    st = studio(SAMPLES / "helical_gearbox" / "assembly.yaml", gearbox_dataset)
+    st.i_mask.value = "depth"
+    st.i_crop.value = True
+    assert "/inspect/crop" in st.nodes and "/inspect/crop/box" in st.nodes
+    fr = Dataset(gearbox_dataset).frame(1, 0)
+    g = st.nodes["/inspect/crop"]
+    # put the box on the ground-truth base pose: the mask stays on the base
+    g._impl.position = tuple(fr.T_world_base[:3, 3])
+    act(st, st._run_estimation, False)
+    assert st.result.ok and st.score.mask_iou > 0.7
+    # a box far away from everything leaves nothing to register: a clear failure, not a crash
+    # (the cache knows the box moved: no stale result)
+    g._impl.position = (5.0, 5.0, 5.0)
+    act(st, st._run_estimation, False)
+    assert not st.result.ok and "failed" in st.i_metrics.content.lower()
