@@ -99,8 +99,9 @@ def cmd_demo(args) -> int:
     summary = render_dataset(asm, out, settings, overwrite=True, progress=sys.stderr.isatty(), models=models)
     print(f"  {summary['frames']} frames in {summary['seconds']:.1f} s")
     ds = Dataset(out)
-    params = resolve_params("default", asm.registration)
-    print("\nestimating each step's assembly pose (preset default, no orientation prior, ground-truth masks):")
+    params = resolve_params("default", asm.registration, upright=True)
+    print("\nestimating each step's assembly pose (preset default; no orientation prior, only that the base stands "
+          "upright on the table at an unknown yaw (--upright); ground-truth masks):")
     from .inspection import ResultCache
 
     cache = ResultCache()
@@ -109,7 +110,7 @@ def cmd_demo(args) -> int:
         frame = ds.frame(step, 0)
         r = estimate_frame(frame, ctx, params, trace_iterations=True)
         sc = score_frame(frame, r, ctx.part)
-        cache.put(cache.key(Path(out).resolve(), step, frame.im_id, "default", "gt", False), (r, sc if r.ok else None))
+        cache.put(cache.key(Path(out).resolve(), step, frame.im_id, "default upright", "gt", False), (r, sc if r.ok else None))
         if not r.ok:
             print(f"  step {step}: place {ctx.part.id}: failed: {r.reason}")
             continue
@@ -122,13 +123,13 @@ def cmd_demo(args) -> int:
     if args.no_studio:
         return 0
     print("\nopening the studio on this assembly and dataset (the estimates above are cached in its Inspect tab)")
-    return _serve_studio(path, out, args.host, args.port, cache)
+    return _serve_studio(path, out, args.host, args.port, cache, upright=True)
 
 
-def _serve_studio(assembly, dataset, host: str, port: int, cache=None) -> int:
+def _serve_studio(assembly, dataset, host: str, port: int, cache=None, upright: bool = False) -> int:
     from .studio import serve
 
-    server, _ = serve(assembly, dataset, host=host, port=port, cache=cache)
+    server, _ = serve(assembly, dataset, host=host, port=port, cache=cache, upright=upright)
     url = f"http://{'127.0.0.1' if host in ('127.0.0.1', 'localhost') else host}:{server.get_port()}"
     print(f"studio: {url}  (Ctrl-C to stop)")
     if host not in ("127.0.0.1", "localhost", "::1"):

@@ -164,3 +164,33 @@ def test_params_from_file_and_caller():
     assert replace(paper, seed=3).seed == 3
     with pytest.raises(AposeError, match="unknown preset 'fast'"):
         resolve_params("fast")
+
+
+@pytest.fixture(scope="module")
+def gearbox_yaw(tmp_path_factory):
+    from apose_studio.dataset import Dataset
+    from apose_studio.render import RenderSettings, render_dataset
+
+    out = tmp_path_factory.mktemp("yaw") / "ds"
+    asm = load_assembly(SAMPLES / "helical_gearbox" / "assembly.yaml")
+    render_dataset(asm, out, RenderSettings(frames=2, seed=4), steps=[2], progress=False)
+    return Dataset(out)
+
+
+def test_upright_search_finds_the_yaw_without_ransac(gearbox_yaw):
+    """--upright: the table's normal from the depth around the base, then every yaw about it (no
+    RANSAC, so deterministic); both frames land within a millimetre."""
+    from apose_studio.evaluate import StepContext, estimate_frame
+    from apose_studio.register import table_normal
+
+    ds = gearbox_yaw
+    ctx = StepContext(ds.assembly, load_parts(ds.assembly), 2)
+    p = resolve_params("default", upright=True)
+    for im_id in ds.image_ids(2):
+        fr = ds.frame(2, im_id)
+        n = table_normal(fr.depth, fr.base_mask(), fr.camera, fr.T_world_camera)
+        assert n is not None and n[2] > 0.999  # the table is the world's xy plane
+        r = estimate_frame(fr, ctx, p)
+        assert r.ok and "global" in r.timings
+        err = mssd(r.T_world_part, fr.T_world_part, ctx.part.samples, ctx.part.symmetries)
+        assert err < 1e-3, (im_id, err)

@@ -232,3 +232,15 @@ def test_crop_box_limits_depth_masks(studio, gearbox_dataset):
     g._impl.position = (5.0, 5.0, 5.0)
     act(st, st._run_estimation, False)
     assert not st.result.ok and "failed" in st.i_metrics.content.lower()
+
+
+def test_demo_estimates_are_found_in_the_cache(gearbox_dataset):
+    """`apose demo` caches its estimates under the key the studio builds for its (upright) settings."""
+    from apose_studio.inspection import ResultCache
+
+    server, st = serve(SAMPLES / "helical_gearbox" / "assembly.yaml", gearbox_dataset, port=free_port(), upright=True)
+    try:
+        assert st.i_upright.value is True
+        assert st._cache_key(1, 0) == ResultCache.key(gearbox_dataset.resolve(), 1, 0, "default upright", "gt", False)
+    finally:
+        server.stop()
