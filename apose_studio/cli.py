@@ -79,7 +79,7 @@ def cmd_demo(args) -> int:
     """The slice end to end on a sample: summary, a small rendered dataset, one estimate per step."""
     from .assembly import load_assembly
     from .dataset import Dataset
-    from .evaluate import StepContext, estimate_frame, score_frame
+    from .evaluate import StepContext, estimate_and_score
     from .mesh import load_parts
     from .register import resolve_params
     from .render import RenderSettings, render_dataset
@@ -108,8 +108,7 @@ def cmd_demo(args) -> int:
     for step in ds.steps:
         ctx = StepContext(ds.assembly, models, step)
         frame = ds.frame(step, 0)
-        r = estimate_frame(frame, ctx, params, trace_iterations=True)
-        sc = score_frame(frame, r, ctx.part)
+        r, sc = estimate_and_score(frame, ctx, params, trace_iterations=True)
         cache.put(cache.key(Path(out).resolve(), step, frame.im_id, "default upright", "gt", False), (r, sc if r.ok else None))
         if not r.ok:
             print(f"  step {step}: place {ctx.part.id}: failed: {r.reason}")
@@ -196,7 +195,7 @@ def _pose_lines(T: np.ndarray) -> list[str]:
 
 def cmd_estimate(args) -> int:
     from .dataset import Dataset
-    from .evaluate import StepContext, estimate_frame, score_frame
+    from .evaluate import StepContext
     from .mesh import load_parts
     from .register import resolve_params
 
@@ -206,13 +205,11 @@ def cmd_estimate(args) -> int:
     ctx = StepContext(asm, load_parts(asm), args.step) if args.step in ds.steps else None
     if ctx is None:
         raise AposeError(f"{ds.root}: step {args.step} was not rendered; rendered steps: {', '.join(map(str, ds.steps))}")
-    from .evaluate import check_mask_source, frame_mask
+    from .evaluate import check_mask_source, estimate_and_score
 
     source = check_mask_source(args.mask, asm)
     frame = ds.frame(args.step, args.frame)
-    mask = frame_mask(frame, source)
-    r = estimate_frame(frame, ctx, params, orientation_prior=args.orientation_prior, trace_iterations=True, mask=mask)
-    sc = score_frame(frame, r, ctx.part, mask if source != "gt" else None)
+    r, sc = estimate_and_score(frame, ctx, params, source, args.orientation_prior, trace_iterations=True)
     if args.json:
         doc = sc.to_json()
         doc.update(preset=params.preset, part=ctx.part.id, base=list(ctx.view.base), reason=r.reason,

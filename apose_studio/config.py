@@ -29,6 +29,11 @@ class CameraIntrinsics:
     def K(self) -> np.ndarray:
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
+    def backproject(self, u, v, z) -> np.ndarray:
+        """Camera-frame points (..., 3) of pixels (u, v) at depth z (metres), any matching shapes."""
+        z = np.asarray(z, dtype=np.float64)
+        return np.stack([(u - self.cx) * z / self.fx, (v - self.cy) * z / self.fy, z], axis=-1)
+
     @staticmethod
     def from_K(K: np.ndarray, width: int, height: int) -> "CameraIntrinsics":
         return CameraIntrinsics(int(width), int(height), float(K[0, 0]), float(K[1, 1]),

@@ -57,13 +57,17 @@ def check_mask_source(source: str, asm: Assembly) -> str:
     refused before any work). Raises AposeError naming the fix."""
     if source in MASK_SOURCES:
         return source
-    if source.endswith(".pt") or Path(source).exists():
+    if _is_model(source):
         _segmenter(str(Path(source).resolve()), asm)
         return str(Path(source).resolve())
     raise AposeError(f"--mask {source}: expected gt, depth, or a model file (.pt) from `apose train-seg`")
 
 
 _SEGMENTERS: dict = {}
+
+
+def _is_model(source: str) -> bool:
+    return source.endswith(".pt") or Path(source).exists()
 
 
 def _segmenter(path: str, asm: Assembly | None = None):
@@ -85,7 +89,7 @@ def frame_mask(frame: Frame, source: str) -> np.ndarray:
         from .segment import depth_mask
 
         return depth_mask(frame.depth, frame.camera)
-    if source.endswith(".pt") or Path(source).exists():
+    if _is_model(source):
         return _segmenter(str(Path(source).resolve())).mask(frame.rgb, frame.depth, frame.base, frame.camera)
     raise ValueError(f"unknown mask source {source!r}; available: {', '.join(MASK_SOURCES)} or a .pt model")
 
@@ -164,6 +168,20 @@ def estimate_frame(frame: Frame, ctx: StepContext, params: Params, mask_source: 
                     ctx.view.T_base_part, params, prior_T_world_base=prior, trace_iterations=trace_iterations)
 
 
+def estimate_and_score(frame: Frame, ctx: StepContext, params: Params, mask_source: str = "gt",
+                       orientation_prior: bool = False, trace_iterations: bool = False,
+                       mask: np.ndarray | None = None) -> tuple[RegistrationResult, FrameScore | None]:
+    """Estimate one frame and score it against its ground truth (None for a capture without one).
+    The mask comes from `mask_source` unless given; a mask that is not the ground truth is scored too."""
+    if mask is None:
+        mask = frame_mask(frame, mask_source)
+    result = estimate_frame(frame, ctx, params, orientation_prior=orientation_prior,
+                            trace_iterations=trace_iterations, mask=mask)
+    if frame.T_world_part is None:
+        return result, None
+    return result, score_frame(frame, result, ctx.part, None if mask_source == "gt" else mask)
+
+
 _WORKER: dict = {}
 
 
@@ -177,10 +195,7 @@ def _worker_run(task) -> FrameScore:
     ds, ctxs = _WORKER["ds"], _WORKER["ctx"]
     if step not in ctxs:
         ctxs[step] = StepContext(ds.assembly, _WORKER["models"], step)
-    frame = ds.frame(step, im_id)
-    mask = frame_mask(frame, mask_source)
-    result = estimate_frame(frame, ctxs[step], params, orientation_prior=orientation_prior, mask=mask)
-    return score_frame(frame, result, ctxs[step].part, mask if mask_source != "gt" else None)
+    return estimate_and_score(ds.frame(step, im_id), ctxs[step], params, mask_source, orientation_prior)[1]
 
 
 def evaluate(ds: Dataset, params: Params, steps: list[int] | None = None, frames: int | None = None,
@@ -224,10 +239,7 @@ def evaluate(ds: Dataset, params: Params, steps: list[int] | None = None, frames
             ctx = StepContext(ds.assembly, models, step)
             scores = []
             for im_id in ids:
-                frame = ds.frame(step, im_id)
-                mask = frame_mask(frame, mask_source)
-                result = estimate_frame(frame, ctx, params, orientation_prior=orientation_prior, mask=mask)
-                scores.append(score_frame(frame, result, ctx.part, mask if mask_source != "gt" else None))
+                scores.append(estimate_and_score(ds.frame(step, im_id), ctx, params, mask_source, orientation_prior)[1])
                 bar.update(1)
             doc["steps"].append(summarise_step(step, scores, ctx.part))
     finally:

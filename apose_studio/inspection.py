@@ -64,9 +64,8 @@ def scene_cloud(depth: np.ndarray, rgb: np.ndarray, cam: CameraIntrinsics, T_wor
     stride = max(1, int(np.ceil(np.sqrt(h * w / max_points))))
     d = depth[::stride, ::stride]
     vs, us = np.nonzero(np.isfinite(d) & (d > 0))
-    z = d[vs, us].astype(np.float64)
     u, v = us * stride, vs * stride
-    pc = np.stack([(u - cam.cx) * z / cam.fx, (v - cam.cy) * z / cam.fy, z], axis=1)
+    pc = cam.backproject(u, v, d[vs, us])
     return se3.transform_points(T_world_camera, pc).astype(np.float32), rgb[v, u]
 
 
@@ -76,7 +75,7 @@ def pixels_in_box(depth: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.n
     h, w = depth.shape
     v, u = np.mgrid[0:h, 0:w]
     z = np.where(np.isfinite(depth), depth, 0.0)
-    pc = np.stack([(u - cam.cx) * z / cam.fx, (v - cam.cy) * z / cam.fy, z], axis=-1).reshape(-1, 3)
+    pc = cam.backproject(u, v, z).reshape(-1, 3)
     local = se3.transform_points(se3.inv(T_world_box) @ T_world_camera, pc)
     inside = (np.abs(local) <= np.asarray(size) / 2.0).all(axis=1).reshape(h, w)
     return inside & (z > 0)

@@ -295,9 +295,7 @@ def project_to_cloud(depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics,
     if depth.shape != mask.shape:
         raise AposeError(f"mask is {mask.shape[1]}x{mask.shape[0]} but depth is {depth.shape[1]}x{depth.shape[0]}")
     vs, us = np.nonzero(mask & np.isfinite(depth) & (depth > 0))
-    z = depth[vs, us].astype(np.float64)
-    pc = np.stack([(us - cam.cx) * z / cam.fx, (vs - cam.cy) * z / cam.fy, z], axis=1)
-    return se3.transform_points(T_world_camera, pc)
+    return se3.transform_points(T_world_camera, cam.backproject(us, vs, depth[vs, us]))
 
 
 def place_source(base: BaseObject, target_centre: np.ndarray, R_world_base: np.ndarray | None = None) -> np.ndarray:
@@ -328,14 +326,21 @@ def _cloud(points: np.ndarray, normals: np.ndarray | None = None):
     return pc
 
 
-def _normals_fpfh(pc, voxel: float, p: Params, camera_pos: np.ndarray | None):
+def _normals(pc, voxel: float, p: Params, camera_pos: np.ndarray | None) -> None:
+    """Estimate normals once (oriented towards the camera when its position is known)."""
     import open3d as o3d
 
-    reg = o3d.pipelines.registration
     if not pc.has_normals():
         pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=p.normal_radius_factor * voxel, max_nn=30))
         if camera_pos is not None:
             pc.orient_normals_towards_camera_location(camera_pos)
+
+
+def _normals_fpfh(pc, voxel: float, p: Params, camera_pos: np.ndarray | None):
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    _normals(pc, voxel, p, camera_pos)
     return reg.compute_fpfh_feature(pc, o3d.geometry.KDTreeSearchParamHybrid(radius=p.feature_radius_factor * voxel, max_nn=100))
 
 
@@ -496,6 +501,24 @@ def _visible_agreement(points_world: np.ndarray, T_world_camera: np.ndarray, cam
     return float(ok.mean())
 
 
+def _score_pose(T_world_base, base, T_base_part, fine_pts, T_world_camera, cam, observation, voxel, thr,
+                symmetry: int = 0) -> tuple[Candidate, np.ndarray]:
+    """A candidate at a refined pose: what the camera would see of the base there (world points, also
+    returned), the target share it explains, and the share of it the depth confirms."""
+    src_w, _ = raycast_source(base, T_world_base, T_world_camera, cam)
+    fit, rmse = fitness_rmse(fine_pts, src_w, thr)
+    mask_img, depth_img = observation
+    agree = _visible_agreement(src_w, T_world_camera, cam, depth_img, mask_img, max(2 * voxel, 0.002))
+    return Candidate(T_world_base, T_world_base @ T_base_part, fit, agree, rmse, 0.5 * (fit + agree), symmetry), src_w
+
+
+def _trace_stages(T_world_source, start_name: str, T_start, trace, cand: Candidate, src_b, fine_pts, thr) -> list[Stage]:
+    """The replay: initial (TFORM) -> the start ICP began from -> every ICP iteration -> final."""
+    stages = [_stage("initial", T_world_source, fine_pts, src_b, thr), _stage(start_name, T_start, fine_pts, src_b, thr)]
+    stages += [_stage(f"icp {k + 1}", T, fine_pts, src_b, thr) for k, T in enumerate(trace or [])]
+    return stages + [Stage("final", cand.T_world_base, cand.fitness, cand.inlier_rmse)]
+
+
 PRIOR_ACCEPT = 0.95  # the prior's pose is kept without a global search when both shares reach this
 UPRIGHT_YAW_STEP_DEG = 10.0
 UPRIGHT_FALLBACK = 0.6  # below this share explained by the best upright start, the base is not upright: search freely
@@ -524,8 +547,10 @@ def upright_starts(base: "BaseObject", up: np.ndarray, target_pts: np.ndarray, c
     the part of the model facing the camera is centred on the target."""
     z = np.array([0.0, 0.0, 1.0])
     axis = np.cross(z, up)
-    angle = float(np.arccos(np.clip(z @ up, -1.0, 1.0)))
-    R_up = se3.axis_angle_matrix(axis, angle) if np.linalg.norm(axis) > 1e-9 else (np.eye(3) if angle < 1 else np.diag([1.0, -1.0, -1.0]))
+    if np.linalg.norm(axis) > 1e-9:  # the turn that takes the CAD's +z onto the table's normal
+        R_up = se3.axis_angle_matrix(axis, float(np.arccos(np.clip(z @ up, -1.0, 1.0))))
+    else:  # already along it, or exactly opposite (a half turn about x)
+        R_up = np.eye(3) if up[2] > 0 else np.diag([1.0, -1.0, -1.0])
     centre = target_pts.mean(axis=0)
     out = []
     for yaw in np.arange(0.0, 360.0, UPRIGHT_YAW_STEP_DEG):
@@ -560,21 +585,15 @@ def _try_prior(tp, fine, fine_pts, cam, T_world_camera, base, T_base_part, p: Pa
     src_w, _ = raycast_source(base, T, T_world_camera, cam)  # what the camera sees at the refined pose
     src = _cloud(se3.transform_points(se3.inv(T), src_w)).voxel_down_sample(voxel)
     T = icp(src, fine, T, thr, p.icp_max_iterations, trace)
-    src_w, _ = raycast_source(base, T, T_world_camera, cam)
-    fit, rmse = fitness_rmse(fine_pts, src_w, thr)
+    cand, src_w = _score_pose(T, base, T_base_part, fine_pts, T_world_camera, cam, observation, voxel, thr)
     coverage = fitness_rmse(fine_pts, src_w, 2 * voxel)[0]
-    mask_img, depth_img = observation
-    agree = _visible_agreement(src_w, T_world_camera, cam, depth_img, mask_img, max(2 * voxel, 0.002))
     timings["prior"] = time.perf_counter() - t
-    if coverage < PRIOR_ACCEPT or agree < PRIOR_ACCEPT:
+    if coverage < PRIOR_ACCEPT or cand.source_fitness < PRIOR_ACCEPT:
         return None
     src_b = se3.transform_points(se3.inv(T), src_w)
-    stages = [_stage("initial", T_world_source, fine_pts, src_b, thr), _stage("prior", T0, fine_pts, src_b, thr)]
-    stages += [_stage(f"icp {k + 1}", Tk, fine_pts, src_b, thr) for k, Tk in enumerate(trace or [])]
-    stages.append(Stage("final", T, fit, rmse))
-    cand = Candidate(T, T @ T_base_part, fit, agree, rmse, 0.5 * (fit + agree), 0)
-    return RegistrationResult(True, "", T, T @ T_base_part, T_world_source, fine_pts, src_b, stages, fit, rmse,
-                              timings, [cand], False, voxel=voxel, coverage=float(coverage), **kw)
+    stages = _trace_stages(T_world_source, "prior", T0, trace, cand, src_b, fine_pts, thr)
+    return RegistrationResult(True, "", T, cand.T_world_part, T_world_source, fine_pts, src_b, stages, cand.fitness,
+                              cand.inlier_rmse, timings, [cand], False, voxel=voxel, coverage=float(coverage), **kw)
 
 
 def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Params, voxel, prior, trace_iterations,
@@ -606,9 +625,15 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
         if quick is not None:
             return quick
         t = time.perf_counter()
-    f_t = _normals_fpfh(target, vg, p, cam_pos)
     # the whole model (features cached per step): no assumption about the side seen or the orientation
     model, f_m = base.model_features(vg, p)
+    _normals(target, vg, p, cam_pos)  # ICP needs them whatever the search
+    target_features: list = []
+
+    def f_t():  # the target's FPFH, computed only when a RANSAC needs it (the upright search does not)
+        if not target_features:
+            target_features.append(_normals_fpfh(target, vg, p, cam_pos))
+        return target_features[0]
     timings["features"] = timings.get("features", 0.0) + time.perf_counter() - t
 
     t = time.perf_counter()
@@ -620,7 +645,7 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
         mask_img, depth_img = observation
         up = table_normal(depth_img, mask_img, cam, T_world_camera)
     if up is None:
-        T_g = global_registration(model, target, f_m, f_t, vg, p)  # T_world_base directly (model is in base frame)
+        T_g = global_registration(model, target, f_m, f_t(), vg, p)  # T_world_base directly (model is in base frame)
 
     prior_starts = []
     if R_prior is not None:
@@ -629,7 +654,7 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
         src_w, _ = raycast_source(base, T_world_source, T_world_camera, cam)
         if len(src_w) >= MIN_POINTS:
             src = _cloud(src_w).voxel_down_sample(vg)
-            T_p = global_registration(src, target, _normals_fpfh(src, vg, p, cam_pos), f_t, vg, p)
+            T_p = global_registration(src, target, _normals_fpfh(src, vg, p, cam_pos), f_t(), vg, p)
             prior_starts.append((-1, T_p @ T_world_source))
         prior_starts.append((-1, T_world_source))
     tree = base.model_tree(vg, p)
@@ -667,12 +692,12 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
         coarse = coarse_starts(None, [], upright_starts(base, up, tp, cam_pos, model_pts, model_nrm))
         if not coarse or coarse[0][0] < UPRIGHT_FALLBACK:  # nothing fits upright: it is not; search freely
             up = None
-            T_g = global_registration(model, target, f_m, f_t, vg, p)
+            T_g = global_registration(model, target, f_m, f_t(), vg, p)
             coarse = sorted(coarse + coarse_starts(T_g, []), key=lambda x: -x[0])
     else:
         coarse = coarse_starts(T_g, prior_starts)
     if up is None and p.ransac_retry_iterations and (not coarse or coarse[0][0] < p.retry_below):  # the fast RANSAC missed: try harder
-        T_g = global_registration(model, target, f_m, f_t, vg,
+        T_g = global_registration(model, target, f_m, f_t(), vg,
                                   replace(p, ransac_max_iterations=p.ransac_retry_iterations, seed=p.seed + 1))
         coarse = sorted(coarse + coarse_starts(T_g, []), key=lambda x: -x[0])  # the prior's starts are in already
     timings["global"] = time.perf_counter() - t
@@ -698,10 +723,8 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
         src = _cloud(se3.transform_points(se3.inv(T1), src_w)).voxel_down_sample(voxel)
         T = icp(src, fine, T1, vg, p.icp_max_iterations, trace)
         T = icp(src, fine, T, thr, p.icp_max_iterations, trace)
-        src_w, _ = raycast_source(base, T, T_world_camera, cam)
-        fit, rmse = fitness_rmse(fine_pts, src_w, thr)
-        agree = _visible_agreement(src_w, T_world_camera, cam, depth_img, mask_img, max(2 * voxel, 0.002))
-        cands.append(Candidate(T, T @ T_base_part, fit, agree, rmse, 0.5 * (fit + agree), k))
+        cand, src_w = _score_pose(T, base, T_base_part, fine_pts, T_world_camera, cam, observation, voxel, thr, k)
+        cands.append(cand)
         traces[len(cands) - 1] = (T0, trace or [], src_w)
     timings["icp"] = time.perf_counter() - t
     if not cands:
@@ -720,9 +743,7 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
     c = cands[chosen]
     T0, trace, src_w = traces[chosen]
     src_b = se3.transform_points(se3.inv(c.T_world_base), src_w)
-    stages = [_stage("initial", T_world_source, fine_pts, src_b, thr), _stage("global", T0, fine_pts, src_b, thr)]
-    stages += [_stage(f"icp {k + 1}", T, fine_pts, src_b, thr) for k, T in enumerate(trace)]
-    stages.append(Stage("final", c.T_world_base, c.fitness, c.inlier_rmse))
+    stages = _trace_stages(T_world_source, "global", T0, trace, c, src_b, fine_pts, thr)
     order = sorted(range(len(cands)), key=lambda i: -cands[i].score)
     coverage = fitness_rmse(fine_pts, src_w, 2 * voxel)[0]
     return RegistrationResult(True, "", c.T_world_base, c.T_world_part, T_world_source, fine_pts, src_b, stages,

@@ -341,11 +341,10 @@ def table_objects(depth: np.ndarray, cam, plane_tol: float | None = None, gap: f
     if valid.sum() < 100:
         return None
     vs, us = np.nonzero(valid)
-    z = depth[vs, us].astype(np.float64)
-    med = float(np.median(z))
+    pts = cam.backproject(us, vs, depth[vs, us])
+    med = float(np.median(pts[:, 2]))
     plane_tol = 0.006 * med if plane_tol is None else plane_tol
     gap = 0.02 * med if gap is None else gap
-    pts = np.stack([(us - cam.cx) * z / cam.fx, (vs - cam.cy) * z / cam.fy, z], axis=1)
     rng = np.random.default_rng(0)
     sub = pts[rng.choice(len(pts), min(len(pts), 20000), replace=False)]
     (a, b, c, d), _ = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(sub)).segment_plane(plane_tol, 3, 300)

@@ -314,10 +314,7 @@ class Studio:
     def _open_assembly(self, path: Path, client=None) -> None:
         asm = load_assembly(path)
         for pid in asm.parts:  # load every mesh now: a bad one is reported before anything changes
-            part = asm.parts[pid]
-            key = (str(part.mesh), asm.units, part.color, list(asm.parts).index(pid))
-            if key not in self.models:
-                self.models[key] = load_part(part, asm.units, key[3])
+            self.model(pid, asm)
         for h in self.mesh_handles.values():
             h.remove()
         self.mesh_handles.clear()
@@ -327,7 +324,10 @@ class Studio:
         self._set_assembly(asm, client)
         self.f_upto.value = len(asm.steps)
         self._frame_camera_on_assembly()
-        warnings = [self.model(p).unit_warning for p in asm.parts if self.model(p).unit_warning]
+        self._warn_units(client)
+
+    def _warn_units(self, client) -> None:
+        warnings = [w for w in (self.model(p).unit_warning for p in self.asm.parts) if w]
         if warnings:
             self.notify(client, "Units look wrong", "\n".join(warnings), error=True)
 
@@ -416,15 +416,11 @@ class Studio:
             h.remove()
         self.mesh_handles.clear()
         self._set_assembly(replace(self.asm, units=self.f_units.value), client)
-        warnings = [self.model(p).unit_warning for p in self.asm.parts if self.model(p).unit_warning]
-        if warnings:
-            self.notify(client, "Units look wrong", "\n".join(warnings), error=True)
+        self._warn_units(client)
 
     def _add_mesh_file(self, path: Path, client) -> str:
         asm, pid = authoring.add_part(self.asm, path)
-        part = asm.parts[pid]
-        model = load_part(part, asm.units, len(asm.parts) - 1)  # raises MeshError before anything changes
-        self.models[(str(part.mesh), asm.units, part.color, len(asm.parts) - 1)] = model
+        model = self.model(pid, asm)  # raises MeshError before anything changes
         self._set_assembly(asm, client, quiet=True)
         if model.unit_warning:
             self.notify(client, "Units look wrong", model.unit_warning, error=True)
@@ -840,7 +836,7 @@ class Studio:
         return self.contexts[key]
 
     def _estimate(self, step: int, im_id: int):
-        from .evaluate import estimate_frame, frame_mask, score_frame
+        from .evaluate import estimate_and_score
         from .register import resolve_params
 
         ctx = self._context(step)
@@ -849,17 +845,13 @@ class Studio:
         asm = self._inspect_assembly()
         extra = {"upright": True} if self.i_upright.value and self.i_preset.value == "default" else {}
         params = resolve_params(self.i_preset.value, asm.registration, **extra)
+        mask = None
         if self.i_mask.value == "depth" and self.i_crop.value and "/inspect/crop" in self.nodes:
             from .segment import depth_mask
 
             mask = depth_mask(frame.depth, frame.camera, keep=self._crop_pixels(frame))
-        else:
-            mask = frame_mask(frame, self.i_mask.value)
-        result = estimate_frame(frame, ctx, params, orientation_prior=bool(self.i_prior.value), trace_iterations=True,
-                                mask=mask)
-        score = None
-        if frame.T_world_part is not None:
-            score = score_frame(frame, result, ctx.part, mask if self.i_mask.value != "gt" else None)
+        result, score = estimate_and_score(frame, ctx, params, self.i_mask.value, bool(self.i_prior.value),
+                                           trace_iterations=True, mask=mask)
         self.cache.put(self._cache_key(step, im_id), (result, score))
         return result, score
 
