@@ -99,9 +99,9 @@ def cmd_demo(args) -> int:
     summary = render_dataset(asm, out, settings, overwrite=True, progress=sys.stderr.isatty(), models=models)
     print(f"  {summary['frames']} frames in {summary['seconds']:.1f} s")
     ds = Dataset(out)
-    params = resolve_params("default", asm.registration, upright=True)
-    print("\nestimating each step's assembly pose (preset default; no orientation prior, only that the base stands "
-          "upright on the table at an unknown yaw (--upright); ground-truth masks):")
+    params = resolve_params("default", asm.registration)
+    print("\nestimating each step's assembly pose (preset default; no orientation prior: the base stands on the "
+          "table at an unknown yaw; ground-truth masks):")
     from .inspection import ResultCache
 
     cache = ResultCache()
@@ -109,7 +109,7 @@ def cmd_demo(args) -> int:
         ctx = StepContext(ds.assembly, models, step)
         frame = ds.frame(step, 0)
         r, sc = estimate_and_score(frame, ctx, params, trace_iterations=True)
-        cache.put(cache.key(Path(out).resolve(), step, frame.im_id, "default upright", "gt", False), (r, sc if r.ok else None))
+        cache.put(cache.key(Path(out).resolve(), step, frame.im_id, "default", "gt", False), (r, sc if r.ok else None))
         if not r.ok:
             print(f"  step {step}: place {ctx.part.id}: failed: {r.reason}")
             continue
@@ -122,13 +122,13 @@ def cmd_demo(args) -> int:
     if args.no_studio:
         return 0
     print("\nopening the studio on this assembly and dataset (the estimates above are cached in its Inspect tab)")
-    return _serve_studio(path, out, args.host, args.port, cache, upright=True)
+    return _serve_studio(path, out, args.host, args.port, cache)
 
 
-def _serve_studio(assembly, dataset, host: str, port: int, cache=None, upright: bool = False) -> int:
+def _serve_studio(assembly, dataset, host: str, port: int, cache=None) -> int:
     from .studio import serve
 
-    server, _ = serve(assembly, dataset, host=host, port=port, cache=cache, upright=upright)
+    server, _ = serve(assembly, dataset, host=host, port=port, cache=cache)
     url = f"http://{'127.0.0.1' if host in ('127.0.0.1', 'localhost') else host}:{server.get_port()}"
     print(f"studio: {url}  (Ctrl-C to stop)")
     if host not in ("127.0.0.1", "localhost", "::1"):
@@ -273,11 +273,11 @@ def cmd_eval(args) -> int:
 
 
 def _upright(args) -> dict:
-    if not args.upright:
+    if args.upright is None:
         return {}
-    if args.preset == "paper":
+    if args.preset == "paper" and args.upright:
         raise AposeError("--upright is a search of ours; the paper preset has no such mode (use --preset default)")
-    return {"upright": True}
+    return {"upright": args.upright}
 
 
 def _estimator_args(p: argparse.ArgumentParser) -> None:
@@ -287,9 +287,10 @@ def _estimator_args(p: argparse.ArgumentParser) -> None:
                    "removal and 3D clustering, no training) or a model from `apose train-seg`")
     p.add_argument("--orientation-prior", action="store_true",
                    help="take the CAD's orientation as the base's orientation in the world (true for --base-pose fixed renders)")
-    p.add_argument("--upright", action="store_true",
-                   help="the base stands on the table as modelled (its CAD z axis along the table's normal, any yaw): "
-                   "search only its yaw, no RANSAC (true for --base-pose yaw renders)")
+    p.add_argument("--upright", action=argparse.BooleanOptionalAction, default=None,
+                   help="where a table is seen, first search the yaw of the base standing on it as modelled (its CAD "
+                   "z axis along the table's normal), then freely if that fits poorly: on by default in the default "
+                   "preset; --no-upright searches freely from the start")
 
 
 def cmd_train_seg(args) -> int:

@@ -73,12 +73,17 @@ def average_recall(errors, diameter: float, thresholds=BOP_MSSD_THRESHOLDS) -> f
     return float(np.mean([recall(errors, diameter, f) for f in thresholds]))
 
 
+def quick_tree(points: np.ndarray) -> cKDTree:
+    """A k-d tree built for a few queries: unbalanced and uncompacted builds twice as fast."""
+    return cKDTree(points, balanced_tree=False, compact_nodes=False)
+
+
 def fitness_rmse(target: np.ndarray, source: np.ndarray, threshold: float) -> tuple[float, float]:
     """Open3D's definitions: fitness = share of target points with a source point within `threshold`;
     inlier_rmse = RMS distance over those inliers (0 when there are none)."""
     if len(target) == 0 or len(source) == 0:
         return 0.0, 0.0
-    d, _ = cKDTree(source).query(target, k=1, distance_upper_bound=threshold)
+    d, _ = quick_tree(source).query(target, k=1, distance_upper_bound=threshold)
     inl = np.isfinite(d)
     if not inl.any():
         return 0.0, 0.0

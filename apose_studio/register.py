@@ -26,7 +26,7 @@ from scipy.spatial import cKDTree
 from . import se3
 from .config import CameraIntrinsics, RegistrationConfig
 from .errors import AposeError
-from .metrics import fitness_rmse
+from .metrics import fitness_rmse, quick_tree
 
 MIN_POINTS = 30  # fewer target points than this cannot constrain 6 DoF with any confidence
 CONFIDENT_COVERAGE = 0.85  # below this share of target points within 2 voxels of the model, flag a poor fit
@@ -64,7 +64,11 @@ class Params:
     max_starts: int = 6  # ours: ICP from this many of the screened starting poses
     retry_below: float = 0.95  # retry RANSAC when the best start explains less than this share of what it shows
     prior_fast_path: bool = False  # ours: with an orientation prior, try ICP from it first and stop if it fits
-    upright: bool = False  # the base stands on a plane as modelled (CAD +z along the plane's normal): search its yaw
+    polish_voxel_factor: float = 0.0  # ours: > 0, a last ICP of the target (down-sampled at voxel x this) onto the
+    # model seen at the chosen pose, with the model's exact normals (the noisy target's normals bias point-to-plane)
+    polish_threshold_factor: float = 1.0  # its correspondence distance, x voxel
+    upright: bool = False  # ours: where a table is seen, first search the yaw of the base standing on it as modelled
+    # (CAD +z along the table's normal); no table, or no confident upright fit: the free search
 
     def voxel(self, diameter: float) -> float:
         return self.voxel_size_m if self.voxel_size_m else diameter / self.voxels_per_diameter
@@ -80,7 +84,7 @@ PRESET_PARAMS = {
                     "raycast", _fov_camera(1280, 720, 60.0), False, True),
     "default": Params("default", None, 50.0, 2.5, 5.0, True, 3000, 0.999, 0.9, 1.5, False, 0.6, 15,
                       "model", None, True, False, global_voxel_factor=2.0, ransac_retry_iterations=30000, use_flips=True,
-                      prior_fast_path=True),
+                      prior_fast_path=True, upright=True, polish_voxel_factor=0.5),
 }
 
 
@@ -506,6 +510,12 @@ def _score_pose(T_world_base, base, T_base_part, fine_pts, T_world_camera, cam, 
     """A candidate at a refined pose: what the camera would see of the base there (world points, also
     returned), the target share it explains, and the share of it the depth confirms."""
     src_w, _ = raycast_source(base, T_world_base, T_world_camera, cam)
+    return _score_seen(T_world_base, src_w, T_base_part, fine_pts, T_world_camera, cam, observation, voxel, thr, symmetry)
+
+
+def _score_seen(T_world_base, src_w, T_base_part, fine_pts, T_world_camera, cam, observation, voxel, thr,
+                symmetry: int = 0) -> tuple[Candidate, np.ndarray]:
+    """_score_pose with what the camera sees of the base at T_world_base given (world points)."""
     fit, rmse = fitness_rmse(fine_pts, src_w, thr)
     mask_img, depth_img = observation
     agree = _visible_agreement(src_w, T_world_camera, cam, depth_img, mask_img, max(2 * voxel, 0.002))
@@ -513,7 +523,12 @@ def _score_pose(T_world_base, base, T_base_part, fine_pts, T_world_camera, cam, 
 
 
 def _trace_stages(T_world_source, start_name: str, T_start, trace, cand: Candidate, src_b, fine_pts, thr) -> list[Stage]:
-    """The replay: initial (TFORM) -> the start ICP began from -> every ICP iteration -> final."""
+    """The replay: initial (TFORM) -> the start ICP began from -> every ICP iteration -> final. Without a
+    trace (trace_iterations=False: batch evaluation) only the final stage's fitness is computed."""
+    if trace is None:
+        return [Stage("initial", T_world_source, float("nan"), float("nan")),
+                Stage(start_name, T_start, float("nan"), float("nan")),
+                Stage("final", cand.T_world_base, cand.fitness, cand.inlier_rmse)]
     stages = [_stage("initial", T_world_source, fine_pts, src_b, thr), _stage(start_name, T_start, fine_pts, src_b, thr)]
     stages += [_stage(f"icp {k + 1}", T, fine_pts, src_b, thr) for k, T in enumerate(trace or [])]
     return stages + [Stage("final", cand.T_world_base, cand.fitness, cand.inlier_rmse)]
@@ -521,6 +536,8 @@ def _trace_stages(T_world_source, start_name: str, T_start, trace, cand: Candida
 
 PRIOR_ACCEPT = 0.95  # the prior's pose is kept without a global search when both shares reach this
 UPRIGHT_YAW_STEP_DEG = 10.0
+UPRIGHT_STARTS = 1  # x max_starts: the best-screened yaws refined by coarse ICP
+UPRIGHT_TWINS = 3  # at most this many (near-)symmetric turns of the best upright pose are refined too
 UPRIGHT_FALLBACK = 0.6  # below this share explained by the best upright start, the base is not upright: search freely
 
 
@@ -528,11 +545,13 @@ def table_normal(depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics, T_w
                  min_inlier_share: float = 0.3) -> np.ndarray | None:
     """World unit normal of the plane the base stands on (pointing at the camera), fitted by RANSAC
     to the depth outside the base's mask; None when no plane holds min_inlier_share of those points."""
-    outside = ~mask & np.isfinite(depth) & (depth > 0)
+    step = max(1, int(np.sqrt(mask.size / 20000)))  # about 20000 pixels on a regular grid are plenty for a plane
+    grid = np.zeros_like(mask, dtype=bool)
+    grid[::step, ::step] = True
+    outside = grid & ~mask & np.isfinite(depth) & (depth > 0)
     pts = project_to_cloud(depth, outside, cam, T_world_camera)
-    if len(pts) < 500:
+    if len(pts) < 500 // step ** 2:
         return None
-    pts = pts[np.random.default_rng(0).choice(len(pts), min(len(pts), 20000), replace=False)]
     tol = 0.004 * float(np.median(np.linalg.norm(pts - T_world_camera[:3, 3], axis=1)))
     (a, b, c, d), inliers = _cloud(pts).segment_plane(tol, 3, 300)
     if len(inliers) < min_inlier_share * len(pts):
@@ -552,18 +571,53 @@ def upright_starts(base: "BaseObject", up: np.ndarray, target_pts: np.ndarray, c
     else:  # already along it, or exactly opposite (a half turn about x)
         R_up = np.eye(3) if up[2] > 0 else np.diag([1.0, -1.0, -1.0])
     centre = target_pts.mean(axis=0)
-    out = []
-    for yaw in np.arange(0.0, 360.0, UPRIGHT_YAW_STEP_DEG):
-        R = se3.axis_angle_matrix(up, np.radians(yaw)) @ R_up
-        T = place_source(base, centre, R)
-        seen = _facing(model_pts, model_nrm, T, cam_pos)
-        if len(seen):
-            T[:3, 3] += centre - se3.transform_points(T, seen).mean(axis=0)
-        out.append((0, T))
-    return out
+    poses = np.stack([place_source(base, centre, se3.axis_angle_matrix(up, np.radians(yaw)) @ R_up)
+                      for yaw in np.arange(0.0, 360.0, UPRIGHT_YAW_STEP_DEG)])
+    R, t = poses[:, :3, :3], poses[:, :3, 3]
+    eyes = np.einsum("nji,nj->ni", R, cam_pos - t)  # the camera in the base frame, per yaw
+    facing = (eyes @ model_nrm.T) > np.einsum("ij,ij->i", model_nrm, model_pts)[None]  # n . (eye - p) > 0
+    count = facing.sum(axis=1)
+    seen_mean = (facing.astype(float) @ model_pts) / np.maximum(count, 1)[:, None]  # base frame
+    shift = centre - (np.einsum("nij,nj->ni", R, seen_mean) + t)
+    poses[:, :3, 3] += np.where(count[:, None] > 0, shift, 0.0)  # the part facing the camera centred on the target
+    return [(0, T) for T in poses]
 
 
-def _try_prior(tp, fine, fine_pts, cam, T_world_camera, base, T_base_part, p: Params, voxel, prior, trace_iterations,
+def _same_pose(A: np.ndarray, B: np.ndarray, voxel: float) -> bool:
+    return bool(np.linalg.norm(A[:3, 3] - B[:3, 3]) < voxel and se3.rotation_angle_deg(A[:3, :3].T @ B[:3, :3]) < 2.0)
+
+
+def _keeps_up(T: np.ndarray, T_ref: np.ndarray, max_deg: float = 5.0) -> bool:
+    """T's base +z points where T_ref's does (a turn about the table's normal, not a tip-over)."""
+    return float(T[:3, 2] @ T_ref[:3, 2]) > np.cos(np.radians(max_deg))
+
+
+POLISH_ITERATIONS = 6
+
+
+def _polish(T_world_base: np.ndarray, base: BaseObject, T_world_camera, cam: CameraIntrinsics, target_full,
+            voxel: float, p: Params, trace: list | None) -> tuple[np.ndarray, np.ndarray]:
+    """The last refinement: the target, down-sampled finely, registered by point-to-plane ICP onto what
+    the camera sees of the model at T_world_base, using the model's exact normals. With RealSense-like
+    noise the target's own normals are noisy and bias the fit; the model's are not (scene-to-model).
+    Returns the refined T_world_base and the seen model points moved with it (world): the pose moves by
+    a fraction of a millimetre, so what the camera sees is not cast again."""
+    src_w, src_n = raycast_source(base, T_world_base, T_world_camera, cam)
+    if len(src_w) < MIN_POINTS:
+        return T_world_base, src_w
+    T_base_world = se3.inv(T_world_base)
+    seen = _cloud(se3.transform_points(T_base_world, src_w), src_n @ T_base_world[:3, :3].T)
+    v = voxel * p.polish_voxel_factor
+    steps: list | None = [] if trace is not None else None
+    T = icp(target_full.voxel_down_sample(v), seen.voxel_down_sample(v), T_base_world,
+            p.polish_threshold_factor * voxel, POLISH_ITERATIONS, steps)
+    if trace is not None:
+        trace.extend(se3.inv(S) for S in steps)
+    T_new = se3.inv(T)
+    return T_new, se3.transform_points(T_new @ T_base_world, src_w)
+
+
+def _try_prior(tp, target_full, fine, fine_pts, cam, T_world_camera, base, T_base_part, p: Params, voxel, prior, trace_iterations,
                timings, observation, **kw) -> RegistrationResult | None:
     """Early exit when the caller knows the base's orientation: put the CAD in that orientation where
     what the camera would see of it lands on the target's centre, refine with ICP from coarse to fine,
@@ -582,10 +636,14 @@ def _try_prior(tp, fine, fine_pts, cam, T_world_camera, base, T_base_part, p: Pa
     T = T0
     for factor in (8.0, 4.0, 2.0):
         T = icp(src, fine, T, factor * voxel, 10, trace)
-    src_w, _ = raycast_source(base, T, T_world_camera, cam)  # what the camera sees at the refined pose
-    src = _cloud(se3.transform_points(se3.inv(T), src_w)).voxel_down_sample(voxel)
-    T = icp(src, fine, T, thr, p.icp_max_iterations, trace)
-    cand, src_w = _score_pose(T, base, T_base_part, fine_pts, T_world_camera, cam, observation, voxel, thr)
+    if p.polish_voxel_factor > 0:
+        T, src_w = _polish(T, base, T_world_camera, cam, target_full, voxel, p, trace)
+    else:
+        src_w, _ = raycast_source(base, T, T_world_camera, cam)  # what the camera sees at the refined pose
+        src = _cloud(se3.transform_points(se3.inv(T), src_w)).voxel_down_sample(voxel)
+        T = icp(src, fine, T, thr, p.icp_max_iterations, trace)
+        src_w, _ = raycast_source(base, T, T_world_camera, cam)
+    cand, src_w = _score_seen(T, src_w, T_base_part, fine_pts, T_world_camera, cam, observation, voxel, thr)
     coverage = fitness_rmse(fine_pts, src_w, 2 * voxel)[0]
     timings["prior"] = time.perf_counter() - t
     if coverage < PRIOR_ACCEPT or cand.source_fitness < PRIOR_ACCEPT:
@@ -617,10 +675,10 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
     fine.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=p.normal_radius_factor * voxel, max_nn=30))
     fine.orient_normals_towards_camera_location(cam_pos)
     fine_pts = np.asarray(fine.points)
-    fine_tree = cKDTree(fine_pts)
+    fine_tree = quick_tree(fine_pts)
     if prior is not None and p.prior_fast_path:
         timings["features"] = time.perf_counter() - t
-        quick = _try_prior(tp, fine, fine_pts, cam, T_world_camera, base, T_base_part, p, voxel, prior,
+        quick = _try_prior(tp, target_full, fine, fine_pts, cam, T_world_camera, base, T_base_part, p, voxel, prior,
                            trace_iterations, timings, observation, **kw)
         if quick is not None:
             return quick
@@ -660,9 +718,15 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
     tree = base.model_tree(vg, p)
     model_pts, model_nrm = np.asarray(model.points), np.asarray(model.normals)
 
-    def near(T0) -> float:  # share of target points near the model's outer surface at T0
-        d = tree.query(se3.transform_points(se3.inv(T0), tp), distance_upper_bound=2 * vg)[0]
-        return float(np.mean(d < np.inf))
+    tp_few = tp[np.random.default_rng(p.seed).choice(len(tp), min(len(tp), 500), replace=False)]
+
+    def near(poses: list) -> np.ndarray:  # per pose: share of (500 of the) target points near the model's outer surface
+        if not poses:
+            return np.zeros(0)
+        T_base_world = np.linalg.inv(np.stack(poses))  # (n, 4, 4)
+        pts = np.einsum("nij,mj->nmi", T_base_world[:, :3, :3], tp_few) + T_base_world[:, None, :3, 3]
+        d = tree.query(pts.reshape(-1, 3), distance_upper_bound=2 * vg)[0].reshape(len(poses), -1)
+        return np.mean(d < np.inf, axis=1)
 
     def coarse_starts(T_g, extra: list, starts: list | None = None) -> list:
         """(explained share, symmetry index, start pose, pose after a few coarse ICP iterations) per start:
@@ -674,8 +738,10 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
             if p.use_symmetries:
                 starts += [(k, T_g @ S) for k, S in enumerate(base.symmetries) if k > 0]
                 starts += [(0, T_g @ S) for S in base.near_symmetries]
-        screened = sorted(starts + extra, key=lambda s_: -near(s_[1]))
-        n_try = p.max_starts if up is None else 2 * p.max_starts  # upright: many yaws look alike at first
+        all_starts = starts + extra
+        share = near([T for _, T in all_starts])
+        screened = [all_starts[i] for i in np.argsort(-share, kind="stable")]
+        n_try = p.max_starts if up is None else UPRIGHT_STARTS * p.max_starts  # upright: many yaws look alike at first
         out = []
         for k, T0 in screened[:n_try] + [s_ for s_ in screened[n_try:] if s_[0] == -1]:
             # cheap view of the model for screening: its outer surface, back faces culled (no occlusion)
@@ -688,8 +754,20 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
             out.append((f_quick, k, T0, T))
         return sorted(out, key=lambda x: -x[0])
 
+    twins: list = []  # the best upright pose turned by the base's (near-)symmetries about the table's normal
     if up is not None:  # upright on the table: every yaw about its normal, no RANSAC
         coarse = coarse_starts(None, [], upright_starts(base, up, tp, cam_pos, model_pts, model_nrm))
+        if coarse and coarse[0][0] >= UPRIGHT_FALLBACK and p.use_symmetries:
+            # a nearly symmetric base (a motor block whose connector alone breaks its 4-fold turn) gives
+            # near-equal yaws a quarter turn apart; the screening cannot tell them apart, the refined
+            # scores and the discrimination can: each twin of the best is refined, whatever it screens at
+            T_best = coarse[0][3]
+            sym = [(k, T_best @ S) for k, S in enumerate(base.symmetries) if k > 0]
+            sym += [(0, T_best @ S) for S in base.near_symmetries]
+            sym = [(k, T) for k, T in sym if _keeps_up(T, T_best)][:UPRIGHT_TWINS]  # the closest-fitting turns
+            twins = coarse_starts(None, [], sym) if sym else []
+            coarse = sorted(coarse + twins, key=lambda x: -x[0])
+            twins = [c for c in coarse if c[3] is T_best] + twins  # the best itself too: a twin may now screen higher
         if not coarse or coarse[0][0] < UPRIGHT_FALLBACK:  # nothing fits upright: it is not; search freely
             up = None
             T_g = global_registration(model, target, f_m, f_t(), vg, p)
@@ -714,14 +792,22 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
             keep.append(c)
     if p.use_symmetries:  # every symmetric twin of the best survives to be scored and reported
         keep += [c for c in coarse if c[1] > 0 and not any(c is q for q in keep)]
+        for c in twins:
+            if not any(np.linalg.norm(c[3][:3, 3] - q[3][:3, 3]) < 2 * voxel
+                       and se3.rotation_angle_deg(c[3][:3, :3].T @ q[3][:3, :3]) < 10.0 for q in keep):
+                keep.append(c)
     prior_best = [c for c in coarse if c[1] == -1][:1]  # the prior's best start is always refined and scored
     keep += [c for c in prior_best if not any(c is q for q in keep)]
     cands, traces = [], {}
+    refined: list[np.ndarray] = []  # poses after the coarse ICP already refined further
     for _, k, T0, T1 in keep:
         trace: list | None = [] if trace_iterations else None
         src_w, _ = raycast_source(base, T1, T_world_camera, cam)  # what the camera would see at this pose
         src = _cloud(se3.transform_points(se3.inv(T1), src_w)).voxel_down_sample(voxel)
         T = icp(src, fine, T1, vg, p.icp_max_iterations, trace)
+        if any(_same_pose(T, T_, voxel) for T_ in refined):
+            continue  # converged onto a pose already refined: nothing new to score
+        refined.append(T)
         T = icp(src, fine, T, thr, p.icp_max_iterations, trace)
         cand, src_w = _score_pose(T, base, T_base_part, fine_pts, T_world_camera, cam, observation, voxel, thr, k)
         cands.append(cand)
@@ -740,46 +826,120 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
     else:
         chosen = max(close, key=lambda i: cands[i].score)
     distinct = _distinct_parts([cands[i] for i in close], voxel)
-    c = cands[chosen]
     T0, trace, src_w = traces[chosen]
+    if p.polish_voxel_factor > 0:
+        t = time.perf_counter()
+        T, seen = _polish(cands[chosen].T_world_base, base, T_world_camera, cam, target_full, voxel, p, trace)
+        cands[chosen], src_w = _score_seen(T, seen, T_base_part, fine_pts, T_world_camera, cam, observation, voxel, thr,
+                                           cands[chosen].symmetry)
+        timings["icp"] += time.perf_counter() - t
+    c = cands[chosen]
     src_b = se3.transform_points(se3.inv(c.T_world_base), src_w)
     stages = _trace_stages(T_world_source, "global", T0, trace, c, src_b, fine_pts, thr)
     order = sorted(range(len(cands)), key=lambda i: -cands[i].score)
     coverage = fitness_rmse(fine_pts, src_w, 2 * voxel)[0]
-    return RegistrationResult(True, "", c.T_world_base, c.T_world_part, T_world_source, fine_pts, src_b, stages,
-                              c.fitness, c.inlier_rmse, timings, [cands[i] for i in order],
-                              bool(distinct > 1 and coverage >= CONFIDENT_COVERAGE), voxel=voxel,
-                              coverage=float(coverage), **kw)
+    result = RegistrationResult(True, "", c.T_world_base, c.T_world_part, T_world_source, fine_pts, src_b, stages,
+                                c.fitness, c.inlier_rmse, timings, [cands[i] for i in order],
+                                bool(distinct > 1 and coverage >= CONFIDENT_COVERAGE), voxel=voxel,
+                                coverage=float(coverage), **kw)
+    if up is not None and not result.confident:
+        # a table was seen, but the base does not stand on it as modelled (lying on its side, held in a
+        # hand, on a fixture): search freely too, keep the better, and count the time of both
+        free_timings: dict[str, float] = {}
+        free = _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, replace(p, upright=False), voxel,
+                                 prior, trace_iterations, free_timings, observation, **kw)
+        for k_, v_ in timings.items():
+            free_timings[k_] = free_timings.get(k_, 0.0) + v_
+        if free.coverage > result.coverage:
+            return free
+        result.timings = free_timings
+    return result
 
 
-DISCRIMINATE_MIN_POINTS = 15  # fewer distinguishing points than this: the placements are symmetric twins
+DISCRIMINATE_MIN_POINTS = 10  # fewer distinguishing points than this on both sides: the placements are symmetric twins
+MASK_MARGIN_PX = 2  # a model point this far outside the mask contradicts its pose (mask edges are a pixel or two off)
+
+
+def _evidence(points_world: np.ndarray, T_world_camera, cam: CameraIntrinsics, depth_obs: np.ndarray,
+              mask: np.ndarray, outside: np.ndarray, tol: float) -> tuple[int, int]:
+    """(confirmed, contradicted) among model points a candidate pose shows: confirmed where the mask
+    holds the observed surface at that depth; contradicted where the camera sees past the claimed
+    surface (farther depth, or background outside the mask by more than MASK_MARGIN_PX). Points
+    behind something nearer are neither: an occluder hides them."""
+    if len(points_world) == 0:
+        return 0, 0
+    pc = se3.transform_points(se3.inv(T_world_camera), points_world)
+    z = pc[:, 2]
+    u = np.round(cam.fx * pc[:, 0] / z + cam.cx).astype(int)
+    v = np.round(cam.fy * pc[:, 1] / z + cam.cy).astype(int)
+    inside = (z > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+    u, v, z = u[inside], v[inside], z[inside]
+    d = depth_obs[v, u]
+    valid = np.isfinite(d) & (d > 0)
+    m = mask[v, u]
+    confirmed = m & valid & (np.abs(d - z) < tol)
+    contradicted = valid & (d > z + tol) & (m | outside[v, u])
+    return int(confirmed.sum()), int(contradicted.sum())
+
+
+def _pixels(points_world: np.ndarray, T_world_camera, cam: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(v, u, z) of world points in the camera's image, kept to those inside it."""
+    pc = se3.transform_points(se3.inv(T_world_camera), points_world)
+    z = pc[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.round(cam.fx * pc[:, 0] / z + cam.cx)
+        v = np.round(cam.fy * pc[:, 1] / z + cam.cy)
+    ok = (z > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+    return v[ok].astype(int), u[ok].astype(int), z[ok]
 
 
 def _discriminate(close: list[int], cands: list[Candidate], traces: dict, fine_pts: np.ndarray, T_world_camera,
                   cam: CameraIntrinsics, depth_img, mask_img, voxel: float, thr: float) -> list[int]:
-    """Break near-ties between placements by their differences only (a nearly symmetric casing differs
-    in one boss). For each pair, the evidence for a placement is the number of the points it shows that
-    the other does not and that the depth confirms, plus the target points only it explains. A placement
-    that loses to another by a clear margin (at least DISCRIMINATE_MIN_POINTS and 1.5x) is dropped;
-    the rest (true symmetric twins among them) stay tied."""
+    """Break near-ties between placements by their differences only (a nearly symmetric motor block
+    differs in one connector). For each pair, the evidence for a placement is: the points it shows
+    that the other does not and that the depth confirms, the points the other shows where the camera
+    sees past them (background, or a farther surface), and the target points only it explains (the
+    other missing them by more than 2 voxels). A
+    placement that loses to another by a clear margin (at least DISCRIMINATE_MIN_POINTS and 1.5x) is
+    dropped; the rest (true symmetric twins among them) stay tied."""
+    import cv2
+
     tol = max(2 * voxel, 0.002)
+    k = 2 * MASK_MARGIN_PX + 1
+    outside = ~cv2.dilate(mask_img.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
     seen = {i: traces[i][2] for i in close}
-    trees = {i: cKDTree(seen[i]) if len(seen[i]) else None for i in close}
-    near_target = {i: (trees[i].query(fine_pts, distance_upper_bound=thr)[0] < np.inf) if trees[i] is not None
-                   else np.zeros(len(fine_pts), bool) for i in close}
+    trees = {i: quick_tree(seen[i]) if len(seen[i]) else None for i in close}
+    # target points each placement explains (within thr), and those it misses by more than tol: a point
+    # only one explains counts for it when the other misses it clearly (not by a sub-millimetre shift)
+    dist = {i: trees[i].query(fine_pts, distance_upper_bound=tol)[0] if trees[i] is not None
+            else np.full(len(fine_pts), np.inf) for i in close}
+    near_target = {i: dist[i] < thr for i in close}
+    far_target = {i: dist[i] == np.inf for i in close}
+    pix = {i: _pixels(seen[i], T_world_camera, cam) for i in close}  # (v, u, z) of each point seen
+    zbuf = {}
+    for i in close:
+        z = np.full((cam.height, cam.width), np.inf)
+        z[pix[i][0], pix[i][1]] = pix[i][2]
+        zbuf[i] = z
+
+    def only(a, b):  # what a shows that b does not: the pixel depths differ, and no point of b is near
+        v, u, z = pix[a]
+        differ = ~(np.abs(zbuf[b][v, u] - z) < 0.9 * tol)  # the same ray within 0.9 tol: certainly near
+        pts = seen[a][differ]
+        return pts[trees[b].query(pts, distance_upper_bound=tol)[0] == np.inf] if len(pts) else pts
+
     lost = set()
     for a_pos, a in enumerate(close):
         for b in close[a_pos + 1:]:
             if trees[a] is None or trees[b] is None:
                 continue
-            only_a = seen[a][trees[b].query(seen[a])[0] > tol]
-            only_b = seen[b][trees[a].query(seen[b])[0] > tol]
+            only_a, only_b = only(a, b), only(b, a)
             if len(only_a) < DISCRIMINATE_MIN_POINTS and len(only_b) < DISCRIMINATE_MIN_POINTS:
                 continue  # twins: nothing to tell them apart
-            ev_a = _visible_agreement(only_a, T_world_camera, cam, depth_img, mask_img, tol) * len(only_a)
-            ev_b = _visible_agreement(only_b, T_world_camera, cam, depth_img, mask_img, tol) * len(only_b)
-            ev_a += float(np.sum(near_target[a] & ~near_target[b]))
-            ev_b += float(np.sum(near_target[b] & ~near_target[a]))
+            conf_a, contra_a = _evidence(only_a, T_world_camera, cam, depth_img, mask_img, outside, tol)
+            conf_b, contra_b = _evidence(only_b, T_world_camera, cam, depth_img, mask_img, outside, tol)
+            ev_a = conf_a + contra_b + float(np.sum(near_target[a] & far_target[b]))
+            ev_b = conf_b + contra_a + float(np.sum(near_target[b] & far_target[a]))
             if ev_a >= 1.5 * ev_b and ev_a - ev_b >= DISCRIMINATE_MIN_POINTS:
                 lost.add(b)
             elif ev_b >= 1.5 * ev_a and ev_b - ev_a >= DISCRIMINATE_MIN_POINTS:

@@ -46,7 +46,7 @@ class Studio:
     """One studio on one viser server. `assembly` and `dataset` are optional paths opened at start."""
 
     def __init__(self, server, assembly: str | Path | None = None, dataset: str | Path | None = None,
-                 cache: inspection.ResultCache | None = None, upright: bool = False):
+                 cache: inspection.ResultCache | None = None, upright: bool = True):
         import viser  # noqa: F401  (imported here so the core never needs it)
 
         self.server = server
@@ -245,8 +245,9 @@ class Studio:
             self.i_crop_size = gui.add_vector3("Crop size (mm)", (150.0, 150.0, 100.0), min=(1.0, 1.0, 1.0), step=5.0)
             self.i_crop.on_update(self._guarded("Crop box")(lambda c: self._show_crop()))
             self.i_crop_size.on_update(self._guarded("Crop box")(lambda c: self._show_crop()))
-            self.i_upright = gui.add_checkbox("Upright", False,
-                                              hint="the base stands on the table as modelled: search its yaw only (preset default)")
+            self.i_upright = gui.add_checkbox("Upright", True,
+                                              hint="where a table is seen, search first the yaw of the base standing on it as "
+                                              "modelled, then freely if that fits poorly (preset default)")
             self.i_prior = gui.add_checkbox("Orientation prior", False, hint="take the CAD orientation as the base's (the paper's assumption)")
             for w in (self.i_preset, self.i_mask, self.i_prior, self.i_upright):
                 w.on_update(self._guarded("Estimator")(lambda c: self._on_frame_changed()))
@@ -782,7 +783,7 @@ class Studio:
         if mask == "depth" and self.i_crop.value and "/inspect/crop" in self.nodes:  # the box is part of the mask
             g = self.nodes["/inspect/crop"]
             mask = (mask, tuple(np.round(g.position, 4)), tuple(np.round(g.wxyz, 4)), tuple(self.i_crop_size.value))
-        preset = self.i_preset.value + (" upright" if self.i_upright.value and self.i_preset.value == "default" else "")
+        preset = self.i_preset.value + (" free" if not self.i_upright.value and self.i_preset.value == "default" else "")
         return self.cache.key(self.frames_path, step, im_id, preset, mask, self.i_prior.value)
 
     def _load_frame(self, step: int, im_id: int):
@@ -843,7 +844,7 @@ class Studio:
         frame = self.frame if (self.frame is not None and self.frame.im_id == im_id and self.frame.step in (step, None)) \
             else self._load_frame(step, im_id)
         asm = self._inspect_assembly()
-        extra = {"upright": True} if self.i_upright.value and self.i_preset.value == "default" else {}
+        extra = {"upright": bool(self.i_upright.value)} if self.i_preset.value == "default" else {}
         params = resolve_params(self.i_preset.value, asm.registration, **extra)
         mask = None
         if self.i_mask.value == "depth" and self.i_crop.value and "/inspect/crop" in self.nodes:
@@ -1027,7 +1028,7 @@ class Studio:
                 h.visible = h._apose_visible and self.current_view == "Inspect"
 
 
-def serve(assembly=None, dataset=None, host: str = "127.0.0.1", port: int = 8080, cache=None, upright: bool = False):
+def serve(assembly=None, dataset=None, host: str = "127.0.0.1", port: int = 8080, cache=None, upright: bool = True):
     """Start the studio in the background; returns (server, studio). `server.stop()` ends it."""
     import viser
 

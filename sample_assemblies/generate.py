@@ -280,9 +280,10 @@ parts:
   sun_gear:               # hidden inside the ring housing once that is on: occluded in later steps
     mesh: sun_gear.ply
     color: [0.90, 0.62, 0.0]
-  housing:
+  housing:                # square flange, four ribs, 36-tooth ring: a quarter turn maps it onto itself
     mesh: housing.ply
     color: [0.55, 0.58, 0.62]
+    symmetry: {axis: [0, 0, 1], order: 4}
   carrier:                # planet carrier with its three planets, one rigid part
     mesh: carrier.ply
     color: [0.34, 0.71, 0.91]

@@ -235,12 +235,14 @@ def test_crop_box_limits_depth_masks(studio, gearbox_dataset):
 
 
 def test_demo_estimates_are_found_in_the_cache(gearbox_dataset):
-    """`apose demo` caches its estimates under the key the studio builds for its (upright) settings."""
+    """`apose demo` caches its estimates under the key the studio builds for its default settings."""
     from apose_studio.inspection import ResultCache
 
-    server, st = serve(SAMPLES / "helical_gearbox" / "assembly.yaml", gearbox_dataset, port=free_port(), upright=True)
+    server, st = serve(SAMPLES / "helical_gearbox" / "assembly.yaml", gearbox_dataset, port=free_port())
     try:
         assert st.i_upright.value is True
-        assert st._cache_key(1, 0) == ResultCache.key(gearbox_dataset.resolve(), 1, 0, "default upright", "gt", False)
+        assert st._cache_key(1, 0) == ResultCache.key(gearbox_dataset.resolve(), 1, 0, "default", "gt", False)
+        st.i_upright.value = False  # a free search is another result
+        assert st._cache_key(1, 0) == ResultCache.key(gearbox_dataset.resolve(), 1, 0, "default free", "gt", False)
     finally:
         server.stop()
