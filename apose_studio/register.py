@@ -922,11 +922,8 @@ def _discriminate(close: list[int], cands: list[Candidate], traces: dict, fine_p
     other missing them by more than 2 voxels). A
     placement that loses to another by a clear margin (at least DISCRIMINATE_MIN_POINTS and 1.5x) is
     dropped; the rest (true symmetric twins among them) stay tied."""
-    import cv2
-
     tol = max(2 * voxel, 0.002)
-    k = 2 * MASK_MARGIN_PX + 1
-    outside = ~cv2.dilate(mask_img.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
+    outside = ~(mask_img | mask_edge(mask_img, MASK_MARGIN_PX))
     seen = {i: traces[i][2] for i in close}
     trees = {i: quick_tree(seen[i]) if len(seen[i]) else None for i in close}
     # target points each placement explains (within thr), and those it misses by more than tol: a point

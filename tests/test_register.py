@@ -226,15 +226,15 @@ def test_evidence_confirms_contradicts_or_ignores_by_hand():
     are contradicted (the camera sees past them); points 0.9 m away outside the mask too; points
     behind the surface (1.1 m) are hidden by it: neither; points outside the mask but within its
     2 px margin are neither (mask edges are a pixel or two off)."""
-    import cv2
-
-    from apose_studio.register import MASK_MARGIN_PX, _evidence
+    from apose_studio.register import MASK_MARGIN_PX, _evidence, mask_edge
 
     depth = np.full((CAM.height, CAM.width), 2.0)
     mask = np.zeros_like(depth, bool)
     mask[190:290, 270:370] = True
     depth[mask] = 1.0
-    outside = ~cv2.dilate(mask.astype(np.uint8), np.ones((2 * MASK_MARGIN_PX + 1,) * 2, np.uint8)).astype(bool)
+    edge = mask_edge(mask, MASK_MARGIN_PX)
+    assert edge[240, 271] and edge[240, 268] and not edge[240, 266] and not edge[240, 320]  # 2 px either side
+    outside = ~(mask | edge)
 
     def at(us, vs, z):  # world = camera frame here
         return CAM.backproject(np.asarray(us), np.asarray(vs), np.full(len(us), z))
