@@ -215,7 +215,8 @@ def cmd_estimate(args) -> int:
         doc.update(preset=params.preset, part=ctx.part.id, base=list(ctx.view.base), reason=r.reason,
                    stages=[{"name": st.name, "T_world_base": st.T_world_base.tolist(), "fitness": st.fitness,
                             "inlier_rmse": st.inlier_rmse} for st in r.stages],
-                   timings_s=r.timings, voxel_m=r.voxel)
+                   timings_s=r.timings, voxel_m=r.voxel,
+                   alternatives=[{"T_world_part": c.T_world_part.tolist(), "score": c.score} for c in r.alternatives])
         print(json.dumps(doc, indent=1))
         return 0 if r.ok else 1
     print(f"step {args.step}, frame {args.frame}: place {ctx.part.id} on [{', '.join(ctx.view.base)}]  (preset {params.preset})")
@@ -232,11 +233,14 @@ def cmd_estimate(args) -> int:
     if not r.confident:
         print(f"low confidence: only {r.coverage:.0%} of the target points lie near the model; this pose is likely wrong")
     if r.ambiguous:
-        print(f"ambiguous: {len(r.candidates)} placements fit about equally (the base object is nearly symmetric); "
-              "candidates by score:")
-        for c in r.candidates:
-            t = c.T_world_part[:3, 3]
-            print(f"  score {c.score:.3f}  xyz ({t[0]:+.4f}, {t[1]:+.4f}, {t[2]:+.4f})")
+        print(f"ambiguous: {len(r.alternatives) + 1} placements of {ctx.part.id} fit the data equally (the base object is "
+              "(nearly) symmetric, and what tells them apart is not in view); the estimate and the others:")
+        for label, T, score in [("estimate", r.T_world_part, None)] + [("other", c.T_world_part, c.score) for c in r.alternatives]:
+            t = T[:3, 3]
+            apart = np.linalg.norm(T[:3, 3] - r.T_world_part[:3, 3]) * 1000
+            turn = se3.rotation_angle_deg(T[:3, :3].T @ r.T_world_part[:3, :3])
+            print(f"  {label:<8} xyz ({t[0]:+.4f}, {t[1]:+.4f}, {t[2]:+.4f}) m" + ("" if score is None else
+                  f", score {score:.3f}, {apart:.1f} mm and {turn:.0f}° from the estimate"))
     print(f"against ground truth: ADI {sc.adi * 1000:.3f} mm, MSSD {sc.mssd * 1000:.3f} mm, "
           f"te {sc.te * 1000:.3f} mm, re {sc.re_deg:.3f}°")
     return 0

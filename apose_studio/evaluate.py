@@ -13,7 +13,7 @@ from .assembly import Assembly
 from .dataset import Dataset, Frame
 from .errors import AposeError
 from .mesh import PartModel, base_mesh, load_parts
-from .register import BaseObject, Params, RegistrationResult, estimate, prepare_base
+from .register import TIE_MARGIN, BaseObject, Params, RegistrationResult, estimate, prepare_base
 
 MASK_SOURCES = ("gt", "depth")  # or the path of a model from `apose train-seg`
 
@@ -110,7 +110,7 @@ def score_frame(frame: Frame, result: RegistrationResult, part: PartModel, mask:
     s.adi = metrics.adi(T, G, part.samples)
     s.mssd = metrics.mssd(T, G, part.samples, part.symmetries)
     best = result.candidates[0].score if result.candidates else 0.0
-    tied = [c for c in result.candidates if c.score >= best - 0.03] or result.candidates
+    tied = [c for c in result.candidates if c.score >= best - TIE_MARGIN] or result.candidates
     s.mssd_mod_base_sym = min([s.mssd] + [metrics.mssd(c.T_world_part, G, part.samples, part.symmetries) for c in tied])
     s.te, s.re_deg = metrics.te(T, G), metrics.re_deg(T, G)
     s.fitness, s.inlier_rmse = result.fitness, result.inlier_rmse

@@ -18,6 +18,7 @@ from .register import RegistrationResult
 RED = (220, 40, 40)
 BLUE = (40, 90, 230)
 GREEN = (30, 190, 60)
+MAGENTA = (220, 60, 220)  # other placements that fit as well as the estimate (an ambiguous result)
 
 # the 12 edges of a box whose corners are ordered as mesh.PartModel.box_corners() (x major, z minor)
 BOX_EDGES = np.array([[0, 1], [2, 3], [4, 5], [6, 7], [0, 2], [1, 3], [4, 6], [5, 7], [0, 4], [1, 5], [2, 6], [3, 7]])
@@ -121,7 +122,8 @@ def metrics_markdown(score, result: RegistrationResult | None) -> str:
         rows.append(("mask IoU", f"{score.mask_iou:.3f}"))
     flags = []
     if result.ambiguous:
-        flags.append(f"ambiguous: {len(result.candidates)} placements fit (symmetric base)")
+        flags.append(f"ambiguous: {len(result.alternatives) + 1} placements fit the data equally (a (nearly) symmetric "
+                     "base, and what tells them apart is not in view); the others are the magenta boxes")
     if not result.confident:
         flags.append("low confidence: the model explains too little of the target")
     table = "| metric | value |\n|---|---|\n" + "\n".join(f"| {k} | {v} |" for k, v in rows)

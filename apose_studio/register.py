@@ -29,6 +29,7 @@ from .errors import AposeError
 from .metrics import fitness_rmse, quick_tree
 
 MIN_POINTS = 30  # fewer target points than this cannot constrain 6 DoF with any confidence
+TIE_MARGIN = 0.03  # candidates scoring within this of the best explain the data equally well
 CONFIDENT_COVERAGE = 0.85  # below this share of target points within 2 voxels of the model, flag a poor fit
 SYMMETRY_TOLERANCE = 0.005  # a symmetry: mean surface distance after the turn < 0.5 % of the diameter
 NEAR_SYMMETRY_TOLERANCE = 0.03  # a near-symmetry (a starting pose worth trying): < 3 %
@@ -273,6 +274,7 @@ class RegistrationResult:
     timings: dict[str, float] = field(default_factory=dict)
     candidates: list[Candidate] = field(default_factory=list)
     ambiguous: bool = False
+    alternatives: list[Candidate] = field(default_factory=list)  # other placements of the part that fit as well
     preset: str = ""
     voxel: float = 0.0
     coverage: float = float("nan")  # share of target points within 2 voxels of what the model shows (loose fitness)
@@ -837,7 +839,7 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
         raise _Degenerate("the camera cannot see the base mesh at any candidate pose")
 
     best_score = max(c.score for c in cands)
-    close = [i for i, c in enumerate(cands) if c.score >= best_score - 0.03]
+    close = [i for i, c in enumerate(cands) if c.score >= best_score - TIE_MARGIN]
     if R_prior is None and len(close) > 1:  # look where the placements differ: the evidence there decides
         close = _discriminate(close, cands, traces, fine_pts, T_world_camera, cam, depth_img, mask_img, voxel, thr)
     # several placements explain the data equally: the prior (if any) decides, else the best score
@@ -845,7 +847,6 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
         chosen = min(close, key=lambda i: se3.rotation_angle_deg(cands[i].T_world_base[:3, :3].T @ R_prior))
     else:
         chosen = max(close, key=lambda i: cands[i].score)
-    distinct = _distinct_parts([cands[i] for i in close], voxel)
     T0, trace, src_w = traces[chosen]
     if p.polish_voxel_factor > 0:
         t = time.perf_counter()
@@ -858,10 +859,11 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
     stages = _trace_stages(T_world_source, "global", T0, trace, c, src_b, fine_pts, thr)
     order = sorted(range(len(cands)), key=lambda i: -cands[i].score)
     coverage = fitness_rmse(fine_pts, src_w, 2 * voxel)[0]
+    placements = _distinct_placements([c] + [cands[i] for i in close if i != chosen], voxel)
+    ambiguous = bool(len(placements) > 1 and coverage >= CONFIDENT_COVERAGE)
     result = RegistrationResult(True, "", c.T_world_base, c.T_world_part, T_world_source, fine_pts, src_b, stages,
-                                c.fitness, c.inlier_rmse, timings, [cands[i] for i in order],
-                                bool(distinct > 1 and coverage >= CONFIDENT_COVERAGE), voxel=voxel,
-                                coverage=float(coverage), **kw)
+                                c.fitness, c.inlier_rmse, timings, [cands[i] for i in order], ambiguous,
+                                placements[1:] if ambiguous else [], voxel=voxel, coverage=float(coverage), **kw)
     if up is not None and not result.confident:
         # a table was seen, but the base does not stand on it as modelled (lying on its side, held in a
         # hand, on a fixture): search freely too, keep the better, and count the time of both
@@ -965,11 +967,12 @@ def _discriminate(close: list[int], cands: list[Candidate], traces: dict, fine_p
     return kept or close
 
 
-def _distinct_parts(cands: list[Candidate], voxel: float) -> int:
-    """How many clearly different part placements (more than 3 voxels apart) the candidates give."""
-    reps: list[np.ndarray] = []
+def _distinct_placements(cands: list[Candidate], voxel: float) -> list[Candidate]:
+    """The clearly different part placements (more than 3 voxels or 5 degrees apart) among the
+    candidates, the first one first."""
+    reps: list[Candidate] = []
     for c in cands:
-        if all(np.linalg.norm(c.T_world_part[:3, 3] - r[:3, 3]) > 3 * voxel
-               or se3.rotation_angle_deg(c.T_world_part[:3, :3].T @ r[:3, :3]) > 5 for r in reps):
-            reps.append(c.T_world_part)
-    return len(reps)
+        if all(np.linalg.norm(c.T_world_part[:3, 3] - r.T_world_part[:3, 3]) > 3 * voxel
+               or se3.rotation_angle_deg(c.T_world_part[:3, :3].T @ r.T_world_part[:3, :3]) > 5 for r in reps):
+            reps.append(c)
+    return reps

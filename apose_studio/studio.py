@@ -966,10 +966,15 @@ class Studio:
             if self.result is not None and self.result.ok:
                 boxes.append((self.result.T_world_part, inspection.GREEN))
                 segs.append(("/inspect/box_est", inspection.box_segments(corners, self.result.T_world_part), inspection.GREEN))
+                alts = [c.T_world_part for c in self.result.alternatives]
+                boxes += [(T, inspection.MAGENTA) for T in alts]
+                if alts:
+                    segs.append(("/inspect/box_alt", np.concatenate([inspection.box_segments(corners, T) for T in alts]),
+                                 inspection.MAGENTA))
             image = inspection.draw_boxes(fr.rgb, cam, Tc, corners, boxes)
         else:
             image = fr.rgb
-        for name in ("/inspect/box_gt", "/inspect/box_est", "/inspect/target", "/inspect/source"):
+        for name in ("/inspect/box_gt", "/inspect/box_est", "/inspect/box_alt", "/inspect/target", "/inspect/source"):
             if name in self.nodes:
                 self.nodes.pop(name).remove()
         for name, seg, colour in segs:
@@ -1020,7 +1025,8 @@ class Studio:
 
     def _apply_layers(self) -> None:
         which = {"/inspect/scene": "scene cloud", "/inspect/target": "target (red)", "/inspect/source": "source (blue)",
-                 "/inspect/box_gt": "boxes", "/inspect/box_est": "boxes", "/inspect/camera": "camera"}
+                 "/inspect/box_gt": "boxes", "/inspect/box_est": "boxes", "/inspect/box_alt": "boxes",
+                 "/inspect/camera": "camera"}
         for name, layer in which.items():
             if name in self.nodes:
                 h = self.nodes[name]

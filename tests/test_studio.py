@@ -158,6 +158,33 @@ def test_inspect_estimate_replay_and_cache(studio, gearbox_dataset):
     assert st.result is not None and st.frame.im_id == 1  # cached: no estimation needed
 
 
+def test_an_ambiguous_result_shows_the_other_placements_in_magenta(studio, gearbox_dataset):
+    """When several placements fit equally, the others are drawn as magenta boxes (3D and on the RGB)
+    and the metrics say so; a clear result draws none."""
+    from dataclasses import replace
+
+    from apose_studio import se3
+    from apose_studio.register import Candidate
+
+    st = studio(SAMPLES / "helical_gearbox" / "assembly.yaml", gearbox_dataset)
+    st.i_prior.value = True
+    act(st, st._run_estimation, False)
+    assert "/inspect/box_alt" not in st.nodes and "magenta" not in st.i_metrics.content
+
+    def magenta(img):
+        return ((img[..., 0] > 200) & (img[..., 1] < 90) & (img[..., 2] > 200)).any()
+    assert not magenta(st.i_image.image)
+    T_other = st.result.T_world_part @ se3.make_T(se3.axis_angle_matrix([0, 0, 1.0], np.pi), [0.02, 0, 0])
+    other = Candidate(st.result.T_world_base, T_other, 0.99, 0.99, 0.001, 0.99, 1)
+    st.result = replace(st.result, ambiguous=True, alternatives=[other])
+    st._draw_frame()
+    assert "/inspect/box_alt" in st.nodes and "2 placements fit" in st.i_metrics.content
+    np.testing.assert_allclose(st.nodes["/inspect/box_alt"].points.reshape(-1, 3).mean(axis=0),
+                               se3.transform_points(T_other, st._inspect_models()[st._inspect_assembly().steps[0].part]
+                                                    .box_corners()).mean(axis=0), atol=1e-5)
+    assert magenta(st.i_image.image)
+
+
 @pytest.fixture
 def capture(gearbox_dataset, tmp_path) -> Path:
     """A real-capture folder (rgb.png, depth.png in mm, camera.json) made from a rendered frame."""
