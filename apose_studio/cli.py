@@ -235,12 +235,13 @@ def cmd_estimate(args) -> int:
     if r.ambiguous:
         print(f"ambiguous: {len(r.alternatives) + 1} placements of {ctx.part.id} fit the data equally (the base object is "
               "(nearly) symmetric, and what tells them apart is not in view); the estimate and the others:")
-        for label, T, score in [("estimate", r.T_world_part, None)] + [("other", c.T_world_part, c.score) for c in r.alternatives]:
-            t = T[:3, 3]
-            apart = np.linalg.norm(T[:3, 3] - r.T_world_part[:3, 3]) * 1000
-            turn = se3.rotation_angle_deg(T[:3, :3].T @ r.T_world_part[:3, :3])
-            print(f"  {label:<8} xyz ({t[0]:+.4f}, {t[1]:+.4f}, {t[2]:+.4f}) m" + ("" if score is None else
-                  f", score {score:.3f}, {apart:.1f} mm and {turn:.0f}° from the estimate"))
+        def xyz(T) -> str:
+            return "xyz ({:+.4f}, {:+.4f}, {:+.4f}) m".format(*T[:3, 3])
+        print(f"  estimate {xyz(r.T_world_part)}")
+        for c in r.alternatives:
+            apart = np.linalg.norm(c.T_world_part[:3, 3] - r.T_world_part[:3, 3]) * 1000
+            turn = se3.rotation_angle_deg(c.T_world_part[:3, :3].T @ r.T_world_part[:3, :3])
+            print(f"  other    {xyz(c.T_world_part)}, score {c.score:.3f}, {apart:.1f} mm and {turn:.0f}° from the estimate")
     print(f"against ground truth: ADI {sc.adi * 1000:.3f} mm, MSSD {sc.mssd * 1000:.3f} mm, "
           f"te {sc.te * 1000:.3f} mm, re {sc.re_deg:.3f}°")
     return 0

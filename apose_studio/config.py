@@ -34,6 +34,12 @@ class CameraIntrinsics:
         z = np.asarray(z, dtype=np.float64)
         return np.stack([(u - self.cx) * z / self.fx, (v - self.cy) * z / self.fy, z], axis=-1)
 
+    def project(self, points) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel coordinates (u, v) of camera-frame points (N, 3); NaN for points not in front (z <= 0)."""
+        p = np.asarray(points, dtype=np.float64)
+        z = np.where(p[:, 2] > 1e-9, p[:, 2], np.nan)
+        return self.fx * p[:, 0] / z + self.cx, self.fy * p[:, 1] / z + self.cy
+
     @staticmethod
     def from_K(K: np.ndarray, width: int, height: int) -> "CameraIntrinsics":
         return CameraIntrinsics(int(width), int(height), float(K[0, 0]), float(K[1, 1]),

@@ -34,9 +34,8 @@ def project_points(points_world: np.ndarray, T_world_camera: np.ndarray, cam: Ca
     """Pixel coordinates (N, 2) and a mask of the points in front of the camera."""
     pc = se3.transform_points(se3.inv(T_world_camera), points_world)
     front = pc[:, 2] > 1e-6
-    z = np.where(front, pc[:, 2], 1.0)
-    uv = np.stack([cam.fx * pc[:, 0] / z + cam.cx, cam.fy * pc[:, 1] / z + cam.cy], axis=1)
-    return uv, front
+    u, v = cam.project(np.where(front[:, None], pc, [0.0, 0.0, 1.0]))
+    return np.stack([u, v], axis=1), front
 
 
 def draw_boxes(rgb: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray, corners_part: np.ndarray,

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -257,6 +258,7 @@ class Candidate:
     inlier_rmse: float
     score: float
     symmetry: int  # index into BaseObject.symmetries it came from (0 = as registered)
+    coverage: float = float("nan")  # share of target points within 2 voxels of what the model shows (loose fitness)
 
 
 @dataclass
@@ -428,7 +430,8 @@ def estimate(depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics, T_world
             return _estimate_paper(target_pts, cam, T_world_camera, base, T_base_part, params, voxel,
                                    prior_T_world_base, trace_iterations, timings, **inner)
         return _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, params, voxel,
-                                 prior_T_world_base, trace_iterations, timings, (mask, depth, mask_edge(mask)), **inner)
+                                 prior_T_world_base, trace_iterations, timings, Observation(mask, depth, mask_edge(mask)),
+                                 **inner)
     except _Degenerate as e:
         return failed(str(e), target_cloud=target_pts, timings=timings, **kw)
 
@@ -489,6 +492,25 @@ def _facing(points: np.ndarray, normals: np.ndarray, T_world_base: np.ndarray, c
     return points[np.einsum("ij,ij->i", normals, eye - points) > 0]
 
 
+class Observation(NamedTuple):
+    """What a frame shows of the base: its mask, the depth (metres) and the mask's outline (`mask_edge`)."""
+
+    mask: np.ndarray
+    depth: np.ndarray
+    edge: np.ndarray
+
+
+def _pixels(points_world: np.ndarray, T_world_camera, cam: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(v, u, z, inside) of world points: integer pixel, depth along the camera's axis, and whether the
+    pixel is in the image in front of the camera (v and u are 0 where not)."""
+    pc = se3.transform_points(se3.inv(T_world_camera), points_world)
+    u, v = cam.project(pc)
+    with np.errstate(invalid="ignore"):
+        u, v = np.round(u), np.round(v)
+        inside = (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+    return np.where(inside, v, 0).astype(int), np.where(inside, u, 0).astype(int), pc[:, 2], inside
+
+
 def _visible_agreement(points_world: np.ndarray, T_world_camera: np.ndarray, cam: CameraIntrinsics,
                        depth_obs: np.ndarray, mask: np.ndarray, tol: float, edge: np.ndarray | None = None) -> float:
     """Share of model points seen at a candidate pose that the observation confirms (inside the mask,
@@ -497,24 +519,19 @@ def _visible_agreement(points_world: np.ndarray, T_world_camera: np.ndarray, cam
     observation can neither confirm nor deny them."""
     if len(points_world) == 0:
         return 0.0
-    pc = se3.transform_points(se3.inv(T_world_camera), points_world)
-    z = pc[:, 2]
-    u = np.round(cam.fx * pc[:, 0] / z + cam.cx).astype(int)
-    v = np.round(cam.fy * pc[:, 1] / z + cam.cy).astype(int)
-    inside = (z > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-    ok = np.zeros(len(z), bool)
-    ui, vi = u[inside], v[inside]
-    d = depth_obs[vi, ui]
-    ok[inside] = mask[vi, ui] & (np.abs(d - z[inside]) < tol)
+    v, u, z, inside = _pixels(points_world, T_world_camera, cam)
+    d = depth_obs[v, u]
+    ok = inside & mask[v, u] & (np.abs(d - z) < tol)
     if edge is None:
         return float(ok.mean())
-    unknown = np.zeros(len(z), bool)
-    unknown[inside] = edge[vi, ui] | ~(np.isfinite(d) & (d > 0))
-    known = ~unknown
+    known = ~(inside & (edge[v, u] | ~(np.isfinite(d) & (d > 0))))
     return float(ok[known].mean()) if known.any() else 0.0
 
 
-def mask_edge(mask: np.ndarray, px: int = 2) -> np.ndarray:
+MASK_MARGIN_PX = 2  # mask edges are a pixel or two off: a model point further outside contradicts its pose
+
+
+def mask_edge(mask: np.ndarray, px: int = MASK_MARGIN_PX) -> np.ndarray:
     """Pixels within `px` of the mask's outline, on either side (where depth and mask are mixed)."""
     import cv2
 
@@ -533,11 +550,17 @@ def _score_pose(T_world_base, base, T_base_part, fine_pts, T_world_camera, cam, 
 
 def _score_seen(T_world_base, src_w, T_base_part, fine_pts, T_world_camera, cam, observation, voxel, thr,
                 symmetry: int = 0) -> tuple[Candidate, np.ndarray]:
-    """_score_pose with what the camera sees of the base at T_world_base given (world points)."""
-    fit, rmse = fitness_rmse(fine_pts, src_w, thr)
-    mask_img, depth_img = observation[:2]
-    agree = _visible_agreement(src_w, T_world_camera, cam, depth_img, mask_img, max(2 * voxel, 0.002))
-    return Candidate(T_world_base, T_world_base @ T_base_part, fit, agree, rmse, 0.5 * (fit + agree), symmetry), src_w
+    """_score_pose with what the camera sees of the base at T_world_base given (world points). One
+    query gives the fitness and RMSE (within thr) and the coverage (within 2 voxels)."""
+    loose = max(thr, 2 * voxel)
+    d = quick_tree(src_w).query(fine_pts, distance_upper_bound=loose)[0] if len(src_w) and len(fine_pts) \
+        else np.full(len(fine_pts), np.inf)
+    inl = d < thr
+    fit, rmse = (float(inl.mean()), float(np.sqrt(np.mean(d[inl] ** 2)))) if inl.any() else (0.0, 0.0)
+    coverage = float(np.mean(d < loose)) if len(d) else 0.0
+    agree = _visible_agreement(src_w, T_world_camera, cam, observation.depth, observation.mask, max(2 * voxel, 0.002))
+    return Candidate(T_world_base, T_world_base @ T_base_part, fit, agree, rmse, 0.5 * (fit + agree), symmetry,
+                     coverage), src_w
 
 
 def _trace_stages(T_world_source, start_name: str, T_start, trace, cand: Candidate, src_b, fine_pts, thr) -> list[Stage]:
@@ -601,8 +624,9 @@ def upright_starts(base: "BaseObject", up: np.ndarray, target_pts: np.ndarray, c
     return [(0, T) for T in poses]
 
 
-def _same_pose(A: np.ndarray, B: np.ndarray, voxel: float) -> bool:
-    return bool(np.linalg.norm(A[:3, 3] - B[:3, 3]) < voxel and se3.rotation_angle_deg(A[:3, :3].T @ B[:3, :3]) < 2.0)
+def _poses_within(A: np.ndarray, B: np.ndarray, metres: float, degrees: float) -> bool:
+    """A and B are less than `metres` and `degrees` apart."""
+    return bool(np.linalg.norm(A[:3, 3] - B[:3, 3]) < metres and se3.rotation_angle_deg(A[:3, :3].T @ B[:3, :3]) < degrees)
 
 
 def _keeps_up(T: np.ndarray, T_ref: np.ndarray, max_deg: float = 5.0) -> bool:
@@ -662,18 +686,17 @@ def _try_prior(tp, target_full, fine, fine_pts, cam, T_world_camera, base, T_bas
         T = icp(src, fine, T, thr, p.icp_max_iterations, trace)
         src_w, _ = raycast_source(base, T, T_world_camera, cam)
     cand, src_w = _score_seen(T, src_w, T_base_part, fine_pts, T_world_camera, cam, observation, voxel, thr)
-    coverage = fitness_rmse(fine_pts, src_w, 2 * voxel)[0]
     # the depth's word on the model, leaving out what it cannot judge: the mask's outline (mixed
     # pixels) and dropouts; with RealSense-like noise those alone cost 5-7 % of the agreement
-    mask_img, depth_img, edge = observation
-    confirmed = _visible_agreement(src_w, T_world_camera, cam, depth_img, mask_img, max(2 * voxel, 0.002), edge)
+    confirmed = _visible_agreement(src_w, T_world_camera, cam, observation.depth, observation.mask,
+                                   max(2 * voxel, 0.002), observation.edge)
     timings["prior"] = time.perf_counter() - t
-    if coverage < PRIOR_ACCEPT or confirmed < PRIOR_ACCEPT:
+    if cand.coverage < PRIOR_ACCEPT or confirmed < PRIOR_ACCEPT:
         return None
     src_b = se3.transform_points(se3.inv(T), src_w)
     stages = _trace_stages(T_world_source, "prior", T0, trace, cand, src_b, fine_pts, thr)
     return RegistrationResult(True, "", T, cand.T_world_part, T_world_source, fine_pts, src_b, stages, cand.fitness,
-                              cand.inlier_rmse, timings, [cand], False, voxel=voxel, coverage=float(coverage), **kw)
+                              cand.inlier_rmse, timings, [cand], False, voxel=voxel, coverage=cand.coverage, **kw)
 
 
 def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Params, voxel, prior, trace_iterations,
@@ -722,8 +745,7 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
     T_world_source = place_source(base, centre, R_prior)  # TFORM, kept as the replay's starting point
     up = None
     if p.upright and prior is None:
-        mask_img, depth_img = observation[:2]
-        up = table_normal(depth_img, mask_img, cam, T_world_camera)
+        up = table_normal(observation.depth, observation.mask, cam, T_world_camera)
     if up is None:
         T_g = global_registration(model, target, f_m, f_t(), vg, p)  # T_world_base directly (model is in base frame)
 
@@ -783,13 +805,14 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
             # a nearly symmetric base (a motor block whose connector alone breaks its 4-fold turn) gives
             # near-equal yaws a quarter turn apart; the screening cannot tell them apart, the refined
             # scores and the discrimination can: each twin of the best is refined, whatever it screens at
-            T_best = coarse[0][3]
+            best = coarse[0]
+            T_best = best[3]
             sym = [(k, T_best @ S) for k, S in enumerate(base.symmetries) if k > 0]
             sym += [(0, T_best @ S) for S in base.near_symmetries]
             sym = [(k, T) for k, T in sym if _keeps_up(T, T_best)][:UPRIGHT_TWINS]  # the closest-fitting turns
             twins = coarse_starts(None, [], sym) if sym else []
             coarse = sorted(coarse + twins, key=lambda x: -x[0])
-            twins = [c for c in coarse if c[3] is T_best] + twins  # the best itself too: a twin may now screen higher
+            twins = [best] + twins  # the best itself too: a twin may now screen higher and crowd it out
         if not coarse or coarse[0][0] < UPRIGHT_FALLBACK:  # nothing fits upright: it is not; search freely
             up = None
             T_g = global_registration(model, target, f_m, f_t(), vg, p)
@@ -803,37 +826,37 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
     timings["global"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    mask_img, depth_img = observation[:2]
     thr = p.icp_threshold_factor * voxel
+    def new(c) -> bool:  # a coarse pose not (nearly) one already kept
+        return not any(_poses_within(c[3], q[3], 2 * voxel, 10.0) for q in keep)
+
     keep = []  # the best few *distinct* poses: several starts often converge to one (possibly wrong) pose
     for c in coarse:
         if len(keep) == 3 or c[0] < coarse[0][0] - 0.1:
             break
-        if not any(np.linalg.norm(c[3][:3, 3] - q[3][:3, 3]) < 2 * voxel
-                   and se3.rotation_angle_deg(c[3][:3, :3].T @ q[3][:3, :3]) < 10.0 for q in keep):
+        if new(c):
             keep.append(c)
     if p.use_symmetries:  # every symmetric twin of the best survives to be scored and reported
         keep += [c for c in coarse if c[1] > 0 and not any(c is q for q in keep)]
-        for c in twins:
-            if not any(np.linalg.norm(c[3][:3, 3] - q[3][:3, 3]) < 2 * voxel
-                       and se3.rotation_angle_deg(c[3][:3, :3].T @ q[3][:3, :3]) < 10.0 for q in keep):
+        for c in twins:  # one at a time: a twin that lands on one kept just before is not new
+            if new(c):
                 keep.append(c)
     prior_best = [c for c in coarse if c[1] == -1][:1]  # the prior's best start is always refined and scored
     keep += [c for c in prior_best if not any(c is q for q in keep)]
-    cands, traces = [], {}
+    cands, traces = [], []  # traces[i]: (start pose, ICP trace, seen world points) of cands[i]
     refined: list[np.ndarray] = []  # poses after the coarse ICP already refined further
     for _, k, T0, T1 in keep:
         trace: list | None = [] if trace_iterations else None
         src_w, _ = raycast_source(base, T1, T_world_camera, cam)  # what the camera would see at this pose
         src = _cloud(se3.transform_points(se3.inv(T1), src_w)).voxel_down_sample(voxel)
         T = icp(src, fine, T1, vg, p.icp_max_iterations, trace)
-        if any(_same_pose(T, T_, voxel) for T_ in refined):
+        if any(_poses_within(T, T_, voxel, 2.0) for T_ in refined):
             continue  # converged onto a pose already refined: nothing new to score
         refined.append(T)
         T = icp(src, fine, T, thr, p.icp_max_iterations, trace)
         cand, src_w = _score_pose(T, base, T_base_part, fine_pts, T_world_camera, cam, observation, voxel, thr, k)
         cands.append(cand)
-        traces[len(cands) - 1] = (T0, trace, src_w)
+        traces.append((T0, trace, src_w))
     timings["icp"] = time.perf_counter() - t
     if not cands:
         raise _Degenerate("the camera cannot see the base mesh at any candidate pose")
@@ -841,7 +864,7 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
     best_score = max(c.score for c in cands)
     close = [i for i, c in enumerate(cands) if c.score >= best_score - TIE_MARGIN]
     if R_prior is None and len(close) > 1:  # look where the placements differ: the evidence there decides
-        close = _discriminate(close, cands, traces, fine_pts, T_world_camera, cam, depth_img, mask_img, voxel, thr)
+        close = _discriminate(close, cands, traces, fine_pts, T_world_camera, cam, observation, voxel, thr)
     # several placements explain the data equally: the prior (if any) decides, else the best score
     if R_prior is not None and len(close) > 1:
         chosen = min(close, key=lambda i: se3.rotation_angle_deg(cands[i].T_world_base[:3, :3].T @ R_prior))
@@ -858,7 +881,7 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
     src_b = se3.transform_points(se3.inv(c.T_world_base), src_w)
     stages = _trace_stages(T_world_source, "global", T0, trace, c, src_b, fine_pts, thr)
     order = sorted(range(len(cands)), key=lambda i: -cands[i].score)
-    coverage = fitness_rmse(fine_pts, src_w, 2 * voxel)[0]
+    coverage = c.coverage
     placements = _distinct_placements([c] + [cands[i] for i in close if i != chosen], voxel)
     ambiguous = bool(len(placements) > 1 and coverage >= CONFIDENT_COVERAGE)
     result = RegistrationResult(True, "", c.T_world_base, c.T_world_part, T_world_source, fine_pts, src_b, stages,
@@ -879,7 +902,6 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
 
 
 DISCRIMINATE_MIN_POINTS = 10  # fewer distinguishing points than this on both sides: the placements are symmetric twins
-MASK_MARGIN_PX = 2  # a model point this far outside the mask contradicts its pose (mask edges are a pixel or two off)
 
 
 def _evidence(points_world: np.ndarray, T_world_camera, cam: CameraIntrinsics, depth_obs: np.ndarray,
@@ -890,12 +912,8 @@ def _evidence(points_world: np.ndarray, T_world_camera, cam: CameraIntrinsics, d
     behind something nearer are neither: an occluder hides them."""
     if len(points_world) == 0:
         return 0, 0
-    pc = se3.transform_points(se3.inv(T_world_camera), points_world)
-    z = pc[:, 2]
-    u = np.round(cam.fx * pc[:, 0] / z + cam.cx).astype(int)
-    v = np.round(cam.fy * pc[:, 1] / z + cam.cy).astype(int)
-    inside = (z > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-    u, v, z = u[inside], v[inside], z[inside]
+    v, u, z, inside = _pixels(points_world, T_world_camera, cam)
+    v, u, z = v[inside], u[inside], z[inside]
     d = depth_obs[v, u]
     valid = np.isfinite(d) & (d > 0)
     m = mask[v, u]
@@ -904,19 +922,8 @@ def _evidence(points_world: np.ndarray, T_world_camera, cam: CameraIntrinsics, d
     return int(confirmed.sum()), int(contradicted.sum())
 
 
-def _pixels(points_world: np.ndarray, T_world_camera, cam: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(v, u, z) of world points in the camera's image, kept to those inside it."""
-    pc = se3.transform_points(se3.inv(T_world_camera), points_world)
-    z = pc[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = np.round(cam.fx * pc[:, 0] / z + cam.cx)
-        v = np.round(cam.fy * pc[:, 1] / z + cam.cy)
-    ok = (z > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-    return v[ok].astype(int), u[ok].astype(int), z[ok]
-
-
-def _discriminate(close: list[int], cands: list[Candidate], traces: dict, fine_pts: np.ndarray, T_world_camera,
-                  cam: CameraIntrinsics, depth_img, mask_img, voxel: float, thr: float) -> list[int]:
+def _discriminate(close: list[int], cands: list[Candidate], traces: list, fine_pts: np.ndarray, T_world_camera,
+                  cam: CameraIntrinsics, observation: Observation, voxel: float, thr: float) -> list[int]:
     """Break near-ties between placements by their differences only (a nearly symmetric motor block
     differs in one connector). For each pair, the evidence for a placement is: the points it shows
     that the other does not and that the depth confirms, the points the other shows where the camera
@@ -925,7 +932,8 @@ def _discriminate(close: list[int], cands: list[Candidate], traces: dict, fine_p
     placement that loses to another by a clear margin (at least DISCRIMINATE_MIN_POINTS and 1.5x) is
     dropped; the rest (true symmetric twins among them) stay tied."""
     tol = max(2 * voxel, 0.002)
-    outside = ~(mask_img | mask_edge(mask_img, MASK_MARGIN_PX))
+    mask_img, depth_img = observation.mask, observation.depth
+    outside = ~(mask_img | observation.edge)
     seen = {i: traces[i][2] for i in close}
     trees = {i: quick_tree(seen[i]) if len(seen[i]) else None for i in close}
     # target points each placement explains (within thr), and those it misses by more than tol: a point
@@ -934,16 +942,16 @@ def _discriminate(close: list[int], cands: list[Candidate], traces: dict, fine_p
             else np.full(len(fine_pts), np.inf) for i in close}
     near_target = {i: dist[i] < thr for i in close}
     far_target = {i: dist[i] == np.inf for i in close}
-    pix = {i: _pixels(seen[i], T_world_camera, cam) for i in close}  # (v, u, z) of each point seen
+    pix = {i: _pixels(seen[i], T_world_camera, cam) for i in close}  # (v, u, z, inside) of each point seen
     zbuf = {}
     for i in close:
-        z = np.full((cam.height, cam.width), np.inf)
-        z[pix[i][0], pix[i][1]] = pix[i][2]
-        zbuf[i] = z
+        v, u, z, inside = pix[i]
+        zbuf[i] = np.full((cam.height, cam.width), np.inf)
+        zbuf[i][v[inside], u[inside]] = z[inside]
 
     def only(a, b):  # what a shows that b does not: the pixel depths differ, and no point of b is near
-        v, u, z = pix[a]
-        differ = ~(np.abs(zbuf[b][v, u] - z) < 0.9 * tol)  # the same ray within 0.9 tol: certainly near
+        v, u, z, inside = pix[a]
+        differ = ~(inside & (np.abs(zbuf[b][v, u] - z) < 0.9 * tol))  # the same ray within 0.9 tol: certainly near
         pts = seen[a][differ]
         return pts[trees[b].query(pts, distance_upper_bound=tol)[0] == np.inf] if len(pts) else pts
 
@@ -972,7 +980,6 @@ def _distinct_placements(cands: list[Candidate], voxel: float) -> list[Candidate
     candidates, the first one first."""
     reps: list[Candidate] = []
     for c in cands:
-        if all(np.linalg.norm(c.T_world_part[:3, 3] - r.T_world_part[:3, 3]) > 3 * voxel
-               or se3.rotation_angle_deg(c.T_world_part[:3, :3].T @ r.T_world_part[:3, :3]) > 5 for r in reps):
+        if not any(_poses_within(c.T_world_part, r.T_world_part, 3 * voxel, 5.0) for r in reps):
             reps.append(c)
     return reps

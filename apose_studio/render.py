@@ -255,8 +255,7 @@ def _pixel_window(corners: np.ndarray, T_cam_obj: np.ndarray, cam: CameraIntrins
     p = se3.transform_points(T_cam_obj, corners)
     if np.any(p[:, 2] <= 1e-6):
         return 0, cam.height, 0, cam.width
-    u = cam.fx * p[:, 0] / p[:, 2] + cam.cx
-    v = cam.fy * p[:, 1] / p[:, 2] + cam.cy
+    u, v = cam.project(p)
     u0, u1 = int(max(0, np.floor(u.min()))), int(min(cam.width, np.ceil(u.max()) + 1))
     v0, v1 = int(max(0, np.floor(v.min()))), int(min(cam.height, np.ceil(v.max()) + 1))
     return (v0, v1, u0, u1) if v1 > v0 and u1 > u0 else None

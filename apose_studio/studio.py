@@ -46,7 +46,7 @@ class Studio:
     """One studio on one viser server. `assembly` and `dataset` are optional paths opened at start."""
 
     def __init__(self, server, assembly: str | Path | None = None, dataset: str | Path | None = None,
-                 cache: inspection.ResultCache | None = None, upright: bool = True):
+                 cache: inspection.ResultCache | None = None):
         import viser  # noqa: F401  (imported here so the core never needs it)
 
         self.server = server
@@ -75,7 +75,6 @@ class Studio:
         self._preview: dict = {}
         self._part_models: dict = {}  # id(assembly) -> its PartModels, for the Inspect tab
         self._build_gui()
-        self.i_upright.value = upright
         server.on_client_connect(self._on_connect)
         self._limit_uploads()
         if assembly is not None:
@@ -1034,13 +1033,13 @@ class Studio:
                 h.visible = h._apose_visible and self.current_view == "Inspect"
 
 
-def serve(assembly=None, dataset=None, host: str = "127.0.0.1", port: int = 8080, cache=None, upright: bool = True):
+def serve(assembly=None, dataset=None, host: str = "127.0.0.1", port: int = 8080, cache=None):
     """Start the studio in the background; returns (server, studio). `server.stop()` ends it."""
     import viser
 
     server = viser.ViserServer(host=host, port=port, label="apose studio", verbose=False)
     try:
-        studio = Studio(server, assembly, dataset, cache, upright)
+        studio = Studio(server, assembly, dataset, cache)
     except BaseException:
         server.stop()
         raise

@@ -115,14 +115,20 @@ def print_goals(summary) -> None:
                 r = sp["time_s"]["median"] / so["time_s"]["median"]
                 ratios.append(r)
                 fast += r >= 20
-                adi_ok += (so["adi"]["mean"] or np.inf) <= (sp["adi"]["mean"] or np.inf)
-                mssd_ok += (so["mssd"]["mean"] or np.inf) <= (sp["mssd"]["mean"] or np.inf)
+                adi_ok += _mean(so, "adi") <= _mean(sp, "adi")
+                mssd_ok += _mean(so, "mssd") <= _mean(sp, "mssd")
                 rec_ok += so["recall_mssd"] >= goal
                 rec_sym_ok += so["recall_mssd_mod_base_sym"] >= goal
                 recall.append(so["recall_mssd"])
         print(f"  {label:<5}: {n} rows; speed-up {min(ratios):.1f}-{max(ratios):.1f}x, median {np.median(ratios):.1f}x, "
               f"{fast}/{n} rows >= 20x; ADI no worse in {adi_ok}/{n}, MSSD no worse in {mssd_ok}/{n}; "
               f"recall mean {np.mean(recall):.2f}, goal met in {rec_ok}/{n} rows ({rec_sym_ok}/{n} modulo the base's symmetries)")
+
+
+def _mean(step: dict, key: str) -> float:
+    """The step's mean of a metric; infinite when no frame returned a pose."""
+    v = step[key]["mean"]
+    return float("inf") if v is None else v
 
 
 def _get(st, *keys, scale=1.0, fmt="{:.3f}") -> str:
