@@ -126,16 +126,17 @@ class BaseObject:
             self._features[key] = (model, _normals_fpfh(model, voxel, p, None))
         return self._features[key]
 
-    def model_tree(self, voxel: float, p: "Params") -> cKDTree:
-        key = ("tree", round(voxel, 9))
+    def near_grid(self, voxel: float, p: "Params") -> "NearGrid":
+        """Where the model's outer surface is within 2 voxels, as a grid (the screening's lookup)."""
+        key = ("near", round(voxel, 9))
         if key not in self._features:
-            self._features[key] = cKDTree(np.asarray(self.model_features(voxel, p)[0].points))
+            self._features[key] = NearGrid.around(np.asarray(self.model_features(voxel, p)[0].points), 2 * voxel)
         return self._features[key]
 
     def warm_up(self, p: "Params") -> None:
         """Compute the per-step pieces (model features, flips) now, so per-frame timings are per frame."""
         if p.global_source == "model":
-            self.model_tree(p.voxel(self.diameter) * p.global_voxel_factor, p)
+            self.near_grid(p.voxel(self.diameter) * p.global_voxel_factor, p)
             self.flips()
 
     def flips(self) -> np.ndarray:
@@ -174,6 +175,37 @@ class BaseObject:
                 nrm.append(n_)
             self._features["outer"] = (np.concatenate(pts), np.concatenate(nrm))
         return self._features["outer"]
+
+
+@dataclass(frozen=True)
+class NearGrid:
+    """Points within `radius` of a cloud, as a boolean voxel grid: a lookup per query point instead of a
+    k-d tree search (screening 36 poses x 500 points takes a fraction of a millisecond). Cells are
+    radius/4 wide and hold whether their centre is within radius of the cloud, so a query is right to
+    within a cell's half diagonal (0.22 x radius)."""
+
+    origin: np.ndarray  # (3,) corner of cell (0, 0, 0)
+    cell: float
+    occupied: np.ndarray  # (nx, ny, nz) bool
+
+    @classmethod
+    def around(cls, points: np.ndarray, radius: float) -> "NearGrid":
+        cell = radius / 4
+        origin = points.min(axis=0) - radius - cell
+        shape = np.ceil((points.max(axis=0) + radius + cell - origin) / cell).astype(int)
+        idx = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), axis=-1).reshape(-1, 3)
+        d = quick_tree(points).query(origin + (idx + 0.5) * cell, distance_upper_bound=radius)[0]
+        return cls(origin, cell, (d < radius).reshape(shape))
+
+    def contains(self, points: np.ndarray) -> np.ndarray:
+        """(N,) whether each point lies within the radius of the cloud."""
+        idx = np.floor((points - self.origin) / self.cell).astype(np.int64)
+        shape = np.array(self.occupied.shape)
+        inside = np.all((idx >= 0) & (idx < shape), axis=-1)
+        out = np.zeros(len(points), bool)
+        i = idx[inside]
+        out[inside] = self.occupied[i[:, 0], i[:, 1], i[:, 2]]
+        return out
 
 
 def prepare_base(mesh, n_samples: int = 20000, seed: int = 0, detect: bool = True) -> BaseObject:
@@ -228,12 +260,29 @@ def detect_symmetries(points: np.ndarray, diameter: float, tolerance: float = 0.
                 R = se3.axis_angle_matrix(a, 2 * np.pi * k / n)
                 T = se3.make_T(R, c - R @ c)
                 res = max(0.0, float(np.mean(tree.query(se3.transform_points(T, pts))[0])) - baseline)
+                if res < SYMMETRY_TOLERANCE * diameter:  # a symmetry proper: exact enough to derive twin poses by
+                    T = _refine_self_map(T, pts, tree, 0.02 * diameter)
+                    res = max(0.0, float(np.mean(tree.query(se3.transform_points(T, pts))[0])) - baseline)
                 if all(se3.rotation_angle_deg(T[:3, :3].T @ F[:3, :3]) > 1.0 for F, _ in found):
                     found.append((T, res))
     found.sort(key=lambda x: x[1])
     found = found[: max_count - 1]
     syms = np.stack([np.eye(4)] + [T for T, _ in found])
     return syms, np.array([0.0] + [r for _, r in found])
+
+
+def _refine_self_map(T: np.ndarray, pts: np.ndarray, tree: cKDTree, max_dist: float, iterations: int = 10) -> np.ndarray:
+    """A turn that nearly maps a surface onto itself, refined by point-to-point ICP of the surface
+    onto itself. The turn is taken about an axis through the samples' centroid, which an off-centre
+    feature (a connector) pulls off the true axis: the twin pose would then sit a millimetre off."""
+    for _ in range(iterations):
+        moved = se3.transform_points(T, pts)
+        d, i = tree.query(moved, distance_upper_bound=max_dist)
+        ok = np.isfinite(d)
+        if ok.sum() < 10:
+            break
+        T = se3.fit_rigid(moved[ok], tree.data[i[ok]]) @ T
+    return T
 
 
 # ----------------------------------------------------------------------------------- results
@@ -541,11 +590,13 @@ def mask_edge(mask: np.ndarray, px: int = MASK_MARGIN_PX) -> np.ndarray:
 
 
 def _score_pose(T_world_base, base, T_base_part, fine_pts, T_world_camera, cam, observation, voxel, thr,
-                symmetry: int = 0) -> tuple[Candidate, np.ndarray]:
-    """A candidate at a refined pose: what the camera would see of the base there (world points, also
-    returned), the target share it explains, and the share of it the depth confirms."""
-    src_w, _ = raycast_source(base, T_world_base, T_world_camera, cam)
-    return _score_seen(T_world_base, src_w, T_base_part, fine_pts, T_world_camera, cam, observation, voxel, thr, symmetry)
+                symmetry: int = 0) -> tuple[Candidate, np.ndarray, np.ndarray]:
+    """A candidate at a refined pose: what the camera would see of the base there (world points and
+    normals, also returned), the target share it explains, and the share of it the depth confirms."""
+    src_w, src_n = raycast_source(base, T_world_base, T_world_camera, cam)
+    cand, src_w = _score_seen(T_world_base, src_w, T_base_part, fine_pts, T_world_camera, cam, observation, voxel, thr,
+                              symmetry)
+    return cand, src_w, src_n
 
 
 def _score_seen(T_world_base, src_w, T_base_part, fine_pts, T_world_camera, cam, observation, voxel, thr,
@@ -577,8 +628,9 @@ def _trace_stages(T_world_source, start_name: str, T_start, trace, cand: Candida
 
 PRIOR_ACCEPT = 0.95  # the prior's pose is kept without a global search when both shares reach this
 UPRIGHT_YAW_STEP_DEG = 10.0
-UPRIGHT_STARTS = 1  # x max_starts: the best-screened yaws refined by coarse ICP
+UPRIGHT_STARTS = 4  # the best-screened yaws refined by coarse ICP (4 and 6 reach the same recall; 4 is 7 % faster)
 UPRIGHT_TWINS = 3  # at most this many (near-)symmetric turns of the best upright pose are refined too
+TWIN_MARGIN = 0.1  # a twin refined only when its coarse fit is within this of the best start's
 UPRIGHT_FALLBACK = 0.6  # below this share explained by the best upright start, the base is not upright: search freely
 
 
@@ -586,13 +638,12 @@ def table_normal(depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics, T_w
                  min_inlier_share: float = 0.3) -> np.ndarray | None:
     """World unit normal of the plane the base stands on (pointing at the camera), fitted by RANSAC
     to the depth outside the base's mask; None when no plane holds min_inlier_share of those points."""
-    step = max(1, int(np.sqrt(mask.size / 20000)))  # about 20000 pixels on a regular grid are plenty for a plane
-    grid = np.zeros_like(mask, dtype=bool)
-    grid[::step, ::step] = True
-    outside = grid & ~mask & np.isfinite(depth) & (depth > 0)
-    pts = project_to_cloud(depth, outside, cam, T_world_camera)
-    if len(pts) < 500 // step ** 2:
+    step = max(1, int(np.sqrt(mask.size / 5000)))  # about 5000 pixels on a regular grid are plenty for a plane
+    d = depth[::step, ::step]
+    vs, us = np.nonzero(~mask[::step, ::step] & np.isfinite(d) & (d > 0))
+    if len(vs) < 200:
         return None
+    pts = se3.transform_points(T_world_camera, cam.backproject(us * step, vs * step, d[vs, us]))
     tol = 0.004 * float(np.median(np.linalg.norm(pts - T_world_camera[:3, 3], axis=1)))
     (a, b, c, d), inliers = _cloud(pts).segment_plane(tol, 3, 300)
     if len(inliers) < min_inlier_share * len(pts):
@@ -612,8 +663,10 @@ def upright_starts(base: "BaseObject", up: np.ndarray, target_pts: np.ndarray, c
     else:  # already along it, or exactly opposite (a half turn about x)
         R_up = np.eye(3) if up[2] > 0 else np.diag([1.0, -1.0, -1.0])
     centre = target_pts.mean(axis=0)
-    poses = np.stack([place_source(base, centre, se3.axis_angle_matrix(up, np.radians(yaw)) @ R_up)
-                      for yaw in np.arange(0.0, 360.0, UPRIGHT_YAW_STEP_DEG)])
+    R = se3.axis_angle_matrix(up, np.radians(np.arange(0.0, 360.0, UPRIGHT_YAW_STEP_DEG))) @ R_up  # (n, 3, 3)
+    t = centre - R @ base.centre  # place_source for each yaw
+    poses = np.tile(np.eye(4), (len(R), 1, 1))
+    poses[:, :3, :3], poses[:, :3, 3] = R, t
     R, t = poses[:, :3, :3], poses[:, :3, 3]
     eyes = np.einsum("nji,nj->ni", R, cam_pos - t)  # the camera in the base frame, per yaw
     facing = (eyes @ model_nrm.T) > np.einsum("ij,ij->i", model_nrm, model_pts)[None]  # n . (eye - p) > 0
@@ -638,13 +691,14 @@ POLISH_ITERATIONS = 6
 
 
 def _polish(T_world_base: np.ndarray, base: BaseObject, T_world_camera, cam: CameraIntrinsics, target_full,
-            voxel: float, p: Params, trace: list | None) -> tuple[np.ndarray, np.ndarray]:
+            voxel: float, p: Params, trace: list | None, seen_world: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The last refinement: the target, down-sampled finely, registered by point-to-plane ICP onto what
     the camera sees of the model at T_world_base, using the model's exact normals. With RealSense-like
     noise the target's own normals are noisy and bias the fit; the model's are not (scene-to-model).
     Returns the refined T_world_base and the seen model points moved with it (world): the pose moves by
-    a fraction of a millimetre, so what the camera sees is not cast again."""
-    src_w, src_n = raycast_source(base, T_world_base, T_world_camera, cam)
+    a fraction of a millimetre, so what the camera sees is not cast again. `seen_world`: (points, normals)
+    the camera sees at T_world_base, when already cast."""
+    src_w, src_n = seen_world if seen_world is not None else raycast_source(base, T_world_base, T_world_camera, cam)
     if len(src_w) < MIN_POINTS:
         return T_world_base, src_w
     T_base_world = se3.inv(T_world_base)
@@ -759,7 +813,7 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
             T_p = global_registration(src, target, _normals_fpfh(src, vg, p, cam_pos), f_t(), vg, p)
             prior_starts.append((-1, T_p @ T_world_source))
         prior_starts.append((-1, T_world_source))
-    tree = base.model_tree(vg, p)
+    grid = base.near_grid(vg, p)
     model_pts, model_nrm = np.asarray(model.points), np.asarray(model.normals)
 
     tp_few = tp[np.random.default_rng(p.seed).choice(len(tp), min(len(tp), 500), replace=False)]
@@ -768,9 +822,8 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
         if not poses:
             return np.zeros(0)
         T_base_world = np.linalg.inv(np.stack(poses))  # (n, 4, 4)
-        pts = np.einsum("nij,mj->nmi", T_base_world[:, :3, :3], tp_few) + T_base_world[:, None, :3, 3]
-        d = tree.query(pts.reshape(-1, 3), distance_upper_bound=2 * vg)[0].reshape(len(poses), -1)
-        return np.mean(d < np.inf, axis=1)
+        pts = tp_few @ T_base_world[:, :3, :3].transpose(0, 2, 1) + T_base_world[:, None, :3, 3]
+        return grid.contains(pts.reshape(-1, 3)).reshape(len(poses), -1).mean(axis=1)
 
     def coarse_starts(T_g, extra: list, starts: list | None = None) -> list:
         """(explained share, symmetry index, start pose, pose after a few coarse ICP iterations) per start:
@@ -779,13 +832,12 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
         by coarse ICP."""
         if starts is None:
             starts = [(0, T_g @ F) for F in base.flips()] if p.use_flips else [(0, T_g)]
-            if p.use_symmetries:
-                starts += [(k, T_g @ S) for k, S in enumerate(base.symmetries) if k > 0]
+            if p.use_symmetries:  # (the symmetries proper need no start: their twins are derived at the end)
                 starts += [(0, T_g @ S) for S in base.near_symmetries]
         all_starts = starts + extra
         share = near([T for _, T in all_starts])
         screened = [all_starts[i] for i in np.argsort(-share, kind="stable")]
-        n_try = p.max_starts if up is None else UPRIGHT_STARTS * p.max_starts  # upright: many yaws look alike at first
+        n_try = p.max_starts if up is None else UPRIGHT_STARTS
         out = []
         for k, T0 in screened[:n_try] + [s_ for s_ in screened[n_try:] if s_[0] == -1]:
             # cheap view of the model for screening: its outer surface, back faces culled (no occlusion)
@@ -807,8 +859,7 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
             # scores and the discrimination can: each twin of the best is refined, whatever it screens at
             best = coarse[0]
             T_best = best[3]
-            sym = [(k, T_best @ S) for k, S in enumerate(base.symmetries) if k > 0]
-            sym += [(0, T_best @ S) for S in base.near_symmetries]
+            sym = [(0, T_best @ S) for S in base.near_symmetries]  # (the symmetries' twins are derived at the end)
             sym = [(k, T) for k, T in sym if _keeps_up(T, T_best)][:UPRIGHT_TWINS]  # the closest-fitting turns
             twins = coarse_starts(None, [], sym) if sym else []
             coarse = sorted(coarse + twins, key=lambda x: -x[0])
@@ -836,14 +887,13 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
             break
         if new(c):
             keep.append(c)
-    if p.use_symmetries:  # every symmetric twin of the best survives to be scored and reported
-        keep += [c for c in coarse if c[1] > 0 and not any(c is q for q in keep)]
+    if p.use_symmetries:
         for c in twins:  # one at a time: a twin that lands on one kept just before is not new
-            if new(c):
+            if new(c) and c[0] >= coarse[0][0] - TWIN_MARGIN:
                 keep.append(c)
     prior_best = [c for c in coarse if c[1] == -1][:1]  # the prior's best start is always refined and scored
     keep += [c for c in prior_best if not any(c is q for q in keep)]
-    cands, traces = [], []  # traces[i]: (start pose, ICP trace, seen world points) of cands[i]
+    cands, traces = [], []  # traces[i]: (start pose, ICP trace, seen world points, their normals) of cands[i]
     refined: list[np.ndarray] = []  # poses after the coarse ICP already refined further
     for _, k, T0, T1 in keep:
         trace: list | None = [] if trace_iterations else None
@@ -854,9 +904,11 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
             continue  # converged onto a pose already refined: nothing new to score
         refined.append(T)
         T = icp(src, fine, T, thr, p.icp_max_iterations, trace)
-        cand, src_w = _score_pose(T, base, T_base_part, fine_pts, T_world_camera, cam, observation, voxel, thr, k)
+        cand, src_w, src_n = _score_pose(T, base, T_base_part, fine_pts, T_world_camera, cam, observation, voxel, thr, k)
         cands.append(cand)
-        traces.append((T0, trace, src_w))
+        traces.append((T0, trace, src_w, src_n))
+    if p.use_symmetries and cands:
+        _add_symmetric_twins(cands, traces, base, T_base_part, fine_pts, T_world_camera, cam, observation, voxel, thr)
     timings["icp"] = time.perf_counter() - t
     if not cands:
         raise _Degenerate("the camera cannot see the base mesh at any candidate pose")
@@ -870,10 +922,11 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
         chosen = min(close, key=lambda i: se3.rotation_angle_deg(cands[i].T_world_base[:3, :3].T @ R_prior))
     else:
         chosen = max(close, key=lambda i: cands[i].score)
-    T0, trace, src_w = traces[chosen]
+    T0, trace, src_w, src_n = traces[chosen]
     if p.polish_voxel_factor > 0:
         t = time.perf_counter()
-        T, seen = _polish(cands[chosen].T_world_base, base, T_world_camera, cam, target_full, voxel, p, trace)
+        T, seen = _polish(cands[chosen].T_world_base, base, T_world_camera, cam, target_full, voxel, p, trace,
+                          (src_w, src_n))
         cands[chosen], src_w = _score_seen(T, seen, T_base_part, fine_pts, T_world_camera, cam, observation, voxel, thr,
                                            cands[chosen].symmetry)
         timings["icp"] += time.perf_counter() - t
@@ -899,6 +952,24 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
             return free
         result.timings = free_timings
     return result
+
+
+def _add_symmetric_twins(cands: list[Candidate], traces: list, base: BaseObject, T_base_part, fine_pts, T_world_camera,
+                         cam, observation, voxel, thr) -> None:
+    """The best candidate turned by each of the base's symmetries, scored (and traced) as it: a turn
+    that maps the base onto itself maps the refined pose onto the pose ICP would refine the turned
+    start to, so the twin needs no registration of its own. Each is scored on what the camera would
+    see of it, so that a symmetry that is not quite one (a connector) can still be told apart."""
+    b = max(range(len(cands)), key=lambda i: cands[i].score)
+    T_b = cands[b].T_world_base
+    T0_b, trace_b = traces[b][:2]
+    for k, S in enumerate(base.symmetries):
+        T = T_b @ S
+        if k == 0 or any(_poses_within(T, c.T_world_base, voxel, 2.0) for c in cands):
+            continue
+        cand, src_w, src_n = _score_pose(T, base, T_base_part, fine_pts, T_world_camera, cam, observation, voxel, thr, k)
+        cands.append(cand)
+        traces.append((T0_b @ S, None if trace_b is None else [T_ @ S for T_ in trace_b], src_w, src_n))
 
 
 DISCRIMINATE_MIN_POINTS = 10  # fewer distinguishing points than this on both sides: the placements are symmetric twins
@@ -943,15 +1014,21 @@ def _discriminate(close: list[int], cands: list[Candidate], traces: list, fine_p
     near_target = {i: dist[i] < thr for i in close}
     far_target = {i: dist[i] == np.inf for i in close}
     pix = {i: _pixels(seen[i], T_world_camera, cam) for i in close}  # (v, u, z, inside) of each point seen
+    # a depth buffer per placement, over the image window all of them cover
+    vin = np.concatenate([pix[i][0][pix[i][3]] for i in close] + [np.zeros(1, int)])
+    uin = np.concatenate([pix[i][1][pix[i][3]] for i in close] + [np.zeros(1, int)])
+    v0, u0 = (int(vin.min()), int(uin.min())) if len(vin) > 1 else (0, 0)
+    shape = (int(vin.max()) - v0 + 1, int(uin.max()) - u0 + 1)
     zbuf = {}
     for i in close:
         v, u, z, inside = pix[i]
-        zbuf[i] = np.full((cam.height, cam.width), np.inf)
-        zbuf[i][v[inside], u[inside]] = z[inside]
+        zbuf[i] = np.full(shape, np.inf)
+        zbuf[i][v[inside] - v0, u[inside] - u0] = z[inside]
 
     def only(a, b):  # what a shows that b does not: the pixel depths differ, and no point of b is near
         v, u, z, inside = pix[a]
-        differ = ~(inside & (np.abs(zbuf[b][v, u] - z) < 0.9 * tol))  # the same ray within 0.9 tol: certainly near
+        zb = zbuf[b][np.clip(v - v0, 0, shape[0] - 1), np.clip(u - u0, 0, shape[1] - 1)]
+        differ = ~(inside & (np.abs(zb - z) < 0.9 * tol))  # the same ray within 0.9 tol: certainly near
         pts = seen[a][differ]
         return pts[trees[b].query(pts, distance_upper_bound=tol)[0] == np.inf] if len(pts) else pts
 

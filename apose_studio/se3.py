@@ -54,10 +54,22 @@ def rotation_angle_deg(R: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
-def axis_angle_matrix(axis, angle_rad: float) -> np.ndarray:
-    """3x3 rotation about a (not necessarily unit) axis."""
+def axis_angle_matrix(axis, angle_rad) -> np.ndarray:
+    """3x3 rotation about a (not necessarily unit) axis; (n, 3, 3) for an array of n angles (Rodrigues)."""
     a = np.asarray(axis, dtype=float)
-    return Rotation.from_rotvec(a / np.linalg.norm(a) * angle_rad).as_matrix()
+    a = a / np.linalg.norm(a)
+    th = np.asarray(angle_rad, dtype=float)[..., None, None]
+    K = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+    return np.cos(th) * np.eye(3) + np.sin(th) * K + (1.0 - np.cos(th)) * np.outer(a, a)
+
+
+def fit_rigid(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """The T (4x4) minimising sum ||T src_i - dst_i||^2 over matched point pairs (Kabsch)."""
+    cs, cd = src.mean(axis=0), dst.mean(axis=0)
+    U, _, Vt = np.linalg.svd((src - cs).T @ (dst - cd))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    return make_T(R, cd - R @ cs)
 
 
 def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
