@@ -181,8 +181,11 @@ class BaseObject:
 class NearGrid:
     """Points within `radius` of a cloud, as a boolean voxel grid: a lookup per query point instead of a
     k-d tree search (screening 36 poses x 500 points takes a fraction of a millisecond). Cells are
-    radius/4 wide and hold whether their centre is within radius of the cloud, so a query is right to
-    within a cell's half diagonal (0.22 x radius)."""
+    radius/4 wide (wider where that would take more than MAX_CELLS: a fine voxel set by hand on a big
+    part, where a cell counts as near when any point of it may be) and hold whether their centre is
+    within radius of the cloud, so a query is right to within a cell's half diagonal (0.22 x radius)."""
+
+    MAX_CELLS = 2_000_000
 
     origin: np.ndarray  # (3,) corner of cell (0, 0, 0)
     cell: float
@@ -190,12 +193,14 @@ class NearGrid:
 
     @classmethod
     def around(cls, points: np.ndarray, radius: float) -> "NearGrid":
-        cell = radius / 4
+        extent = points.max(axis=0) - points.min(axis=0) + 2 * radius
+        cell = max(radius / 4, float(np.prod(extent) / cls.MAX_CELLS) ** (1 / 3))
         origin = points.min(axis=0) - radius - cell
         shape = np.ceil((points.max(axis=0) + radius + cell - origin) / cell).astype(int)
         idx = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), axis=-1).reshape(-1, 3)
-        d = quick_tree(points).query(origin + (idx + 0.5) * cell, distance_upper_bound=radius)[0]
-        return cls(origin, cell, (d < radius).reshape(shape))
+        reach = radius + (cell - radius / 4) * np.sqrt(3) / 2  # wider cells err on the near side
+        d = quick_tree(points).query(origin + (idx + 0.5) * cell, distance_upper_bound=reach)[0]
+        return cls(origin, cell, (d < reach).reshape(shape))
 
     def contains(self, points: np.ndarray) -> np.ndarray:
         """(N,) whether each point lies within the radius of the cloud."""
@@ -667,7 +672,6 @@ def upright_starts(base: "BaseObject", up: np.ndarray, target_pts: np.ndarray, c
     t = centre - R @ base.centre  # place_source for each yaw
     poses = np.tile(np.eye(4), (len(R), 1, 1))
     poses[:, :3, :3], poses[:, :3, 3] = R, t
-    R, t = poses[:, :3, :3], poses[:, :3, 3]
     eyes = np.einsum("nji,nj->ni", R, cam_pos - t)  # the camera in the base frame, per yaw
     facing = (eyes @ model_nrm.T) > np.einsum("ij,ij->i", model_nrm, model_pts)[None]  # n . (eye - p) > 0
     count = facing.sum(axis=1)
@@ -897,14 +901,21 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
     refined: list[np.ndarray] = []  # poses after the coarse ICP already refined further
     for _, k, T0, T1 in keep:
         trace: list | None = [] if trace_iterations else None
-        src_w, _ = raycast_source(base, T1, T_world_camera, cam)  # what the camera would see at this pose
+        src_w, src_n = raycast_source(base, T1, T_world_camera, cam)  # what the camera would see at this pose
         src = _cloud(se3.transform_points(se3.inv(T1), src_w)).voxel_down_sample(voxel)
         T = icp(src, fine, T1, vg, p.icp_max_iterations, trace)
         if any(_poses_within(T, T_, voxel, 2.0) for T_ in refined):
             continue  # converged onto a pose already refined: nothing new to score
         refined.append(T)
-        T = icp(src, fine, T, thr, p.icp_max_iterations, trace)
-        cand, src_w, src_n = _score_pose(T, base, T_base_part, fine_pts, T_world_camera, cam, observation, voxel, thr, k)
+        if p.polish_voxel_factor <= 0:  # else no ICP at thr: only the chosen pose needs the last tenth of a
+            # millimetre, and the polish gives it that (on the yaw renders 10 % faster, 0.004 mm more mean ADI)
+            T = icp(src, fine, T, thr, p.icp_max_iterations, trace)
+        # scored on what the camera sees at the coarse pose, moved with the refinement (a few millimetres at
+        # most after the coarse ICP): one ray-cast per candidate instead of two
+        D = T @ se3.inv(T1)
+        cand, src_w = _score_seen(T, se3.transform_points(D, src_w), T_base_part, fine_pts, T_world_camera, cam,
+                                  observation, voxel, thr, k)
+        src_n = src_n @ D[:3, :3].T
         cands.append(cand)
         traces.append((T0, trace, src_w, src_n))
     if p.use_symmetries and cands:
@@ -963,9 +974,9 @@ def _add_symmetric_twins(cands: list[Candidate], traces: list, base: BaseObject,
     b = max(range(len(cands)), key=lambda i: cands[i].score)
     T_b = cands[b].T_world_base
     T0_b, trace_b = traces[b][:2]
-    for k, S in enumerate(base.symmetries):
+    for k, S in enumerate(base.symmetries[1:], start=1):
         T = T_b @ S
-        if k == 0 or any(_poses_within(T, c.T_world_base, voxel, 2.0) for c in cands):
+        if any(_poses_within(T, c.T_world_base, voxel, 2.0) for c in cands):
             continue
         cand, src_w, src_n = _score_pose(T, base, T_base_part, fine_pts, T_world_camera, cam, observation, voxel, thr, k)
         cands.append(cand)

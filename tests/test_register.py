@@ -410,3 +410,12 @@ def test_a_symmetry_turns_about_the_true_axis_despite_an_off_centre_feature():
     half = [S for S in syms[1:] if abs(S[2, 2] - 1) < 1e-3]  # the half turn about z
     assert len(half) == 1 and se3.rotation_angle_deg(half[0][:3, :3]) == pytest.approx(180, abs=0.5)
     assert np.linalg.norm(half[0][:3, 3]) < 1.5e-4  # maps the block's centre (the origin) onto itself (0.36 mm unrefined)
+
+
+def test_near_grid_stays_small_for_a_fine_radius_on_a_big_part():
+    from apose_studio.register import NearGrid
+
+    cloud = trimesh.sample.sample_surface_even(trimesh.creation.box((1.0, 0.8, 0.5)), 20000, seed=1)[0]
+    grid = NearGrid.around(cloud, 0.002)  # radius/4 cells would be 400 x 320 x 200 = 26 M
+    assert grid.occupied.size <= 1.1 * NearGrid.MAX_CELLS
+    assert grid.contains(cloud[:100]).all() and not grid.contains(np.array([[0.0, 0.0, 0.0]])).any()
