@@ -910,8 +910,8 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
         if p.polish_voxel_factor <= 0:  # else no ICP at thr: only the chosen pose needs the last tenth of a
             # millimetre, and the polish gives it that (on the yaw renders 10 % faster, 0.004 mm more mean ADI)
             T = icp(src, fine, T, thr, p.icp_max_iterations, trace)
-        # scored on what the camera sees at the coarse pose, moved with the refinement (a few millimetres at
-        # most after the coarse ICP): one ray-cast per candidate instead of two
+        # scored on what the camera sees at the coarse pose, moved with the refinement (small after the coarse
+        # ICP): one ray-cast per candidate instead of two, same recall on the yaw renders (benchmarks/tune.py)
         D = T @ se3.inv(T1)
         cand, src_w = _score_seen(T, se3.transform_points(D, src_w), T_base_part, fine_pts, T_world_camera, cam,
                                   observation, voxel, thr, k)
