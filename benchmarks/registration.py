@@ -54,13 +54,7 @@ def main() -> int:
     print(hdr)
     print("-" * len(hdr))
     docs, summary = [], []
-    for name in args.assemblies.split(","):
-        path = ASSEMBLIES[name]
-        if not path.is_file():
-            print(f"{name}: skipped, {path} not found")
-            continue
-        asm = load_assembly(path)
-        models = load_parts(asm)
+    for name, asm, models in loaded_assemblies(args.assemblies.split(",")):
         for noise in args.noise.split(","):
             for base_pose in args.base_pose.split(","):
                 with tempfile.TemporaryDirectory() as tmp:
@@ -94,6 +88,17 @@ def main() -> int:
           "yaw- = the same yaw frames, ours searching freely (--no-upright), the paper's columns repeated")
     print_goals(summary)
     return 0
+
+
+def loaded_assemblies(names):
+    """(name, assembly, part models) of each named benchmark assembly whose file is here; says which are not."""
+    for name in names:
+        path = ASSEMBLIES[name]
+        if not path.is_file():
+            print(f"{name}: skipped, {path} not found")
+            continue
+        asm = load_assembly(path)
+        yield name, asm, load_parts(asm)
 
 
 def print_goals(summary) -> None:

@@ -27,12 +27,10 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
-from registration import ASSEMBLIES  # noqa: E402
+from registration import ASSEMBLIES, loaded_assemblies  # noqa: E402
 
-from apose_studio.assembly import load_assembly  # noqa: E402
 from apose_studio.dataset import Dataset  # noqa: E402
 from apose_studio.evaluate import StepContext, estimate_and_score  # noqa: E402
-from apose_studio.mesh import load_parts  # noqa: E402
 from apose_studio.register import resolve_params  # noqa: E402
 from apose_studio.render import RenderSettings, render_dataset  # noqa: E402
 
@@ -50,12 +48,7 @@ def main() -> int:
     times: list[list[float]] = [[] for _ in params]
     recalls: list[list[float]] = [[] for _ in params]
     adis: list[list[float]] = [[] for _ in params]
-    for name, path in ASSEMBLIES.items():
-        if not path.is_file():
-            print(f"{name}: skipped, {path} not found")
-            continue
-        asm = load_assembly(path)
-        models = load_parts(asm)
+    for name, asm, models in loaded_assemblies(ASSEMBLIES):
         for noise in args.noise.split(","):
             root = Path(args.data) / f"{name}-{noise}-{args.base_pose}-{args.frames}"
             if not (root / "dataset_info.json").is_file():
