@@ -361,9 +361,12 @@ def project_to_cloud(depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics,
 
 
 def place_source(base: BaseObject, target_centre: np.ndarray, R_world_base: np.ndarray | None = None) -> np.ndarray:
-    """TFORM: T_world_source that puts the base's box centre on the target's centre, orientation kept."""
-    R = np.eye(3) if R_world_base is None else R_world_base
-    return se3.make_T(R, target_centre - R @ base.centre)
+    """TFORM: T_world_source that puts the base's box centre on the target's centre, orientation kept;
+    (n, 4, 4) for (n, 3, 3) orientations."""
+    R = np.eye(3) if R_world_base is None else np.asarray(R_world_base)
+    T = np.tile(np.eye(4), R.shape[:-2] + (1, 1))
+    T[..., :3, :3], T[..., :3, 3] = R, target_centre - R @ base.centre
+    return T
 
 
 def raycast_source(base: BaseObject, T_world_source: np.ndarray, T_world_camera: np.ndarray,
@@ -669,9 +672,8 @@ def upright_starts(base: "BaseObject", up: np.ndarray, target_pts: np.ndarray, c
         R_up = np.eye(3) if up[2] > 0 else np.diag([1.0, -1.0, -1.0])
     centre = target_pts.mean(axis=0)
     R = se3.axis_angle_matrix(up, np.radians(np.arange(0.0, 360.0, UPRIGHT_YAW_STEP_DEG))) @ R_up  # (n, 3, 3)
-    t = centre - R @ base.centre  # place_source for each yaw
-    poses = np.tile(np.eye(4), (len(R), 1, 1))
-    poses[:, :3, :3], poses[:, :3, 3] = R, t
+    poses = place_source(base, centre, R)
+    t = poses[:, :3, 3]
     eyes = np.einsum("nji,nj->ni", R, cam_pos - t)  # the camera in the base frame, per yaw
     facing = (eyes @ model_nrm.T) > np.einsum("ij,ij->i", model_nrm, model_pts)[None]  # n . (eye - p) > 0
     count = facing.sum(axis=1)
@@ -898,15 +900,13 @@ def _estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Par
     prior_best = [c for c in coarse if c[1] == -1][:1]  # the prior's best start is always refined and scored
     keep += [c for c in prior_best if not any(c is q for q in keep)]
     cands, traces = [], []  # traces[i]: (start pose, ICP trace, seen world points, their normals) of cands[i]
-    refined: list[np.ndarray] = []  # poses after the coarse ICP already refined further
     for _, k, T0, T1 in keep:
         trace: list | None = [] if trace_iterations else None
         src_w, src_n = raycast_source(base, T1, T_world_camera, cam)  # what the camera would see at this pose
         src = _cloud(se3.transform_points(se3.inv(T1), src_w)).voxel_down_sample(voxel)
         T = icp(src, fine, T1, vg, p.icp_max_iterations, trace)
-        if any(_poses_within(T, T_, voxel, 2.0) for T_ in refined):
+        if any(_poses_within(T, c_.T_world_base, voxel, 2.0) for c_ in cands):
             continue  # converged onto a pose already refined: nothing new to score
-        refined.append(T)
         if p.polish_voxel_factor <= 0:  # else no ICP at thr: only the chosen pose needs the last tenth of a
             # millimetre, and the polish gives it that (on the yaw renders 10 % faster, 0.004 mm more mean ADI)
             T = icp(src, fine, T, thr, p.icp_max_iterations, trace)
@@ -1010,9 +1010,9 @@ def _discriminate(close: list[int], cands: list[Candidate], traces: list, fine_p
     differs in one connector). For each pair, the evidence for a placement is: the points it shows
     that the other does not and that the depth confirms, the points the other shows where the camera
     sees past them (background, or a farther surface), and the target points only it explains (the
-    other missing them by more than 2 voxels). A
-    placement that loses to another by a clear margin (at least DISCRIMINATE_MIN_POINTS and 1.5x) is
-    dropped; the rest (true symmetric twins among them) stay tied."""
+    other missing them by more than 2 voxels). A placement that loses to another by a clear margin
+    (at least DISCRIMINATE_MIN_POINTS and 1.5x) is dropped; the rest (true symmetric twins among
+    them) stay tied."""
     tol = max(2 * voxel, 0.002)
     mask_img, depth_img = observation.mask, observation.depth
     outside = ~(mask_img | observation.edge)
