@@ -7,8 +7,9 @@ Steps are numbered from 1 for people (CLI, JSON) and indexed from 0 in key paths
 from __future__ import annotations
 
 import os
-import tempfile
+import re
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +19,10 @@ from . import se3
 from .config import (CameraIntrinsics, RegistrationConfig, camera_from_dict, camera_to_dict, is_number,
                      registration_from_dict, registration_to_dict)
 from .errors import AssemblyError, Problem
+from .fileio import atomic_write_text, roundtrip_yaml
 from .units import UNIT_TO_M
+
+__all__ = ["Assembly", "Part", "Step", "Symmetry", "atomic_write_text", "dump_assembly", "load_assembly", "save_assembly"]
 
 FORMAT = "apose-assembly/1"
 _TOP_KEYS = ("format", "name", "units", "parts", "steps", "camera", "registration")
@@ -26,6 +30,12 @@ _PART_KEYS = ("mesh", "color", "symmetry")
 _SYM_KEYS = ("axis", "origin", "order")
 _STEP_KEYS = ("part", "base", "pose_in_base")
 _POSE_KEYS = ("translation", "rotation")
+PART_ID = re.compile(r"[A-Za-z0-9_.\-]{1,64}")  # shown in pages and file names: nothing that could be markup
+PART_ID_RULE = "1 to 64 letters, digits, '_', '-' or '.'"
+MAX_PARTS = 2000  # far beyond any real assembly; bounds what a hostile file can cost
+MAX_STEPS = 2000
+MAX_SYMMETRY_ORDER = 360
+MAX_FILE_BYTES = 5 * 2**20
 
 
 @dataclass(frozen=True)
@@ -90,24 +100,32 @@ class Assembly:
         placed = {s.part for s in self.steps}
         return tuple(p for p in self.parts if p not in placed)
 
-    def _placing_step(self) -> dict[str, Step]:
-        return {s.part: s for s in self.steps}
+    @cached_property
+    def _chain(self) -> dict[str, tuple[str, np.ndarray]]:
+        """(root, T_root_part) of every part, each chain walked once (linear in the number of steps).
+        A draft whose steps form a cycle (which validation reports) treats the part closing it as a root."""
+        placing = {s.part: s for s in self.steps}
+        out: dict[str, tuple[str, np.ndarray]] = {}
+        for start in list(self.parts) + list(placing):
+            path, p = [], start
+            while p in placing and p not in out and p not in path:
+                path.append(p)
+                p = placing[p].base[0]
+            if p not in out:
+                out[p] = (p, np.eye(4))  # a root (or the part closing a cycle)
+            root, T = out[p]
+            for q in reversed(path):
+                if q not in out:
+                    T = T @ placing[q].T_base_part
+                    out[q] = (root, T)
+        return out
 
     def root_of(self, part_id: str) -> str:
-        placing = self._placing_step()
-        while part_id in placing:
-            part_id = placing[part_id].base[0]
-        return part_id
+        return self._chain[part_id][0] if part_id in self._chain else part_id
 
     def T_root_part(self, part_id: str) -> np.ndarray:
         """Pose of a part in the frame of its root, by chaining the steps that place it."""
-        placing = self._placing_step()
-        T = np.eye(4)
-        while part_id in placing:
-            step = placing[part_id]
-            T = step.T_base_part @ T
-            part_id = step.base[0]
-        return T
+        return self._chain[part_id][1].copy() if part_id in self._chain else np.eye(4)
 
     def step_view(self, number: int) -> StepView:
         """Derived view of step `number` (1-based)."""
@@ -167,10 +185,16 @@ class _Checker:
 
 
 def _kind(value) -> str:
+    """What a value is, for a message; text is quoted only when short (an error never echoes a file)."""
     if value is None:
         return "nothing"
-    return {dict: "a mapping", list: "a list", str: f"the text {value!r}", bool: f"{value}"}.get(
-        type(value), f"{type(value).__name__} {value!r}")
+    if isinstance(value, str):
+        return f"the text {value!r}" if len(value) <= 40 and "\n" not in value else f"a text of {len(value)} characters"
+    if isinstance(value, (dict, list)):
+        return {dict: "a mapping", list: "a list"}[type(value)]
+    if isinstance(value, bool) or isinstance(value, (int, float)):
+        return f"{value}"
+    return type(value).__name__
 
 
 def _rotation(c: _Checker, value, key: str) -> np.ndarray | None:
@@ -226,10 +250,14 @@ def _parse_parts(c: _Checker, parts_raw, folder: Path, scale: float) -> dict[str
         got = "an empty mapping (no parts yet)" if isinstance(parts_raw, dict) else _kind(parts_raw)
         c.add("parts", f"expected a mapping of part ids to {{mesh: path}}, got {got}")
         return parts
+    if len(parts_raw) > MAX_PARTS:
+        c.add("parts", f"{len(parts_raw)} parts; at most {MAX_PARTS} are supported")
+        return parts
     for pid, spec in parts_raw.items():
         key = f"parts.{pid}"
-        if not isinstance(pid, str) or not pid:
-            c.add(key, "expected a part id made of text")
+        if not isinstance(pid, str) or not PART_ID.fullmatch(pid):
+            c.add(f"parts.{_kind(pid)}" if not isinstance(pid, str) or len(pid) > 40 else key,
+                  f"a part id is {PART_ID_RULE}; rename it (and where steps use it)")
             continue
         spec = c.mapping(spec, key, _PART_KEYS, "a mapping with mesh (and optional color, symmetry)")
         if spec is None:
@@ -262,8 +290,10 @@ def _parse_symmetry(c: _Checker, raw, key: str, scale: float) -> Symmetry | None
     axis = c.numbers(sym.get("axis"), f"{key}.axis", 3)
     origin = c.numbers(sym.get("origin", [0, 0, 0]), f"{key}.origin", 3)
     order = sym.get("order")
-    if not (isinstance(order, int) and not isinstance(order, bool) and order >= 0 and order != 1):
-        c.add(f"{key}.order", f"expected 0 (continuous) or a whole number n >= 2 (n-fold), got {order!r}")
+    if not (isinstance(order, int) and not isinstance(order, bool) and 0 <= order <= MAX_SYMMETRY_ORDER
+            and order != 1):
+        c.add(f"{key}.order", f"expected 0 (continuous) or a whole number n from 2 to {MAX_SYMMETRY_ORDER} (n-fold), "
+              f"got {_kind(order)}")
         return None
     if axis is None or origin is None:
         return None
@@ -278,6 +308,9 @@ def _parse_steps(c: _Checker, steps_raw, parts: dict[str, Part], scale: float) -
     steps: list[Step] = []
     if not isinstance(steps_raw, list):
         c.add("steps", f"expected a list of steps, got {_kind(steps_raw)}")
+        return steps
+    if len(steps_raw) > MAX_STEPS:
+        c.add("steps", f"{len(steps_raw)} steps; at most {MAX_STEPS} are supported")
         return steps
     placed_by: dict[str, int] = {}
     for i, raw in enumerate(steps_raw):
@@ -373,21 +406,64 @@ def assembly_from_dict(data, file: str | Path, folder: Path | None = None) -> As
 
 def load_assembly(path: str | Path) -> Assembly:
     """Read and validate an assembly file; raises AssemblyError naming file, key path and expectation."""
+    from .fileio import describe_path
+
     path = Path(path)
     if not path.is_file():
-        raise AssemblyError([Problem(str(path), "", "file not found" if not path.exists() else "not a file")])
+        raise AssemblyError([Problem(str(path), "", describe_path(path, "an assembly file (.yaml)"))])
+    if path.stat().st_size > MAX_FILE_BYTES:
+        raise AssemblyError([Problem(str(path), "", f"{path.stat().st_size / 2**20:.0f} MB is far too large for an "
+                                     f"assembly file (at most {MAX_FILE_BYTES // 2**20} MB); is this the right file?")])
     try:
         text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as e:
-        raise AssemblyError([Problem(str(path), "", f"cannot be read as UTF-8 text: {e}")]) from None
+    except UnicodeDecodeError:
+        raise AssemblyError([Problem(str(path), "", "not a text file (an assembly file is YAML text)")]) from None
+    except OSError as e:
+        raise AssemblyError([Problem(str(path), "", f"cannot be read ({e.strerror})")]) from None
+    return assembly_from_dict(parse_yaml(text, str(path)), path)
+
+
+class _StrictLoader(yaml.SafeLoader):
+    """Safe YAML without aliases (a few lines of anchors can expand to gigabytes) and without duplicate keys
+    (two parts with one id would silently become one)."""
+
+    def compose_node(self, parent, index):
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            raise yaml.constructor.ConstructorError(
+                None, None, "aliases (*name) are not allowed in assembly files; write the value out", event.start_mark)
+        return super().compose_node(parent, index)
+
+    def construct_mapping(self, node, deep=False):
+        seen = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            try:
+                if key in seen:
+                    raise yaml.constructor.ConstructorError(
+                        None, None, f"duplicate key {key!r} (first at line {seen[key] + 1}); each key may appear once",
+                        key_node.start_mark)
+                seen[key] = key_node.start_mark.line
+            except TypeError:  # an unhashable key: the base class reports it
+                pass
+        return super().construct_mapping(node, deep)
+
+
+_StrictLoader.add_constructor("tag:yaml.org,2002:map", _StrictLoader.construct_yaml_map)
+
+
+def parse_yaml(text: str, file: str):
+    """YAML text to plain data, with errors naming the line; no aliases, no duplicate keys, bounded nesting."""
     try:
-        data = yaml.safe_load(text)
+        return yaml.load(text, Loader=_StrictLoader)  # noqa: S506 (a SafeLoader subclass)
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
-        problem = getattr(e, "problem", None) or str(e)
-        raise AssemblyError([Problem(str(path), "", f"{where}YAML syntax error: {problem}")]) from None
-    return assembly_from_dict(data, path)
+        problem = getattr(e, "problem", None) or "not valid YAML"
+        kind = "YAML error" if isinstance(e, yaml.constructor.ConstructorError) else "YAML syntax error"
+        raise AssemblyError([Problem(file, "", f"{where}{kind}: {problem}")]) from None
+    except RecursionError:
+        raise AssemblyError([Problem(file, "", "nested far too deeply to be an assembly file")]) from None
 
 
 # --------------------------------------------------------------------------------------------- save
@@ -424,45 +500,44 @@ def assembly_to_dict(asm: Assembly, folder: Path) -> dict:
     out = {"format": FORMAT, "name": asm.name, "units": asm.units, "parts": parts, "steps": steps}
     if asm.camera is not None:
         out["camera"] = camera_to_dict(asm.camera)
-    out["registration"] = registration_to_dict(asm.registration)
+    registration = registration_to_dict(asm.registration)
+    if registration:  # defaults are not written
+        out["registration"] = registration
     return out
 
 
-class _FlowListDumper(yaml.SafeDumper):
-    """Short lists of scalars in flow style ([x, y, z]) as the format doc writes them."""
-
-
-def _represent_list(dumper, data):
-    flow = all(not isinstance(v, (list, dict)) for v in data) and len(data) <= 16
-    return dumper.represent_sequence("tag:yaml.org,2002:seq", data, flow_style=flow)
-
-
-_FlowListDumper.add_representer(list, _represent_list)
-
-
 def dump_assembly(asm: Assembly, folder: Path) -> str:
-    return yaml.dump(assembly_to_dict(asm, folder), Dumper=_FlowListDumper, sort_keys=False,
-                     default_flow_style=False, allow_unicode=True)
+    """The YAML text of an assembly as a new file (mesh paths relative to `folder` where possible)."""
+    return roundtrip_yaml(None, assembly_to_dict(asm, folder))
 
 
-def atomic_write_text(path: Path, text: str) -> None:
-    """Write beside the target, flush to disk, then rename over it: a reader never sees half a file."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+def _same_pose(path: tuple, old, new) -> bool:
+    """A step's pose written another way (Euler angles, a matrix, another unit's rounding) but equal
+    to what would be written now: keep the user's way of writing it."""
+    if len(path) != 3 or path[0] != "steps" or path[2] != "pose_in_base" or not isinstance(old, dict):
+        return False
+    c = _Checker("")
+    t_old = c.numbers(old.get("translation"), "", 3)
+    R_old = _rotation(c, old.get("rotation"), "")
+    if c.problems or t_old is None or R_old is None:
+        return False
+    R_new = se3.quat_wxyz_to_matrix(new["rotation"]["quat_wxyz"])
+    return np.allclose(t_old, new["translation"], rtol=0, atol=1e-9) and np.allclose(R_old, R_new, rtol=0, atol=1e-9)
 
 
-def save_assembly(asm: Assembly, path: str | Path) -> Path:
-    """Save atomically as YAML; mesh paths are written relative to the file's folder."""
+def save_assembly(asm: Assembly, path: str | Path, backup: bool = False) -> Path:
+    """Save atomically as YAML; mesh paths are written relative to the file's folder.
+
+    Re-saving a hand-written file keeps its comments, key order and the way unchanged values are
+    written (round-trip YAML); the file keeps its mode. With `backup`, the previous version is kept
+    as NAME.yaml.bak."""
     path = Path(path).resolve()
-    atomic_write_text(path, dump_assembly(asm, path.parent))
+    previous = None
+    if path.is_file():
+        try:
+            previous = path.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError):
+            previous = None
+    text = roundtrip_yaml(previous, assembly_to_dict(asm, path.parent), keep=_same_pose)
+    atomic_write_text(path, text, backup=backup and previous is not None)
     return path

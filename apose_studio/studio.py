@@ -196,7 +196,7 @@ class Studio:
             self.f_color.on_update(self._guarded("Colour")(self._on_color))
             b = gui.add_button("Remove part", color="red")
             b.on_click(self._guarded("Remove part")(self._on_remove_part))
-        with gui.add_folder("Steps"):
+        with gui.add_folder("Steps") as self.steps_folder:
             self.steps_html = gui.add_html("")
             self.f_step = gui.add_dropdown("Step", ("—",))
             self.f_step.on_update(self._guarded("Select step")(self._on_select_step))
@@ -569,16 +569,32 @@ class Studio:
             except Exception:
                 log.error("gizmo update failed:\n%s", traceback.format_exc())
 
+    def _make_pose_fields(self, t, e) -> None:
+        """(Re)create the typed pose inputs holding `t` (mm) and `e` (°).
+
+        A value the server pushes into an existing number input is shown, but the browser's input
+        (Mantine's NumberInput in viser 1.1) keeps its own idea of the last value typed, and drops the
+        next edit that it takes for no change: after "Add" step, typed translations vanished. Fresh
+        inputs have no such memory, so the server never writes into these two; it replaces them, in
+        the same place in the panel."""
+        t = tuple(round(float(v), 4) for v in t)
+        e = tuple(round(float(v), 4) for v in e)
+        if tuple(self.f_t.value) == t and tuple(self.f_r.value) == e:
+            return
+        gui = self.server.gui
+        orders = (self.f_t.order, self.f_r.order)
+        self.f_t.remove()
+        self.f_r.remove()
+        with self.steps_folder:
+            self.f_t = gui.add_vector3("Translation (mm)", t, step=0.1, order=orders[0])
+            self.f_r = gui.add_vector3("Rotation xyz (°)", e, step=0.1, order=orders[1])
+        self.f_t.on_update(self._guarded("Translation")(self._on_typed_pose))
+        self.f_r.on_update(self._guarded("Rotation")(self._on_typed_pose))
+
     def _sync_typed_pose(self) -> None:
         if self.step_index is None:
             return
-        t, e = authoring.typed_pose(self.asm.steps[self.step_index].T_base_part)
-        self._syncing = True
-        try:
-            self.f_t.value = tuple(round(float(v), 4) for v in t)
-            self.f_r.value = tuple(round(float(v), 4) for v in e)
-        finally:
-            self._syncing = False
+        self._make_pose_fields(*authoring.typed_pose(self.asm.steps[self.step_index].T_base_part))
 
     def _on_play_sequence(self, client) -> None:
         n = len(self.valid_asm.steps)
@@ -610,9 +626,7 @@ class Studio:
                 self.f_step.value = steps[self.step_index]
                 self.f_step_part.value = s.part
                 self.f_base.value = ", ".join(s.base)
-                t, e = authoring.typed_pose(s.T_base_part)
-                self.f_t.value = tuple(round(float(v), 4) for v in t)
-                self.f_r.value = tuple(round(float(v), 4) for v in e)
+                self._make_pose_fields(*authoring.typed_pose(s.T_base_part))
             self.f_upto.max = max(len(asm.steps), 1)
         finally:
             self._syncing = False

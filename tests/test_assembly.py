@@ -107,7 +107,7 @@ CASES = [
     (_set(["parts", "plate", "size"], 3), "parts.plate.size: unknown key; expected one of mesh, color, symmetry"),
     (_set(["parts", "peg", "color"], [2, 0, 0]), "parts.peg.color: expected 3 numbers in 0..1"),
     (_set(["parts", "peg", "symmetry"], {"axis": [0, 0, 1], "order": 1}),
-     "parts.peg.symmetry.order: expected 0 (continuous) or a whole number n >= 2"),
+     "parts.peg.symmetry.order: expected 0 (continuous) or a whole number n from 2 to 360"),
     (_set(["parts", "peg", "symmetry"], {"axis": [0, 0, 0], "order": 2}), "parts.peg.symmetry.axis: expected a non-zero direction"),
     (_set(["steps", 0, "pose_in_base", "rotation"], {"quat_wxyz": [0, 0, 0, 0]}),
      "steps[0].pose_in_base.rotation.quat_wxyz: expected a non-zero quaternion"),

@@ -1,0 +1,154 @@
+"""Writing files so that nothing the user made is lost: atomic replacement that keeps the file's mode
+(new files get the usual mode from the umask), an optional `NAME.bak` of the previous version, and a
+round-trip YAML update that keeps a hand-written file's comments and key order.
+
+A pure edge module: no other apose_studio imports.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import stat
+import tempfile
+import threading
+from pathlib import Path
+
+_UMASK_LOCK = threading.Lock()
+
+
+def current_umask() -> int:
+    """The process umask (read from /proc where it can be, so no thread ever sees it changed)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    with _UMASK_LOCK:
+        mask = os.umask(0o022)
+        os.umask(mask)
+    return mask
+
+
+def atomic_write_bytes(path: str | Path, data: bytes, backup: bool = False) -> None:
+    """Write beside the target, flush to disk, then rename over it: a reader never sees half a file.
+
+    The result has the mode the replaced file had, or 0666 less the umask for a new file (a bare
+    temporary file would leave 0600 behind). With `backup`, the previous version is kept as NAME.bak,
+    itself replaced atomically."""
+    path = Path(path)
+    mode = stat.S_IMODE(path.stat().st_mode) if path.is_file() else 0o666 & ~current_umask()
+    if backup and path.is_file():
+        atomic_write_bytes(path.with_name(path.name + ".bak"), path.read_bytes())
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fchmod(f.fileno(), mode)
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_write_text(path: str | Path, text: str, backup: bool = False) -> None:
+    atomic_write_bytes(path, text.encode("utf-8"), backup=backup)
+
+
+def describe_path(path: str | Path, wanted: str) -> str:
+    """Why `path` is not the regular file that was wanted, in words ("a folder", "a device")."""
+    p = Path(path)
+    if not p.exists():
+        return f"file not found; type the path of {wanted}" if not p.is_symlink() else "a broken link"
+    if p.is_dir():
+        return f"a folder, not a file; choose {wanted} inside it"
+    if not p.is_file():
+        return f"not a regular file (a device, pipe or socket); choose {wanted}"
+    return "a file"
+
+
+# ----------------------------------------------------------------------------- round-trip YAML
+
+
+def _same(a, b) -> bool:
+    """Equal as data (1 == 1.0; a ruamel CommentedMap equals a dict with the same items)."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    if isinstance(a, bool) or isinstance(b, bool):
+        return a is b or (type(a) is type(b) and a == b)
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)):
+        return float(a) == float(b)
+    return a == b
+
+
+def _flow(value):
+    """New short lists of scalars in flow style ([x, y, z]), as the format doc writes them."""
+    from ruamel.yaml.comments import CommentedMap, CommentedSeq
+
+    if isinstance(value, dict):
+        out = CommentedMap()
+        for k, v in value.items():
+            out[k] = _flow(v)
+        return out
+    if isinstance(value, (list, tuple)):
+        out = CommentedSeq(_flow(v) for v in value)
+        if all(not isinstance(v, (list, tuple, dict)) for v in value) and len(value) <= 16:
+            out.fa.set_flow_style()
+        return out
+    return value
+
+
+def merge_into(old, new, keep=None):
+    """`new` written into the round-trip tree `old`: keys and items whose value did not change keep
+    their node (and so their comments and style), keys keep their order, new keys go last, removed
+    keys go. `keep(path, old_value, new_value) -> bool` may declare two differently written values
+    the same (a rotation written as Euler angles that the new data writes as a quaternion)."""
+    return _merge(old, new, (), keep)
+
+
+def _merge(old, new, path: tuple, keep):
+    if keep is not None and keep(path, old, new):
+        return old
+    if isinstance(old, dict) and isinstance(new, dict):
+        for k in [k for k in old if k not in new]:
+            del old[k]
+        for k, v in new.items():
+            old[k] = _merge(old[k], v, path + (k,), keep) if k in old else _flow(v)
+        return old
+    if isinstance(old, list) and isinstance(new, (list, tuple)) and not _same(old, new):
+        if all(isinstance(v, dict) for v in list(old) + list(new)):  # e.g. steps: item by item
+            del old[len(new):]
+            for i, v in enumerate(new):
+                if i < len(old):
+                    old[i] = _merge(old[i], v, path + (i,), keep)
+                else:
+                    old.append(_flow(v))
+            return old
+        return _flow(new)
+    return old if _same(old, new) else _flow(new)
+
+
+def roundtrip_yaml(previous_text: str | None, data: dict, keep=None) -> str:
+    """YAML text of `data`; where `previous_text` is a YAML mapping, written into it so that what the
+    user wrote by hand (comments, key order, quoting) stays wherever the data did not change."""
+    from ruamel.yaml import YAML
+
+    yaml = YAML(typ="rt")
+    yaml.width = 4096
+    yaml.indent(mapping=2, sequence=4, offset=2)
+    tree = None
+    if previous_text:
+        try:
+            tree = yaml.load(previous_text)
+        except Exception:  # unreadable as YAML: write afresh
+            tree = None
+    tree = merge_into(tree, data, keep) if isinstance(tree, dict) else _flow(data)
+    buf = io.StringIO()
+    yaml.dump(tree, buf)
+    return buf.getvalue()
