@@ -170,12 +170,31 @@ def snap_pose(T: np.ndarray, step_mm: float = 0.0, step_deg: float = 0.0) -> np.
 # ----------------------------------------------------------------------------------- preview
 
 
-def preview_poses(asm: Assembly, upto: int, diameters: dict[str, float], explode: float = 0.0) -> dict[str, np.ndarray]:
+def insertion_direction(asm: Assembly, index: int, centres: dict[str, np.ndarray] | None = None) -> np.ndarray:
+    """The unit direction, in the frame of base[0], along which step `index` (0-based) brings its part in:
+    from the base part's centre towards the part's, snapped to the nearest axis of that frame (a gear
+    put on a shaft comes along the shaft; a lid comes from above). +z where the two centres coincide.
+    `centres` are the parts' box centres in their own frames (default: their origins)."""
+    centres = centres or {}
+    s = asm.steps[index]
+    c_part = s.T_base_part[:3, :3] @ centres.get(s.part, np.zeros(3)) + s.T_base_part[:3, 3]
+    v = c_part - centres.get(s.base[0], np.zeros(3))
+    if np.linalg.norm(v) < 1e-6:
+        return np.array([0.0, 0.0, 1.0])
+    k = int(np.argmax(np.abs(v)))
+    d = np.zeros(3)
+    d[k] = np.sign(v[k])
+    return d
+
+
+def preview_poses(asm: Assembly, upto: int, diameters: dict[str, float], explode: float = 0.0,
+                  centres: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
     """T_world_part of every part shown after the first `upto` steps (0 = only the roots).
 
     Roots stand side by side along x (a gap of their diameter); parts placed by steps <= upto sit on
-    them; `explode` (0..1) pushes each placed part away from its root's centre, one step at a time, so
-    the order reads at a glance. Parts not placed yet are left out.
+    them. `explode` (0..1) pulls each placed part out along its step's insertion direction, later steps
+    farther, and parts placed on it move with it, so the order reads at a glance. Parts not placed yet
+    are left out.
     """
     roots = [r for r in asm.roots if any(asm.root_of(p) == r for p in asm.parts)]
     T_world_root, x = {}, 0.0
@@ -184,17 +203,16 @@ def preview_poses(asm: Assembly, upto: int, diameters: dict[str, float], explode
         T_world_root[r] = se3.make_T(t=np.array([x, 0.0, 0.0]))
         x += 1.5 * d
     out = {r: T_world_root[r] for r in roots}
+    n = max(len(asm.steps), 1)
     for i, s in enumerate(asm.steps[:upto]):
         root = asm.root_of(s.part)
-        if root not in T_world_root:
+        if root not in T_world_root or s.base[0] not in out:
             continue
-        T = T_world_root[root] @ asm.T_root_part(s.part)
+        T_world_base = out[s.base[0]]
+        T = T_world_base @ s.T_base_part
         if explode > 0:
-            centre = T_world_root[root][:3, 3]
-            d = T[:3, 3] - centre
-            n = np.linalg.norm(d)
-            direction = d / n if n > 1e-6 else np.array([0.0, 0.0, 1.0])
             T = T.copy()
-            T[:3, 3] += direction * explode * diameters.get(root, 0.1) * (i + 1) / max(len(asm.steps), 1)
+            T[:3, 3] += T_world_base[:3, :3] @ insertion_direction(asm, i, centres) * (
+                explode * diameters.get(root, 0.1) * (i + 1) / n)
         out[s.part] = T
     return out

@@ -88,8 +88,7 @@ def cmd_demo(args) -> int:
     if not path.is_file():
         raise AposeError(f"{path}: sample assembly not found; run `python sample_assemblies/generate.py` "
                          "in the repository to create it")
-    shown = path.relative_to(REPO) if path.is_relative_to(REPO) else path
-    print(f"apose demo: the sample assembly {shown}\n")
+    print(f"apose demo: the sample assembly {path.resolve()}\n")
     asm = load_assembly(path)
     models = load_parts(asm)
     print(show_text(asm, models))
@@ -122,18 +121,22 @@ def cmd_demo(args) -> int:
     if args.no_studio:
         return 0
     print("\nopening the studio on this assembly and dataset (the estimates above are cached in its Inspect tab)")
-    return _serve_studio(path, out, args.host, args.port, cache)
+    return _serve_studio(path, out, args.host, args.port, cache, root=args.root)
 
 
-def _serve_studio(assembly, dataset, host: str, port: int, cache=None) -> int:
+def _serve_studio(assembly, dataset, host: str, port: int, cache=None, root=None) -> int:
     from .studio import serve
+    from .webguard import is_loopback_bind
 
-    server, _ = serve(assembly, dataset, host=host, port=port, cache=cache)
-    url = f"http://{'127.0.0.1' if host in ('127.0.0.1', 'localhost') else host}:{server.get_port()}"
-    print(f"studio: {url}  (Ctrl-C to stop)")
-    if host not in ("127.0.0.1", "localhost", "::1"):
-        print(f"warning: listening on {host}: anyone who can reach this machine can read and write files the "
-              "studio can (assembly paths, meshes, datasets) — use only on a trusted network", file=sys.stderr)
+    if root is not None and not Path(root).is_dir():
+        raise AposeError(f"--root {root}: no such folder")
+    server, studio = serve(assembly, dataset, host=host, port=port, cache=cache, root=root)
+    print(f"studio: {studio.url}  (Ctrl-C to stop)")
+    print(f"workspace: the page may open and save files only under {', '.join(str(r) for r in studio.workspace.roots)}")
+    if not is_loopback_bind(host):
+        print(f"note: listening on {host}; the page and its websocket need the token in the address above. Anyone "
+              "with that address can open and save files in the workspace: share it only with people you trust",
+              file=sys.stderr)
     try:
         while True:
             time.sleep(3600)
@@ -145,7 +148,7 @@ def _serve_studio(assembly, dataset, host: str, port: int, cache=None) -> int:
 def cmd_studio(args) -> int:
     if args.assembly and not Path(args.assembly).is_file():
         raise AposeError(f"{args.assembly}: no such assembly file")
-    return _serve_studio(args.assembly, args.dataset, args.host, args.port)
+    return _serve_studio(args.assembly, args.dataset, args.host, args.port, root=args.root)
 
 
 def _pair(text: str, what: str) -> tuple[float, float]:
@@ -154,6 +157,16 @@ def _pair(text: str, what: str) -> tuple[float, float]:
     except ValueError:
         raise argparse.ArgumentTypeError(f"{what}: expected two numbers as min,max (e.g. 20,70), got {text!r}") from None
     return a, b
+
+
+def _port(text: str) -> int:
+    try:
+        port = int(text)
+    except ValueError:
+        port = -1
+    if not 0 < port < 65536:
+        raise argparse.ArgumentTypeError(f"expected a port number from 1 to 65535, got {text!r}")
+    return port
 
 
 def _steps(text: str) -> list[int]:
@@ -326,7 +339,9 @@ def cmd_train_seg(args) -> int:
 def _server_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--host", default="127.0.0.1",
                    help="address to listen on (default 127.0.0.1: this machine only; 0.0.0.0 exposes the studio to the network)")
-    p.add_argument("--port", type=int, default=8080, help="port (default 8080; the next free one if taken)")
+    p.add_argument("--port", type=_port, default=8080, help="port (default 8080; the next free one if taken)")
+    p.add_argument("--root", default=None, help="the folder whose files the page may open and save (default: the "
+                   "current directory, or the assembly file's folder when it lies outside)")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,7 +1,8 @@
 """What the studio's Inspect tab shows, as pure functions: boxes, their 2D projection, clouds per stage.
 
-Colours follow the brief: target cloud red, source cloud blue, estimated box green, ground truth red.
-Everything is metres and world frame unless a name says otherwise.
+Colours, one per thing (the legend): target cloud red, source cloud blue, estimated box green, ground
+truth amber (dashed, drawn a little outside the estimate so coincident boxes do not z-fight),
+alternatives magenta. Everything is metres and world frame unless a name says otherwise.
 """
 
 from __future__ import annotations
@@ -18,7 +19,10 @@ from .register import RegistrationResult
 RED = (220, 40, 40)
 BLUE = (40, 90, 230)
 GREEN = (30, 190, 60)
+AMBER = (255, 160, 0)  # ground truth
 MAGENTA = (220, 60, 220)  # other placements that fit as well as the estimate (an ambiguous result)
+LEGEND = (("target cloud", RED), ("source cloud", BLUE), ("estimate", GREEN), ("truth (dashed)", AMBER),
+          ("alternatives", MAGENTA))
 
 # the 12 edges of a box whose corners are ordered as mesh.PartModel.box_corners() (x major, z minor)
 BOX_EDGES = np.array([[0, 1], [2, 3], [4, 5], [6, 7], [0, 2], [1, 3], [4, 6], [5, 7], [0, 4], [1, 5], [2, 6], [3, 7]])
@@ -28,6 +32,60 @@ def box_segments(corners_part: np.ndarray, T_world_part: np.ndarray) -> np.ndarr
     """(12, 2, 3) world line segments of a part's box (corners in the part frame) at a pose."""
     c = se3.transform_points(T_world_part, corners_part)
     return c[BOX_EDGES]
+
+
+def inflate(corners_part: np.ndarray, fraction: float) -> np.ndarray:
+    """Box corners moved out from the box centre by `fraction` of its size (a ground-truth box drawn just
+    outside an estimate on the same spot stays visible instead of z-fighting)."""
+    c = corners_part.mean(axis=0)
+    return c + (corners_part - c) * (1.0 + fraction)
+
+
+def dashed(segments: np.ndarray, dashes: int = 6) -> np.ndarray:
+    """(N, 2, 3) segments cut into `dashes` pieces each, every other piece kept: (N * dashes // 2... , 2, 3)."""
+    t = np.linspace(0.0, 1.0, 2 * dashes)
+    a, b = segments[:, :1, :], segments[:, 1:, :]
+    pts = a + (b - a) * t[None, :, None]  # (N, 2*dashes, 3)
+    return pts.reshape(len(segments), dashes, 2, 3).reshape(-1, 2, 3)
+
+
+def crop_window(shape: tuple[int, int], uv: np.ndarray, margin: float = 0.35, min_size: int = 96) -> tuple[int, int, int, int]:
+    """(x0, y0, x1, y1): the image window around pixels `uv` (N, 2) with a margin of their extent, at least
+    `min_size` across, clipped to the image; the whole image when nothing is given."""
+    h, w = shape
+    uv = uv[np.isfinite(uv).all(axis=1)] if len(uv) else uv
+    if not len(uv):
+        return 0, 0, w, h
+    lo, hi = uv.min(axis=0), uv.max(axis=0)
+    size = max(float((hi - lo).max()) * (1.0 + 2.0 * margin), min_size)
+    c = (lo + hi) / 2.0
+    x0, y0 = int(np.clip(c[0] - size / 2, 0, w - 1)), int(np.clip(c[1] - size / 2, 0, h - 1))
+    x1, y1 = int(np.clip(c[0] + size / 2, x0 + 1, w)), int(np.clip(c[1] + size / 2, y0 + 1, h))
+    return x0, y0, x1, y1
+
+
+def pose_report(result: RegistrationResult, T_world_camera: np.ndarray) -> dict:
+    """The estimate as a robot needs it: T_world_part and T_camera_part (4x4, metres) and each as
+    translation (mm) + quaternion wxyz. JSON-ready."""
+    T_camera_part = se3.inv(T_world_camera) @ result.T_world_part
+
+    def entry(T):
+        return {"matrix": T.tolist(), "translation_mm": (T[:3, 3] * 1000.0).tolist(),
+                "quat_wxyz": [float(v) for v in se3.matrix_to_quat_wxyz(T[:3, :3])]}
+
+    return {"T_world_part": entry(result.T_world_part), "T_camera_part": entry(T_camera_part),
+            "T_world_base": entry(result.T_world_base), "fitness": float(result.fitness),
+            "inlier_rmse_mm": float(result.inlier_rmse * 1000.0), "coverage": float(result.coverage),
+            "confident": bool(result.confident), "ambiguous": bool(result.ambiguous)}
+
+
+def pose_markdown(report: dict) -> str:
+    """The two poses of `pose_report` as a small table (mm, wxyz)."""
+    rows = []
+    for name in ("T_world_part", "T_camera_part"):
+        t, q = report[name]["translation_mm"], report[name]["quat_wxyz"]
+        rows.append(f"| `{name}` | {t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f} | {q[0]:.4f}, {q[1]:.4f}, {q[2]:.4f}, {q[3]:.4f} |")
+    return "| pose | t (mm) | q (wxyz) |\n|---|---|---|\n" + "\n".join(rows)
 
 
 def project_points(points_world: np.ndarray, T_world_camera: np.ndarray, cam: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray]:
@@ -111,7 +169,9 @@ def metrics_markdown(score, result: RegistrationResult | None) -> str:
     if result is None:
         return "_No estimate for this frame yet: press **Estimate frame**._"
     if not result.ok:
-        return f"**Estimation failed:** {result.reason}"
+        import html
+
+        return f"**Estimation failed:** {html.escape(str(result.reason))}"
     rows = [("fitness", f"{result.fitness:.3f}"), ("inlier RMSE", f"{result.inlier_rmse * 1000:.2f} mm"),
             ("time", f"{result.seconds * 1000:.0f} ms"), ("coverage", f"{result.coverage:.0%}")]
     if score is not None and score.adi is not None:

@@ -491,20 +491,29 @@ def render_dataset(asm: Assembly, out, settings: RenderSettings, steps: list[int
     frame loop; loading parts and writing models/ is setup. An interrupt (Ctrl-C) stops after the
     frame in hand; every frame already listed in the JSON files is complete on disk.
     """
+    from pathlib import Path
+
+    from .dataset import OutputLock, check_output_dir, make_output_dir
+
+    settings.validate()
+    numbers = step_numbers(asm, steps)
+    out = make_output_dir(Path(out))
+    with OutputLock(out):  # first the lock, then the look inside: no other render writes there meanwhile
+        check_output_dir(out, overwrite)
+        return _render_into(asm, out, settings, numbers, progress, models)
+
+
+def _render_into(asm: Assembly, out, settings: RenderSettings, numbers: list[int], progress: bool,
+                 models: dict[str, PartModel] | None) -> dict:
     import time
     from concurrent.futures import ThreadPoolExecutor
-    from pathlib import Path
 
     from tqdm import tqdm
 
-    from .dataset import FORMAT, AnnotatedObject, SceneWriter, check_output_dir, remove_previous_dataset, write_json
+    from .dataset import FORMAT, AnnotatedObject, SceneWriter, remove_previous_dataset, write_json, write_manifest
     from .mesh import load_parts
 
     t_setup = time.perf_counter()
-    settings.validate()
-    numbers = step_numbers(asm, steps)
-    out = Path(out)
-    check_output_dir(out, overwrite)
     remove_previous_dataset(out)
     models = models or load_parts(asm)
     obj_ids, _ = write_models(asm, models, out)
@@ -519,7 +528,7 @@ def render_dataset(asm: Assembly, out, settings: RenderSettings, steps: list[int
                          "pitch_range_deg": list(settings.pitch_range_deg),
                          "distance_range_m": list(settings.distance_range_m) if settings.distance_range_m else "auto",
                          "distractors": settings.distractors}}
-    write_json(out / "dataset_info.json", info)
+    write_manifest(out, info)
 
     grid = RayGrid(cam)
     total = len(numbers) * settings.frames
@@ -559,6 +568,7 @@ def render_dataset(asm: Assembly, out, settings: RenderSettings, steps: list[int
                 if im_id % 25 == 24:
                     settle(keep=0)
                     writer.flush()
+                    write_manifest(out, info)
                 done += 1
                 bar.update(1)
             settle(keep=0)
@@ -572,6 +582,7 @@ def render_dataset(asm: Assembly, out, settings: RenderSettings, steps: list[int
                     pass
             if writer is not None:
                 writer.flush()
+            write_manifest(out, info)
         finally:
             pool.shutdown(wait=True)
             bar.close()

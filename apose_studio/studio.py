@@ -9,6 +9,7 @@ browser tabs (one studio, one draft); notifications go to the tab that acted.
 
 from __future__ import annotations
 
+import html
 import logging
 import threading
 import time
@@ -21,13 +22,30 @@ import numpy as np
 from . import authoring, inspection, se3
 from .assembly import Assembly, dump_assembly, load_assembly, save_assembly
 from .errors import AposeError, AssemblyError
+from .fileio import describe_path
 from .mesh import PartModel, load_part, supported_extensions
+from .webguard import Workspace
 
 log = logging.getLogger(__name__)
 
 MAX_UPLOAD_BYTES = 200 * 1024 * 1024  # a CAD part above this is almost surely the wrong file
 UNITS = ("m", "cm", "mm", "in")
 PRESETS = ("default", "paper")
+VIEWS = ("Assembly", "Inspect")
+ACTIVE = "● "  # marks the 3D view on show in the button group
+LAYERS = ("scene cloud", "target cloud", "source cloud", "boxes", "part at estimate", "labels", "camera")
+
+
+def esc(text) -> str:
+    """User- or file-derived text made safe to place in HTML or markdown (part ids, file names, messages)."""
+    return html.escape(str(text), quote=True)
+
+
+def _legend_html() -> str:
+    items = "".join(f"<span style='white-space:nowrap;margin-right:10px'><span style='display:inline-block;width:14px;"
+                    f"height:4px;vertical-align:middle;background:{_hex([c / 255 for c in rgb])}'></span> {esc(name)}</span>"
+                    for name, rgb in inspection.LEGEND)
+    return f"<div style='font-size:0.8em;line-height:1.8'>{items}</div>"
 
 
 def _hex(color) -> str:
@@ -43,13 +61,15 @@ def _pos(T: np.ndarray) -> tuple:
 
 
 class Studio:
-    """One studio on one viser server. `assembly` and `dataset` are optional paths opened at start."""
+    """One studio on one viser server. `assembly` and `dataset` are optional paths opened at start;
+    `workspace` holds the folders whose files the page may name (default: see `default_workspace`)."""
 
     def __init__(self, server, assembly: str | Path | None = None, dataset: str | Path | None = None,
-                 cache: inspection.ResultCache | None = None):
+                 cache: inspection.ResultCache | None = None, workspace: Workspace | None = None):
         import viser  # noqa: F401  (imported here so the core never needs it)
 
         self.server = server
+        self.workspace = workspace if workspace is not None else default_workspace(assembly, dataset)
         self.lock = threading.RLock()  # one edit at a time, whichever tab it comes from
         self.busy = threading.Lock()  # one estimation at a time
         self.asm: Assembly = authoring.new_assembly()
@@ -58,7 +78,7 @@ class Studio:
         self.mesh_handles: dict[str, object] = {}
         self.nodes: dict[str, object] = {}  # scene nodes by name (tests look here)
         self.step_index: int | None = None  # selected step, 0-based
-        self.problems: list = []
+        self.problems: list = authoring.problems(self.asm)  # the empty draft is not saveable either
         self._syncing = False
         self.frames = None  # a Dataset or a capture Frame
         self.frames_path: str | None = None
@@ -74,13 +94,15 @@ class Studio:
         self._last_notice = ""
         self._preview: dict = {}
         self._part_models: dict = {}  # id(assembly) -> its PartModels, for the Inspect tab
-        self._build_gui()
-        server.on_client_connect(self._on_connect)
-        self._limit_uploads()
-        if assembly is not None:
-            self._open_assembly(Path(assembly))
-        if dataset is not None:
-            self._open_frames(str(dataset))
+        self._pending_save: Path | None = None  # a file that Save would replace, waiting for "Replace"
+        with self.lock:  # a page that connects while the start-up files load waits for them
+            self._build_gui()
+            server.on_client_connect(self._on_connect)
+            self._limit_uploads()
+            if assembly is not None:
+                self._open_assembly(Path(assembly))
+            if dataset is not None:
+                self._open_frames(str(dataset))
 
     # ------------------------------------------------------------------------------------ plumbing
 
@@ -147,8 +169,8 @@ class Studio:
         gui.configure_theme(control_layout="fixed", control_width="large", show_share_button=False,
                             brand_color=(40, 90, 230))
         self.server.scene.set_up_direction("+z")
-        self.view = gui.add_button_group("3D view", ("Assembly", "Inspect"))
-        self.view.on_click(lambda e: self._show_view(e.target.value))
+        self.view = gui.add_button_group("3D view", VIEWS)
+        self.view.on_click(lambda e: self._guarded("3D view")(lambda c: self._on_view_button(e.target.value))(e))
         tabs = gui.add_tab_group()
         with tabs.add_tab("Assembly"):
             self._build_assembly_tab()
@@ -158,8 +180,17 @@ class Studio:
                                    plane="xy", position=(0.0, 0.0, -0.0005))
         self._show_view("Assembly")
 
+    def _on_view_button(self, label: str) -> None:
+        which = label.removeprefix(ACTIVE)
+        self._show_view(which)
+        if which == "Inspect":
+            self._frame_camera_on_frame()
+        else:
+            self._frame_camera_on_assembly()
+
     def _show_view(self, which: str) -> None:
         self.current_view = which
+        self.view.options = tuple(ACTIVE + v if v == which else v for v in VIEWS)
         for name, handle in list(self.nodes.items()):
             if name.startswith("/assembly") or name.startswith("/inspect"):
                 want = name.startswith("/assembly") == (which == "Assembly")
@@ -192,6 +223,7 @@ class Studio:
             self.upload = gui.add_upload_button("Upload mesh", hint=f"up to {MAX_UPLOAD_BYTES // 2**20} MB; saved beside the assembly file")
             self.upload.on_upload(self._guarded("Upload")(self._on_upload))
             self.f_part = gui.add_dropdown("Part", ("—",))
+            self.f_part.on_update(self._guarded("Part")(lambda c: self._show_part_colour()))
             self.f_color = gui.add_rgb("Colour", (230, 158, 0))
             self.f_color.on_update(self._guarded("Colour")(self._on_color))
             b = gui.add_button("Remove part", color="red")
@@ -216,7 +248,7 @@ class Studio:
             self.f_upto = gui.add_slider("Assembled up to step", 0, 1, 1, 0)
             self.f_upto.on_update(self._guarded("Preview")(lambda c: self._refresh_assembly_scene()))
             self.f_explode = gui.add_slider("Explode", 0.0, 1.0, 0.05, 0.0)
-            self.f_explode.on_update(self._guarded("Preview")(lambda c: self._refresh_assembly_scene()))
+            self.f_explode.on_update(self._guarded("Preview")(lambda c: self._on_explode()))
             b = gui.add_button("Play sequence")
             b.on_click(self._guarded("Play")(self._on_play_sequence))
         self.status_md = gui.add_markdown("")
@@ -226,7 +258,7 @@ class Studio:
         with gui.add_folder("Data"):
             self.i_path = gui.add_text("Dataset or capture", "", hint="a folder from `apose render`, or rgb.png + depth.png + camera.json")
             b = gui.add_button("Open data")
-            b.on_click(self._guarded("Open data")(lambda c: self._open_frames(self.i_path.value.strip())))
+            b.on_click(self._guarded("Open data")(lambda c: self._on_open_data(c)))
             self.i_step = gui.add_dropdown("Inspect step", ("—",))
             self.i_step.on_update(self._guarded("Step")(lambda c: self._on_frame_changed()))
             self.i_frame = gui.add_slider("Frame", 0, 1, 1, 0)
@@ -260,12 +292,18 @@ class Studio:
             b.on_click(self._guarded("Play registration")(self._on_play_registration))
             self.i_stage_md = gui.add_markdown("")
         with gui.add_folder("Result"):
+            self.i_legend = gui.add_html(_legend_html())
             self.i_metrics = gui.add_markdown("")
-            self.i_image = gui.add_image(np.zeros((48, 64, 3), np.uint8), label="RGB: estimate (green), truth (red)")
+            self.i_pose = gui.add_markdown("")
+            b = gui.add_button("Download pose (JSON)", hint="T_world_part, T_camera_part and T_world_base of the estimate")
+            b.on_click(self._guarded("Download pose")(self._on_download_pose))
+            self.i_image = gui.add_image(np.zeros((48, 64, 3), np.uint8), label="RGB")
+            self.i_full = gui.add_checkbox("Full image", False, hint="show the whole RGB image instead of the part around the object")
+            self.i_full.on_update(self._guarded("Full image")(lambda c: self._draw_overlay()))
         with gui.add_folder("Layers", expand_by_default=False):
-            self.layers = {k: gui.add_checkbox(k, True) for k in ("scene cloud", "target (red)", "source (blue)", "boxes", "camera")}
+            self.layers = {k: gui.add_checkbox(k, True) for k in LAYERS}
             for w in self.layers.values():
-                w.on_update(lambda e: self._apply_layers())
+                w.on_update(self._guarded("Layers")(lambda c: self._apply_layers()))
 
     # ------------------------------------------------------------------------------- assembly side
 
@@ -332,12 +370,20 @@ class Studio:
             self.notify(client, "Units look wrong", "\n".join(warnings), error=True)
 
     def _frame_camera_on_assembly(self) -> None:
-        d = max([self.model(p).diameter for p in self.asm.parts] or [0.1])
-        for c in self.server.get_clients().values():
-            c.camera.position = (1.6 * d, -1.6 * d, 1.2 * d)
-            c.camera.look_at = (0.0, 0.0, 0.0)
-        self.server.initial_camera.position = (1.6 * d, -1.6 * d, 1.2 * d)
-        self.server.initial_camera.look_at = (0.0, 0.0, 0.0)
+        """Frame every part shown in the preview (exploded or not)."""
+        spheres = []
+        for pid, T in self._preview.items():
+            try:
+                m = self.model(pid, self.valid_asm)
+            except (AposeError, KeyError):
+                continue
+            spheres.append((se3.transform_points(T, m.box_corners()).mean(axis=0), m.diameter / 2.0))
+        if not spheres:
+            return
+        centres = np.array([c for c, _ in spheres])
+        centre = (centres.min(axis=0) + centres.max(axis=0)) / 2.0
+        radius = max(float(np.linalg.norm(c - centre)) + r for c, r in spheres)
+        self._look_at(centre, radius, np.array([1.0, -1.0, 0.75]))
 
     def _on_file_action(self, event) -> None:
         action = event.target.value
@@ -348,46 +394,86 @@ class Studio:
         text = self.f_path.value.strip()
         if not text:
             raise AposeError("type the path of an assembly file (on the server) into 'Assembly file' first")
-        self._open_assembly(Path(text).expanduser(), client)
+        self._open_assembly(self.workspace.resolve(text, "assembly file"), client)
         self.notify(client, "Opened", f"{self.asm.name}: {len(self.asm.parts)} parts, {len(self.asm.steps)} steps")
 
     def _on_new(self, client) -> None:
-        folder = Path(self.f_path.value).expanduser().parent if self.f_path.value.strip() else Path.cwd()
+        """A new, empty draft that Save will write to the path typed in 'Assembly file' (a .yaml file that
+        does not exist yet, or a folder to hold untitled.yaml); an existing file is never a new one's target."""
+        text = self.f_path.value.strip()
+        target = self.workspace.resolve(text or "untitled.yaml", "assembly file")
+        if target.is_dir():
+            target = target / "untitled.yaml"
+        if target.suffix.lower() not in (".yaml", ".yml"):
+            raise AposeError(f"{target.name}: a new assembly is saved as a .yaml file; type a path ending in .yaml")
+        if target.exists():
+            raise AposeError(f"{target} already exists: press Open to edit it, or type a new file name for the new "
+                             "assembly into 'Assembly file'")
+        if not target.parent.is_dir():
+            raise AposeError(f"{target.parent}: folder does not exist; create it or type another path")
         for h in self.mesh_handles.values():
             h.remove()
         self.mesh_handles.clear()
         self.step_index = None
-        self.valid_asm = authoring.new_assembly("untitled", self.f_units.value, folder)  # an empty preview
-        name, k = "untitled", 2
-        while (folder / f"{name}.yaml").exists():  # never point Save at a file that is already there
-            name, k = f"untitled_{k}", k + 1
-        self._set_assembly(authoring.new_assembly(name, self.f_units.value, folder), client, quiet=True)
+        name = target.stem
+        self.valid_asm = authoring.new_assembly(name, self.f_units.value, target.parent)  # an empty preview
+        self._set_assembly(authoring.new_assembly(name, self.f_units.value, target.parent), client, quiet=True)
         self.saved_path = None
-        self.f_path.value = str(folder.resolve() / f"{name}.yaml")
+        self.f_path.value = str(target)
+        self.notify(client, "New assembly", f"{name}: add parts, then steps; Save writes {target}")
 
     def _save_target(self) -> Path:
         text = self.f_path.value.strip()
         if not text:
             raise AposeError("type where to save into 'Assembly file' (a .yaml path on the server)")
-        path = Path(text).expanduser().resolve()
+        path = self.workspace.resolve(text, "assembly file")
         if path.suffix.lower() not in (".yaml", ".yml"):
             raise AposeError(f"{path.name}: save as a .yaml file")
         if not path.parent.is_dir():
             raise AposeError(f"{path.parent}: folder does not exist; create it or pick another path")
+        if path.exists() and not path.is_file():
+            raise AposeError(f"{path}: {describe_path(path, 'a .yaml file')}")
         return path
 
     def _require_valid(self) -> None:
         if self.problems:
             raise AssemblyError(self.problems)
 
-    def _on_save(self, client) -> None:
+    def _on_save(self, client, confirmed: bool = False) -> None:
+        """Save the draft (never an invalid one). Replacing a file the studio did not open or save asks
+        first; the replaced version is kept as NAME.yaml.bak."""
         self._require_valid()
-        path = save_assembly(self.asm, self._save_target())
+        path = self._save_target()
+        if path.exists() and path != self.saved_path and not confirmed:
+            self._ask_replace(client, path)
+            return
+        path = save_assembly(self.asm, path, backup=True)
         self.saved_path = path
         self.asm = load_assembly(path)  # what is on disk is what the studio now edits (paths re-anchored)
         self.valid_asm = self.asm
         self._refresh_status()
-        self.notify(client, "Saved", str(path))
+        bak = path.with_name(path.name + ".bak")
+        self.notify(client, "Saved", str(path) + (f" (previous version: {bak.name})" if bak.exists() else ""))
+
+    def _ask_replace(self, client, path: Path) -> None:
+        """A dialog in the tab that pressed Save: replace a file this studio did not open, or not."""
+        if client is None:
+            raise AposeError(f"{path} exists and was not opened here; open it first, or save under another name")
+        with client.gui.add_modal("Replace file?") as modal:
+            client.gui.add_markdown(f"`{esc(path)}` exists, and this studio did not open it. Replace it with the "
+                                    f"draft? The current file is kept as `{esc(path.name)}.bak`.")
+            yes = client.gui.add_button("Replace", color="red")
+            no = client.gui.add_button("Cancel")
+
+        def replace(event) -> None:
+            modal.close()
+            if self.f_path.value.strip() and self._save_target() == path:
+                self._on_save(event.client, confirmed=True)
+            else:
+                raise AposeError("the path in 'Assembly file' changed meanwhile; press Save again")
+
+        yes.on_click(lambda e: self._guarded("Save")(lambda c: replace(e))(e))
+        no.on_click(lambda e: modal.close())
 
     def _on_download(self, client) -> None:
         self._require_valid()
@@ -430,15 +516,15 @@ class Studio:
         text = self.f_mesh.value.strip()
         if not text:
             raise AposeError("type a mesh path or a folder of meshes (on the server) into 'Mesh path or folder'")
-        path = Path(text).expanduser()
+        path = self.workspace.resolve(text, "mesh")
         if path.is_dir():
-            files = sorted(p for p in path.iterdir() if p.suffix.lower() in supported_extensions())
+            files = sorted(p for p in path.iterdir() if p.suffix.lower() in supported_extensions() and p.is_file())
             if not files:
                 raise AposeError(f"{path}: no meshes here ({', '.join(supported_extensions())})")
         elif path.is_file():
             files = [path]
         else:
-            raise AposeError(f"{path}: no such file or folder on the server")
+            raise AposeError(f"{path}: {describe_path(path, 'a mesh file or a folder of meshes')}")
         added, failed = [], []
         for f in files:
             try:
@@ -460,7 +546,7 @@ class Studio:
         name = Path(f.name).name
         if Path(name).suffix.lower() not in supported_extensions():
             raise AposeError(f"{name}: not a mesh format the studio reads ({', '.join(supported_extensions())})")
-        folder = authoring.folder_of(self.asm) / "meshes"
+        folder = self.workspace.resolve(authoring.folder_of(self.asm) / "meshes", "assembly file")
         folder.mkdir(parents=True, exist_ok=True)
         target = folder / name
         k = 2
@@ -477,6 +563,18 @@ class Studio:
             target.unlink(missing_ok=True)  # a corrupt upload leaves nothing behind
             raise
         self.notify(client, "Part uploaded", f"{pid} ← {name} (saved as {target})")
+
+    def _show_part_colour(self) -> None:
+        """The Colour field shows the selected part's colour."""
+        if self.f_part.value not in self.asm.parts:
+            return
+        rgb = tuple(int(round(255 * c)) for c in self.model(self.f_part.value).color)
+        if tuple(self.f_color.value) != rgb:
+            self._syncing = True
+            try:
+                self.f_color.value = rgb
+            finally:
+                self._syncing = False
 
     def _on_color(self, client) -> None:
         if self._syncing or self.f_part.value not in self.asm.parts:
@@ -544,30 +642,29 @@ class Studio:
         if self._syncing or self.step_index is None:
             return
         T = authoring.pose_from_typed(self.f_t.value, self.f_r.value)
-        self._set_pose(T, client, from_typed=True)
+        self._set_pose(T, client)
 
-    def _set_pose(self, T: np.ndarray, client, from_typed: bool = False) -> None:
+    def _set_pose(self, T: np.ndarray, client, sync_fields: bool = False) -> None:
         self.asm = authoring.edit_step(self.asm, self.step_index, T_base_part=T)
         self.problems = authoring.problems(self.asm)
         if not [p for p in self.problems if p.key != "steps"]:
             self.valid_asm = self.asm
-        if not from_typed:
+        if sync_fields:
             self._sync_typed_pose()
         self._refresh_status()
         self._refresh_assembly_scene(move_only=True)
 
-    def _on_gizmo(self, handle) -> None:
+    def _on_gizmo(self, event) -> None:
+        """A drag of the gizmo (viser's TransformControlsEvent: phase start / update / end, the pose in
+        event.target). The part follows every update; the typed fields are rewritten at the end."""
         if self._syncing or self.step_index is None or not self.asm.steps:
             return
-        with self.lock:
-            try:
-                step = self.asm.steps[self.step_index]
-                T_world_base = self._preview[step.base[0]]
-                T = se3.inv(T_world_base) @ se3.make_T(se3.quat_wxyz_to_matrix(handle.wxyz), np.asarray(handle.position))
-                T = authoring.snap_pose(T, float(self.f_snap_mm.value or 0), float(self.f_snap_deg.value or 0))
-                self._set_pose(T, None)
-            except Exception:
-                log.error("gizmo update failed:\n%s", traceback.format_exc())
+        g = event.target
+        step = self.asm.steps[self.step_index]
+        T_world_base = self._preview[step.base[0]]
+        T = se3.inv(T_world_base) @ se3.make_T(se3.quat_wxyz_to_matrix(np.asarray(g.wxyz)), np.asarray(g.position))
+        T = authoring.snap_pose(T, float(self.f_snap_mm.value or 0), float(self.f_snap_deg.value or 0))
+        self._set_pose(T, None, sync_fields=getattr(event, "phase", "end") == "end")
 
     def _make_pose_fields(self, t, e) -> None:
         """(Re)create the typed pose inputs holding `t` (mm) and `e` (°).
@@ -630,6 +727,7 @@ class Studio:
             self.f_upto.max = max(len(asm.steps), 1)
         finally:
             self._syncing = False
+        self._show_part_colour()
         self._refresh_parts_table()
         self._refresh_status()
 
@@ -680,9 +778,20 @@ class Studio:
                 diam[p] = self.model(p, asm).diameter
             except AposeError:
                 pass
-        upto = int(self.f_upto.value)
-        self._preview = authoring.preview_poses(asm, min(upto, len(asm.steps)), diam, float(self.f_explode.value))
+        upto = min(int(self.f_upto.value), len(asm.steps))
+        explode = float(self.f_explode.value)
+        centres = {p: self.model(p, asm).box_corners().mean(axis=0) for p in diam}
+        self._preview = authoring.preview_poses(asm, upto, diam, explode, centres)
         show = self.current_view == "Assembly"
+        for name in [n for n in self.nodes if n.startswith("/assembly/step_label")]:
+            self.nodes.pop(name).remove()
+        if explode > 0:  # the exploded view names each step at its part
+            for i, st in enumerate(asm.steps[:upto]):
+                if st.part in self._preview:
+                    where = se3.transform_points(self._preview[st.part], centres[st.part][None])[0]
+                    name = f"/assembly/step_label_{i}"
+                    self._node(name, self.server.scene.add_label(name, f"{i + 1}. {st.part}", position=tuple(where),
+                                                                 anchor="bottom-center", font_screen_scale=0.8))
         for pid in asm.parts:
             if pid not in diam:
                 continue
@@ -701,6 +810,10 @@ class Studio:
         for pid in [p for p in self.mesh_handles if p not in asm.parts]:
             self.mesh_handles.pop(pid).remove()
         self._place_gizmo()
+
+    def _on_explode(self) -> None:
+        self._refresh_assembly_scene()
+        self._frame_camera_on_assembly()  # the whole assembly stays in view as it spreads out
 
     def _place_gizmo(self) -> None:
         asm = self.valid_asm
@@ -724,7 +837,7 @@ class Studio:
         g = self.nodes.get("/assembly/gizmo")
         if g is None:
             g = self._node("/assembly/gizmo", self.server.scene.add_transform_controls("/assembly/gizmo", scale=0.6 * d))
-            g.on_update(self._on_gizmo)
+            g.on_update(lambda e: self._guarded("Move part")(lambda c: self._on_gizmo(e))(e))
         self._syncing = True
         try:
             g.position, g.wxyz = _pos(T), _wxyz(T)
@@ -738,22 +851,32 @@ class Studio:
 
     # -------------------------------------------------------------------------------- inspect side
 
+    def _on_open_data(self, client) -> None:
+        try:
+            text = self.i_path.value.strip()
+            if not text:
+                raise AposeError("type a dataset folder (from `apose render`) or a capture folder into 'Dataset or capture'")
+            self._open_frames(str(self.workspace.resolve(text, "dataset or capture")), client)
+        except AposeError as e:
+            if self.frames_path is not None:  # say what stays on screen
+                raise AposeError(f"{e}\n(still showing the data opened before: {self.frames_path})") from None
+            raise
+
     def _open_frames(self, text: str, client=None) -> None:
         from .dataset import Dataset, open_frames
 
-        if not text:
-            raise AposeError("type a dataset folder (from `apose render`) or a capture folder into 'Dataset or capture'")
         frames = open_frames(Path(text).expanduser())
+        if isinstance(frames, Dataset):
+            steps = [f"{s}. {frames.assembly.steps[s - 1].part}" for s in frames.steps]
+        else:
+            if not self.valid_asm.steps:
+                raise AposeError("a capture needs an assembly: open one in the Assembly tab first")
+            steps = [f"{i + 1}. {s.part}" for i, s in enumerate(self.valid_asm.steps)]
         self.frames, self.frames_path = frames, str(Path(text).expanduser().resolve())
+        self.result = self.score = None
         self.i_path.value = self.frames_path
         self._syncing = True
         try:
-            if isinstance(frames, Dataset):
-                steps = [f"{s}. {frames.assembly.steps[s - 1].part}" for s in frames.steps]
-            else:
-                if not self.asm.steps:
-                    raise AposeError("a capture needs an assembly: open one in the Assembly tab first")
-                steps = [f"{i + 1}. {s.part}" for i, s in enumerate(self.asm.steps)]
             self.i_step.options = steps
             self.i_step.value = steps[0]
         finally:
@@ -762,26 +885,42 @@ class Studio:
         self._on_frame_changed()
         self._frame_camera_on_frame()
 
+    def _look_at(self, centre: np.ndarray, radius: float, direction: np.ndarray) -> None:
+        """Every tab's camera (and a new tab's) looking at a sphere from `direction`, the sphere filling
+        most of the view."""
+        direction = np.asarray(direction, float) / max(np.linalg.norm(direction), 1e-9)
+        clients = list(self.server.get_clients().values())
+        for c in clients + [None]:
+            cam = c.camera if c is not None else self.server.initial_camera
+            fov = float(getattr(cam, "fov", 0.0) or np.radians(50.0))
+            eye = centre + direction * (radius / np.sin(fov / 2.0)) * 1.1
+            cam.position, cam.look_at = tuple(float(v) for v in eye), tuple(float(v) for v in centre)
+
     def _frame_camera_on_frame(self) -> None:
-        """Look at the base object from a little behind and above the dataset's camera."""
+        """Frame the object under inspection (its mask, else the estimate's points, else the middle of the
+        depth image), seen from beside and above the dataset's camera so its frustum does not block the view."""
         fr = self.frame
         if fr is None:
             return
-        mask = fr.base_mask()
         from .register import project_to_cloud
 
-        pts = project_to_cloud(fr.depth, mask if mask.any() else np.isfinite(fr.depth) & (fr.depth > 0),
-                               fr.camera, fr.T_world_camera)
+        mask = fr.base_mask()
+        if not mask.any() and self.result is not None and len(self.result.target_cloud):
+            pts = self.result.target_cloud
+        else:
+            if not mask.any():
+                h, w = fr.depth.shape
+                mask = np.zeros_like(mask)
+                mask[h // 3: 2 * h // 3, w // 3: 2 * w // 3] = True
+            pts = project_to_cloud(fr.depth, mask & np.isfinite(fr.depth) & (fr.depth > 0), fr.camera, fr.T_world_camera)
         if not len(pts):
             return
         centre = np.median(pts, axis=0)
-        # from beside the dataset's camera (turned 50° about the vertical through the base), so the
-        # frustum and its image are seen from the side instead of blocking the view
-        offset = se3.axis_angle_matrix([0.0, 0.0, 1.0], np.radians(50.0)) @ (fr.T_world_camera[:3, 3] - centre)
-        eye = centre + 1.1 * offset
-        for c in self.server.get_clients().values():
-            c.camera.position, c.camera.look_at = tuple(eye), tuple(centre)
-        self.server.initial_camera.position, self.server.initial_camera.look_at = tuple(eye), tuple(centre)
+        radius = max(float(np.percentile(np.linalg.norm(pts - centre, axis=1), 95)), 0.02)
+        to_camera = fr.T_world_camera[:3, 3] - centre
+        direction = se3.axis_angle_matrix([0.0, 0.0, 1.0], np.radians(35.0)) @ to_camera
+        direction[2] = max(direction[2], 0.6 * np.linalg.norm(direction[:2]))  # from above the table
+        self._look_at(centre, 1.3 * radius, direction)
 
     def _inspect_assembly(self) -> Assembly:
         from .dataset import Dataset
@@ -908,7 +1047,7 @@ class Studio:
         text = self.i_model.value.strip()
         if not text:
             raise AposeError("type the path of a model file (.pt) from `apose train-seg` into 'Mask model (.pt)'")
-        path = check_mask_source(str(Path(text).expanduser()), self._inspect_assembly())
+        path = check_mask_source(str(self.workspace.resolve(text, "mask model")), self._inspect_assembly())
         options = list(self.i_mask.options)
         if path not in options:
             self.i_mask.options = options + [path]
@@ -954,13 +1093,13 @@ class Studio:
             self.notify(client, "Estimated", f"{len(ids)} frame(s) in {dt:.1f} s")
 
     def _draw_frame(self) -> None:
+        """The frame and its estimate in the 3D view (each thing in its legend colour, labelled) and the
+        RGB overlay in the panel."""
         fr = self.frame
         scene = self.server.scene
         cam = fr.camera
         asm = self._inspect_assembly()
-        step = self._current_step()
-        part_model = self._inspect_models()[asm.steps[step - 1].part]
-        # camera frustum with the (thumbnail) image
+        part_model = self._inspect_models()[asm.steps[self._current_step() - 1].part]
         small = fr.rgb[::2, ::2] if fr.rgb.shape[1] > 400 else fr.rgb
         fov = 2.0 * np.arctan2(cam.height / 2.0, cam.fy)
         Tc = fr.T_world_camera
@@ -968,36 +1107,47 @@ class Studio:
                                                                scale=0.03, image=small, format="jpeg", jpeg_quality=80,
                                                                wxyz=_wxyz(Tc), position=_pos(Tc), color=(60, 60, 60)))
         pts, cols = inspection.scene_cloud(fr.depth, fr.rgb, cam, Tc)
-        self._node("/inspect/scene", scene.add_point_cloud("/inspect/scene", pts, cols, point_size=0.001, point_shape="circle"))
-        boxes = []
-        segs = []
-        if part_model is not None:
-            corners = part_model.box_corners()
-            if fr.T_world_part is not None:
-                boxes.append((fr.T_world_part, inspection.RED))
-                segs.append(("/inspect/box_gt", inspection.box_segments(corners, fr.T_world_part), inspection.RED))
-            if self.result is not None and self.result.ok:
-                boxes.append((self.result.T_world_part, inspection.GREEN))
-                segs.append(("/inspect/box_est", inspection.box_segments(corners, self.result.T_world_part), inspection.GREEN))
-                alts = [c.T_world_part for c in self.result.alternatives]
-                boxes += [(T, inspection.MAGENTA) for T in alts]
-                if alts:
-                    segs.append(("/inspect/box_alt", np.concatenate([inspection.box_segments(corners, T) for T in alts]),
-                                 inspection.MAGENTA))
-            image = inspection.draw_boxes(fr.rgb, cam, Tc, corners, boxes)
-        else:
-            image = fr.rgb
-        for name in ("/inspect/box_gt", "/inspect/box_est", "/inspect/box_alt", "/inspect/target", "/inspect/source"):
+        stride = max(1, int(np.ceil(np.sqrt(fr.depth.size / 60000))))
+        footprint = float(np.median(se3.transform_points(se3.inv(Tc), pts)[:, 2])) / cam.fx * stride if len(pts) else 0.001
+        self._node("/inspect/scene", scene.add_point_cloud("/inspect/scene", pts, cols, point_size=footprint,
+                                                           point_shape="circle"))
+        for name in [n for n in self.nodes if n.startswith(("/inspect/box_", "/inspect/label_", "/inspect/ghost"))] + [
+                "/inspect/target", "/inspect/source"]:
             if name in self.nodes:
                 self.nodes.pop(name).remove()
-        for name, seg, colour in segs:
-            self._node(name, scene.add_line_segments(name, seg.astype(np.float32), colour, thickness=3.0,
-                                                     thickness_units="screen"))
-        self.i_image.image = image
         r = self.result
+        corners = part_model.box_corners()
+        d = part_model.diameter
+        labels = []
+        if fr.T_world_part is not None:  # truth: amber, dashed, a little outside so it never z-fights the estimate
+            seg = inspection.dashed(inspection.box_segments(inspection.inflate(corners, 0.03), fr.T_world_part))
+            self._node("/inspect/box_gt", scene.add_line_segments("/inspect/box_gt", seg.astype(np.float32), inspection.AMBER,
+                                                                  thickness=4.0, thickness_units="screen"))
+            labels.append(("truth", se3.transform_points(fr.T_world_part, corners).min(axis=0), "top-right"))
+        if r is not None and r.ok:
+            seg = inspection.box_segments(corners, r.T_world_part)
+            self._node("/inspect/box_est", scene.add_line_segments("/inspect/box_est", seg.astype(np.float32), inspection.GREEN,
+                                                                   thickness=3.0, thickness_units="screen"))
+            labels.append(("estimate", se3.transform_points(r.T_world_part, corners).max(axis=0), "bottom-left"))
+            alts = [c.T_world_part for c in r.alternatives]
+            if alts:
+                seg = np.concatenate([inspection.box_segments(corners, T) for T in alts])
+                self._node("/inspect/box_alt", scene.add_line_segments("/inspect/box_alt", seg.astype(np.float32),
+                                                                       inspection.MAGENTA, thickness=2.0, thickness_units="screen"))
+                labels.append(("alternative", se3.transform_points(alts[0], corners).max(axis=0), "bottom-left"))
+            mesh = part_model.mesh
+            self._node("/inspect/ghost", scene.add_mesh_simple(
+                "/inspect/ghost", mesh.vertices.astype(np.float32), mesh.faces.astype(np.uint32), color=inspection.GREEN,
+                opacity=0.45, wxyz=_wxyz(r.T_world_part), position=_pos(r.T_world_part)))
         if r is not None and len(r.target_cloud):
-            self._node("/inspect/target", scene.add_point_cloud("/inspect/target", inspection.thin(r.target_cloud, 20000).astype(np.float32),
-                                                                inspection.RED, point_size=0.002, point_shape="circle"))
+            tgt = inspection.thin(r.target_cloud, 20000).astype(np.float32)
+            self._node("/inspect/target", scene.add_point_cloud("/inspect/target", tgt, inspection.RED, point_size=d / 250,
+                                                                point_shape="circle"))
+            labels.append(("target cloud", tgt[np.argmax(tgt[:, 2])], "bottom-right"))
+        for k, (text, where, anchor) in enumerate(labels):
+            name = f"/inspect/label_{k}"
+            self._node(name, scene.add_label(name, text, position=tuple(float(v) for v in where), anchor=anchor,
+                                             font_screen_scale=0.8))
         self.stages = inspection.replay(r) if (r is not None and r.ok) else []
         self._syncing = True
         try:
@@ -1008,7 +1158,50 @@ class Studio:
             self._syncing = False
         self._show_stage()
         self.i_metrics.content = inspection.metrics_markdown(self.score, r)
+        self.i_pose.content = inspection.pose_markdown(inspection.pose_report(r, Tc)) if (r is not None and r.ok) else ""
+        self._draw_overlay()
         self._apply_layers()
+
+    def _draw_overlay(self) -> None:
+        """The RGB image with the boxes drawn, cropped around the object unless 'Full image' is ticked."""
+        fr, r = self.frame, self.result
+        if fr is None:
+            return
+        asm = self._inspect_assembly()
+        corners = self._inspect_models()[asm.steps[self._current_step() - 1].part].box_corners()
+        boxes = []  # earlier boxes are drawn thicker: truth under estimate
+        if fr.T_world_part is not None:
+            boxes.append((fr.T_world_part, inspection.AMBER))
+        if r is not None and r.ok:
+            boxes.append((r.T_world_part, inspection.GREEN))
+            boxes += [(c.T_world_part, inspection.MAGENTA) for c in r.alternatives]
+        image = inspection.draw_boxes(fr.rgb, fr.camera, fr.T_world_camera, corners, boxes)
+        if not self.i_full.value:
+            uv = np.concatenate([inspection.project_points(se3.transform_points(T, corners), fr.T_world_camera, fr.camera)[0]
+                                 for T, _ in boxes]) if boxes else np.zeros((0, 2))
+            mask = fr.base_mask()
+            if mask.any():
+                vs, us = np.nonzero(mask)
+                uv = np.concatenate([uv, np.stack([us, vs], axis=1)[:: max(1, len(us) // 500)]])
+            x0, y0, x1, y1 = inspection.crop_window(fr.rgb.shape[:2], uv)
+            image = image[y0:y1, x0:x1]
+        self.i_image.image = image
+        truth = ", truth (amber)" if fr.T_world_part is not None else ""
+        self.i_image.label = f"RGB: estimate (green){truth}" if boxes else "RGB"
+
+    def _on_download_pose(self, client) -> None:
+        import json
+
+        r = self.result
+        if r is None or not r.ok or self.frame is None:
+            raise AposeError("no estimate on this frame yet: press Estimate frame first")
+        report = inspection.pose_report(r, self.frame.T_world_camera)
+        report.update({"source": self.frames_path, "step": self._current_step(), "frame": int(self.frame.im_id),
+                       "units": "metres (matrices), mm (translation_mm)"})
+        if client is None:
+            raise AposeError("no browser to send the download to")
+        client.send_file_download(f"pose_step{self._current_step()}_frame{self.frame.im_id}.json",
+                                  json.dumps(report, indent=1).encode("utf-8"))
 
     def _show_stage(self) -> None:
         if self._syncing:
@@ -1018,9 +1211,10 @@ class Studio:
             return
         k = int(np.clip(self.i_stage.value, 0, len(self.stages) - 1))
         s = self.stages[k]
+        d = self._inspect_models()[self._inspect_assembly().steps[self._current_step() - 1].part].diameter
         self._node("/inspect/source", self.server.scene.add_point_cloud(
-            "/inspect/source", s.source_world, inspection.BLUE, point_size=0.002, point_shape="circle"),
-            visible=bool(self.layers["source (blue)"].value))
+            "/inspect/source", s.source_world, inspection.BLUE, point_size=d / 250, point_shape="circle"),
+            visible=bool(self.layers["source cloud"].value))
         self.i_stage_md.content = (f"**{s.name}** ({k + 1}/{len(self.stages)}): fitness {s.fitness:.3f}, "
                                    f"inlier RMSE {s.inlier_rmse * 1000:.2f} mm")
 
@@ -1037,9 +1231,10 @@ class Studio:
         threading.Thread(target=play, daemon=True).start()
 
     def _apply_layers(self) -> None:
-        which = {"/inspect/scene": "scene cloud", "/inspect/target": "target (red)", "/inspect/source": "source (blue)",
+        which = {"/inspect/scene": "scene cloud", "/inspect/target": "target cloud", "/inspect/source": "source cloud",
                  "/inspect/box_gt": "boxes", "/inspect/box_est": "boxes", "/inspect/box_alt": "boxes",
-                 "/inspect/camera": "camera"}
+                 "/inspect/ghost": "part at estimate", "/inspect/camera": "camera"}
+        which.update({n: "labels" for n in self.nodes if n.startswith("/inspect/label_")})
         for name, layer in which.items():
             if name in self.nodes:
                 h = self.nodes[name]
@@ -1047,14 +1242,33 @@ class Studio:
                 h.visible = h._apose_visible and self.current_view == "Inspect"
 
 
-def serve(assembly=None, dataset=None, host: str = "127.0.0.1", port: int = 8080, cache=None):
-    """Start the studio in the background; returns (server, studio). `server.stop()` ends it."""
-    import viser
+def default_workspace(assembly=None, dataset=None, root=None) -> Workspace:
+    """The folders the page may name: `root` if given, else the current directory, or the assembly
+    file's folder when the file lies outside it; a dataset given at start is always readable."""
+    if root is None:
+        cwd = Path.cwd().resolve()
+        folder = Path(assembly).expanduser().resolve().parent if assembly is not None else cwd
+        root = cwd if folder.is_relative_to(cwd) else folder
+    return Workspace.of(root, dataset)
 
-    server = viser.ViserServer(host=host, port=port, label="apose studio", verbose=False)
+
+def serve(assembly=None, dataset=None, host: str = "127.0.0.1", port: int = 8080, cache=None, root=None,
+          token: str | None = None):
+    """Start the studio in the background; returns (server, studio). `server.stop()` ends it.
+
+    Only the studio's own page may connect (Origin check). Bound beyond loopback, the page and its
+    websocket need `token` (made up when None); `studio.url` is the address to open."""
+    from .webguard import is_loopback_bind, new_token, start_viser, studio_url
+
+    if not 0 < int(port) < 65536:
+        raise AposeError(f"--port {port}: expected a port number from 1 to 65535")
+    if token is None and not is_loopback_bind(host):
+        token = new_token()
+    server = start_viser(host, port, token)
     try:
-        studio = Studio(server, assembly, dataset, cache)
+        studio = Studio(server, assembly, dataset, cache, default_workspace(assembly, dataset, root))
     except BaseException:
         server.stop()
         raise
+    studio.url = studio_url(host, server.get_port(), token)
     return server, studio

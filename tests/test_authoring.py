@@ -80,6 +80,12 @@ def test_preview_places_parts_up_to_a_step(tiny_dir):
     full = authoring.preview_poses(asm, 2, d)
     np.testing.assert_allclose(full["cap"], asm.T_root_part("cap"))
     exploded = authoring.preview_poses(asm, 2, d, explode=1.0)
-    # exploded parts move away from the root's centre; the root stays
+    # each placed part moves out along its step's insertion direction (the axis of base[0]'s frame nearest
+    # to base centre -> part centre), a part placed on a moved part moves with it; the root stays
     np.testing.assert_allclose(exploded["plate"], full["plate"])
-    assert np.linalg.norm(exploded["cap"][:3, 3]) > np.linalg.norm(full["cap"][:3, 3]) + 0.01
+    peg_up = exploded["peg"][:3, 3] - full["peg"][:3, 3]  # peg at (10, 0, 5) mm on the plate: along +x
+    np.testing.assert_allclose(peg_up / np.linalg.norm(peg_up), [1, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(peg_up), 0.07 * 1 / 2)
+    cap_move = exploded["cap"][:3, 3] - full["cap"][:3, 3]  # cap at (0, 10, 0) in the peg's frame, turned 90° about z
+    np.testing.assert_allclose(cap_move - peg_up, asm.T_root_part("peg")[:3, :3] @ [0, 0.07 * 2 / 2, 0], atol=1e-12)
+    np.testing.assert_allclose(authoring.insertion_direction(asm, 0), [1, 0, 0])

@@ -167,10 +167,53 @@ def test_bad_inputs_are_refused(planetary, tmp_path):
     (full / "mine.txt").write_text("precious")
     with pytest.raises(AposeError, match="folder is not empty; .* --overwrite"):
         render_dataset(asm, full, ok, progress=False, models=models)
-    render_dataset(asm, full, ok, steps=[1], overwrite=True, progress=False, models=models)
-    assert (full / "mine.txt").read_text() == "precious"  # --overwrite replaces only the dataset
-    with pytest.raises(AposeError, match="cannot write here"):  # a file where a folder must go
+    with pytest.raises(AposeError, match=r"holds files that no apose render wrote \(mine.txt\)"):
+        render_dataset(asm, full, ok, steps=[1], overwrite=True, progress=False, models=models)
+    assert sorted(p.name for p in full.iterdir()) == ["mine.txt"] and (full / "mine.txt").read_text() == "precious"
+    with pytest.raises(AposeError, match="cannot create this folder"):  # a file where a folder must go
         render_dataset(asm, blocker / "ds", ok, progress=False, models=models)
+
+
+def test_overwrite_deletes_only_the_datasets_own_files(planetary, tmp_path):
+    """--overwrite (and the demo) replace a dataset; a user's file anywhere inside stops them, untouched."""
+    asm, models = planetary
+    ok = RenderSettings(frames=2, seed=1, noise="none")
+    out = tmp_path / "ds"
+    render_dataset(asm, out, ok, steps=[1, 2], progress=False, models=models)
+    import json
+
+    listed = json.loads((out / "dataset_info.json").read_text())["files"]
+    on_disk = sorted(p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file())
+    assert sorted(listed + ["dataset_info.json"]) == on_disk and "test/000001/scene_gt.json" in listed
+    for mine in ("test/test_mine.py", "models/my_model.bin"):
+        (out / mine).write_text("precious")
+        with pytest.raises(AposeError, match=mine.replace(".", r"\.")):
+            render_dataset(asm, out, ok, steps=[1], overwrite=True, progress=False, models=models)
+        assert (out / mine).read_text() == "precious" and (out / "test/000002/scene_gt.json").is_file()
+        (out / mine).unlink()
+    render_dataset(asm, out, ok, steps=[1], overwrite=True, progress=False, models=models)
+    assert not (out / "test/000002").exists()  # the old dataset's step 2 went with it
+    assert (out / "test/000001/scene_gt.json").is_file()
+
+
+def test_a_second_render_into_the_same_folder_is_refused(planetary, tmp_path):
+    import os
+
+    from apose_studio.dataset import OutputLock
+
+    asm, models = planetary
+    out = tmp_path / "race"
+    out.mkdir()
+    (out / ".apose-render.lock").write_text(str(os.getppid()))  # a live process holds it
+    with pytest.raises(AposeError, match=f"in use by PID {os.getppid()}"):
+        render_dataset(asm, out, RenderSettings(frames=1, noise="none"), steps=[1], progress=False, models=models)
+    (out / ".apose-render.lock").write_text("999999999")  # a process that is gone: the lock is taken over
+    render_dataset(asm, out, RenderSettings(frames=1, noise="none"), steps=[1], progress=False, models=models)
+    assert not (out / ".apose-render.lock").exists()
+    with OutputLock(out):
+        with pytest.raises(AposeError, match="in use by PID"):  # while this process renders there
+            with OutputLock(out):
+                pass
 
 
 def test_interrupted_render_leaves_finished_frames_readable(planetary, tmp_path, monkeypatch):

@@ -21,11 +21,11 @@ class Click:
 
 
 @pytest.fixture
-def studio(monkeypatch):
+def studio(monkeypatch, tmp_path):
     made = []
 
-    def start(assembly=None, dataset=None):
-        server, st = serve(assembly, dataset, host="127.0.0.1", port=free_port())
+    def start(assembly=None, dataset=None, root=tmp_path):
+        server, st = serve(assembly, dataset, host="127.0.0.1", port=free_port(), root=root)
         st.notes = []
         monkeypatch.setattr(st, "notify", lambda client, title, body, error=False: st.notes.append((title, body, error)))
         made.append(server)
@@ -71,7 +71,7 @@ def test_open_add_step_type_pose_save(studio, gearbox_copy, tmp_path):
     assert on_disk["steps"][3]["part"] == "pin" and on_disk["steps"][3]["pose_in_base"]["translation"] == [5, -2.5, 30]
     back = load_assembly(gearbox_copy)
     np.testing.assert_allclose(back.steps[3].T_base_part, T, atol=1e-9)
-    assert ("Saved", str(gearbox_copy.resolve()), False) in st.notes
+    assert ("Saved", f"{gearbox_copy.resolve()} (previous version: assembly.yaml.bak)", False) in st.notes
 
 
 def test_gizmo_drag_updates_the_typed_pose_with_snapping(studio, gearbox_copy):
@@ -82,7 +82,14 @@ def test_gizmo_drag_updates_the_typed_pose_with_snapping(studio, gearbox_copy):
     T_world_base = st._preview["casing"]
     T = T_world_base @ se3.make_T(se3.euler_deg_to_matrix([0, 0, 31.0], "xyz"), np.array([0.01234, 0.0, 0.0147]))
     g._impl.wxyz, g._impl.position = se3.matrix_to_quat_wxyz(T[:3, :3]), T[:3, 3]
-    st._on_gizmo(g)  # what viser calls when the user drags
+    from viser._scene_handles import TransformControlsEvent  # what viser passes (tests/e2e drags with the mouse)
+
+    for cb in g._impl_aux.update_cb:
+        cb(TransformControlsEvent(client=None, client_id=None, target=g, phase="update"))
+    np.testing.assert_allclose(st.asm.steps[0].T_base_part[:3, 3], [0.0125, 0, 0.0145], atol=1e-9)  # moves at once
+    for cb in g._impl_aux.update_cb:
+        cb(TransformControlsEvent(client=None, client_id=None, target=g, phase="end"))
+    assert errors(st) == []
     np.testing.assert_allclose(st.f_t.value, (12.5, 0.0, 14.5), atol=1e-6)  # snapped to 0.5 mm
     np.testing.assert_allclose(st.f_r.value, (0.0, 0.0, 30.0), atol=1e-6)  # and to 5°
     np.testing.assert_allclose(st.asm.steps[0].T_base_part[:3, 3], [0.0125, 0, 0.0145], atol=1e-9)
@@ -151,9 +158,10 @@ def test_inspect_estimate_replay_and_cache(studio, gearbox_dataset):
     st.i_stage.value = 0
     first = st.nodes["/inspect/source"].points
     assert np.abs(first - final).max() > 0 and "initial" in st.i_stage_md.content
-    # the 2D view draws both boxes: green and red pixels appear on the RGB
+    # the 2D view draws both boxes: green (estimate) and amber (truth) pixels appear on the RGB
     img = st.i_image.image
-    assert ((img[..., 1] > 150) & (img[..., 0] < 80)).any() and ((img[..., 0] > 200) & (img[..., 1] < 60)).any()
+    assert ((img[..., 1] > 150) & (img[..., 0] < 80)).any()
+    assert ((img[..., 0] > 230) & (img[..., 1] > 130) & (img[..., 1] < 190) & (img[..., 2] < 50)).any()
     st.i_frame.value = 1
     assert st.result is not None and st.frame.im_id == 1  # cached: no estimation needed
 
@@ -234,11 +242,17 @@ def test_capture_with_depth_masks_and_model_choice(studio, capture, tmp_path):
 def test_new_assembly_never_overwrites_the_open_file(studio, gearbox_copy):
     st = studio(gearbox_copy)
     before = gearbox_copy.read_text()
+    act(st, st._on_new)  # 'Assembly file' still names the open file: refused, nothing changes
+    assert "already exists: press Open to edit it" in errors(st)[-1][1] and len(st.asm.parts) == 4
+    st.f_path.value = str(gearbox_copy.parent / "fixture.yaml")  # New uses the typed path
     act(st, st._on_new)
-    assert st.asm.parts == {} and Path(st.f_path.value) == gearbox_copy.parent.resolve() / "untitled.yaml"
+    assert st.asm.parts == {} and st.asm.name == "fixture" and Path(st.f_path.value) == gearbox_copy.parent.resolve() / "fixture.yaml"
     act(st, st._on_save)  # an empty assembly is refused, and the sample is untouched
     assert "no parts yet" in errors(st)[-1][1] and gearbox_copy.read_text() == before
-    assert not (gearbox_copy.parent / "untitled.yaml").exists()
+    assert not (gearbox_copy.parent / "fixture.yaml").exists()
+    st.f_path.value = str(gearbox_copy.parent)  # a folder: untitled.yaml in it
+    act(st, st._on_new)
+    assert Path(st.f_path.value) == gearbox_copy.parent.resolve() / "untitled.yaml"
 
 
 def test_crop_box_limits_depth_masks(studio, gearbox_dataset):

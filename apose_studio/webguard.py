@@ -1,0 +1,137 @@
+"""Who may drive the studio, and which files it may touch.
+
+viser 1.1 accepts a websocket from any web page: a page on another site (or on another port of this
+machine) that the user happens to visit could open `ws://127.0.0.1:8080` and press Open or Save. This
+module closes that hole the way Jupyter does:
+
+- **Origin check**: the websocket is accepted only from the studio's own page (same host and port;
+  `localhost`, `127.0.0.1` and `[::1]` count as one host). Bound to loopback, the Host header must
+  also name loopback, so a DNS-rebinding page (evil.example resolving to 127.0.0.1) is refused too.
+- **Token**: bound beyond loopback, the page and its websocket live under `/t/<token>/`, a secret the
+  command prints; without it, nothing but a "needs the token" page is served.
+- **Workspace**: file paths typed into the page resolve inside a few root folders (`--root`).
+
+viser offers no hook for the first two, so `start_viser` wraps the request hook of the websockets
+server while viser starts it (the one place that touches viser's internals for this).
+"""
+
+from __future__ import annotations
+
+import http
+import secrets
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from urllib.parse import urlsplit
+
+from .errors import AposeError
+
+LOOPBACK_HOSTS = frozenset({"localhost", "127.0.0.1", "::1"})
+_START_LOCK = threading.Lock()
+
+
+def is_loopback_bind(host: str) -> bool:
+    return host in LOOPBACK_HOSTS or host.startswith("127.")
+
+
+def _host_port(netloc: str, default_port: int | None) -> tuple[str, int | None]:
+    """('127.0.0.1', 8080) from '127.0.0.1:8080'; IPv6 brackets removed; names lower-cased."""
+    parts = urlsplit("//" + netloc)
+    try:
+        port = parts.port
+    except ValueError:
+        return "", None
+    return (parts.hostname or "").lower(), port if port is not None else default_port
+
+
+def _loopback(name: str) -> bool:
+    return name in LOOPBACK_HOSTS or name.startswith("127.")
+
+
+def refusal(*, path: str, host_header: str | None, origin: str | None, port: int, bound_loopback: bool,
+            token: str | None, websocket: bool) -> str | None:
+    """Why a request must be refused, or None to let it through (pure; the rules of the module doc)."""
+    if token is not None and not (path == f"/t/{token}" or path.startswith(f"/t/{token}/")
+                                  or path.startswith(f"/t/{token}?")):
+        return "this studio needs its token: open the address that `apose studio` printed (it ends in /t/<token>/)"
+    host, host_port = _host_port(host_header or "", 80)
+    if bound_loopback and not _loopback(host):
+        return f"refused: the studio listens on this machine only, and Host {host_header!r} is not a loopback name"
+    if not websocket:
+        return None
+    if not origin:
+        return "refused: a websocket without an Origin header (only the studio's own page may connect)"
+    o = urlsplit(origin)
+    o_host, o_port = _host_port(o.netloc, {"http": 80, "https": 443}.get(o.scheme))
+    same_host = o_host == host or (_loopback(o_host) and _loopback(host))
+    if o.scheme not in ("http", "https") or not same_host or o_port != port:
+        return f"refused: Origin {origin!r} is not the studio's own page"
+    return None
+
+
+def new_token() -> str:
+    return secrets.token_urlsafe(24)
+
+
+def start_viser(host: str, port: int, token: str | None, label: str = "apose studio"):
+    """A viser server whose websockets and page go through `refusal` first."""
+    import viser
+    import websockets.asyncio.server as wss
+
+    original = wss.serve
+    bound_loopback = is_loopback_bind(host)
+
+    def serve(handler, *args, process_request=None, **kwargs):
+        def guarded(connection, request):
+            websocket = request.headers.get("Upgrade", "").lower() == "websocket"
+            reason = refusal(path=request.path, host_header=request.headers.get("Host"),
+                             origin=request.headers.get("Origin"), port=connection.local_address[1],
+                             bound_loopback=bound_loopback, token=token, websocket=websocket)
+            if reason is not None:
+                return connection.respond(http.HTTPStatus.FORBIDDEN, reason + "\n")
+            if token is not None and not websocket:  # the page lives under /t/<token>/
+                from websockets.http11 import Request
+
+                rest = request.path[len(f"/t/{token}"):] or "/"
+                request = Request(rest, request.headers)
+            return process_request(connection, request) if process_request is not None else None
+
+        return original(handler, *args, process_request=guarded, **kwargs)
+
+    with _START_LOCK:  # viser starts its server inside the constructor; only that call sees the wrapper
+        wss.serve = serve
+        try:
+            return viser.ViserServer(host=host, port=port, label=label, verbose=False)
+        finally:
+            wss.serve = original
+
+
+def studio_url(host: str, port: int, token: str | None) -> str:
+    shown = "127.0.0.1" if host in ("0.0.0.0", "::", "") else host
+    return f"http://{shown}:{port}/" + (f"t/{token}/" if token else "")
+
+
+# --------------------------------------------------------------------------------------- files
+
+
+@dataclass(frozen=True)
+class Workspace:
+    """The folders whose files the studio's page may name. Paths typed into the page resolve here."""
+
+    roots: tuple[Path, ...]
+
+    @classmethod
+    def of(cls, *folders) -> "Workspace":
+        return cls(tuple(dict.fromkeys(Path(f).expanduser().resolve() for f in folders if f is not None)))
+
+    def resolve(self, text: str | Path, what: str = "file") -> Path:
+        """The absolute path, or an AposeError naming the workspace when it lies outside."""
+        p = Path(text).expanduser()
+        if not p.is_absolute():
+            p = self.roots[0] / p
+        p = p.resolve()
+        if not any(p == r or p.is_relative_to(r) for r in self.roots):
+            where = ", ".join(str(r) for r in self.roots)
+            raise AposeError(f"{p}: outside the studio's workspace ({where}); the studio reads and writes only "
+                             f"there. Move the {what} in, or restart with --root covering it.")
+        return p
