@@ -32,7 +32,7 @@ def folder_of(asm: Assembly) -> Path:
 
 def unique_part_id(asm: Assembly, wanted: str) -> str:
     """A valid, unused part id from a file name ('Left Gear.stl' -> 'left_gear', then 'left_gear_2')."""
-    base = re.sub(r"[^0-9a-zA-Z_]+", "_", wanted).strip("_").lower() or "part"
+    base = re.sub(r"[^0-9a-zA-Z_]+", "_", wanted).strip("_").lower()[:48] or "part"  # fits assembly.PART_ID
     pid, k = base, 2
     while pid in asm.parts:
         pid, k = f"{base}_{k}", k + 1

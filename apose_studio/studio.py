@@ -14,6 +14,7 @@ import logging
 import threading
 import time
 import traceback
+from dataclasses import dataclass
 from functools import wraps
 from pathlib import Path
 
@@ -460,8 +461,8 @@ class Studio:
         if client is None:
             raise AposeError(f"{path} exists and was not opened here; open it first, or save under another name")
         with client.gui.add_modal("Replace file?") as modal:
-            client.gui.add_markdown(f"`{esc(path)}` exists, and this studio did not open it. Replace it with the "
-                                    f"draft? The current file is kept as `{esc(path.name)}.bak`.")
+            client.gui.add_markdown(f"**{esc(path)}** exists, and this studio did not open it. Replace it with the "
+                                    f"draft? The current file is kept as {esc(path.name)}.bak.")
             yes = client.gui.add_button("Replace", color="red")
             no = client.gui.add_button("Cancel")
 
@@ -642,9 +643,9 @@ class Studio:
         if self._syncing or self.step_index is None:
             return
         T = authoring.pose_from_typed(self.f_t.value, self.f_r.value)
-        self._set_pose(T, client)
+        self._set_pose(T, client, sync_fields=False)
 
-    def _set_pose(self, T: np.ndarray, client, sync_fields: bool = False) -> None:
+    def _set_pose(self, T: np.ndarray, client, sync_fields: bool = True) -> None:
         self.asm = authoring.edit_step(self.asm, self.step_index, T_base_part=T)
         self.problems = authoring.problems(self.asm)
         if not [p for p in self.problems if p.key != "steps"]:
@@ -652,7 +653,7 @@ class Studio:
         if sync_fields:
             self._sync_typed_pose()
         self._refresh_status()
-        self._refresh_assembly_scene(move_only=True)
+        self._refresh_assembly_scene(gizmo=sync_fields)  # mid-drag, the gizmo stays where the hand puts it
 
     def _on_gizmo(self, event) -> None:
         """A drag of the gizmo (viser's TransformControlsEvent: phase start / update / end, the pose in
@@ -664,7 +665,7 @@ class Studio:
         T_world_base = self._preview[step.base[0]]
         T = se3.inv(T_world_base) @ se3.make_T(se3.quat_wxyz_to_matrix(np.asarray(g.wxyz)), np.asarray(g.position))
         T = authoring.snap_pose(T, float(self.f_snap_mm.value or 0), float(self.f_snap_deg.value or 0))
-        self._set_pose(T, None, sync_fields=getattr(event, "phase", "end") == "end")
+        self._set_pose(T, None, sync_fields=event.phase == "end")
 
     def _make_pose_fields(self, t, e) -> None:
         """(Re)create the typed pose inputs holding `t` (mm) and `e` (°).
@@ -737,12 +738,12 @@ class Studio:
             try:
                 m = self.model(pid)
             except AposeError as e:
-                rows.append(f"<tr><td>{pid}</td><td colspan=4 style='color:#c00'>{e}</td></tr>")
+                rows.append(f"<tr><td>{esc(pid)}</td><td colspan=4 style='color:#c00'>{esc(e)}</td></tr>")
                 continue
             size = " × ".join(f"{v * 1000:.1f}" for v in m.size)
-            warn = f"<br><span style='color:#c60'>⚠ {m.unit_warning}</span>" if m.unit_warning else ""
+            warn = f"<br><span style='color:#c60'>⚠ {esc(m.unit_warning)}</span>" if m.unit_warning else ""
             rows.append(f"<tr><td><span style='display:inline-block;width:10px;height:10px;background:{_hex(m.color)};"
-                        f"border-radius:2px'></span> {pid}</td><td>{part.mesh.name}</td><td>{self.asm.units}</td>"
+                        f"border-radius:2px'></span> {esc(pid)}</td><td>{esc(part.mesh.name)}</td><td>{esc(self.asm.units)}</td>"
                         f"<td>{size}{warn}</td></tr>")
         body = "".join(rows) or "<tr><td colspan=4><i>no parts yet: add a mesh path, a folder, or upload</i></td></tr>"
         self.parts_html.content = (
@@ -756,20 +757,20 @@ class Studio:
             style = "background:#fde2e2;" if i in bad else ("background:#e3ecfc;" if i == self.step_index else "")
             mark = "⚠ " if i in bad else ("▶ " if i == self.step_index else "")
             t = s.T_base_part[:3, 3] * 1000
-            rows.append(f"<tr style='{style}'><td>{mark}{i + 1}</td><td>{s.part}</td><td>{', '.join(s.base)}</td>"
+            rows.append(f"<tr style='{style}'><td>{mark}{i + 1}</td><td>{esc(s.part)}</td><td>{esc(', '.join(s.base))}</td>"
                         f"<td>({t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f})</td></tr>")
         body = "".join(rows) or "<tr><td colspan=4><i>no steps yet: press Add</i></td></tr>"
         self.steps_html.content = (
             "<table style='font-size:0.8em;width:100%;border-collapse:collapse'>"
             "<tr style='text-align:left'><th>#</th><th>part</th><th>on base</th><th>t (mm)</th></tr>" + body + "</table>")
         if not self.problems:
-            saved = f" Saved as `{self.saved_path}`." if self.saved_path else ""
+            saved = f" Saved as {esc(self.saved_path)}." if self.saved_path else ""
             self.status_md.content = f"✅ **Valid**: {len(self.asm.parts)} parts, {len(self.asm.steps)} steps.{saved}"
         else:
-            lines = "\n".join(f"- `{p.key or 'file'}`: {p.what}" for p in self.problems[:6])
+            lines = "\n".join(f"- {esc(p.key or 'file')}: {esc(p.what)}" for p in self.problems[:6])
             self.status_md.content = f"⚠ **{len(self.problems)} problem(s)**; saving is off until fixed:\n{lines}"
 
-    def _refresh_assembly_scene(self, move_only: bool = False) -> None:
+    def _refresh_assembly_scene(self, gizmo: bool = True) -> None:
         """Meshes at their preview poses; the gizmo on the selected step's part."""
         asm = self.valid_asm
         diam = {}
@@ -809,7 +810,17 @@ class Studio:
                 h.position, h.wxyz = _pos(T), _wxyz(T)
         for pid in [p for p in self.mesh_handles if p not in asm.parts]:
             self.mesh_handles.pop(pid).remove()
-        self._place_gizmo()
+        if gizmo:
+            self._place_gizmo()
+        elif self.step_index is not None and self.step_index < len(asm.steps):  # the dragged part follows the hand
+            step = asm.steps[self.step_index]
+            if step.part in self.mesh_handles and step.base[0] in self._preview:
+                T = self._preview[step.base[0]] @ self.asm.steps[self.step_index].T_base_part
+                self.mesh_handles[step.part].position, self.mesh_handles[step.part].wxyz = _pos(T), _wxyz(T)
+
+    def _preview_radius(self) -> float:
+        ds = [self.model(p, self.valid_asm).diameter for p in self._preview if p in self.valid_asm.parts]
+        return max(ds or [0.1]) / 2.0
 
     def _on_explode(self) -> None:
         self._refresh_assembly_scene()
@@ -836,7 +847,8 @@ class Studio:
         frame.position, frame.wxyz = _pos(T_world_base), _wxyz(T_world_base)
         g = self.nodes.get("/assembly/gizmo")
         if g is None:
-            g = self._node("/assembly/gizmo", self.server.scene.add_transform_controls("/assembly/gizmo", scale=0.6 * d))
+            g = self._node("/assembly/gizmo", self.server.scene.add_transform_controls(
+                "/assembly/gizmo", scale=max(0.6 * d, 0.25 * self._preview_radius()), depth_test=False))  # on top of the parts
             g.on_update(lambda e: self._guarded("Move part")(lambda c: self._on_gizmo(e))(e))
         self._syncing = True
         try:
@@ -930,22 +942,30 @@ class Studio:
     def _current_step(self) -> int:
         return int(str(self.i_step.value).split(".")[0])
 
-    def _cache_key(self, step: int, im_id: int) -> tuple:
-        mask = self.i_mask.value
-        if mask == "depth" and self.i_crop.value and "/inspect/crop" in self.nodes:  # the box is part of the mask
+    def _job(self, step: int, ids: list[int]) -> "EstimateJob":
+        """Everything an estimate depends on, read from the widgets now: a later click in any tab (another
+        dataset, another preset) cannot change what a running estimate is computed with or cached under."""
+        crop = None
+        if self.i_mask.value == "depth" and self.i_crop.value and "/inspect/crop" in self.nodes:  # the box is part of the mask
             g = self.nodes["/inspect/crop"]
-            mask = (mask, tuple(np.round(g.position, 4)), tuple(np.round(g.wxyz, 4)), tuple(self.i_crop_size.value))
-        preset = self.i_preset.value + (" free" if not self.i_upright.value and self.i_preset.value == "default" else "")
-        return self.cache.key(self.frames_path, step, im_id, preset, mask, self.i_prior.value)
+            crop = (se3.make_T(se3.quat_wxyz_to_matrix(np.asarray(g.wxyz)), np.asarray(g.position)),
+                    np.asarray(self.i_crop_size.value, dtype=float) / 1000.0)
+        asm = self._inspect_assembly()
+        return EstimateJob(self.frames, self.frames_path, asm, self._inspect_models(), step, tuple(ids),
+                           self.i_preset.value, bool(self.i_upright.value), self.i_mask.value, bool(self.i_prior.value),
+                           crop)
 
-    def _load_frame(self, step: int, im_id: int):
+    def _cache_key(self, step: int, im_id: int) -> tuple:
+        return self._job(step, [im_id]).key(self.cache, im_id)
+
+    def _load_frame(self, step: int, im_id: int, frames=None, asm: Assembly | None = None):
         from .dataset import Dataset
 
-        if isinstance(self.frames, Dataset):
-            return self.frames.frame(step, im_id)
-        frame = self.frames
-        frame.base = self.valid_asm.steps[step - 1].base
-        return frame
+        frames = self.frames if frames is None else frames
+        if isinstance(frames, Dataset):
+            return frames.frame(step, im_id)
+        frames.base = (asm or self.valid_asm).steps[step - 1].base
+        return frames
 
     def _on_frame_changed(self) -> None:
         from .dataset import Dataset
@@ -988,31 +1008,24 @@ class Studio:
             self.contexts[key] = StepContext(asm, self._inspect_models(), step)
         return self.contexts[key]
 
-    def _estimate(self, step: int, im_id: int):
-        from .evaluate import estimate_and_score
+    def _estimate(self, job: "EstimateJob", im_id: int):
+        """Estimate one frame of `job` and cache it under the job's key (runs without the studio lock)."""
+        from .evaluate import StepContext, estimate_and_score
         from .register import resolve_params
 
-        ctx = self._context(step)
-        frame = self.frame if (self.frame is not None and self.frame.im_id == im_id and self.frame.step in (step, None)) \
-            else self._load_frame(step, im_id)
-        asm = self._inspect_assembly()
-        extra = {"upright": bool(self.i_upright.value)} if self.i_preset.value == "default" else {}
-        params = resolve_params(self.i_preset.value, asm.registration, **extra)
+        ctx = StepContext(job.assembly, job.models, job.step)
+        frame = self._load_frame(job.step, im_id, job.frames, job.assembly)
+        extra = {"upright": job.upright} if job.preset == "default" else {}
+        params = resolve_params(job.preset, job.assembly.registration, **extra)
         mask = None
-        if self.i_mask.value == "depth" and self.i_crop.value and "/inspect/crop" in self.nodes:
+        if job.crop is not None:
             from .segment import depth_mask
 
-            mask = depth_mask(frame.depth, frame.camera, keep=self._crop_pixels(frame))
-        result, score = estimate_and_score(frame, ctx, params, self.i_mask.value, bool(self.i_prior.value),
-                                           trace_iterations=True, mask=mask)
-        self.cache.put(self._cache_key(step, im_id), (result, score))
+            keep = inspection.pixels_in_box(frame.depth, frame.camera, frame.T_world_camera, *job.crop)
+            mask = depth_mask(frame.depth, frame.camera, keep=keep)
+        result, score = estimate_and_score(frame, ctx, params, job.mask, job.prior, trace_iterations=True, mask=mask)
+        self.cache.put(job.key(self.cache, im_id), (result, score))
         return result, score
-
-    def _crop_pixels(self, frame) -> np.ndarray:
-        g = self.nodes["/inspect/crop"]
-        T_world_box = se3.make_T(se3.quat_wxyz_to_matrix(g.wxyz), np.asarray(g.position))
-        return inspection.pixels_in_box(frame.depth, frame.camera, frame.T_world_camera, T_world_box,
-                                        np.asarray(self.i_crop_size.value) / 1000.0)
 
     def _show_crop(self) -> None:
         """The crop box: a gizmo with a wireframe box as its child, first placed on the base object's
@@ -1065,21 +1078,28 @@ class Studio:
             raise AposeError("open a dataset or capture first")
         if not self.busy.acquire(blocking=False):
             raise AposeError("an estimation is already running; wait for it to finish")
-        self.lock.release()  # estimation is long: let other tabs edit meanwhile
         try:
             step = self._current_step()
             if whole_step and isinstance(self.frames, Dataset):
                 ids = self.frames.image_ids(step)
             else:
                 ids = [self.frame.im_id]
+            job = self._job(step, ids)  # the settings of this moment, whatever other tabs do meanwhile
+        except BaseException:
+            self.busy.release()
+            raise
+        self.lock.release()  # estimation is long: let other tabs edit meanwhile
+        try:
             self.i_progress.visible = True
             self.i_progress.value = 0.0
-            failed, t0 = [], time.perf_counter()
+            failed, unsure, t0 = [], [], time.perf_counter()
             for k, im_id in enumerate(ids):
-                if self.cache.get(self._cache_key(step, im_id)) is None:
-                    result, _ = self._estimate(step, im_id)
-                    if not result.ok:
-                        failed.append(f"frame {im_id}: {result.reason}")
+                cached = self.cache.get(job.key(self.cache, im_id))
+                result = cached[0] if cached is not None else self._estimate(job, im_id)[0]
+                if not result.ok:
+                    failed.append(f"frame {im_id}: {result.reason}")
+                elif not result.confident:
+                    unsure.append(f"frame {im_id}: coverage {result.coverage:.0%}")
                 self.i_progress.value = 100.0 * (k + 1) / len(ids)
             dt = time.perf_counter() - t0
         finally:
@@ -1087,8 +1107,12 @@ class Studio:
             self.busy.release()
             self.i_progress.visible = False
         self._on_frame_changed()
+        self._frame_camera_on_frame()
         if failed:
-            self.notify(client, "Estimation failed", "\n".join(failed[:5]), error=True)
+            self.notify(client, "Estimation failed", esc("\n".join(failed[:5])), error=True)
+        elif unsure:
+            self.notify(client, "Estimated, low confidence", "the model explains too little of the target (likely "
+                        "wrong): " + esc("; ".join(unsure[:5])), error=True)
         else:
             self.notify(client, "Estimated", f"{len(ids)} frame(s) in {dt:.1f} s")
 
@@ -1108,7 +1132,8 @@ class Studio:
                                                                wxyz=_wxyz(Tc), position=_pos(Tc), color=(60, 60, 60)))
         pts, cols = inspection.scene_cloud(fr.depth, fr.rgb, cam, Tc)
         stride = max(1, int(np.ceil(np.sqrt(fr.depth.size / 60000))))
-        footprint = float(np.median(se3.transform_points(se3.inv(Tc), pts)[:, 2])) / cam.fx * stride if len(pts) else 0.001
+        # about one pixel's footprint at the scene's depth: dense, but never blobs that hide the boxes
+        footprint = 0.5 * float(np.median(se3.transform_points(se3.inv(Tc), pts)[:, 2])) / cam.fx * stride if len(pts) else 0.001
         self._node("/inspect/scene", scene.add_point_cloud("/inspect/scene", pts, cols, point_size=footprint,
                                                            point_shape="circle"))
         for name in [n for n in self.nodes if n.startswith(("/inspect/box_", "/inspect/label_", "/inspect/ghost"))] + [
@@ -1141,7 +1166,7 @@ class Studio:
                 opacity=0.45, wxyz=_wxyz(r.T_world_part), position=_pos(r.T_world_part)))
         if r is not None and len(r.target_cloud):
             tgt = inspection.thin(r.target_cloud, 20000).astype(np.float32)
-            self._node("/inspect/target", scene.add_point_cloud("/inspect/target", tgt, inspection.RED, point_size=d / 250,
+            self._node("/inspect/target", scene.add_point_cloud("/inspect/target", tgt, inspection.RED, point_size=d / 120,
                                                                 point_shape="circle"))
             labels.append(("target cloud", tgt[np.argmax(tgt[:, 2])], "bottom-right"))
         for k, (text, where, anchor) in enumerate(labels):
@@ -1179,10 +1204,9 @@ class Studio:
         if not self.i_full.value:
             uv = np.concatenate([inspection.project_points(se3.transform_points(T, corners), fr.T_world_camera, fr.camera)[0]
                                  for T, _ in boxes]) if boxes else np.zeros((0, 2))
-            mask = fr.base_mask()
-            if mask.any():
-                vs, us = np.nonzero(mask)
-                uv = np.concatenate([uv, np.stack([us, vs], axis=1)[:: max(1, len(us) // 500)]])
+            if not boxes:  # no boxes: around the base object, if its mask is known
+                vs, us = np.nonzero(fr.base_mask())
+                uv = np.stack([us, vs], axis=1)[:: max(1, len(us) // 500)]
             x0, y0, x1, y1 = inspection.crop_window(fr.rgb.shape[:2], uv)
             image = image[y0:y1, x0:x1]
         self.i_image.image = image
@@ -1213,7 +1237,7 @@ class Studio:
         s = self.stages[k]
         d = self._inspect_models()[self._inspect_assembly().steps[self._current_step() - 1].part].diameter
         self._node("/inspect/source", self.server.scene.add_point_cloud(
-            "/inspect/source", s.source_world, inspection.BLUE, point_size=d / 250, point_shape="circle"),
+            "/inspect/source", s.source_world, inspection.BLUE, point_size=d / 120, point_shape="circle"),
             visible=bool(self.layers["source cloud"].value))
         self.i_stage_md.content = (f"**{s.name}** ({k + 1}/{len(self.stages)}): fitness {s.fitness:.3f}, "
                                    f"inlier RMSE {s.inlier_rmse * 1000:.2f} mm")
@@ -1240,6 +1264,30 @@ class Studio:
                 h = self.nodes[name]
                 h._apose_visible = bool(self.layers[layer].value)
                 h.visible = h._apose_visible and self.current_view == "Inspect"
+
+
+@dataclass(frozen=True)
+class EstimateJob:
+    """What one press of Estimate computes, fixed when it is pressed (see Studio._job)."""
+
+    frames: object  # a Dataset or a capture Frame
+    frames_path: str
+    assembly: Assembly
+    models: dict
+    step: int
+    ids: tuple[int, ...]
+    preset: str
+    upright: bool
+    mask: str
+    prior: bool
+    crop: tuple | None  # (T_world_box, size in metres) for depth masks, or None
+
+    def key(self, cache: inspection.ResultCache, im_id: int) -> tuple:
+        mask = self.mask
+        if self.crop is not None:
+            mask = (mask, tuple(np.round(self.crop[0], 4).ravel()), tuple(np.round(self.crop[1], 4)))
+        preset = self.preset + (" free" if not self.upright and self.preset == "default" else "")
+        return cache.key(self.frames_path, self.step, im_id, preset, mask, self.prior)
 
 
 def default_workspace(assembly=None, dataset=None, root=None) -> Workspace:

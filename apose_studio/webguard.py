@@ -83,10 +83,14 @@ def start_viser(host: str, port: int, token: str | None, label: str = "apose stu
 
     def serve(handler, *args, process_request=None, **kwargs):
         def guarded(connection, request):
-            websocket = request.headers.get("Upgrade", "").lower() == "websocket"
-            reason = refusal(path=request.path, host_header=request.headers.get("Host"),
-                             origin=request.headers.get("Origin"), port=connection.local_address[1],
-                             bound_loopback=bound_loopback, token=token, websocket=websocket)
+            def one(name: str) -> str | None:  # a header sent twice counts as missing
+                values = request.headers.get_all(name)
+                return values[0] if len(values) == 1 else None
+
+            websocket = (one("Upgrade") or "").lower() == "websocket"
+            reason = refusal(path=request.path, host_header=one("Host"), origin=one("Origin"),
+                             port=connection.local_address[1], bound_loopback=bound_loopback, token=token,
+                             websocket=websocket)
             if reason is not None:
                 return connection.respond(http.HTTPStatus.FORBIDDEN, reason + "\n")
             if token is not None and not websocket:  # the page lives under /t/<token>/

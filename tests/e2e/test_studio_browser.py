@@ -36,10 +36,11 @@ def browser():
 
 
 @pytest.fixture
-def studio():
+def studio(tmp_path_factory):
     from apose_studio.studio import serve
 
-    server, st = serve(host="127.0.0.1", port=free_port())
+    # the workspace: this session's temporary folders (the tests' files and the rendered dataset)
+    server, st = serve(host="127.0.0.1", port=free_port(), root=tmp_path_factory.getbasetemp())
     yield st
     server.stop()
 
@@ -71,11 +72,35 @@ def wait_until(cond, what, timeout: float = 60.0) -> None:
     raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what() if callable(what) else what}")
 
 
-def open_page(browser, st):
+def open_page(browser, st, url: str | None = None):
     page = browser.new_page(viewport={"width": 1400, "height": 900})
-    page.goto(f"http://127.0.0.1:{st.server.get_port()}")
+    page.goto(url or st.url)
     page.get_by_role("button", name="Add part(s)").wait_for(timeout=30000)
     return page
+
+
+def shot(page, name: str) -> None:
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    page.screenshot(path=str(ARTIFACTS / name))
+
+
+def client_of(st, page):
+    """The server's handle of the page's connection (the newest one when several are open)."""
+    wait_until(lambda: st.server.get_clients(), "the page to connect")
+    return max(st.server.get_clients().items())[1]
+
+
+def to_screen(page, camera, points_world: np.ndarray) -> np.ndarray:
+    """(N, 2) page pixels of world points as the page's 3D view shows them (viser's camera: OpenCV axes,
+    vertical field of view `fov`), computed here from the camera the page reports."""
+    from apose_studio import se3
+
+    box = page.locator("canvas").first.bounding_box()
+    R = se3.quat_wxyz_to_matrix(np.asarray(camera.wxyz))
+    pc = (np.atleast_2d(points_world) - np.asarray(camera.position)) @ R
+    f = (box["height"] / 2.0) / np.tan(camera.fov / 2.0)
+    return np.stack([box["x"] + box["width"] / 2 + f * pc[:, 0] / pc[:, 2],
+                     box["y"] + box["height"] / 2 + f * pc[:, 1] / pc[:, 2]], axis=1)
 
 
 def test_author_a_step_and_save(browser, studio, tmp_path):
@@ -114,8 +139,7 @@ def test_author_a_step_and_save(browser, studio, tmp_path):
     w, x, _, _ = step["pose_in_base"]["rotation"]["quat_wxyz"]
     assert abs(w - 0.7071068) < 1e-6 and abs(x - 0.7071068) < 1e-6
     page.get_by_text("Saved as").first.wait_for(timeout=10000)
-    ARTIFACTS.mkdir(parents=True, exist_ok=True)
-    page.screenshot(path=str(ARTIFACTS / "assembly_tab.png"))
+    shot(page, "assembly_tab.png")
     # a second tab sees the same draft, and the server still serves after a broken file
     other = open_page(browser, studio)
     type_into(other, "Assembly file", str(tmp_path / "missing.yaml"))
@@ -141,7 +165,242 @@ def test_inspect_estimate_a_frame(browser, studio, gearbox_dataset):
     assert studio.result.ok and studio.score.mssd < 0.002
     page.get_by_text("MSSD", exact=True).first.wait_for(timeout=10000)
     page.get_by_text("final", exact=True).first.wait_for(timeout=10000)
+    page.get_by_text("truth (dashed)").first.wait_for(timeout=10000)  # the legend
+    # the object under inspection fills the view: its box spans a good part of the 3D view's width
+    # (before: about 80 px of 1012)
+    cam = client_of(studio, page).camera
+    wait_until(lambda: np.linalg.norm(np.asarray(cam.position) - studio.frame.T_world_part[:3, 3]) < 0.5,
+               "the camera to frame the object")
     time.sleep(1.0)  # let the software renderer draw the clouds
-    ARTIFACTS.mkdir(parents=True, exist_ok=True)
-    page.screenshot(path=str(ARTIFACTS / "inspect_tab.png"))
+    from apose_studio.register import project_to_cloud
+
+    fr = studio.frame
+    pts = project_to_cloud(fr.depth, fr.base_mask(), fr.camera, fr.T_world_camera)
+    uv = to_screen(page, cam, pts[::20])
+    span = uv.max(axis=0) - uv.min(axis=0)
+    assert span.max() > 300, f"the base object spans only {span.round()} px"
+    # the truth box is drawn outside the estimate (no z-fighting) and dashed; the estimate is one piece per edge
+    assert len(studio.nodes["/inspect/box_gt"].points) == 12 * 6 and len(studio.nodes["/inspect/box_est"].points) == 12
+    assert "● Inspect" in studio.view.options
+    shot(page, "inspect_tab.png")
+    page.get_by_text("Full image").first.wait_for()
+    cropped = studio.i_image.image.shape
+    field(page, "Full image").first.check()
+    wait_until(lambda: studio.i_image.image.shape[:2] == studio.frame.rgb.shape[:2], "the full image")
+    assert cropped[1] < studio.frame.rgb.shape[1] / 2  # the overlay was cropped around the object
     page.close()
+
+
+def _sample_copy(tmp_path) -> Path:
+    asm_path = tmp_path / "gearbox" / "assembly.yaml"
+    shutil.copytree(SAMPLES / "helical_gearbox", asm_path.parent)
+    asm_path.write_text("# our gearbox: hand-written notes stay\n" + asm_path.read_text())
+    asm_path.chmod(0o640)
+    return asm_path
+
+
+def test_drag_the_gizmo_with_the_mouse_and_save(browser, studio, tmp_path):
+    """Drag the translation arrow of the gizmo: the part moves, the typed fields follow, Save writes it
+    (keeping the file's comment and mode)."""
+    from apose_studio import se3
+
+    asm_path = _sample_copy(tmp_path)
+    page = open_page(browser, studio)
+    type_into(page, "Assembly file", str(asm_path))
+    page.get_by_role("button", name="Open").click()
+    wait_until(lambda: len(studio.asm.steps) == 3 and "/assembly/gizmo" in studio.nodes, "the sample to open")
+    expect(field(page, "Step").first).to_have_value("1. pinion", timeout=10000)
+    before = studio.asm.steps[0].T_base_part[:3, 3].copy()
+    cam = client_of(studio, page).camera
+    time.sleep(1.5)  # the page settles its camera on the assembly
+    g = studio.nodes["/assembly/gizmo"]
+    R, o = se3.quat_wxyz_to_matrix(np.asarray(g.wxyz)), np.asarray(g.position)
+    scale = g._impl.props.scale
+    a, b = to_screen(page, cam, np.array([o + R[:, 0] * 0.75 * scale, o + R[:, 0] * 1.5 * scale]))
+    page.mouse.move(*a)
+    page.mouse.down()
+    for k in range(1, 11):
+        page.mouse.move(*(a + (b - a) * k / 10))
+        time.sleep(0.05)
+    page.mouse.up()
+    wait_until(lambda: studio.asm.steps[0].T_base_part[0, 3] > before[0] + 0.004,
+               lambda: f"the drag to move the pinion along x (at {studio.asm.steps[0].T_base_part[:3, 3] * 1000} mm)")
+    moved = studio.asm.steps[0].T_base_part[:3, 3] * 1000
+    assert abs(moved[1] - before[1] * 1000) < 1e-6 and abs(moved[2] - before[2] * 1000) < 1e-6  # only along x
+    assert moved[0] % 0.5 < 1e-6 or 0.5 - moved[0] % 0.5 < 1e-6  # snapped to 0.5 mm
+    expect(field(page, "Translation (mm)").nth(0)).to_have_value(f"{moved[0]:g}", timeout=10000)
+    shot(page, "gizmo_drag.png")
+    page.get_by_role("button", name="Save").click()
+    wait_until(lambda: "Saved" in (page.get_by_text("Saved", exact=True).first.text_content(timeout=10000) or ""), "Save")
+    on_disk = yaml.safe_load(asm_path.read_text())
+    assert on_disk["steps"][0]["pose_in_base"]["translation"] == pytest.approx(list(moved), abs=1e-9)
+    assert asm_path.read_text().startswith("# our gearbox: hand-written notes stay\n")
+    assert asm_path.stat().st_mode & 0o777 == 0o640 and (asm_path.parent / "assembly.yaml.bak").is_file()
+    page.close()
+
+
+def test_type_poses_into_two_new_steps_and_save(browser, studio, tmp_path):
+    """The reported loss: New, a folder of three meshes, Add + typed translation, twice; Save keeps both."""
+    meshes = tmp_path / "meshes"
+    meshes.mkdir()
+    trimesh.creation.box((60, 40, 4)).export(meshes / "a_plate.stl")
+    trimesh.creation.cylinder(radius=4, height=20).export(meshes / "b_peg.stl")
+    trimesh.creation.box((12, 12, 3)).export(meshes / "c_cap.stl")
+    target = tmp_path / "rig.yaml"
+    page = open_page(browser, studio)
+    type_into(page, "Assembly file", str(target))
+    page.get_by_role("button", name="New").click()
+    wait_until(lambda: studio.asm.name == "rig", "the new assembly")
+    type_into(page, "Mesh path or folder", str(meshes))
+    page.get_by_role("button", name="Add part(s)").click()
+    wait_until(lambda: len(studio.asm.parts) == 3, "three parts")
+    for k, values in enumerate((("-20", "0", "14.5"), ("16", "0", "14.5"))):
+        page.get_by_role("button", name="Add", exact=True).click()
+        wait_until(lambda: len(studio.asm.steps) == k + 1, f"step {k + 1}")
+        expect(field(page, "Step").first).to_have_value(f"{k + 1}. {('b_peg', 'c_cap')[k]}", timeout=10000)
+        for i, v in enumerate(values):
+            type_into(page, "Translation (mm)", v, i)
+        want = np.array([float(v) for v in values]) / 1000
+        wait_until(lambda: np.allclose(studio.asm.steps[k].T_base_part[:3, 3], want, atol=1e-12),
+                   lambda: f"step {k + 1} to take {values} (has {studio.asm.steps[k].T_base_part[:3, 3] * 1000})")
+    page.get_by_role("button", name="Save").click()
+    wait_until(target.is_file, "the file")
+    steps = yaml.safe_load(target.read_text())["steps"]
+    assert [s["pose_in_base"]["translation"] for s in steps] == [[-20, 0, 14.5], [16, 0, 14.5]]
+    assert target.stat().st_mode & 0o777 == 0o666 & ~_umask()
+    # the Colour field follows the part chosen above it
+    studio_colour = {p: tuple(int(round(255 * c)) for c in studio.model(p).color) for p in studio.asm.parts}
+    for pid in ("c_cap", "a_plate"):
+        field(page, "Part").first.click()
+        page.get_by_role("option", name=pid, exact=True).click()
+        wait_until(lambda: tuple(studio.f_color.value) == studio_colour[pid], f"the colour of {pid}")
+    page.close()
+
+
+def _umask() -> int:
+    from apose_studio.fileio import current_umask
+
+    return current_umask()
+
+
+def test_markup_in_file_names_is_shown_not_run(browser, studio, tmp_path):
+    meshes = tmp_path / "evil"
+    meshes.mkdir()
+    name = '<img src=x onerror="window.__xss=1">.stl'
+    trimesh.creation.box((10, 10, 10)).export(meshes / name)
+    page = open_page(browser, studio)
+    type_into(page, "Assembly file", str(tmp_path / "x.yaml"))
+    page.get_by_role("button", name="New").click()
+    type_into(page, "Mesh path or folder", str(meshes))
+    page.get_by_role("button", name="Add part(s)").click()
+    wait_until(lambda: len(studio.asm.parts) == 1, "the part")
+    page.get_by_role("cell", name=name).first.wait_for(timeout=10000)  # the file name, as text
+    (pid,) = studio.asm.parts
+    assert pid == "img_src_x_onerror_window___xss_1"
+    time.sleep(0.5)
+    assert page.evaluate("window.__xss") is None
+    page.close()
+
+
+def test_only_the_studios_own_page_may_connect(browser, studio):
+    """A raw websocket client with a foreign Origin (any web page the user visits) is refused; so is a
+    page that reached 127.0.0.1 through another host name (DNS rebinding). The studio's page works."""
+    import websockets.exceptions
+    import websockets.sync.client
+    import viser
+
+    port = studio.server.get_port()
+    proto = [f"viser-v{viser.__version__}"]
+
+    def connect(host: str = "127.0.0.1", **kw):
+        import socket
+
+        sock = socket.create_connection(("127.0.0.1", port))  # whatever name the URL uses, this machine answers
+        with websockets.sync.client.connect(f"ws://{host}:{port}", sock=sock, subprotocols=proto, open_timeout=10,
+                                            **kw) as ws:
+            return len(ws.recv(timeout=10))
+
+    for host, origin in (("127.0.0.1", "http://evil.example.com"), ("127.0.0.1", f"http://127.0.0.1:{port + 1}"),
+                         ("evil.example.com", f"http://evil.example.com:{port}"), ("127.0.0.1", None)):
+        with pytest.raises(websockets.exceptions.InvalidStatus, match="403"):
+            connect(host, origin=origin)
+    assert connect(origin=f"http://localhost:{port}") > 0  # the studio's own page, as localhost or 127.0.0.1
+    open_page(browser, studio).close()
+
+
+def test_token_guards_page_and_websocket(browser, tmp_path):
+    import urllib.error
+    import urllib.request
+
+    import websockets.exceptions
+    import websockets.sync.client
+    import viser
+
+    from apose_studio.studio import serve
+
+    server, st = serve(host="127.0.0.1", port=free_port(), root=tmp_path, token="s3cret-token")
+    try:
+        port = server.get_port()
+        assert st.url == f"http://127.0.0.1:{port}/t/s3cret-token/"
+        with pytest.raises(urllib.error.HTTPError, match="403"):
+            urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=10)
+        with pytest.raises(websockets.exceptions.InvalidStatus, match="403"):
+            websockets.sync.client.connect(f"ws://127.0.0.1:{port}", origin=f"http://127.0.0.1:{port}",
+                                           subprotocols=[f"viser-v{viser.__version__}"], open_timeout=10)
+        open_page(browser, st).close()  # the printed address works
+    finally:
+        server.stop()
+
+
+def test_save_never_replaces_a_file_it_did_not_open_without_asking(browser, studio, tmp_path):
+    asm_path = _sample_copy(tmp_path)
+    other = tmp_path / "other.yaml"
+    other.write_text(asm_path.read_text().replace("helical_gearbox", "other_gearbox").replace("mesh: ", "mesh: gearbox/"))
+    original = other.read_text()
+    page = open_page(browser, studio)
+    # the start-up draft is empty, hence invalid: Save refuses it instead of emptying the file
+    type_into(page, "Assembly file", str(other))
+    page.get_by_role("button", name="Save").click()
+    page.get_by_text("no parts yet", exact=False).first.wait_for(timeout=10000)
+    assert other.read_text() == original
+    # open one file, then point Save at another: a dialog asks; Cancel keeps it
+    type_into(page, "Assembly file", str(asm_path))
+    page.get_by_role("button", name="Open").click()
+    wait_until(lambda: len(studio.asm.steps) == 3, "the sample")
+    expect(field(page, "Assembly file").first).to_have_value(str(asm_path), timeout=10000)
+    type_into(page, "Assembly file", str(other))
+    page.get_by_role("button", name="Save").click()
+    page.get_by_text("Replace file?").first.wait_for(timeout=10000)
+    shot(page, "replace_dialog.png")
+    page.get_by_role("button", name="Cancel").click()
+    time.sleep(0.5)
+    assert other.read_text() == original
+    page.get_by_role("button", name="Save").click()
+    page.get_by_role("button", name="Replace").click()
+    wait_until(lambda: "helical_gearbox" in other.read_text(), "the replacement")
+    assert (tmp_path / "other.yaml.bak").read_text() == original
+    page.close()
+
+
+def test_an_estimate_is_cached_under_the_settings_it_ran_with(browser, studio, gearbox_dataset):
+    """Page A estimates the step while page B switches the preset: A's results are stored as `default`
+    results, and B sees no `paper` result that was never computed."""
+    a = open_page(browser, studio)
+    a.get_by_role("tab", name="Inspect").click()
+    type_into(a, "Dataset or capture", str(gearbox_dataset))
+    a.get_by_role("button", name="Open data").click()
+    wait_until(lambda: "/inspect/scene" in studio.nodes, "the frame")
+    b = open_page(browser, studio)
+    b.get_by_role("tab", name="Inspect").click()
+    a.get_by_role("button", name="Estimate step").click()
+    wait_until(lambda: studio.busy.locked(), "the estimate to start")
+    field(b, "Preset").first.click()
+    b.get_by_role("option", name="paper", exact=True).click()
+    wait_until(lambda: studio.i_preset.value == "paper", "page B's preset")
+    wait_until(lambda: not studio.busy.locked(), "the estimate to end", timeout=180)
+    presets = {k[3] for k in studio.cache.entries}
+    assert presets == {"default"}, presets
+    assert len(studio.cache) == len(studio.frames.image_ids(1))
+    assert studio.result is None  # page B shows `paper`, which nothing computed
+    a.close()
+    b.close()
