@@ -268,7 +268,9 @@ def _parse_parts(c: _Checker, parts_raw, folder: Path, scale: float) -> dict[str
             continue
         mesh_path = (folder / mesh).resolve()
         if not mesh_path.is_file():
-            c.add(f"{key}.mesh", f"file not found: {mesh_path}")
+            from .fileio import describe_path
+
+            c.add(f"{key}.mesh", f"{mesh_path}: {describe_path(mesh_path, 'a mesh file')}")
         color = None
         if spec.get("color") is not None:
             rgb = c.numbers(spec["color"], f"{key}.color", 3, "numbers in 0..1")

@@ -159,6 +159,24 @@ def _pair(text: str, what: str) -> tuple[float, float]:
     return a, b
 
 
+def _check_output_file(path: Path, flag: str) -> None:
+    """Refuse an output path that cannot take a file, before any long work."""
+    if path.is_dir():
+        raise AposeError(f"{flag} {path}: a folder; give a file name (e.g. {path / 'out.json'})")
+    if not path.parent.is_dir():
+        raise AposeError(f"{flag} {path}: folder {path.parent} does not exist")
+
+
+def _positive_int(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number of at least 1, got {text!r}")
+    return n
+
+
 def _port(text: str) -> int:
     try:
         port = int(text)
@@ -200,9 +218,11 @@ def cmd_render(args) -> int:
 
 def _pose_lines(T: np.ndarray) -> list[str]:
     q = se3.matrix_to_quat_wxyz(T[:3, :3])
-    rows = [" ".join(f"{v:+.6f}" for v in row) for row in T]
-    return [f"  [{r}]" for r in rows] + [
-        f"  xyz (m)     = ({T[0, 3]:+.5f}, {T[1, 3]:+.5f}, {T[2, 3]:+.5f})",
+    M = T.copy()
+    M[:3, 3] *= 1000.0  # people read millimetres; --json keeps metres
+    rows = [" ".join(f"{v:+10.4f}" for v in row) for row in M]
+    return [f"  [{r}]   (translation in mm)" if i == 0 else f"  [{r}]" for i, r in enumerate(rows)] + [
+        f"  xyz (mm)    = ({M[0, 3]:+.2f}, {M[1, 3]:+.2f}, {M[2, 3]:+.2f})",
         f"  q (w,x,y,z) = ({q[0]:+.5f}, {q[1]:+.5f}, {q[2]:+.5f}, {q[3]:+.5f})"]
 
 
@@ -249,7 +269,7 @@ def cmd_estimate(args) -> int:
         print(f"ambiguous: {len(r.alternatives) + 1} placements of {ctx.part.id} fit the data equally (the base object is "
               "(nearly) symmetric, and what tells them apart is not in view); the estimate and the others:")
         def xyz(T) -> str:
-            return "xyz ({:+.4f}, {:+.4f}, {:+.4f}) m".format(*T[:3, 3])
+            return "xyz ({:+.1f}, {:+.1f}, {:+.1f}) mm".format(*(T[:3, 3] * 1000))
         print(f"  estimate {xyz(r.T_world_part)}")
         for c in r.alternatives:
             apart = np.linalg.norm(c.T_world_part[:3, 3] - r.T_world_part[:3, 3]) * 1000
@@ -271,9 +291,19 @@ def cmd_eval(args) -> int:
         raise AposeError(f"--frames {args.frames}: expected at least 1")
     if args.workers < 1:
         raise AposeError(f"--workers {args.workers}: expected at least 1")
+    if args.json:
+        _check_output_file(Path(args.json), "--json")
+    for step in ds.missing_steps:
+        print(f"warning: step {step} is listed in {ds.root / 'dataset_info.json'} but its folder "
+              f"test/{step:06d} is missing; it is left out", file=sys.stderr)
     doc = evaluate(ds, params, args.steps, args.frames, args.mask, args.orientation_prior,
                    progress=sys.stderr.isatty(), workers=args.workers)
     print(format_table(doc))
+    unreadable = [f"step {st['step']} frame {f['im_id']}" for st in doc["steps"] for f in st.get("frames", [])
+                  if str(f.get("reason", "")).startswith("unreadable frame")]
+    if unreadable:
+        print(f"warning: {len(unreadable)} frame(s) could not be read and count as failed: {', '.join(unreadable[:5])}",
+              file=sys.stderr)
     if args.mask != "gt" and not args.no_gt_compare:  # the same frames with ground-truth masks, beside
         gt = evaluate(ds, params, args.steps, args.frames, "gt", args.orientation_prior,
                       progress=sys.stderr.isatty(), workers=args.workers)
@@ -319,6 +349,7 @@ def cmd_train_seg(args) -> int:
     out = Path(args.out)
     if out.suffix != ".pt":
         raise AposeError(f"--out {out}: name the model file *.pt")
+    _check_output_file(out, "--out")  # now, not after minutes of training
     print(f"training a segmentation network for {ds.assembly.name} ({len(ds.assembly.parts)} parts + background) "
           f"on {args.dataset}")
     seg, rep = train(ds, epochs=args.epochs, device=args.device, batch=args.batch, seed=args.seed,
@@ -404,9 +435,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("train-seg", help="train a segmentation network (torch) on a rendered dataset of one assembly")
     p.add_argument("dataset", help="dataset folder made by `apose render` (noisy renders with --noise realsense transfer best)")
     p.add_argument("--out", required=True, help="model file to write (*.pt)")
-    p.add_argument("--epochs", type=int, default=60, help="passes over the training frames (default 60)")
+    p.add_argument("--epochs", type=_positive_int, default=60, help="passes over the training frames (default 60)")
     p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="default: cuda when torch sees a GPU")
-    p.add_argument("--batch", type=int, default=8, help="frames per step (default 8)")
+    p.add_argument("--batch", type=_positive_int, default=8, help="frames per step (default 8)")
     p.add_argument("--seed", type=int, default=0, help="seed of the split, the initial weights and the augmentation")
     p.add_argument("--max-minutes", type=float, help="stop after the epoch that passes this wall time")
     p.set_defaults(func=cmd_train_seg)

@@ -92,7 +92,9 @@ class Frame:
 
 def _read_image(path: Path, flags: int) -> np.ndarray:
     if not path.is_file():
-        raise DatasetError(f"{path}: missing")
+        from .fileio import describe_path
+
+        raise DatasetError(f"{path}: missing" if not path.exists() else f"{path}: {describe_path(path, 'an image')}")
     img = cv2.imread(str(path), flags)
     if img is None:
         raise DatasetError(f"{path}: not a readable image (corrupt?)")
@@ -109,6 +111,13 @@ def read_depth(path: Path, depth_scale_mm: float) -> np.ndarray:
     raw = _read_image(path, cv2.IMREAD_ANYDEPTH)
     if raw.ndim != 2:
         raise DatasetError(f"{path}: expected a single-channel 16-bit depth image, got {raw.ndim} channels")
+    if raw.dtype != np.uint16:
+        raise DatasetError(f"{path}: a {raw.dtype} depth image; expected 16-bit integers (depth in mm = value x "
+                           "depth_scale), as RealSense, Kinect and BOP write them")
+    valid = raw[raw > 0]
+    if len(valid) and np.median(valid) * depth_scale_mm < 20.0:
+        raise DatasetError(f"{path}: the median depth is {np.median(valid) * depth_scale_mm:g} mm: the PNG looks "
+                           "metre-scaled (or depth_scale far too small); write depth in mm (or 0.1 mm) steps")
     d = raw.astype(np.float32) * np.float32(depth_scale_mm / 1000.0)
     d[~np.isfinite(d) | (d < 0)] = 0.0
     return d
@@ -150,6 +159,11 @@ class Dataset:
     def steps(self) -> list[int]:
         return [s for s in self.info["steps_rendered"] if scene_dir(self.root, s).is_dir()]
 
+    @property
+    def missing_steps(self) -> list[int]:
+        """Steps dataset_info.json lists whose folder is gone."""
+        return [s for s in self.info["steps_rendered"] if not scene_dir(self.root, s).is_dir()]
+
     def _scene(self, step: int) -> dict:
         if step not in self._scenes:
             d = scene_dir(self.root, step)
@@ -181,12 +195,18 @@ class Dataset:
         rgb_path = d / "rgb" / f"{im_id:06d}.jpg"
         rgb = read_rgb(rgb_path if rgb_path.exists() else rgb_path.with_suffix(".png"))
         depth = read_depth(d / "depth" / f"{im_id:06d}.png", cam["depth_scale"])
+        if depth.shape != rgb.shape[:2]:
+            raise DatasetError(f"{d}: frame {im_id}: depth is {depth.shape[1]}x{depth.shape[0]} but RGB is "
+                               f"{rgb.shape[1]}x{rgb.shape[0]}")
         masks, poses = {}, {}
         for i, gt in enumerate(sc["scene_gt"][key]):
             pid = self.part_of_obj[gt["obj_id"]]
             poses[pid] = T_world_camera @ _T_from_Rt(gt["cam_R_m2c"], gt["cam_t_m2c"])
             mpath = d / "mask_visib" / f"{im_id:06d}_{i:06d}.png"
             masks[pid] = _read_image(mpath, cv2.IMREAD_GRAYSCALE) > 127
+            if masks[pid].shape != depth.shape:
+                raise DatasetError(f"{mpath}: mask is {masks[pid].shape[1]}x{masks[pid].shape[0]} but the depth is "
+                                   f"{depth.shape[1]}x{depth.shape[0]}")
         asm = sc["scene_assembly"]
         fr = asm["frames"][key]
         return Frame(rgb=rgb, depth=depth, camera=CameraIntrinsics.from_K(K, rgb.shape[1], rgb.shape[0]),
@@ -196,25 +216,64 @@ class Dataset:
                      im_id=im_id, source=str(rgb_path))
 
 
+def read_capture_camera(path: Path, width: int, height: int) -> tuple[CameraIntrinsics, float, np.ndarray]:
+    """(intrinsics, depth_scale in mm per unit, T_world_camera) from a capture's camera.json, checked.
+
+    Two forms: ours ({fx, fy, cx, cy, depth_scale}) and BOP's ({cam_K: row-major 3x3, depth_scale});
+    either may add BOP's cam_R_w2c / cam_t_w2c (mm) for the camera pose, else the camera is the world."""
+    cam = read_json(path)
+    if not isinstance(cam, dict):
+        raise DatasetError(f"{path}: expected a JSON object with fx, fy, cx, cy, depth_scale (or BOP's cam_K)")
+
+    def number(key, value=None):
+        v = cam.get(key) if value is None else value
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+            raise DatasetError(f"{path}: {key} must be a finite number, got {v!r}"[:200])
+        return float(v)
+
+    if "cam_K" in cam:
+        K = cam["cam_K"]
+        if not (isinstance(K, list) and len(K) == 9):
+            raise DatasetError(f"{path}: cam_K must be 9 numbers (a row-major 3x3 matrix, BOP's form)")
+        fx, _, cx, _, fy, cy = (number(f"cam_K[{i}]", K[i]) for i in (0, 1, 2, 3, 4, 5))
+    else:
+        missing = [k for k in ("fx", "fy", "cx", "cy") if k not in cam]
+        if missing:
+            raise DatasetError(f"{path}: missing {', '.join(missing)}: give the intrinsics in pixels as fx, fy, cx, cy, "
+                               "or as BOP's cam_K")
+        fx, fy, cx, cy = (number(k) for k in ("fx", "fy", "cx", "cy"))
+    if "depth_scale" not in cam:
+        raise DatasetError(f"{path}: missing depth_scale (millimetres per depth unit: 1.0 for RealSense and Kinect "
+                           "PNGs in mm, 0.1 for apose renders)")
+    depth_scale = number("depth_scale")
+    if fx <= 0 or fy <= 0:
+        raise DatasetError(f"{path}: fx and fy must be positive focal lengths in pixels, got fx={fx:g}, fy={fy:g}")
+    if not (0 <= cx <= width and 0 <= cy <= height):
+        raise DatasetError(f"{path}: the principal point ({cx:g}, {cy:g}) lies outside the {width}x{height} image; "
+                           "are the intrinsics for another resolution?")
+    if depth_scale <= 0:
+        raise DatasetError(f"{path}: depth_scale must be positive (millimetres per depth unit), got {depth_scale:g}")
+    T_world_camera = np.eye(4)
+    if "cam_R_w2c" in cam or "cam_t_w2c" in cam:
+        try:
+            T_world_camera = se3.inv(_T_from_Rt(cam["cam_R_w2c"], cam["cam_t_w2c"]))
+        except (KeyError, ValueError, TypeError):
+            raise DatasetError(f"{path}: cam_R_w2c (9 numbers) and cam_t_w2c (3 numbers, mm) go together") from None
+        if not np.isfinite(T_world_camera).all():
+            raise DatasetError(f"{path}: cam_R_w2c / cam_t_w2c hold non-finite numbers")
+    return CameraIntrinsics(width, height, fx, fy, cx, cy), depth_scale, T_world_camera
+
+
 def load_capture(folder: str | Path) -> Frame:
-    """A real capture: rgb.png, depth.png (uint16) and camera.json (fx, fy, cx, cy, depth_scale [mm per
-    unit]; optional cam_R_w2c and cam_t_w2c [mm] giving the camera pose, else the camera is the world)."""
+    """A real capture: rgb.png, depth.png (uint16) and camera.json (see read_capture_camera)."""
     folder = Path(folder)
-    cam = read_json(folder / "camera.json")
-    missing = [k for k in ("fx", "fy", "cx", "cy", "depth_scale") if k not in cam]
-    if missing:
-        raise DatasetError(f"{folder / 'camera.json'}: missing {', '.join(missing)} "
-                           "(intrinsics in pixels; depth_scale = millimetres per depth unit, 1.0 for RealSense)")
     rgb = read_rgb(folder / "rgb.png")
-    depth = read_depth(folder / "depth.png", float(cam["depth_scale"]))
+    h, w = rgb.shape[:2]
+    intr, depth_scale, T_world_camera = read_capture_camera(folder / "camera.json", w, h)
+    depth = read_depth(folder / "depth.png", depth_scale)
     if depth.shape != rgb.shape[:2]:
         raise DatasetError(f"{folder}: depth.png is {depth.shape[1]}x{depth.shape[0]} but rgb.png is "
                            f"{rgb.shape[1]}x{rgb.shape[0]}; align depth to colour first")
-    T_world_camera = np.eye(4)
-    if "cam_R_w2c" in cam and "cam_t_w2c" in cam:
-        T_world_camera = se3.inv(_T_from_Rt(cam["cam_R_w2c"], cam["cam_t_w2c"]))
-    intr = CameraIntrinsics(rgb.shape[1], rgb.shape[0], float(cam["fx"]), float(cam["fy"]),
-                            float(cam["cx"]), float(cam["cy"]))
     return Frame(rgb=rgb, depth=depth, camera=intr, T_world_camera=T_world_camera, source=str(folder))
 
 

@@ -185,6 +185,19 @@ def estimate_and_score(frame: Frame, ctx: StepContext, params: Params, mask_sour
 _WORKER: dict = {}
 
 
+def _score_frame_of(ds: Dataset, step: int, im_id: int, ctx: "StepContext", params: Params, mask_source: str,
+                    orientation_prior: bool) -> FrameScore:
+    """One frame's score; a frame whose files are missing or broken counts as a failed frame (with the
+    reason) instead of ending the whole evaluation."""
+    from .errors import DatasetError
+
+    try:
+        frame = ds.frame(step, im_id)
+    except DatasetError as e:
+        return FrameScore(scene_id=step, im_id=im_id, ok=False, reason=f"unreadable frame: {e}")
+    return estimate_and_score(frame, ctx, params, mask_source, orientation_prior)[1]
+
+
 def _worker_init(root: str) -> None:
     ds = Dataset(root)
     _WORKER.update(ds=ds, models=load_parts(ds.assembly), ctx={})
@@ -195,7 +208,7 @@ def _worker_run(task) -> FrameScore:
     ds, ctxs = _WORKER["ds"], _WORKER["ctx"]
     if step not in ctxs:
         ctxs[step] = StepContext(ds.assembly, _WORKER["models"], step)
-    return estimate_and_score(ds.frame(step, im_id), ctxs[step], params, mask_source, orientation_prior)[1]
+    return _score_frame_of(ds, step, im_id, ctxs[step], params, mask_source, orientation_prior)
 
 
 def evaluate(ds: Dataset, params: Params, steps: list[int] | None = None, frames: int | None = None,
@@ -215,7 +228,7 @@ def evaluate(ds: Dataset, params: Params, steps: list[int] | None = None, frames
     bar = tqdm(total=sum(len(ids) for _, ids in todo), unit="frame", desc=f"eval {params.preset}",
                disable=not progress, leave=False)
     doc = {"preset": params.preset, "dataset": str(ds.root), "mask": mask_source,
-           "orientation_prior": orientation_prior, "steps": []}
+           "orientation_prior": orientation_prior, "steps": [], "missing_steps": ds.missing_steps}
     t0 = time.perf_counter()
     if workers > 1:  # separate processes (Open3D holds the GIL); each loads the dataset once
         import multiprocessing as mp
@@ -239,7 +252,7 @@ def evaluate(ds: Dataset, params: Params, steps: list[int] | None = None, frames
             ctx = StepContext(ds.assembly, models, step)
             scores = []
             for im_id in ids:
-                scores.append(estimate_and_score(ds.frame(step, im_id), ctx, params, mask_source, orientation_prior)[1])
+                scores.append(_score_frame_of(ds, step, im_id, ctx, params, mask_source, orientation_prior))
                 bar.update(1)
             doc["steps"].append(summarise_step(step, scores, ctx.part))
     finally:

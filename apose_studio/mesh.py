@@ -62,12 +62,12 @@ def merge_vertices(vertices: np.ndarray, faces: np.ndarray, bits: int = 21) -> t
 
 def load_mesh(path: str | Path, unit: str = "m") -> trimesh.Trimesh:
     """Read a surface mesh and scale it to metres. Raises MeshError naming the file and the fix."""
+    from .fileio import describe_path
+
     path = Path(path)
     ext = path.suffix.lower()
-    if not path.exists():
-        raise MeshError(f"{path}: file not found")
     if not path.is_file():
-        raise MeshError(f"{path}: not a file")
+        raise MeshError(f"{path}: {describe_path(path, 'a mesh file')}")
     if ext in STEP_EXTENSIONS and not step_supported():
         raise MeshError(f"{path}: STEP needs the optional package cascadio (pip install cascadio), "
                         "or export the part as STL/PLY/OBJ/GLB")
@@ -76,6 +76,9 @@ def load_mesh(path: str | Path, unit: str = "m") -> trimesh.Trimesh:
                         f"use one of {', '.join(supported_extensions())}")
     if path.stat().st_size == 0:
         raise MeshError(f"{path}: the file is empty")
+    wrong = _not_a(path, ext)
+    if wrong:
+        raise MeshError(f"{path}: {wrong}, not a {ext[1:].upper()} mesh; export the part's surface as a mesh file")
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -92,9 +95,39 @@ def load_mesh(path: str | Path, unit: str = "m") -> trimesh.Trimesh:
         raise MeshError(f"{path}: has NaN or infinite vertex coordinates; re-export the mesh")
     vertices, faces = merge_vertices(np.asarray(loaded.vertices, dtype=float) * UNIT_TO_M[unit], np.asarray(loaded.faces))
     mesh = trimesh.Trimesh(vertices, faces, process=False)
-    if len(mesh.faces) == 0 or float(np.max(mesh.extents)) <= 0:
+    if len(mesh.faces) == 0 or float(np.max(mesh.extents)) <= 0 or float(mesh.area) <= 1e-18:
         raise MeshError(f"{path}: all triangles are degenerate (zero area); export the part's surface")
+    if np.linalg.matrix_rank(mesh.vertices - mesh.vertices.mean(axis=0), tol=1e-9 * float(np.max(mesh.extents))) < 3:
+        raise MeshError(f"{path}: the mesh is flat (all vertices in one plane); a part needs a 3D surface")
     return mesh
+
+
+def _not_a(path: Path, ext: str) -> str | None:
+    """What a file really is when its first bytes contradict its extension ("a text file", "a PNG image")."""
+    with open(path, "rb") as f:
+        head = f.read(512)
+    magic = {b"\x89PNG": "a PNG image", b"\xff\xd8\xff": "a JPEG image", b"%PDF": "a PDF document",
+             b"PK\x03\x04": "a ZIP archive", b"\x7fELF": "a program"}
+    for m, what in magic.items():
+        if head.startswith(m):
+            return what
+    try:
+        text = head.decode("utf-8")
+    except UnicodeDecodeError:
+        text = None
+    if text is None:
+        return None if ext in (".stl", ".glb", ".ply") else "a binary file"
+    start = text.lstrip().lower()
+    expected = {".stl": ("solid",), ".ply": ("ply",), ".off": ("off", "coff", "noff", "#"), ".gltf": ("{",)}
+    if ext == ".stl" and not start.startswith("solid") and len(head) >= 84:  # a binary STL's header may be text
+        n = int.from_bytes(head[80:84], "little")
+        return None if path.stat().st_size == 84 + 50 * n else "a text file"
+    if ext in expected and not start.startswith(expected[ext]):
+        return "a text file"
+    if ext == ".obj" and not any(line.split()[:1] in (["v"], ["f"], ["#"], ["o"], ["g"], ["mtllib"])
+                                 for line in text.splitlines()):
+        return "a text file"
+    return None
 
 
 EXACT_DIAMETER_POINTS = 20000

@@ -477,6 +477,9 @@ def estimate(depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics, T_world
         return failed(f"only {len(target_pts)} valid depth points under the mask (need {MIN_POINTS}); "
                       "the base object is too small, occluded or without depth here", preset=params.preset,
                       target_cloud=target_pts, timings=timings)
+    scale = scale_problem(target_pts, base.diameter)
+    if scale is not None:
+        return failed(scale, preset=params.preset, target_cloud=target_pts, timings=timings)
     if prior_T_world_base is None and params.use_orientation_prior:
         prior_T_world_base = np.eye(4)  # the CAD's orientation is the base's orientation in the world
     voxel = params.voxel(base.diameter)
@@ -495,6 +498,26 @@ def estimate(depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics, T_world
 
 class _Degenerate(Exception):
     pass
+
+
+def scale_problem(target_pts: np.ndarray, diameter: float) -> str | None:
+    """A unit error, in words, when the masked depth is far larger or smaller than the CAD could ever
+    look (depth_scale off by 10 or 1000, a model in the wrong unit); None when the sizes are compatible.
+
+    The target's extent is the diagonal of its 5th-95th percentile box; a view of a part never spans
+    much more than its diameter (the mask may take in a little clutter), and rarely much less than a
+    tenth of it."""
+    lo, hi = np.percentile(target_pts, [5, 95], axis=0)
+    ratio = float(np.linalg.norm(hi - lo)) / max(diameter, 1e-9)
+    if 4.0 < ratio:
+        k = 10 ** round(np.log10(ratio))
+        return (f"the target is {ratio:.0f}x the base object's diameter ({diameter * 1000:.3g} mm): depth looks about "
+                f"{k}x too far; is depth_scale {k}x too large (1.0 instead of 0.1?), or the CAD's units too small?")
+    if ratio < 0.1:
+        k = 10 ** round(-np.log10(max(ratio, 1e-12)))
+        return (f"the target spans only {ratio:.3f}x the base object's diameter ({diameter * 1000:.3g} mm): depth looks "
+                f"about {k}x too near; is depth_scale {k}x too small, or the CAD's units too large?")
+    return None
 
 
 def _stage(name, T, target, source_base, threshold) -> Stage:

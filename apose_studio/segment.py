@@ -173,7 +173,11 @@ def load_model(path: str | Path, asm=None, device: str = "cpu") -> Segmenter:
             f"{path}: trained for assembly {blob['assembly']!r} with parts {', '.join(blob['part_ids'])}; "
             f"{asm.name!r} has parts {', '.join(asm.parts)}. Train a model for it: apose train-seg DATASET --out MODEL.pt")
     net = build_net(len(blob["part_ids"]) + 1, int(blob.get("width", 16)))
-    net.load_state_dict(blob["state_dict"])
+    try:
+        net.load_state_dict(blob["state_dict"])
+    except (RuntimeError, KeyError, TypeError) as e:
+        raise AposeError(f"{path}: the weights do not fit the network (damaged or edited file?): "
+                         f"{str(e).splitlines()[0][:200]}; train it again with `apose train-seg`") from None
     net.eval().to(device)
     return Segmenter(net, list(blob["part_ids"]), blob["assembly"], tuple(blob["size"]), device, blob.get("info"))
 

@@ -3,7 +3,7 @@ import pytest
 import yaml
 
 from apose_studio import se3
-from apose_studio.assembly import Assembly, load_assembly, save_assembly
+from apose_studio.assembly import Assembly, assembly_from_dict, load_assembly, save_assembly
 from apose_studio.errors import AssemblyError
 
 from .conftest import TINY_YAML
@@ -103,7 +103,7 @@ CASES = [
     (_set(["steps", 0, "base"], ["plate", "cap"]), "steps[0].base[1]: 'cap' is placed only by a later step (steps[1])"),
     (_set(["steps", 0, "base"], []), "steps[0].base: expected a non-empty list of part ids, got a list"),
     (_set(["steps", 0, "base"], ["peg"]), "steps[0].base[0]: 'peg' cannot be part of its own base"),
-    (_set(["parts", "plate", "mesh"], "missing.stl"), "parts.plate.mesh: file not found:"),
+    (_set(["parts", "plate", "mesh"], "missing.stl"), "missing.stl: file not found"),
     (_set(["parts", "plate", "size"], 3), "parts.plate.size: unknown key; expected one of mesh, color, symmetry"),
     (_set(["parts", "peg", "color"], [2, 0, 0]), "parts.peg.color: expected 3 numbers in 0..1"),
     (_set(["parts", "peg", "symmetry"], {"axis": [0, 0, 1], "order": 1}),
@@ -199,3 +199,79 @@ def test_fidget_top_casing_pose(fidget_yaml):
     assert abs(abs(axis[0]) - 1) < 1e-6
     assert isinstance(asm, Assembly) and asm.roots == ("bottom_casing",)
     np.testing.assert_allclose(asm.T_root_part("right_gear")[:3, 3], [-0.0115, 0, 0.005])
+
+
+# ------------------------------------------------------------------- hostile and malformed files
+
+
+def test_yaml_aliases_are_refused_before_they_expand(tmp_path):
+    """Billion laughs: nine lines that expand to 10^9 items. Refused at the first alias, not after minutes."""
+    lines = ["format: apose-assembly/1", "a0: &a0 [x, x, x, x, x, x, x, x, x, x]"]
+    lines += [f"a{i}: &a{i} [{', '.join([f'*a{i - 1}'] * 10)}]" for i in range(1, 9)]
+    p = tmp_path / "laughs.yaml"
+    p.write_text("\n".join(lines) + "\n")
+    with pytest.raises(AssemblyError, match=r"line 3, column \d+: YAML error: aliases \(\*name\) are not allowed"):
+        load_assembly(p)
+
+
+def test_duplicate_keys_and_deep_nesting_are_errors(tiny_dir):
+    text = (tiny_dir / "assembly.yaml").read_text()
+    dup = tiny_dir / "dup.yaml"
+    dup.write_text(text.replace("  cap: {mesh: cap.stl}\n", "  cap: {mesh: cap.stl}\n  peg: {mesh: cap.stl}\n"))
+    with pytest.raises(AssemblyError, match=r"duplicate key 'peg' \(first at line 6\)"):
+        load_assembly(dup)
+    deep = tiny_dir / "deep.yaml"
+    deep.write_text("format: " + "[" * 5000 + "]" * 5000 + "\n")
+    with pytest.raises(AssemblyError, match="nested far too deeply"):
+        load_assembly(deep)
+
+
+def test_part_ids_are_plain_names(tiny_dir):
+    text = (tiny_dir / "assembly.yaml").read_text()
+    bad = tiny_dir / "bad.yaml"
+    bad.write_text(text.replace("  cap: {mesh: cap.stl}", '  "<img src=x onerror=alert(1)>": {mesh: cap.stl}'))
+    with pytest.raises(AssemblyError, match=r"a part id is 1 to 64 letters, digits, '_', '-' or '\.'"):
+        load_assembly(bad)
+
+
+def test_errors_never_echo_a_files_contents(tmp_path):
+    secret = tmp_path / "passwd"
+    secret.write_text("root:x:0:0:root:/root:/bin/bash\ndaemon:x:1:1:daemon:/usr/sbin:/usr/sbin/nologin\n")
+    with pytest.raises(AssemblyError) as e:
+        load_assembly(secret)
+    assert "root:x" not in str(e.value) and "a text of" in str(e.value)
+
+
+def test_limits_on_counts_and_symmetry_order(tiny_dir):
+    import yaml
+
+    data = yaml.safe_load((tiny_dir / "assembly.yaml").read_text())
+    data["parts"]["peg"]["symmetry"]["order"] = 10_000_000
+    with pytest.raises(AssemblyError, match="whole number n from 2 to 360"):
+        assembly_from_dict(data, tiny_dir / "a.yaml")
+    data = yaml.safe_load((tiny_dir / "assembly.yaml").read_text())
+    data["steps"] = data["steps"] * 1500
+    with pytest.raises(AssemblyError, match="3000 steps; at most 2000"):
+        assembly_from_dict(data, tiny_dir / "a.yaml")
+
+
+def test_chaining_a_long_sequence_is_exact(tmp_path):
+    """A 1500-step chain (each part 1 mm along x and turned 1 degree on the one before): poses by chaining
+    once through the steps, checked against products computed here."""
+    import trimesh
+
+    from apose_studio import se3
+
+    trimesh.creation.box((1, 1, 1)).export(tmp_path / "b.stl")
+    n = 1500
+    parts = {f"p{i}": {"mesh": "b.stl"} for i in range(n + 1)}
+    steps = [{"part": f"p{i + 1}", "base": [f"p{i}"],
+              "pose_in_base": {"translation": [1, 0, 0], "rotation": {"euler_deg": [0, 0, 1]}}} for i in range(n)]
+    asm = assembly_from_dict({"format": "apose-assembly/1", "name": "chain", "units": "mm", "parts": parts,
+                              "steps": steps}, tmp_path / "chain.yaml")
+    step = se3.make_T(se3.euler_deg_to_matrix([0, 0, 1], "xyz"), [0.001, 0, 0])
+    want = np.eye(4)
+    for _ in range(n):
+        want = want @ step
+    np.testing.assert_allclose(asm.T_root_part(f"p{n}"), want, atol=1e-12)
+    assert asm.root_of(f"p{n}") == "p0" and len(asm.completed()["p0"]) == n + 1

@@ -93,3 +93,60 @@ def test_render_cli(tmp_path):
     assert bad.returncode == 1 and "step 0 does not exist" in bad.stderr and "Traceback" not in bad.stderr
     bad = run("render", SAMPLES / "helical_gearbox" / "assembly.yaml", "--out", tmp_path / "x", "--yaw-range", "oops")
     assert bad.returncode == 2 and "expected two numbers as min,max" in bad.stderr
+
+
+def test_malformed_inputs_get_one_clear_line(tiny_dir, gearbox_dataset, tmp_path):
+    """Each of these reached the catch-all ("unexpected ...") or said the wrong thing; each now names the
+    thing and the fix."""
+    import numpy as np
+    import trimesh
+
+    flat = trimesh.Trimesh(np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0.0]]), [[0, 1, 2]], process=False)
+    (tiny_dir / "flat.stl").write_bytes(flat.export(file_type="stl"))
+    (tiny_dir / "text.stl").write_text("hello, this is a note and not a mesh\n" * 5)
+    (tiny_dir / "folder.stl").mkdir()
+    base = (tiny_dir / "assembly.yaml").read_text()
+    cases = [("flat.stl", "all triangles are degenerate (zero area)"),
+             ("text.stl", "text.stl: a text file, not a STL mesh"),
+             ("folder.stl", "folder.stl: a folder, not a file"),
+             ("/dev/zero", "/dev/zero: not a regular file")]
+    for mesh, message in cases:
+        y = tiny_dir / "m.yaml"
+        y.write_text(base.replace("cap: {mesh: cap.stl}", f"cap: {{mesh: {mesh}}}"))
+        r = run("show", y)
+        assert r.returncode == 1 and message in r.stderr and "unexpected" not in r.stderr, (mesh, r.stderr)
+    for args, message in [(("eval", gearbox_dataset, "--json", tmp_path), "a folder; give a file name"),
+                          (("train-seg", gearbox_dataset, "--out", tmp_path / "no" / "m.pt"), "does not exist"),
+                          (("train-seg", gearbox_dataset, "--out", "m.pt", "--epochs", "0"), "at least 1, got '0'"),
+                          (("train-seg", gearbox_dataset, "--out", "m.pt", "--batch", "0"), "at least 1, got '0'"),
+                          (("studio", "--port", "70000"), "port number from 1 to 65535")]:
+        r = run(*args)
+        assert r.returncode != 0 and message in r.stderr and "unexpected" not in r.stderr, (args, r.stderr)
+
+
+def test_eval_counts_an_unreadable_frame_as_failed_and_names_a_missing_step(gearbox_dataset, tmp_path):
+    import shutil
+
+    ds = tmp_path / "ds"
+    shutil.copytree(gearbox_dataset, ds)
+    (ds / "test" / "000001" / "depth" / "000001.png").unlink()
+    info = json.loads((ds / "dataset_info.json").read_text())
+    info["steps_rendered"] = [1, 2]
+    (ds / "dataset_info.json").write_text(json.dumps(info))
+    r = run("eval", ds, "--orientation-prior", "--json", tmp_path / "e.json")
+    assert r.returncode == 0, r.stderr
+    assert "step 2 is listed" in r.stderr and "test/000002 is missing" in r.stderr
+    assert "1 frame(s) could not be read and count as failed: step 1 frame 1" in r.stderr
+    doc = json.loads((tmp_path / "e.json").read_text())
+    (st,) = doc["steps"]
+    assert st["n_frames"] == 2 and st["failed"] == 1 and doc["missing_steps"] == [2]
+    assert "000001.png: missing" in st["frames"][1]["reason"]
+
+
+def test_demo_refuses_a_folder_it_did_not_make(tmp_path):
+    out = tmp_path / "work"
+    (out / "models").mkdir(parents=True)
+    (out / "models" / "my_model.bin").write_text("checkpoint")
+    r = run("demo", "--out", out, "--frames", "1", "--no-studio")
+    assert r.returncode == 1 and "holds files that no apose render wrote (models/my_model.bin)" in r.stderr
+    assert (out / "models" / "my_model.bin").read_text() == "checkpoint"

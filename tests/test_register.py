@@ -124,12 +124,25 @@ def test_degenerate_inputs_fail_with_reasons(gearbox_step2):
     line[240, 100:500] = True  # a single row of pixels on a plane: a line in 3D
     r = estimate(depth, line, CAM, T_wc, base, view.T_base_part, p)
     assert not r.ok and "degenerate" in r.reason
-    # a base far too small for the camera to see: a 0.2 mm cube
+    # a 4 cm blob of depth for a 0.35 mm base: a unit error, said as one (the paper preset would not
+    # even see the mesh)
     speck = prepare_base(trimesh.creation.box((0.0002, 0.0002, 0.0002)), n_samples=500)
     blob = empty.copy()
     blob[200:260, 300:360] = True
     r = estimate(depth, blob, CAM, T_wc, speck, view.T_base_part, resolve_params("paper"))
-    assert not r.ok and "cannot see the base mesh" in r.reason
+    assert not r.ok and "depth looks about 100x too far" in r.reason
+
+
+def test_unit_errors_in_depth_are_named(gearbox_step2):
+    """depth_scale 10x or 1000x off: the target cannot be the base object; the reason says by how much."""
+    from apose_studio.register import scale_problem
+
+    view, base, _ = gearbox_step2
+    pts = base.samples[base.samples[:, 2] > base.centre[2]]  # the upper half of the base: what a camera sees
+    assert scale_problem(pts, base.diameter) is None
+    assert "about 10x too far" in scale_problem(pts * 10, base.diameter)
+    assert "about 1000x too far" in scale_problem(pts * 1000, base.diameter)
+    assert "about 100x too near" in scale_problem(pts / 100, base.diameter)
 
 
 def test_symmetry_detection():

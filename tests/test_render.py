@@ -255,12 +255,34 @@ def test_real_capture_folder(tmp_path):
     f = open_frames(tmp_path)
     assert f.rgb[0, 0, 0] == 200 and f.depth[0, 0] == pytest.approx(0.5)
     assert f.camera.width == 64 and np.allclose(f.T_world_camera, np.eye(4)) and f.masks == {}
-    (tmp_path / "camera.json").write_text(json.dumps({"fx": 60}))
-    with pytest.raises(DatasetError, match="missing fy, cx, cy, depth_scale"):
-        load_capture(tmp_path)
+    # BOP's form: cam_K row-major, camera pose in mm
+    (tmp_path / "camera.json").write_text(json.dumps({"cam_K": [60, 0, 32, 0, 61, 24, 0, 0, 1], "depth_scale": 1.0,
+                                                      "cam_R_w2c": [1, 0, 0, 0, 1, 0, 0, 0, 1], "cam_t_w2c": [0, 0, 100]}))
+    f = load_capture(tmp_path)
+    assert (f.camera.fx, f.camera.fy, f.camera.cx, f.camera.cy) == (60, 61, 32, 24)
+    np.testing.assert_allclose(f.T_world_camera[:3, 3], [0, 0, -0.1])
+    bad = [({"fx": 60}, "missing fy, cx, cy: give the intrinsics"),
+           ({"fx": 60, "fy": 60, "cx": 32, "cy": 24}, "missing depth_scale"),
+           ({"fx": 0, "fy": 60, "cx": 32, "cy": 24, "depth_scale": 1}, "fx and fy must be positive"),
+           ({"fx": -60, "fy": 60, "cx": 32, "cy": 24, "depth_scale": 1}, "fx and fy must be positive"),
+           ({"fx": 60, "fy": 60, "cx": 320, "cy": 240, "depth_scale": 1}, "principal point .* outside the 64x48 image"),
+           ({"cam_K": [60, 0, 32], "depth_scale": 1}, "cam_K must be 9 numbers"),
+           ({"fx": 60, "fy": 60, "cx": 32, "cy": 24, "depth_scale": 0.001}, "looks metre-scaled"),
+           ({"fx": "a", "fy": 60, "cx": 32, "cy": 24, "depth_scale": 1}, "fx must be a finite number")]
+    for cam, message in bad:
+        (tmp_path / "camera.json").write_text(json.dumps(cam))
+        with pytest.raises(DatasetError, match=message):
+            load_capture(tmp_path)
     (tmp_path / "camera.json").write_text(json.dumps({"fx": 60, "fy": 60, "cx": 32, "cy": 24, "depth_scale": 1.0}))
     cv2.imwrite(str(tmp_path / "depth.png"), depth[:40])
     with pytest.raises(DatasetError, match="depth.png is 64x40 but rgb.png is 64x48"):
+        load_capture(tmp_path)
+    cv2.imwrite(str(tmp_path / "depth.png"), (depth // 4).astype(np.uint8))
+    with pytest.raises(DatasetError, match="a uint8 depth image; expected 16-bit"):
+        load_capture(tmp_path)
+    (tmp_path / "depth.png").unlink()
+    (tmp_path / "depth.png").mkdir()
+    with pytest.raises(DatasetError, match="a folder, not a file"):
         load_capture(tmp_path)
 
 

@@ -63,6 +63,14 @@ def test_training_lowers_the_loss_and_the_model_round_trips(tiny_ds, tmp_path):
     (tmp_path / "junk.pt").write_bytes(b"not a model")
     with pytest.raises(SegmentationError, match="not a readable model file"):
         load_model(tmp_path / "junk.pt")
+    import torch  # the right format with weights of the wrong shape (an edited or damaged file)
+
+    blob = torch.load(path, weights_only=True)
+    first = next(iter(blob["state_dict"]))
+    blob["state_dict"][first] = torch.zeros(3)
+    torch.save(blob, tmp_path / "bent.pt")
+    with pytest.raises(AposeError, match="the weights do not fit the network"):
+        load_model(tmp_path / "bent.pt")
 
 
 def test_depth_fallback_finds_the_base(gearbox_dataset):

@@ -287,3 +287,28 @@ def test_demo_estimates_are_found_in_the_cache(gearbox_dataset):
         assert st._cache_key(1, 0) == ResultCache.key(gearbox_dataset.resolve(), 1, 0, "default free", "gt", False)
     finally:
         server.stop()
+
+
+def test_files_outside_the_workspace_are_refused_and_never_echoed(studio, gearbox_copy, tmp_path):
+    st = studio(gearbox_copy, root=gearbox_copy.parent)
+    before = st.asm
+    for path in ("/etc/passwd", tmp_path / "elsewhere.yaml"):
+        st.f_path.value = str(path)
+        act(st, st._on_open)
+        assert "outside the studio's workspace" in errors(st)[-1][1] and "root:" not in errors(st)[-1][1]
+        act(st, st._on_save)
+        assert "outside the studio's workspace" in errors(st)[-1][1]
+    assert not (tmp_path / "elsewhere.yaml").exists() and st.asm is before
+    st.f_mesh.value = "/etc"
+    act(st, st._on_add_parts)
+    assert "outside the studio's workspace" in errors(st)[-1][1]
+
+
+def test_a_failed_open_says_what_stays_on_screen(studio, gearbox_dataset, tmp_path):
+    st = studio(SAMPLES / "helical_gearbox" / "assembly.yaml", gearbox_dataset, root=tmp_path)
+    shown = st.frames_path
+    (tmp_path / "broken").mkdir()
+    st.i_path.value = str(tmp_path / "broken")
+    act(st, st._on_open_data)
+    assert "neither a dataset" in errors(st)[-1][1] and f"still showing the data opened before: {shown}" in errors(st)[-1][1]
+    assert st.frames_path == shown
