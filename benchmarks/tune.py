@@ -2,6 +2,7 @@
 """Tuning: two or more settings of the `default` preset, run frame by frame in turn on the same frames.
 
     .venv/bin/python benchmarks/tune.py '{}' '{"max_starts": 4}' [--frames 10] [--base-pose yaw] [--data DIR]
+                                        [--poses OUT.json] [--compare BEFORE.json]
 
 Each argument is a JSON object of registration parameters (the names of an assembly file's
 `registration` section; `{}` is the preset as shipped). The frames (every assembly of
@@ -11,6 +12,9 @@ alternating from frame to frame, so that this machine's drift in speed falls on 
 alike: on a 2-core machine run-to-run timings drift by 10-15 %, which a back-to-back comparison of
 two whole benchmark runs cannot tell from a real change. Prints, per step, recall (MSSD below 10 %
 of the part's diameter) and median seconds per frame of each setting, then a summary line each.
+
+--poses writes every frame's estimated T_world_part of the first setting; --compare reads such a
+file from another run (e.g. before a refactoring) and prints how far each pose moved (mm, degrees).
 """
 
 from __future__ import annotations
@@ -42,7 +46,10 @@ def main() -> int:
     ap.add_argument("--base-pose", default="yaw", choices=["yaw", "fixed"])
     ap.add_argument("--noise", default="none,realsense")
     ap.add_argument("--data", default=str(REPO / "artifacts" / "tune"), help="where the rendered frames are kept")
+    ap.add_argument("--poses", default=None, help="write the first setting's pose of every frame here (JSON)")
+    ap.add_argument("--compare", default=None, help="a --poses file of another run: print how far the poses moved")
     args = ap.parse_args()
+    poses: dict[str, list | None] = {}
     settings = [json.loads(s) for s in args.settings]
     params = [resolve_params("default", **s) for s in settings]
     times: list[list[float]] = [[] for _ in params]
@@ -67,8 +74,10 @@ def main() -> int:
                     order = range(len(params)) if j % 2 == 0 else reversed(range(len(params)))
                     for i in order:
                         t = time.perf_counter()
-                        _, score = estimate_and_score(fr, ctx, params[i], orientation_prior=args.base_pose == "fixed")
+                        result, score = estimate_and_score(fr, ctx, params[i], orientation_prior=args.base_pose == "fixed")
                         t_step[i].append(time.perf_counter() - t)
+                        if i == 0:
+                            poses[f"{root.name}/{step}/{fr.im_id}"] = result.T_world_part.tolist() if result.ok else None
                         ok = score.mssd is not None and score.mssd < 0.1 * ctx.part.diameter
                         ok_step[i].append(ok)
                         if ok:
@@ -84,7 +93,36 @@ def main() -> int:
         print(f"#{i} {json.dumps(s)}: mean recall {np.mean(recalls[i]):.3f}; median of the steps' median times "
               f"{np.median(times[i]) * 1000:.0f} ms, mean {np.mean(times[i]) * 1000:.0f} ms; mean ADI of the right "
               f"frames {np.mean(adis[i]) * 1000:.3f} mm")
+    if args.poses:
+        Path(args.poses).write_text(json.dumps(poses))
+        print(f"wrote {len(poses)} poses to {args.poses}")
+    if args.compare:
+        compare_poses(json.loads(Path(args.compare).read_text()), poses)
     return 0
+
+
+def compare_poses(before: dict, after: dict) -> None:
+    """How far each frame's pose moved between two runs: identical, within thread noise, or apart."""
+    from apose_studio import se3
+
+    common = sorted(set(before) & set(after))
+    moves, rots, flips = [], [], []
+    for k in common:
+        a, b = before[k], after[k]
+        if (a is None) != (b is None):
+            flips.append(k)
+            continue
+        if a is None:
+            continue
+        A, B = np.asarray(a), np.asarray(b)
+        moves.append(float(np.linalg.norm(A[:3, 3] - B[:3, 3])) * 1000)
+        rots.append(se3.rotation_angle_deg(A[:3, :3].T @ B[:3, :3]))
+    moves_a = np.asarray(moves)
+    print(f"\ncompared {len(common)} frames with {len(before)} before: identical {int(np.sum(moves_a == 0))}, "
+          f"within 0.1 mm {int(np.sum(moves_a < 0.1))}, over 1 mm {int(np.sum(moves_a > 1))} "
+          f"(max {moves_a.max() if len(moves) else 0:.3f} mm, {max(rots or [0]):.3f}°); ok/failed changed: {len(flips)}")
+    for k in [k for k, m in zip([k for k in common if before[k] is not None and after[k] is not None], moves) if m > 1][:10]:
+        print(f"  moved: {k}")
 
 
 if __name__ == "__main__":
