@@ -81,7 +81,7 @@ def cmd_demo(args) -> int:
     from .dataset import Dataset
     from .evaluate import StepContext, estimate_and_score
     from .mesh import load_parts
-    from .register import resolve_params
+    from .registration import resolve_params
     from .render import RenderSettings, render_dataset
 
     path = Path(args.assembly) if args.assembly else DEFAULT_SAMPLE
@@ -230,7 +230,7 @@ def cmd_estimate(args) -> int:
     from .dataset import Dataset
     from .evaluate import StepContext
     from .mesh import load_parts
-    from .register import resolve_params
+    from .registration import resolve_params
 
     ds = Dataset(args.dataset)
     asm = ds.assembly
@@ -283,7 +283,7 @@ def cmd_estimate(args) -> int:
 def cmd_eval(args) -> int:
     from .dataset import Dataset
     from .evaluate import evaluate, format_table
-    from .register import resolve_params
+    from .registration import resolve_params
 
     ds = Dataset(args.dataset)
     params = resolve_params(args.preset, ds.assembly.registration, **_upright(args))

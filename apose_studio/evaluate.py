@@ -13,7 +13,7 @@ from .assembly import Assembly
 from .dataset import Dataset, Frame
 from .errors import AposeError
 from .mesh import PartModel, base_mesh, load_parts
-from .register import TIE_MARGIN, BaseObject, Params, RegistrationResult, estimate, prepare_base
+from .registration import TIE_MARGIN, BaseObject, Params, RegistrationResult, estimate, prepare_base
 
 MASK_SOURCES = ("gt", "depth")  # or the path of a model from `apose train-seg`
 

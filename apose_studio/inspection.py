@@ -14,7 +14,7 @@ import numpy as np
 
 from . import se3
 from .config import CameraIntrinsics
-from .register import RegistrationResult
+from .registration import RegistrationResult
 
 RED = (220, 40, 40)
 BLUE = (40, 90, 230)

@@ -19,6 +19,7 @@ from .assembly import Assembly, StepView
 from .config import CameraIntrinsics
 from .errors import RenderError
 from .mesh import PartModel, base_mesh
+from .raycast import RayGrid, body, pixel_window
 
 NOISE_MODELS = ("none", "gaussian", "realsense")
 BASE_POSES = ("yaw", "fixed")
@@ -199,68 +200,6 @@ def sample_camera(rng: np.random.Generator, target: np.ndarray, settings: Render
 # --------------------------------------------------------------------------------- ray casting
 
 
-class RayGrid:
-    """Per-pixel camera-frame ray directions with z = 1, so a hit's t is its depth. Pixel (u, v) at its centre."""
-
-    def __init__(self, cam: CameraIntrinsics):
-        self.cam = cam
-        u, v = np.meshgrid(np.arange(cam.width, dtype=np.float32), np.arange(cam.height, dtype=np.float32))
-        self.dirs = np.stack([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, np.ones_like(u)], axis=-1)
-
-    def rays(self, T_frame_camera: np.ndarray, window=None) -> np.ndarray:
-        """(h, w, 6) rays in some frame, for the whole image or a window (v0, v1, u0, u1)."""
-        d = self.dirs if window is None else self.dirs[window[0]:window[1], window[2]:window[3]]
-        R, t = T_frame_camera[:3, :3].astype(np.float32), T_frame_camera[:3, 3].astype(np.float32)
-        out = np.empty(d.shape[:2] + (6,), np.float32)
-        out[..., :3] = t
-        out[..., 3:] = d @ R.T
-        return out
-
-
-class _Body:
-    """A mesh prepared once for ray casting and shading: its BVH in its own frame and plain arrays."""
-
-    def __init__(self, mesh: trimesh.Trimesh):
-        import open3d as o3d
-
-        self.mesh = mesh  # keeps id(mesh) valid while cached
-        v = np.asarray(mesh.vertices, dtype=np.float64)
-        f = np.asarray(mesh.faces, dtype=np.int64)
-        self.scene = o3d.t.geometry.RaycastingScene()
-        self.scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)), o3d.core.Tensor(f.astype(np.uint32)))
-        self.normals = np.asarray(mesh.face_normals, dtype=np.float64)
-        self.first = v[f[:, 0]]
-        lo, hi = v.min(axis=0), v.max(axis=0)
-        self.corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-        self.n_faces = len(f)
-
-
-_BODIES: dict[int, _Body] = {}
-
-
-def _body(mesh: trimesh.Trimesh) -> _Body:
-    b = _BODIES.get(id(mesh))
-    if b is None or b.mesh is not mesh:
-        if len(_BODIES) > 256:  # bounded: a long session may see many assemblies
-            _BODIES.clear()
-        b = _BODIES[id(mesh)] = _Body(mesh)
-    return b
-
-
-def _pixel_window(corners: np.ndarray, T_cam_obj: np.ndarray, cam: CameraIntrinsics):
-    """(v0, v1, u0, u1) pixel box holding the projection of a body's box corners; None when off-image.
-
-    The whole image when the box reaches behind the camera.
-    """
-    p = se3.transform_points(T_cam_obj, corners)
-    if np.any(p[:, 2] <= 1e-6):
-        return 0, cam.height, 0, cam.width
-    u, v = cam.project(p)
-    u0, u1 = int(max(0, np.floor(u.min()))), int(min(cam.width, np.ceil(u.max()) + 1))
-    v0, v1 = int(max(0, np.floor(v.min()))), int(min(cam.height, np.ceil(v.max()) + 1))
-    return (v0, v1, u0, u1) if v1 > v0 and u1 > u0 else None
-
-
 @dataclass
 class Hits:
     depth: np.ndarray  # (H, W) float32 metres, 0 where no hit
@@ -291,12 +230,12 @@ def cast(scene: Scene, grid: RayGrid, T_world_camera: np.ndarray) -> Hits:
     prims = np.zeros((cam.height, cam.width), np.int32)
     windows = {}
     for i, o in enumerate(scene.objects):
-        body = _body(o.mesh)
-        w = _pixel_window(body.corners, T_cam_world @ o.T_world_obj, cam)
+        b = body(o.mesh)
+        w = pixel_window(b.corners, T_cam_world @ o.T_world_obj, cam)
         if w is None:
             continue
         rays = grid.rays(se3.inv(o.T_world_obj) @ T_world_camera, w)  # rigid: t along the ray is unchanged
-        hit = body.scene.cast_rays(o3d.core.Tensor(rays), nthreads=0)
+        hit = b.scene.cast_rays(o3d.core.Tensor(rays), nthreads=0)
         t = hit["t_hit"].numpy()
         found = np.isfinite(t)
         windows[i] = (w, found)
@@ -342,11 +281,11 @@ def shade(hit: "Hits", scene: Scene, T_world_camera: np.ndarray, rng: np.random.
         if not sel.any():
             continue
         # per hit pixel, in the object's frame with its cached face normals
-        body = _body(o.mesh)
+        b = body(o.mesh)
         faces = hit.primitive_ids[v0:v1, u0:u1][sel]
         R, t = o.T_world_obj[:3, :3], o.T_world_obj[:3, 3]
-        n = body.normals[faces]
-        to_eye = R.T @ (eye - t) - body.first[faces]
+        n = b.normals[faces]
+        to_eye = R.T @ (eye - t) - b.first[faces]
         facing = np.einsum("ij,ij->i", n, to_eye)
         sign = np.where(facing < 0, -1.0, 1.0)  # light the side that faces the camera
         lit = (ambient + key * np.clip(sign * (n @ (R.T @ light)), 0, None)
@@ -589,39 +528,3 @@ def _render_into(asm: Assembly, out, settings: RenderSettings, numbers: list[int
     seconds = time.perf_counter() - t0
     return {"frames": done, "seconds": seconds, "fps": done / seconds if seconds > 0 else float("inf"),
             "setup_seconds": t0 - t_setup}
-
-
-# --------------------------------------------------------------------------------- for the estimator
-
-_GRIDS: dict[CameraIntrinsics, RayGrid] = {}
-
-
-def ray_grid(cam: CameraIntrinsics) -> RayGrid:
-    if cam not in _GRIDS:
-        if len(_GRIDS) > 8:
-            _GRIDS.clear()
-        _GRIDS[cam] = RayGrid(cam)
-    return _GRIDS[cam]
-
-
-def raycast_points(mesh: trimesh.Trimesh, T_world_mesh: np.ndarray, T_world_camera: np.ndarray,
-                   cam: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray]:
-    """What a camera sees of a mesh alone: (N, 3) points and (N, 3) unit normals facing the camera, world frame.
-
-    One ray per pixel of `cam`, cast only over the mesh's image box, against its cached BVH.
-    """
-    import open3d as o3d
-
-    body = _body(mesh)
-    w = _pixel_window(body.corners, se3.inv(T_world_camera) @ T_world_mesh, cam)
-    if w is None:
-        return np.zeros((0, 3)), np.zeros((0, 3))
-    T_mesh_camera = se3.inv(T_world_mesh) @ T_world_camera
-    rays = ray_grid(cam).rays(T_mesh_camera, w).reshape(-1, 6)
-    hit = body.scene.cast_rays(o3d.core.Tensor(rays), nthreads=0)
-    t = hit["t_hit"].numpy()
-    ok = np.isfinite(t)
-    pts = rays[ok, :3] + t[ok, None] * rays[ok, 3:]
-    n = body.normals[hit["primitive_ids"].numpy().view(np.int32)[ok]]
-    n = n * np.where(np.einsum("ij,ij->i", n, rays[ok, 3:]) > 0, -1.0, 1.0)[:, None]
-    return se3.transform_points(T_world_mesh, pts), n @ T_world_mesh[:3, :3].T

@@ -914,7 +914,7 @@ class Studio:
         fr = self.frame
         if fr is None:
             return
-        from .register import project_to_cloud
+        from .registration import project_to_cloud
 
         mask = fr.base_mask()
         if not mask.any() and self.result is not None and len(self.result.target_cloud):
@@ -1011,7 +1011,7 @@ class Studio:
     def _estimate(self, job: "EstimateJob", im_id: int):
         """Estimate one frame of `job` and cache it under the job's key (runs without the studio lock)."""
         from .evaluate import StepContext, estimate_and_score
-        from .register import resolve_params
+        from .registration import resolve_params
 
         ctx = StepContext(job.assembly, job.models, job.step)
         frame = self._load_frame(job.step, im_id, job.frames, job.assembly)

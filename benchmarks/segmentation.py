@@ -27,7 +27,7 @@ from apose_studio.assembly import load_assembly  # noqa: E402
 from apose_studio.dataset import Dataset  # noqa: E402
 from apose_studio.evaluate import evaluate  # noqa: E402
 from apose_studio.mesh import load_parts  # noqa: E402
-from apose_studio.register import resolve_params  # noqa: E402
+from apose_studio.registration import resolve_params  # noqa: E402
 from apose_studio.render import RenderSettings, render_dataset  # noqa: E402
 from apose_studio.segment import evaluate_masks, save_model, train  # noqa: E402
 

@@ -35,7 +35,7 @@ from registration import ASSEMBLIES, loaded_assemblies  # noqa: E402
 
 from apose_studio.dataset import Dataset  # noqa: E402
 from apose_studio.evaluate import StepContext, estimate_and_score  # noqa: E402
-from apose_studio.register import resolve_params  # noqa: E402
+from apose_studio.registration import resolve_params  # noqa: E402
 from apose_studio.render import RenderSettings, render_dataset  # noqa: E402
 
 

@@ -10,7 +10,7 @@ import pytest
 from apose_studio.assembly import load_assembly
 from apose_studio.dataset import Dataset
 from apose_studio.evaluate import evaluate, format_table
-from apose_studio.register import RegistrationResult, resolve_params
+from apose_studio.registration import RegistrationResult, resolve_params
 from apose_studio.render import RenderSettings, render_dataset
 
 from .conftest import SAMPLES

@@ -4,7 +4,7 @@ import numpy as np
 
 from apose_studio import inspection, se3
 from apose_studio.config import CameraIntrinsics
-from apose_studio.register import RegistrationResult, Stage
+from apose_studio.registration import RegistrationResult, Stage
 
 CAM = CameraIntrinsics(640, 480, 500.0, 500.0, 320.0, 240.0)
 

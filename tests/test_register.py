@@ -12,8 +12,9 @@ from apose_studio.config import CameraIntrinsics, RegistrationConfig
 from apose_studio.errors import AposeError
 from apose_studio.mesh import base_mesh, load_parts
 from apose_studio.metrics import mssd
-from apose_studio.register import (detect_symmetries, estimate, icp, prepare_base, project_to_cloud,
-                                   raycast_source, resolve_params, _cloud)
+from apose_studio.registration import (detect_symmetries, estimate, icp, prepare_base, project_to_cloud,
+                                       raycast_source, resolve_params)
+from apose_studio.registration.stages import cloud
 
 from .conftest import SAMPLES
 
@@ -43,7 +44,7 @@ def gearbox_step2():
 
 def synthetic_view(base, T_world_base, T_world_camera):
     """Depth and mask of the base alone, ray-cast exactly (no table, no noise)."""
-    from apose_studio.render import raycast_points
+    from apose_studio.raycast import raycast_points
 
     pts, _ = raycast_points(base.mesh, T_world_base, T_world_camera, CAM)
     pc = se3.transform_points(se3.inv(T_world_camera), pts)
@@ -59,8 +60,8 @@ def test_icp_recovers_a_known_small_motion(gearbox_step2):
     T_world_camera = se3.look_at([0.25, -0.2, 0.3], [0, 0, 0.01])
     T_true = se3.make_T(se3.axis_angle_matrix([0.3, 0.2, 1.0], np.radians(40)), [0.01, -0.02, 0.0])
     target_w, target_n = raycast_source(base, T_true, T_world_camera, CAM)
-    target = _cloud(target_w, target_n)
-    source = _cloud(se3.transform_points(se3.inv(T_true), target_w)).voxel_down_sample(0.001)
+    target = cloud(target_w, target_n)
+    source = cloud(se3.transform_points(se3.inv(T_true), target_w)).voxel_down_sample(0.001)
     T0 = T_true @ se3.make_T(se3.axis_angle_matrix([1, 0, 0], np.radians(3)), [0.002, -0.001, 0.0015])
     T = icp(source, target, T0, 0.005, 60)
     assert np.linalg.norm(T[:3, 3] - T_true[:3, 3]) < 5e-4
@@ -135,7 +136,7 @@ def test_degenerate_inputs_fail_with_reasons(gearbox_step2):
 
 def test_unit_errors_in_depth_are_named(gearbox_step2):
     """depth_scale 10x or 1000x off: the target cannot be the base object; the reason says by how much."""
-    from apose_studio.register import scale_problem
+    from apose_studio.registration import scale_problem
 
     view, base, _ = gearbox_step2
     pts = base.samples[base.samples[:, 2] > base.centre[2]]  # the upper half of the base: what a camera sees
@@ -194,7 +195,7 @@ def test_upright_search_finds_the_yaw_without_ransac(gearbox_yaw):
     """--upright: the table's normal from the depth around the base, then every yaw about it (no
     RANSAC, so deterministic); both frames land within a millimetre."""
     from apose_studio.evaluate import StepContext, estimate_frame
-    from apose_studio.register import table_normal
+    from apose_studio.registration import table_normal
 
     ds = gearbox_yaw
     ctx = StepContext(ds.assembly, load_parts(ds.assembly), 2)
@@ -239,7 +240,8 @@ def test_evidence_confirms_contradicts_or_ignores_by_hand():
     are contradicted (the camera sees past them); points 0.9 m away outside the mask too; points
     behind the surface (1.1 m) are hidden by it: neither; points outside the mask but within its
     2 px margin are neither (mask edges are a pixel or two off)."""
-    from apose_studio.register import MASK_MARGIN_PX, _evidence, mask_edge
+    from apose_studio.registration import MASK_MARGIN_PX, mask_edge
+    from apose_studio.registration.scoring import evidence
 
     depth = np.full((CAM.height, CAM.width), 2.0)
     mask = np.zeros_like(depth, bool)
@@ -258,12 +260,12 @@ def test_evidence_confirms_contradicts_or_ignores_by_hand():
     floating_out = at([100, 500], [100, 400], 0.9)
     hidden = at([320], [240], 1.1)
     margin = at([371], [240], 0.9)  # 1 px right of the mask
-    assert _evidence(on, eye, CAM, depth, mask, outside, 0.01) == (3, 0)
-    assert _evidence(floating_in, eye, CAM, depth, mask, outside, 0.01) == (0, 2)
-    assert _evidence(floating_out, eye, CAM, depth, mask, outside, 0.01) == (0, 2)
-    assert _evidence(hidden, eye, CAM, depth, mask, outside, 0.01) == (0, 0)
-    assert _evidence(margin, eye, CAM, depth, mask, outside, 0.01) == (0, 0)
-    assert _evidence(np.zeros((0, 3)), eye, CAM, depth, mask, outside, 0.01) == (0, 0)
+    assert evidence(on, eye, CAM, depth, mask, outside, 0.01) == (3, 0)
+    assert evidence(floating_in, eye, CAM, depth, mask, outside, 0.01) == (0, 2)
+    assert evidence(floating_out, eye, CAM, depth, mask, outside, 0.01) == (0, 2)
+    assert evidence(hidden, eye, CAM, depth, mask, outside, 0.01) == (0, 0)
+    assert evidence(margin, eye, CAM, depth, mask, outside, 0.01) == (0, 0)
+    assert evidence(np.zeros((0, 3)), eye, CAM, depth, mask, outside, 0.01) == (0, 0)
 
 
 @pytest.fixture(scope="module")
@@ -306,7 +308,9 @@ def test_polish_refines_a_noisy_view_onto_the_model(gearbox_step2):
     model's exact normals: from 1 mm and 0.5 deg off, on a view with 1 mm depth noise, it ends within
     0.15 mm (ADI of the base), where the usual ICP (target normals) at the same start does clearly worse."""
     from apose_studio.metrics import adi
-    from apose_studio.register import _polish
+    from apose_studio.registration import Observation, mask_edge
+    from apose_studio.registration.problem import prepare_problem
+    from apose_studio.registration.refine import polish
 
     _, base, _ = gearbox_step2
     T_world_camera = se3.look_at([0.25, -0.2, 0.3], [0, 0, 0.01])
@@ -314,11 +318,13 @@ def test_polish_refines_a_noisy_view_onto_the_model(gearbox_step2):
     depth, mask = synthetic_view(base, T_true, T_world_camera)
     rng = np.random.default_rng(0)
     depth = np.where(mask, depth + rng.normal(0, 0.001, depth.shape), 0).astype(np.float32)
-    target = _cloud(project_to_cloud(depth, mask, CAM, T_world_camera))
+    target = cloud(project_to_cloud(depth, mask, CAM, T_world_camera))
     p = resolve_params("default")
     voxel = p.voxel(base.diameter)
     T_start = se3.make_T(se3.axis_angle_matrix([1.0, 1.0, 0], np.radians(0.5)), [0.001, 0, 0]) @ T_true
-    T, seen = _polish(T_start, base, T_world_camera, CAM, target, voxel, p, None)
+    pb = prepare_problem(np.asarray(target.points), CAM, T_world_camera, base, np.eye(4), p, voxel,
+                         Observation(mask, depth, mask_edge(mask)))
+    T, seen = polish(pb, T_start, None)
     err = adi(T, T_true, base.samples)
     assert adi(T_start, T_true, base.samples) > 5e-4 and err < 1.5e-4, err
     assert seen.shape[1] == 3 and len(seen) > 1000
@@ -329,7 +335,7 @@ def test_polish_refines_a_noisy_view_onto_the_model(gearbox_step2):
     fine.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=p.normal_radius_factor * voxel, max_nn=30))
     fine.orient_normals_towards_camera_location(T_world_camera[:3, 3])
     src_w, _ = raycast_source(base, T_start, T_world_camera, CAM)
-    src = _cloud(se3.transform_points(se3.inv(T_start), src_w)).voxel_down_sample(voxel * p.polish_voxel_factor)
+    src = cloud(se3.transform_points(se3.inv(T_start), src_w)).voxel_down_sample(voxel * p.polish_voxel_factor)
     T_usual = icp(src, fine, T_start, p.polish_threshold_factor * voxel, 30)
     assert adi(T_usual, T_true, base.samples) > 1.5 * err, (adi(T_usual, T_true, base.samples), err)  # 0.09 vs 0.035 mm
 
@@ -381,7 +387,7 @@ def test_near_grid_answers_like_the_distance_to_the_cloud():
     beyond it (it is exact up to a cell's half diagonal, 0.22 x radius); off the grid is far."""
     from scipy.spatial import cKDTree
 
-    from apose_studio.register import NearGrid
+    from apose_studio.registration import NearGrid
 
     rng = np.random.default_rng(3)
     cloud = trimesh.sample.sample_surface_even(trimesh.creation.box((0.04, 0.02, 0.01)), 3000, seed=1)[0]
@@ -426,7 +432,7 @@ def test_a_symmetry_turns_about_the_true_axis_despite_an_off_centre_feature():
 
 
 def test_near_grid_stays_small_for_a_fine_radius_on_a_big_part():
-    from apose_studio.register import NearGrid
+    from apose_studio.registration import NearGrid
 
     cloud = trimesh.sample.sample_surface_even(trimesh.creation.box((1.0, 0.8, 0.5)), 20000, seed=1)[0]
     grid = NearGrid.around(cloud, 0.002)  # radius/4 cells would be 400 x 320 x 200 = 26 M

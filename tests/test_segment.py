@@ -91,7 +91,7 @@ def test_depth_fallback_finds_the_base(gearbox_dataset):
 
 def test_eval_with_depth_masks_reports_mask_iou(gearbox_dataset, tmp_path):
     from apose_studio.evaluate import evaluate
-    from apose_studio.register import resolve_params
+    from apose_studio.registration import resolve_params
 
     doc = evaluate(Dataset(gearbox_dataset), resolve_params("default"), mask_source="depth", orientation_prior=True,
                    progress=False)

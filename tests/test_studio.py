@@ -172,7 +172,7 @@ def test_an_ambiguous_result_shows_the_other_placements_in_magenta(studio, gearb
     from dataclasses import replace
 
     from apose_studio import se3
-    from apose_studio.register import Candidate
+    from apose_studio.registration import Candidate
 
     st = studio(SAMPLES / "helical_gearbox" / "assembly.yaml", gearbox_dataset)
     st.i_prior.value = True

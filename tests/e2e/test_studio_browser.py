@@ -172,7 +172,7 @@ def test_inspect_estimate_a_frame(browser, studio, gearbox_dataset):
     wait_until(lambda: np.linalg.norm(np.asarray(cam.position) - studio.frame.T_world_part[:3, 3]) < 0.5,
                "the camera to frame the object")
     time.sleep(1.0)  # let the software renderer draw the clouds
-    from apose_studio.register import project_to_cloud
+    from apose_studio.registration import project_to_cloud
 
     fr = studio.frame
     pts = project_to_cloud(fr.depth, fr.base_mask(), fr.camera, fr.T_world_camera)

@@ -1,0 +1,31 @@
+"""Assembly pose estimation by point-cloud registration: the paper's Alg. 1, with every step kept.
+
+Read it from the top in `pipeline.py`, where `estimate` runs one frame:
+
+    PROJ3D    masked depth -> world target cloud                     stages.project_to_cloud
+    TFORM     the base object's CAD moved onto the target            stages.place_source
+    RCAST     what the real camera would see of it                   stages.raycast_source
+    search    prior fast path | upright yaw search | free RANSAC     searches.py
+    refine    fine ICP of the best few coarse poses, symmetric twins refine.py
+    score     fitness, depth agreement, coverage; near-ties split    scoring.py
+    compose   T_world_part = T_world_base @ T_base_part              pipeline.compose
+
+Beside it: `presets.py` (Params, `paper` and `default`), `base.py` (the prepared base object and its
+per-step caches), `problem.py` (one frame's prepared target), `results.py` (what comes back), and
+`paper.py` (the authors' pipeline as published). Symmetry detection is geometry: ../symmetry.py.
+"""
+
+from ..symmetry import detect_symmetries
+from .base import BaseObject, NearGrid, prepare_base
+from .pipeline import estimate
+from .presets import PRESET_PARAMS, Params, resolve_params
+from .problem import scale_problem
+from .results import CONFIDENT_COVERAGE, MIN_POINTS, TIE_MARGIN, Candidate, RegistrationResult, Stage, failed
+from .scoring import MASK_MARGIN_PX, Observation, mask_edge
+from .searches import table_normal, upright_starts
+from .stages import global_registration, icp, place_source, project_to_cloud, raycast_source
+
+__all__ = ["BaseObject", "CONFIDENT_COVERAGE", "Candidate", "MASK_MARGIN_PX", "MIN_POINTS", "NearGrid", "Observation",
+           "PRESET_PARAMS", "Params", "RegistrationResult", "Stage", "TIE_MARGIN", "detect_symmetries", "estimate",
+           "failed", "global_registration", "icp", "mask_edge", "place_source", "prepare_base", "project_to_cloud",
+           "raycast_source", "resolve_params", "scale_problem", "table_normal", "upright_starts"]

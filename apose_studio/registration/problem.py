@@ -1,0 +1,100 @@
+"""One frame's registration problem, built once: the target cloud at the resolutions the searches use,
+the camera, the observation, the base object and the step's T_base_part. Every stage after PROJ3D
+reads it instead of a clump of positional arguments."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..config import CameraIntrinsics
+from ..metrics import quick_tree
+from .base import BaseObject
+from .presets import Params
+from .results import Degenerate
+from .scoring import Observation
+from .stages import cloud
+
+
+@dataclass(frozen=True, eq=False)
+class Problem:
+    base: BaseObject
+    T_base_part: np.ndarray  # the step's pose of the part in the frame of base[0]
+    params: Params
+    cam: CameraIntrinsics
+    T_world_camera: np.ndarray
+    observation: Observation
+    voxel: float  # the fine resolution (metres); the searches work at voxel x params.global_voxel_factor
+    target_pts: np.ndarray  # (N, 3) every masked depth point, world frame
+    target_full: object  # open3d PointCloud of target_pts
+    target: object  # open3d PointCloud, down-sampled at the coarse voxel, outliers removed
+    fine: object  # open3d PointCloud, down-sampled at the fine voxel, with normals facing the camera
+    fine_tree: object  # k-d tree of fine's points
+
+    @property
+    def tp(self) -> np.ndarray:
+        """The coarse target's points (world)."""
+        return np.asarray(self.target.points)
+
+    @property
+    def fine_pts(self) -> np.ndarray:
+        return np.asarray(self.fine.points)
+
+    @property
+    def vg(self) -> float:
+        """The coarse (global search) voxel."""
+        return self.voxel * self.params.global_voxel_factor
+
+    @property
+    def thr(self) -> float:
+        """ICP's and the fitness's correspondence distance at the fine resolution."""
+        return self.params.icp_threshold_factor * self.voxel
+
+    @property
+    def cam_pos(self) -> np.ndarray:
+        return self.T_world_camera[:3, 3]
+
+
+def prepare_problem(target_pts: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray, base: BaseObject,
+                    T_base_part: np.ndarray, p: Params, voxel: float, observation: Observation) -> Problem:
+    """The target down-sampled (coarse: flying pixels and speckle removed; fine: with normals). Raises
+    Degenerate when too little of it is left, or when it is a line."""
+    import open3d as o3d
+
+    vg = voxel * p.global_voxel_factor
+    target_full = cloud(target_pts)
+    target = target_full.voxel_down_sample(vg)
+    if len(target.points) >= 40:  # flying pixels and speckle: drop points far from their neighbours
+        target, _ = target.remove_statistical_outlier(nb_neighbors=12, std_ratio=3.0)
+    if len(target.points) < 10:
+        raise Degenerate(f"the target is degenerate: {len(target.points)} points after down-sampling to "
+                         f"{vg * 1000:.2f} mm (a flat speck or a few pixels?)")
+    tp = np.asarray(target.points)
+    if np.linalg.svd(tp - tp.mean(axis=0), compute_uv=False)[1] < 0.05 * vg:
+        raise Degenerate("the target is degenerate: its points lie on a line")
+    fine = target_full.voxel_down_sample(voxel)
+    fine.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=p.normal_radius_factor * voxel, max_nn=30))
+    fine.orient_normals_towards_camera_location(T_world_camera[:3, 3])
+    return Problem(base, T_base_part, p, cam, T_world_camera, observation, voxel, target_pts, target_full, target, fine,
+                   quick_tree(np.asarray(fine.points)))
+
+
+def scale_problem(target_pts: np.ndarray, diameter: float) -> str | None:
+    """A unit error, in words, when the masked depth is far larger or smaller than the CAD could ever
+    look (depth_scale off by 10 or 1000, a model in the wrong unit); None when the sizes are compatible.
+
+    The target's extent is the diagonal of its 5th-95th percentile box; a view of a part never spans
+    much more than its diameter (the mask may take in a little clutter), and rarely much less than a
+    tenth of it."""
+    lo, hi = np.percentile(target_pts, [5, 95], axis=0)
+    ratio = float(np.linalg.norm(hi - lo)) / max(diameter, 1e-9)
+    if 4.0 < ratio:
+        k = 10 ** round(np.log10(ratio))
+        return (f"the target is {ratio:.0f}x the base object's diameter ({diameter * 1000:.3g} mm): depth looks about "
+                f"{k}x too far; is depth_scale {k}x too large (1.0 instead of 0.1?), or the CAD's units too small?")
+    if ratio < 0.1:
+        k = 10 ** round(-np.log10(max(ratio, 1e-12)))
+        return (f"the target spans only {ratio:.3f}x the base object's diameter ({diameter * 1000:.3g} mm): depth looks "
+                f"about {k}x too near; is depth_scale {k}x too small, or the CAD's units too large?")
+    return None

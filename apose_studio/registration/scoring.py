@@ -1,0 +1,188 @@
+"""How well a pose explains a frame, and how near-ties are broken: fitness and RMSE (target points the
+model explains), the depth's agreement (model points the observation confirms), coverage, the
+evidence where two placements differ, and the clearly different placements among the candidates."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, NamedTuple
+
+import numpy as np
+
+from .. import se3
+from ..config import CameraIntrinsics
+from ..metrics import quick_tree
+from .results import Candidate
+from .stages import raycast_source
+
+if TYPE_CHECKING:
+    from .problem import Problem
+
+MASK_MARGIN_PX = 2  # mask edges are a pixel or two off: a model point further outside contradicts its pose
+DISCRIMINATE_MIN_POINTS = 10  # fewer distinguishing points than this on both sides: the placements are symmetric twins
+
+
+class Observation(NamedTuple):
+    """What a frame shows of the base: its mask, the depth (metres) and the mask's outline (`mask_edge`)."""
+
+    mask: np.ndarray
+    depth: np.ndarray
+    edge: np.ndarray
+
+
+def mask_edge(mask: np.ndarray, px: int = MASK_MARGIN_PX) -> np.ndarray:
+    """Pixels within `px` of the mask's outline, on either side (where depth and mask are mixed)."""
+    import cv2
+
+    k = np.ones((2 * px + 1, 2 * px + 1), np.uint8)
+    m = mask.astype(np.uint8)
+    return (cv2.dilate(m, k) > 0) & ~(cv2.erode(m, k) > 0)
+
+
+def pixels(points_world: np.ndarray, T_world_camera, cam: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(v, u, z, inside) of world points: integer pixel, depth along the camera's axis, and whether the
+    pixel is in the image in front of the camera (v and u are 0 where not)."""
+    pc = se3.transform_points(se3.inv(T_world_camera), points_world)
+    u, v = cam.project(pc)
+    with np.errstate(invalid="ignore"):
+        u, v = np.round(u), np.round(v)
+        inside = (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+    return np.where(inside, v, 0).astype(int), np.where(inside, u, 0).astype(int), pc[:, 2], inside
+
+
+def visible_agreement(points_world: np.ndarray, T_world_camera: np.ndarray, cam: CameraIntrinsics,
+                       depth_obs: np.ndarray, mask: np.ndarray, tol: float, edge: np.ndarray | None = None) -> float:
+    """Share of model points seen at a candidate pose that the observation confirms (inside the mask,
+    at the observed depth within `tol`). With `edge` (pixels within a couple of pixels of the mask's
+    outline), points there and points on pixels without depth (sensor dropout) are left out: the
+    observation can neither confirm nor deny them."""
+    if len(points_world) == 0:
+        return 0.0
+    v, u, z, inside = pixels(points_world, T_world_camera, cam)
+    d = depth_obs[v, u]
+    ok = inside & mask[v, u] & (np.abs(d - z) < tol)
+    if edge is None:
+        return float(ok.mean())
+    known = ~(inside & (edge[v, u] | ~(np.isfinite(d) & (d > 0))))
+    return float(ok[known].mean()) if known.any() else 0.0
+
+
+def poses_within(A: np.ndarray, B: np.ndarray, metres: float, degrees: float) -> bool:
+    """A and B are less than `metres` and `degrees` apart."""
+    return bool(np.linalg.norm(A[:3, 3] - B[:3, 3]) < metres and se3.rotation_angle_deg(A[:3, :3].T @ B[:3, :3]) < degrees)
+
+
+def agreement_tolerance(voxel: float) -> float:
+    """How far a model point may lie from the observed depth and still count as confirmed (metres)."""
+    return max(2 * voxel, 0.002)
+
+
+def score_pose(pb: "Problem", T_world_base: np.ndarray, symmetry: int = 0) -> tuple[Candidate, np.ndarray, np.ndarray]:
+    """A candidate at a refined pose: what the camera would see of the base there (world points and
+    normals, also returned), the target share it explains, and the share of it the depth confirms."""
+    src_w, src_n = raycast_source(pb.base, T_world_base, pb.T_world_camera, pb.cam)
+    cand, src_w = score_seen(pb, T_world_base, src_w, symmetry)
+    return cand, src_w, src_n
+
+
+def score_seen(pb: "Problem", T_world_base: np.ndarray, src_w: np.ndarray, symmetry: int = 0) -> tuple[Candidate, np.ndarray]:
+    """score_pose with what the camera sees of the base at T_world_base given (world points). One
+    query gives the fitness and RMSE (within thr) and the coverage (within 2 voxels)."""
+    thr, fine_pts = pb.thr, pb.fine_pts
+    loose = max(thr, 2 * pb.voxel)
+    d = quick_tree(src_w).query(fine_pts, distance_upper_bound=loose)[0] if len(src_w) and len(fine_pts) \
+        else np.full(len(fine_pts), np.inf)
+    inl = d < thr
+    fit, rmse = (float(inl.mean()), float(np.sqrt(np.mean(d[inl] ** 2)))) if inl.any() else (0.0, 0.0)
+    coverage = float(np.mean(d < loose)) if len(d) else 0.0
+    obs = pb.observation
+    agree = visible_agreement(src_w, pb.T_world_camera, pb.cam, obs.depth, obs.mask, agreement_tolerance(pb.voxel))
+    return Candidate(T_world_base, T_world_base @ pb.T_base_part, fit, agree, rmse, 0.5 * (fit + agree), symmetry,
+                     coverage), src_w
+
+
+def evidence(points_world: np.ndarray, T_world_camera, cam: CameraIntrinsics, depth_obs: np.ndarray,
+              mask: np.ndarray, outside: np.ndarray, tol: float) -> tuple[int, int]:
+    """(confirmed, contradicted) among model points a candidate pose shows: confirmed where the mask
+    holds the observed surface at that depth; contradicted where the camera sees past the claimed
+    surface (farther depth, or background outside the mask by more than MASK_MARGIN_PX). Points
+    behind something nearer are neither: an occluder hides them."""
+    if len(points_world) == 0:
+        return 0, 0
+    v, u, z, inside = pixels(points_world, T_world_camera, cam)
+    v, u, z = v[inside], u[inside], z[inside]
+    d = depth_obs[v, u]
+    valid = np.isfinite(d) & (d > 0)
+    m = mask[v, u]
+    confirmed = m & valid & (np.abs(d - z) < tol)
+    contradicted = valid & (d > z + tol) & (m | outside[v, u])
+    return int(confirmed.sum()), int(contradicted.sum())
+
+
+def discriminate(pb: "Problem", close: list[int], cands: list[Candidate], traces: list) -> list[int]:
+    """Break near-ties between placements by their differences only (a nearly symmetric motor block
+    differs in one connector). For each pair, the evidence for a placement is: the points it shows
+    that the other does not and that the depth confirms, the points the other shows where the camera
+    sees past them (background, or a farther surface), and the target points only it explains (the
+    other missing them by more than 2 voxels). A placement that loses to another by a clear margin
+    (at least DISCRIMINATE_MIN_POINTS and 1.5x) is dropped; the rest (true symmetric twins among
+    them) stay tied."""
+    fine_pts, T_world_camera, cam, voxel, thr = pb.fine_pts, pb.T_world_camera, pb.cam, pb.voxel, pb.thr
+    observation = pb.observation
+    tol = agreement_tolerance(voxel)
+    mask_img, depth_img = observation.mask, observation.depth
+    outside = ~(mask_img | observation.edge)
+    seen = {i: traces[i][2] for i in close}
+    trees = {i: quick_tree(seen[i]) if len(seen[i]) else None for i in close}
+    # target points each placement explains (within thr), and those it misses by more than tol: a point
+    # only one explains counts for it when the other misses it clearly (not by a sub-millimetre shift)
+    dist = {i: trees[i].query(fine_pts, distance_upper_bound=tol)[0] if trees[i] is not None
+            else np.full(len(fine_pts), np.inf) for i in close}
+    near_target = {i: dist[i] < thr for i in close}
+    far_target = {i: dist[i] == np.inf for i in close}
+    pix = {i: pixels(seen[i], T_world_camera, cam) for i in close}  # (v, u, z, inside) of each point seen
+    # a depth buffer per placement, over the image window all of them cover
+    vin = np.concatenate([pix[i][0][pix[i][3]] for i in close] + [np.zeros(1, int)])
+    uin = np.concatenate([pix[i][1][pix[i][3]] for i in close] + [np.zeros(1, int)])
+    v0, u0 = (int(vin.min()), int(uin.min())) if len(vin) > 1 else (0, 0)
+    shape = (int(vin.max()) - v0 + 1, int(uin.max()) - u0 + 1)
+    zbuf = {}
+    for i in close:
+        v, u, z, inside = pix[i]
+        zbuf[i] = np.full(shape, np.inf)
+        zbuf[i][v[inside] - v0, u[inside] - u0] = z[inside]
+
+    def only(a, b):  # what a shows that b does not: the pixel depths differ, and no point of b is near
+        v, u, z, inside = pix[a]
+        zb = zbuf[b][np.clip(v - v0, 0, shape[0] - 1), np.clip(u - u0, 0, shape[1] - 1)]
+        differ = ~(inside & (np.abs(zb - z) < 0.9 * tol))  # the same ray within 0.9 tol: certainly near
+        pts = seen[a][differ]
+        return pts[trees[b].query(pts, distance_upper_bound=tol)[0] == np.inf] if len(pts) else pts
+
+    lost = set()
+    for a_pos, a in enumerate(close):
+        for b in close[a_pos + 1:]:
+            if trees[a] is None or trees[b] is None:
+                continue
+            only_a, only_b = only(a, b), only(b, a)
+            if len(only_a) < DISCRIMINATE_MIN_POINTS and len(only_b) < DISCRIMINATE_MIN_POINTS:
+                continue  # twins: nothing to tell them apart
+            conf_a, contra_a = evidence(only_a, T_world_camera, cam, depth_img, mask_img, outside, tol)
+            conf_b, contra_b = evidence(only_b, T_world_camera, cam, depth_img, mask_img, outside, tol)
+            ev_a = conf_a + contra_b + float(np.sum(near_target[a] & far_target[b]))
+            ev_b = conf_b + contra_a + float(np.sum(near_target[b] & far_target[a]))
+            if ev_a >= 1.5 * ev_b and ev_a - ev_b >= DISCRIMINATE_MIN_POINTS:
+                lost.add(b)
+            elif ev_b >= 1.5 * ev_a and ev_b - ev_a >= DISCRIMINATE_MIN_POINTS:
+                lost.add(a)
+    kept = [i for i in close if i not in lost]
+    return kept or close
+
+
+def distinct_placements(cands: list[Candidate], voxel: float) -> list[Candidate]:
+    """The clearly different part placements (more than 3 voxels or 5 degrees apart) among the
+    candidates, the first one first."""
+    reps: list[Candidate] = []
+    for c in cands:
+        if not any(poses_within(c.T_world_part, r.T_world_part, 3 * voxel, 5.0) for r in reps):
+            reps.append(c)
+    return reps

@@ -1,0 +1,270 @@
+"""The searches for the base's pose, from the cheapest to the most general:
+
+- the prior fast path: the caller knows the orientation; ICP from it, accepted when it fits;
+- the upright yaw search: a table is seen, so the base stands on it as modelled; every yaw about the
+  table's normal is screened, the best few refined coarsely (and the best's near-symmetric turns);
+- the free search: RANSAC on FPFH matches against the whole model (with a longer retry when the fast
+  one explains too little), its result turned by half turns and near-symmetries.
+
+Each yields coarse poses (`Start`s, best first) for refine.py; none of them decides alone.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from .. import se3
+from ..config import CameraIntrinsics
+from .refine import polish
+from .results import MIN_POINTS, RegistrationResult
+from .scoring import agreement_tolerance, score_seen, visible_agreement
+from .stages import cloud, estimate_normals, global_registration, icp, normals_fpfh, place_source, raycast_source, trace_stages
+
+PRIOR_ACCEPT = 0.95  # the prior's pose is kept without a global search when both shares reach this
+UPRIGHT_YAW_STEP_DEG = 10.0
+UPRIGHT_STARTS = 4  # the best-screened yaws refined by coarse ICP (4 and 6 reach the same recall; 4 is 7 % faster)
+UPRIGHT_TWINS = 3  # at most this many (near-)symmetric turns of the best upright pose are refined too
+UPRIGHT_FALLBACK = 0.6  # below this share explained by the best upright start, the base is not upright: search freely
+SCREEN_POINTS = 500  # target points the screening looks up per starting pose
+
+
+@dataclass
+class Start:
+    """A starting pose after the coarse ICP: the share of what it shows that the target explains,
+    the symmetry it came from (-1: the caller's prior), the pose ICP began from, the coarse pose."""
+
+    explained: float
+    symmetry: int
+    T_start: np.ndarray
+    T_coarse: np.ndarray
+
+
+@dataclass
+class Found:
+    """What the searches found: coarse poses (best first), the best upright pose's near-symmetric
+    twins, and whether the base was taken to stand upright on a table."""
+
+    coarse: list[Start]
+    twins: list[Start] = field(default_factory=list)
+    upright: bool = False
+
+
+def try_prior(pb, prior: np.ndarray, trace_iterations: bool, timings: dict, **kw) -> RegistrationResult | None:
+    """Early exit when the caller knows the base's orientation: put the CAD in that orientation where
+    what the camera would see of it lands on the target's centre, refine with ICP from coarse to fine,
+    and accept when the model explains the target and the depth confirms the model (both >= 95 %).
+    Otherwise None, and the full search runs (the prior still breaks its ties)."""
+    base, cam, T_world_camera, p, voxel = pb.base, pb.cam, pb.T_world_camera, pb.params, pb.voxel
+    fine, fine_pts, observation, tp = pb.fine, pb.fine_pts, pb.observation, pb.tp
+    t = time.perf_counter()
+    thr = pb.thr
+    T_world_source = place_source(base, tp.mean(axis=0), prior[:3, :3])
+    src_w, _ = raycast_source(base, T_world_source, T_world_camera, cam)
+    if len(src_w) < MIN_POINTS:
+        return None
+    T0 = T_world_source.copy()
+    T0[:3, 3] += tp.mean(axis=0) - src_w.mean(axis=0)  # the visible part's centre on the target's centre
+    src = cloud(se3.transform_points(se3.inv(T_world_source), src_w)).voxel_down_sample(voxel)
+    trace: list | None = [] if trace_iterations else None
+    T = T0
+    for factor in (8.0, 4.0, 2.0):
+        T = icp(src, fine, T, factor * voxel, 10, trace)
+    if p.polish_voxel_factor > 0:
+        T, src_w = polish(pb, T, trace)
+    else:
+        src_w, _ = raycast_source(base, T, T_world_camera, cam)  # what the camera sees at the refined pose
+        src = cloud(se3.transform_points(se3.inv(T), src_w)).voxel_down_sample(voxel)
+        T = icp(src, fine, T, thr, p.icp_max_iterations, trace)
+        src_w, _ = raycast_source(base, T, T_world_camera, cam)
+    cand, src_w = score_seen(pb, T, src_w)
+    # the depth's word on the model, leaving out what it cannot judge: the mask's outline (mixed
+    # pixels) and dropouts; with RealSense-like noise those alone cost 5-7 % of the agreement
+    confirmed = visible_agreement(src_w, T_world_camera, cam, observation.depth, observation.mask,
+                                  agreement_tolerance(voxel), observation.edge)
+    timings["prior"] = time.perf_counter() - t
+    if cand.coverage < PRIOR_ACCEPT or confirmed < PRIOR_ACCEPT:
+        return None
+    src_b = se3.transform_points(se3.inv(T), src_w)
+    stages = trace_stages(T_world_source, "prior", T0, trace, cand, src_b, fine_pts, thr)
+    return RegistrationResult(True, "", T, cand.T_world_part, T_world_source, fine_pts, src_b, stages, cand.fitness,
+                              cand.inlier_rmse, timings, [cand], False, voxel=voxel, coverage=cand.coverage, **kw)
+
+
+def table_normal(depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray,
+                 min_inlier_share: float = 0.3) -> np.ndarray | None:
+    """World unit normal of the plane the base stands on (pointing at the camera), fitted by RANSAC
+    to the depth outside the base's mask; None when no plane holds min_inlier_share of those points."""
+    step = max(1, int(np.sqrt(mask.size / 5000)))  # about 5000 pixels on a regular grid are plenty for a plane
+    d = depth[::step, ::step]
+    vs, us = np.nonzero(~mask[::step, ::step] & np.isfinite(d) & (d > 0))
+    if len(vs) < 200:
+        return None
+    pts = se3.transform_points(T_world_camera, cam.backproject(us * step, vs * step, d[vs, us]))
+    tol = 0.004 * float(np.median(np.linalg.norm(pts - T_world_camera[:3, 3], axis=1)))
+    (a, b, c, d), inliers = cloud(pts).segment_plane(tol, 3, 300)
+    if len(inliers) < min_inlier_share * len(pts):
+        return None
+    n = np.array([a, b, c]) / np.linalg.norm([a, b, c])
+    return n if n @ T_world_camera[:3, 3] + d / np.linalg.norm([a, b, c]) > 0 else -n
+
+
+def upright_starts(base, up: np.ndarray, target_pts: np.ndarray, cam_pos: np.ndarray,
+                   model_pts: np.ndarray, model_nrm: np.ndarray) -> list:
+    """(0, T_world_base) starts with the CAD's +z along `up`, one per yaw step about it, each moved so
+    the part of the model facing the camera is centred on the target."""
+    z = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(z, up)
+    if np.linalg.norm(axis) > 1e-9:  # the turn that takes the CAD's +z onto the table's normal
+        R_up = se3.axis_angle_matrix(axis, float(np.arccos(np.clip(z @ up, -1.0, 1.0))))
+    else:  # already along it, or exactly opposite (a half turn about x)
+        R_up = np.eye(3) if up[2] > 0 else np.diag([1.0, -1.0, -1.0])
+    centre = target_pts.mean(axis=0)
+    R = se3.axis_angle_matrix(up, np.radians(np.arange(0.0, 360.0, UPRIGHT_YAW_STEP_DEG))) @ R_up  # (n, 3, 3)
+    poses = place_source(base, centre, R)
+    t = poses[:, :3, 3]
+    eyes = np.einsum("nji,nj->ni", R, cam_pos - t)  # the camera in the base frame, per yaw
+    facing = (eyes @ model_nrm.T) > np.einsum("ij,ij->i", model_nrm, model_pts)[None]  # n . (eye - p) > 0
+    count = facing.sum(axis=1)
+    seen_mean = (facing.astype(float) @ model_pts) / np.maximum(count, 1)[:, None]  # base frame
+    shift = centre - (np.einsum("nij,nj->ni", R, seen_mean) + t)
+    poses[:, :3, 3] += np.where(count[:, None] > 0, shift, 0.0)  # the part facing the camera centred on the target
+    return [(0, T) for T in poses]
+
+
+def keeps_up(T: np.ndarray, T_ref: np.ndarray, max_deg: float = 5.0) -> bool:
+    """T's base +z points where T_ref's does (a turn about the table's normal, not a tip-over)."""
+    return float(T[:3, 2] @ T_ref[:3, 2]) > np.cos(np.radians(max_deg))
+
+
+def facing(points: np.ndarray, normals: np.ndarray, T_world_base: np.ndarray, cam_pos: np.ndarray) -> np.ndarray:
+    """Model points (base frame) whose outward normal faces the camera when the base is at T_world_base."""
+    eye = se3.transform_points(se3.inv(T_world_base), cam_pos[None])[0]
+    return points[np.einsum("ij,ij->i", normals, eye - points) > 0]
+
+
+class ModelSearch:
+    """The whole model against the target, at the coarse voxel: the model's features (cached per step),
+    the target's FPFH (computed only when a RANSAC needs it: the upright search does not), and the
+    near-surface grid that screens starting poses."""
+
+    def __init__(self, pb):
+        p = pb.params
+        self.pb = pb
+        self.model, self.f_model = pb.base.model_features(pb.vg, p)
+        estimate_normals(pb.target, pb.vg, p, pb.cam_pos)  # ICP needs them whatever the search
+        self._f_target = None
+        self.grid = pb.base.near_grid(pb.vg, p)
+        self.model_pts, self.model_nrm = np.asarray(self.model.points), np.asarray(self.model.normals)
+        tp = pb.tp
+        self.tp_few = tp[np.random.default_rng(p.seed).choice(len(tp), min(len(tp), SCREEN_POINTS), replace=False)]
+
+    def target_features(self):
+        if self._f_target is None:
+            self._f_target = normals_fpfh(self.pb.target, self.pb.vg, self.pb.params, self.pb.cam_pos)
+        return self._f_target
+
+    def ransac(self, p=None) -> np.ndarray:
+        """T_world_base straight from RANSAC on FPFH matches (the model is in the base frame)."""
+        pb = self.pb
+        return global_registration(self.model, pb.target, self.f_model, self.target_features(), pb.vg, p or pb.params)
+
+    def explained(self, poses: list) -> np.ndarray:
+        """Per pose: the share of (SCREEN_POINTS of) the target points near the model's outer surface."""
+        if not poses:
+            return np.zeros(0)
+        T_base_world = np.linalg.inv(np.stack(poses))  # (n, 4, 4)
+        pts = self.tp_few @ T_base_world[:, :3, :3].transpose(0, 2, 1) + T_base_world[:, None, :3, 3]
+        return self.grid.contains(pts.reshape(-1, 3)).reshape(len(poses), -1).mean(axis=1)
+
+    def around(self, T_g: np.ndarray) -> list:
+        """(symmetry, pose) starts from a global result: it, its half turns (partial views often match
+        upside down) and the base's near-symmetries (the symmetries proper need no start: their twins
+        are derived at the end)."""
+        p, base = self.pb.params, self.pb.base
+        starts = [(0, T_g @ F) for F in base.flips()] if p.use_flips else [(0, T_g)]
+        if p.use_symmetries:
+            starts += [(0, T_g @ S) for S in base.near_symmetries]
+        return starts
+
+    def coarse(self, starts: list, n_try: int) -> list[Start]:
+        """Screen the (symmetry, pose) starts cheaply, refine the best `n_try` (and every start of the
+        prior's) by a few coarse ICP iterations, best first."""
+        pb = self.pb
+        vg, cam_pos = pb.vg, pb.cam_pos
+        share = self.explained([T for _, T in starts])
+        screened = [starts[i] for i in np.argsort(-share, kind="stable")]
+        out = []
+        for k, T0 in screened[:n_try] + [s_ for s_ in screened[n_try:] if s_[0] == -1]:
+            # cheap view of the model for screening: its outer surface, back faces culled (no occlusion)
+            src = cloud(facing(self.model_pts, self.model_nrm, T0, cam_pos))
+            if len(src.points) < MIN_POINTS:
+                continue
+            T = icp(src, pb.target, T0, 2.0 * vg, 8, None)
+            seen = se3.transform_points(T, facing(self.model_pts, self.model_nrm, T, cam_pos))
+            f_quick = float(np.mean(pb.fine_tree.query(seen, distance_upper_bound=vg)[0] < np.inf)) if len(seen) else 0.0
+            out.append(Start(f_quick, k, T0, T))
+        return sorted(out, key=lambda x: -x.explained)
+
+
+def prior_starts(pb, ms: ModelSearch, T_world_source: np.ndarray) -> list:
+    """The paper's way, on down-sampled clouds: the CAD in the prior's orientation, seen from the camera,
+    registered to the target by RANSAC; plus the plain translated CAD. Marked -1: always refined."""
+    out = []
+    src_w, _ = raycast_source(pb.base, T_world_source, pb.T_world_camera, pb.cam)
+    if len(src_w) >= MIN_POINTS:
+        src = cloud(src_w).voxel_down_sample(pb.vg)
+        T_p = global_registration(src, pb.target, normals_fpfh(src, pb.vg, pb.params, pb.cam_pos), ms.target_features(),
+                                  pb.vg, pb.params)
+        out.append((-1, T_p @ T_world_source))
+    out.append((-1, T_world_source))
+    return out
+
+
+def search_upright(pb, ms: ModelSearch, up: np.ndarray) -> Found | None:
+    """Every yaw about the table's normal `up`, no RANSAC; None when nothing fits upright."""
+    p, base = pb.params, pb.base
+    coarse = ms.coarse(upright_starts(base, up, pb.tp, pb.cam_pos, ms.model_pts, ms.model_nrm), UPRIGHT_STARTS)
+    if not coarse or coarse[0].explained < UPRIGHT_FALLBACK:
+        return None if not coarse else Found(coarse)
+    twins: list[Start] = []
+    if p.use_symmetries:
+        # a nearly symmetric base (a motor block whose connector alone breaks its 4-fold turn) gives
+        # near-equal yaws a quarter turn apart; the screening cannot tell them apart, the refined
+        # scores and the discrimination can: each twin of the best is refined, whatever it screens at
+        best = coarse[0]
+        sym = [(0, best.T_coarse @ S) for S in base.near_symmetries]  # (the symmetries' twins are derived at the end)
+        sym = [(k, T) for k, T in sym if keeps_up(T, best.T_coarse)][:UPRIGHT_TWINS]  # the closest-fitting turns
+        twins = ms.coarse(sym, UPRIGHT_STARTS) if sym else []
+        coarse = sorted(coarse + twins, key=lambda x: -x.explained)
+        twins = [best] + twins  # the best itself too: a twin may now screen higher and crowd it out
+    return Found(coarse, twins, upright=True)
+
+
+def search_poses(pb, ms: ModelSearch, prior: np.ndarray | None, T_world_source: np.ndarray) -> Found:
+    """The coarse poses of this frame: upright on the table when one is seen (and no prior is given),
+    else (or when nothing fits upright) the free search; RANSAC again, longer, when the best start
+    explains too little."""
+    p = pb.params
+    up = None
+    if p.upright and prior is None:
+        obs = pb.observation
+        up = table_normal(obs.depth, obs.mask, pb.cam, pb.T_world_camera)
+    if up is None:
+        T_g = ms.ransac()
+    extra = prior_starts(pb, ms, T_world_source) if prior is not None else []
+    if up is not None:
+        found = search_upright(pb, ms, up)
+        if found is None or not found.upright:  # nothing fits upright: it is not; search freely
+            coarse = found.coarse if found is not None else []
+            found = Found(sorted(coarse + ms.coarse(ms.around(ms.ransac()), p.max_starts), key=lambda x: -x.explained))
+    else:
+        found = Found(ms.coarse(ms.around(T_g) + extra, p.max_starts))
+    coarse = found.coarse
+    if not found.upright and p.ransac_retry_iterations and (not coarse or coarse[0].explained < p.retry_below):
+        # the fast RANSAC missed: try harder (the prior's starts are in already)
+        T_g = ms.ransac(replace(p, ransac_max_iterations=p.ransac_retry_iterations, seed=p.seed + 1))
+        found.coarse = sorted(coarse + ms.coarse(ms.around(T_g), p.max_starts), key=lambda x: -x.explained)
+    return found

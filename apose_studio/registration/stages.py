@@ -1,0 +1,145 @@
+"""The paper's stages as functions: PROJ3D (masked depth -> world cloud), TFORM (the base moved to the
+target), RCAST (what a camera sees of it), and PCDREG's pieces (normals, FPFH, RANSAC, ICP); plus the
+replay's stage records. Open3D is imported where it is used."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .. import se3
+from ..config import CameraIntrinsics
+from ..errors import AposeError
+from ..metrics import fitness_rmse
+from .presets import Params
+from .results import Candidate, Stage
+
+if TYPE_CHECKING:
+    from .base import BaseObject
+
+
+def project_to_cloud(depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray) -> np.ndarray:
+    """PROJ3D: masked depth pixels (metres; 0, NaN and inf ignored) back-projected to world points (N, 3)."""
+    if depth.shape != mask.shape:
+        raise AposeError(f"mask is {mask.shape[1]}x{mask.shape[0]} but depth is {depth.shape[1]}x{depth.shape[0]}")
+    vs, us = np.nonzero(mask & np.isfinite(depth) & (depth > 0))
+    return se3.transform_points(T_world_camera, cam.backproject(us, vs, depth[vs, us]))
+
+
+def place_source(base: "BaseObject", target_centre: np.ndarray, R_world_base: np.ndarray | None = None) -> np.ndarray:
+    """TFORM: T_world_source that puts the base's box centre on the target's centre, orientation kept;
+    (n, 4, 4) for (n, 3, 3) orientations."""
+    R = np.eye(3) if R_world_base is None else np.asarray(R_world_base)
+    T = np.tile(np.eye(4), R.shape[:-2] + (1, 1))
+    T[..., :3, :3], T[..., :3, 3] = R, target_centre - R @ base.centre
+    return T
+
+
+def raycast_source(base: "BaseObject", T_world_source: np.ndarray, T_world_camera: np.ndarray,
+                   cam: CameraIntrinsics, look_at: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """RCAST: the base mesh at T_world_source seen by a pinhole camera at the real camera's position.
+
+    With `look_at`, the virtual camera turns to look at that point (the paper's virtual camera looks
+    at the target's centre); otherwise it is the real camera. Returns world points and normals.
+    """
+    from ..raycast import raycast_points
+
+    T_cam = T_world_camera if look_at is None else se3.look_at(T_world_camera[:3, 3], look_at)
+    return raycast_points(base.mesh, T_world_source, T_cam, cam)
+
+
+def cloud(points: np.ndarray, normals: np.ndarray | None = None):
+    import open3d as o3d
+
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
+    if normals is not None:
+        pc.normals = o3d.utility.Vector3dVector(np.asarray(normals, dtype=np.float64))
+    return pc
+
+
+def estimate_normals(pc, voxel: float, p: Params, camera_pos: np.ndarray | None) -> None:
+    """Estimate normals once (oriented towards the camera when its position is known)."""
+    import open3d as o3d
+
+    if not pc.has_normals():
+        pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=p.normal_radius_factor * voxel, max_nn=30))
+        if camera_pos is not None:
+            pc.orient_normals_towards_camera_location(camera_pos)
+
+
+def normals_fpfh(pc, voxel: float, p: Params, camera_pos: np.ndarray | None):
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    estimate_normals(pc, voxel, p, camera_pos)
+    return reg.compute_fpfh_feature(pc, o3d.geometry.KDTreeSearchParamHybrid(radius=p.feature_radius_factor * voxel, max_nn=100))
+
+
+def global_registration(source, target, f_source, f_target, voxel: float, p: Params) -> np.ndarray:
+    """PCDREG, global part: RANSAC on FPFH matches. Returns T_target_source."""
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    o3d.utility.random.seed(p.seed)
+    dist = p.ransac_distance_factor * voxel
+    checkers = [reg.CorrespondenceCheckerBasedOnEdgeLength(p.ransac_edge_length), reg.CorrespondenceCheckerBasedOnDistance(dist)]
+    if p.feature_matches > 1:
+        # repetitive geometry (gear teeth) makes the single nearest feature often wrong: offer k of them
+        fs, ft = np.asarray(f_source.data).T, np.asarray(f_target.data).T
+        _, idx = cKDTree(fs).query(ft, k=p.feature_matches)
+        corr = np.stack([idx.reshape(-1), np.repeat(np.arange(len(ft)), p.feature_matches)], axis=1)
+        res = reg.registration_ransac_based_on_correspondence(
+            source, target, o3d.utility.Vector2iVector(corr.astype(np.int32)), dist,
+            reg.TransformationEstimationPointToPoint(False), 3, checkers,
+            reg.RANSACConvergenceCriteria(p.ransac_max_iterations, p.ransac_confidence))
+        return np.asarray(res.transformation)
+    res = reg.registration_ransac_based_on_feature_matching(
+        source, target, f_source, f_target, p.mutual_filter, dist,
+        reg.TransformationEstimationPointToPoint(False), 3,
+        [reg.CorrespondenceCheckerBasedOnEdgeLength(p.ransac_edge_length), reg.CorrespondenceCheckerBasedOnDistance(dist)],
+        reg.RANSACConvergenceCriteria(p.ransac_max_iterations, p.ransac_confidence))
+    return np.asarray(res.transformation)
+
+
+def icp(source, target, T_init: np.ndarray, threshold: float, iterations: int, trace: list | None = None) -> np.ndarray:
+    """Point-to-plane ICP, L(T) = sum ((p - T q) . n_p)^2 with target normals n_p. Returns T_target_source.
+
+    With `trace`, runs one iteration at a time and appends each T (same result, for replay).
+    """
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    est = reg.TransformationEstimationPointToPlane()
+    if trace is None:
+        res = reg.registration_icp(source, target, threshold, T_init, est,
+                                   reg.ICPConvergenceCriteria(1e-6, 1e-6, iterations))
+        return np.asarray(res.transformation)
+    T = T_init
+    prev = None
+    for _ in range(iterations):
+        res = reg.registration_icp(source, target, threshold, T, est, reg.ICPConvergenceCriteria(1e-6, 1e-6, 1))
+        T = np.asarray(res.transformation)
+        trace.append(T.copy())
+        if prev is not None and abs(prev - res.inlier_rmse) < 1e-7:
+            break
+        prev = res.inlier_rmse
+    return T
+
+
+def stage(name, T, target, source_base, threshold) -> Stage:
+    f, r = fitness_rmse(target, se3.transform_points(T, source_base), threshold)
+    return Stage(name, T, f, r)
+
+
+def trace_stages(T_world_source, start_name: str, T_start, trace, cand: Candidate, src_b, fine_pts, thr) -> list[Stage]:
+    """The replay: initial (TFORM) -> the start ICP began from -> every ICP iteration -> final. Without a
+    trace (trace_iterations=False: batch evaluation) only the final stage's fitness is computed."""
+    if trace is None:
+        return [Stage("initial", T_world_source, float("nan"), float("nan")),
+                Stage(start_name, T_start, float("nan"), float("nan")),
+                Stage("final", cand.T_world_base, cand.fitness, cand.inlier_rmse)]
+    stages = [stage("initial", T_world_source, fine_pts, src_b, thr), stage(start_name, T_start, fine_pts, src_b, thr)]
+    stages += [stage(f"icp {k + 1}", T, fine_pts, src_b, thr) for k, T in enumerate(trace or [])]
+    return stages + [Stage("final", cand.T_world_base, cand.fitness, cand.inlier_rmse)]
