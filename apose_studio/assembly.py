@@ -13,16 +13,13 @@ from functools import cached_property
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from . import se3
 from .config import (CameraIntrinsics, RegistrationConfig, camera_from_dict, camera_to_dict, is_number,
                      registration_from_dict, registration_to_dict)
 from .errors import AssemblyError, Problem
-from .fileio import atomic_write_text, roundtrip_yaml
+from .fileio import atomic_write_text, parse_yaml, roundtrip_yaml
 from .units import UNIT_TO_M
-
-__all__ = ["Assembly", "Part", "Step", "Symmetry", "atomic_write_text", "dump_assembly", "load_assembly", "save_assembly"]
 
 FORMAT = "apose-assembly/1"
 _TOP_KEYS = ("format", "name", "units", "parts", "steps", "camera", "registration")
@@ -423,49 +420,6 @@ def load_assembly(path: str | Path) -> Assembly:
     except OSError as e:
         raise AssemblyError([Problem(str(path), "", f"cannot be read ({e.strerror})")]) from None
     return assembly_from_dict(parse_yaml(text, str(path)), path)
-
-
-class _StrictLoader(yaml.SafeLoader):
-    """Safe YAML without aliases (a few lines of anchors can expand to gigabytes) and without duplicate keys
-    (two parts with one id would silently become one)."""
-
-    def compose_node(self, parent, index):
-        if self.check_event(yaml.AliasEvent):
-            event = self.peek_event()
-            raise yaml.constructor.ConstructorError(
-                None, None, "aliases (*name) are not allowed in assembly files; write the value out", event.start_mark)
-        return super().compose_node(parent, index)
-
-    def construct_mapping(self, node, deep=False):
-        seen = {}
-        for key_node, _ in node.value:
-            key = self.construct_object(key_node, deep=True)
-            try:
-                if key in seen:
-                    raise yaml.constructor.ConstructorError(
-                        None, None, f"duplicate key {key!r} (first at line {seen[key] + 1}); each key may appear once",
-                        key_node.start_mark)
-                seen[key] = key_node.start_mark.line
-            except TypeError:  # an unhashable key: the base class reports it
-                pass
-        return super().construct_mapping(node, deep)
-
-
-_StrictLoader.add_constructor("tag:yaml.org,2002:map", _StrictLoader.construct_yaml_map)
-
-
-def parse_yaml(text: str, file: str):
-    """YAML text to plain data, with errors naming the line; no aliases, no duplicate keys, bounded nesting."""
-    try:
-        return yaml.load(text, Loader=_StrictLoader)  # noqa: S506 (a SafeLoader subclass)
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
-        problem = getattr(e, "problem", None) or "not valid YAML"
-        kind = "YAML error" if isinstance(e, yaml.constructor.ConstructorError) else "YAML syntax error"
-        raise AssemblyError([Problem(file, "", f"{where}{kind}: {problem}")]) from None
-    except RecursionError:
-        raise AssemblyError([Problem(file, "", "nested far too deeply to be an assembly file")]) from None
 
 
 # --------------------------------------------------------------------------------------------- save

@@ -13,53 +13,11 @@ import numpy as np
 
 from . import __version__, se3
 from .errors import AposeError
+from .summary import show_json, show_text
 
 REPO = Path(__file__).resolve().parent.parent
 SAMPLES = REPO / "sample_assemblies"
 DEFAULT_SAMPLE = SAMPLES / "helical_gearbox" / "assembly.yaml"
-
-
-def _fmt_pose(T: np.ndarray, scale_to_mm: float = 1000.0) -> str:
-    t = T[:3, 3] * scale_to_mm
-    q = se3.matrix_to_quat_wxyz(T[:3, :3])
-    ang = se3.rotation_angle_deg(T[:3, :3])
-    return (f"t = ({t[0]:+.2f}, {t[1]:+.2f}, {t[2]:+.2f}) mm, "
-            f"q_wxyz = ({q[0]:.4f}, {q[1]:.4f}, {q[2]:.4f}, {q[3]:.4f}), {ang:.1f}° rotation")
-
-
-def show_json(asm, models) -> dict:
-    """The `apose show --json` document (metres, 4x4 lists)."""
-    return {
-        "name": asm.name,
-        "parts": {pid: {"mesh": str(p.mesh), "diameter": models[pid].diameter, "root": asm.root_of(pid),
-                        "T_root_part": asm.T_root_part(pid).tolist()} for pid, p in asm.parts.items()},
-        "steps": [{"step": i + 1, "part": s.part, "base": list(s.base), "T_base_part": s.T_base_part.tolist()}
-                  for i, s in enumerate(asm.steps)],
-    }
-
-
-def show_text(asm, models) -> str:
-    lines = [f"{asm.name}  ({asm.path})", f"units in file: {asm.units}", "", "parts:"]
-    w = max(len(p) for p in asm.parts)
-    for pid, p in asm.parts.items():
-        m = models[pid]
-        size = " x ".join(f"{v * 1000:.1f}" for v in m.size)
-        root = "root" if pid in asm.roots else f"on {asm.root_of(pid)}"
-        sym = ""
-        if p.symmetry is not None:
-            sym = f", {'continuous' if p.symmetry.order == 0 else str(p.symmetry.order) + '-fold'} symmetry"
-        lines.append(f"  {pid:<{w}}  {p.mesh.name}  {size} mm, diameter {m.diameter * 1000:.1f} mm, {root}{sym}")
-        if m.unit_warning:
-            lines.append(f"  {'':<{w}}  warning: {m.unit_warning}")
-    lines += ["", "steps:"]
-    for i, s in enumerate(asm.steps):
-        lines.append(f"  {i + 1}. place {s.part} on [{', '.join(s.base)}]")
-        lines.append(f"     pose in {s.base[0]}: {_fmt_pose(s.T_base_part)}")
-    lines += ["", "completed assembly (pose of each part in its root's frame):"]
-    for root, members in asm.completed().items():
-        for pid, T in members.items():
-            lines.append(f"  {root} <- {pid:<{w}}  {_fmt_pose(T)}")
-    return "\n".join(lines)
 
 
 def cmd_show(args) -> int:
@@ -381,12 +339,19 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--version", action="version", version=f"apose_studio {__version__}")
     ap.add_argument("-v", "--verbose", action="store_true", help="show debug logging and tracebacks")
     sub = ap.add_subparsers(dest="command", metavar="COMMAND")
+    for add in (_add_show, _add_render, _add_estimate, _add_eval, _add_train_seg, _add_demo, _add_studio):
+        add(sub)
+    return ap
 
+
+def _add_show(sub) -> None:
     p = sub.add_parser("show", help="summarise an assembly file: parts, sizes, steps and poses")
     p.add_argument("assembly", help="assembly YAML file (format apose-assembly/1)")
     p.add_argument("--json", action="store_true", help="print JSON (metres, 4x4 row-major lists)")
     p.set_defaults(func=cmd_show)
 
+
+def _add_render(sub) -> None:
     p = sub.add_parser("render", help="render a synthetic RGB-D dataset (BOP layout), one scene per assembly step",
                        description="Render N views of every assembly step into a BOP-layout dataset: RGB, depth, "
                        "visible masks, object and camera poses, and each step's ground-truth assembly pose.")
@@ -413,6 +378,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_render)
 
+
+def _add_estimate(sub) -> None:
     p = sub.add_parser("estimate", help="estimate the assembly pose in one frame of a dataset")
     p.add_argument("dataset", help="dataset folder made by `apose render`")
     p.add_argument("--step", type=int, required=True, help="assembly step (1-based)")
@@ -421,6 +388,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print JSON (metres), with every registration stage")
     p.set_defaults(func=cmd_estimate)
 
+
+def _add_eval(sub) -> None:
     p = sub.add_parser("eval", help="evaluate the estimator on a dataset: the paper's per-step table")
     p.add_argument("dataset", help="dataset folder made by `apose render`")
     _estimator_args(p)
@@ -432,6 +401,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --mask depth|MODEL.pt, skip the second run with ground-truth masks")
     p.set_defaults(func=cmd_eval)
 
+
+def _add_train_seg(sub) -> None:
     p = sub.add_parser("train-seg", help="train a segmentation network (torch) on a rendered dataset of one assembly")
     p.add_argument("dataset", help="dataset folder made by `apose render` (noisy renders with --noise realsense transfer best)")
     p.add_argument("--out", required=True, help="model file to write (*.pt)")
@@ -442,20 +413,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-minutes", type=float, help="stop after the epoch that passes this wall time")
     p.set_defaults(func=cmd_train_seg)
 
+
+def _add_demo(sub) -> None:
     p = sub.add_parser("demo", help="run the main job on the embedded sample assembly: show, render, estimate, then open the studio")
     p.add_argument("assembly", nargs="?", help="another assembly file instead of the sample")
-    p.add_argument("--out", default="out/demo", help="where the demo dataset goes (default out/demo; replaced)")
+    p.add_argument("--out", default="out/demo", help="where the demo dataset goes (default out/demo; an earlier demo there is replaced, anything else refused)")
     p.add_argument("--frames", type=int, default=2, help="views per step (default 2)")
     p.add_argument("--no-studio", action="store_true", help="stop after the estimates instead of opening the studio")
     _server_args(p)
     p.set_defaults(func=cmd_demo)
 
+
+def _add_studio(sub) -> None:
     p = sub.add_parser("studio", help="open the browser studio: author assemblies, inspect datasets and registrations")
     p.add_argument("assembly", nargs="?", help="assembly YAML file to open (default: a new, empty assembly)")
     p.add_argument("--dataset", help="dataset folder (from `apose render`) or capture folder to open in the Inspect tab")
     _server_args(p)
     p.set_defaults(func=cmd_studio)
-    return ap
 
 
 def main(argv=None) -> int:

@@ -21,7 +21,6 @@ render leaves every listed frame readable.
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -29,9 +28,11 @@ import cv2
 import numpy as np
 
 from . import se3
-from .assembly import Assembly, atomic_write_text, load_assembly
+from .assembly import Assembly, load_assembly
 from .config import CameraIntrinsics
 from .errors import AposeError, DatasetError
+from .fileio import atomic_write_text
+from .mesh import PartModel
 
 FORMAT = "apose-bop/1"
 SPLIT = "test"
@@ -372,120 +373,50 @@ def _imwrite(path: Path, img: np.ndarray, params=(cv2.IMWRITE_PNG_COMPRESSION, 1
         raise AposeError(f"{path}: could not write the image (disk full or no permission?)")
 
 
-MANIFEST = "dataset_info.json"  # its "files" lists every file a render wrote: all that --overwrite may delete
-LOCK = ".apose-render.lock"
+# ----------------------------------------------------------------------------------- models (BOP)
 
 
-def _files_under(out: Path) -> list[str]:
-    return sorted(p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file() or p.is_symlink())
+def _models_info(model: PartModel) -> dict:
+    """BOP models_info entry (millimetres)."""
+    lo, hi = model.aabb * 1000.0
+    info = {"diameter": model.diameter * 1000.0, "min_x": lo[0], "min_y": lo[1], "min_z": lo[2],
+            "size_x": hi[0] - lo[0], "size_y": hi[1] - lo[1], "size_z": hi[2] - lo[2]}
+    return {k: float(v) for k, v in info.items()}
 
 
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
+def _symmetry_info(part, model: PartModel) -> dict:
+    if part.symmetry is None:
+        return {}
+    if part.symmetry.order == 0:
+        return {"symmetries_continuous": [{"axis": list(part.symmetry.axis),
+                                           "offset": [v * 1000.0 for v in part.symmetry.origin]}]}
+    out = []
+    for S in model.symmetries[1:]:
+        S = S.copy()
+        S[:3, 3] *= 1000.0
+        out.append(S.reshape(-1).tolist())
+    return {"symmetries_discrete": out}
 
 
-class OutputLock:
-    """`out/.apose-render.lock` holding the writer's PID: a second render into the same folder stops with
-    "in use by PID …" instead of interleaving its frames with the first one's. A lock whose process is
-    gone is taken over."""
+def write_models(asm: Assembly, models: dict[str, PartModel], out) -> tuple[dict[str, int], Assembly]:
+    """models/ in BOP form and the assembly rewritten to point at them (units mm)."""
+    from dataclasses import replace
+    from pathlib import Path
 
-    def __init__(self, out: Path):
-        self.path = Path(out) / LOCK
-        self.held = False
+    from .assembly import save_assembly
 
-    def __enter__(self) -> "OutputLock":
-        for _ in range(2):
-            try:
-                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-            except FileExistsError:
-                try:
-                    pid = int(self.path.read_text().strip() or "0")
-                except (OSError, ValueError):
-                    pid = 0
-                if pid and _pid_alive(pid):
-                    raise AposeError(f"{self.path.parent}: in use by PID {pid} (another apose render writes there); "
-                                     "wait for it to finish, or choose another --out") from None
-                self.path.unlink(missing_ok=True)  # stale: its process is gone
-                continue
-            with os.fdopen(fd, "w") as f:
-                f.write(str(os.getpid()))
-            self.held = True
-            return self
-        raise AposeError(f"{self.path}: could not take the output folder's lock; remove the file if no render runs")
-
-    def __exit__(self, *exc) -> None:
-        if self.held:
-            self.path.unlink(missing_ok=True)
-            self.held = False
-
-
-def make_output_dir(out: Path) -> Path:
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise AposeError(f"{out}: exists and is not a folder; choose another --out")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise AposeError(f"{out}: cannot create this folder ({e.strerror}); choose another --out") from None
-    return out
-
-
-def check_output_dir(out: Path, overwrite: bool) -> None:
-    """Refuse to mix a new render into an existing folder unless asked: nothing the user made is lost.
-    With `overwrite`, the folder may hold only what an earlier render listed in its manifest."""
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise AposeError(f"{out}: exists and is not a folder; choose another --out")
-    present = [f for f in _files_under(out) if f != LOCK] if out.is_dir() else []
-    if present and not overwrite:
-        raise AposeError(f"{out}: folder is not empty; choose another --out, or pass --overwrite to "
-                         "replace the dataset in it")
-    if present:
-        listed = set(_manifest_files(out))
-        foreign = [f for f in present if f not in listed and f != MANIFEST]
-        if foreign:
-            more = f" and {len(foreign) - 5} more" if len(foreign) > 5 else ""
-            raise AposeError(f"{out}: holds files that no apose render wrote ({', '.join(foreign[:5])}{more}); "
-                             "--overwrite replaces only a dataset's own files. Choose another --out, or move those away")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        probe = out / ".apose-write-test"
-        probe.write_text("")
-        probe.unlink()
-    except OSError as e:
-        raise AposeError(f"{out}: cannot write here ({e.strerror}); choose another --out") from None
-
-
-def _manifest_files(out: Path) -> list[str]:
-    try:
-        files = json.loads((Path(out) / MANIFEST).read_text()).get("files", [])
-    except (OSError, ValueError, AttributeError):
-        return []
-    return [f for f in files if isinstance(f, str)]
-
-
-def write_manifest(out: Path, info: dict) -> None:
-    """dataset_info.json with the list of every file under `out` (the render refused a folder holding
-    anything else, so all of them are its own)."""
-    files = [f for f in _files_under(Path(out)) if f not in (MANIFEST, LOCK)]
-    write_json(Path(out) / MANIFEST, {**info, "files": files})
-
-
-def remove_previous_dataset(out: Path) -> None:
-    """With --overwrite: remove only the files an earlier render listed (never other files), then the
-    folders that this leaves empty."""
-    out = Path(out)
-    for f in _manifest_files(out):
-        p = (out / f)
-        if p.resolve().is_relative_to(out.resolve()) and (p.is_file() or p.is_symlink()):
-            p.unlink()
-    (out / MANIFEST).unlink(missing_ok=True)
-    for d in sorted((p for p in out.rglob("*") if p.is_dir()), key=lambda p: len(p.parts), reverse=True):
-        if not any(d.iterdir()):
-            d.rmdir()
+    mdir = Path(out) / "models"
+    mdir.mkdir(parents=True, exist_ok=True)
+    obj_ids, infos, parts = {}, {}, {}
+    for i, (pid, part) in enumerate(asm.parts.items(), start=1):
+        obj_ids[pid] = i
+        path = mdir / f"obj_{i:06d}.ply"
+        mm = models[pid].mesh.copy()
+        mm.apply_scale(1000.0)
+        path.write_bytes(mm.export(file_type="ply"))
+        infos[str(i)] = {**_models_info(models[pid]), **_symmetry_info(part, models[pid])}
+        parts[pid] = replace(part, mesh=path.resolve())
+    write_json(mdir / "models_info.json", infos)
+    ds_asm = replace(asm, units="mm", parts=parts)
+    save_assembly(ds_asm, Path(out) / "assembly.yaml")
+    return obj_ids, ds_asm

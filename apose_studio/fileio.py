@@ -2,7 +2,7 @@
 (new files get the usual mode from the umask), an optional `NAME.bak` of the previous version, and a
 round-trip YAML update that keeps a hand-written file's comments and key order.
 
-A pure edge module: no other apose_studio imports.
+Also the strict YAML reader (no aliases, no duplicate keys, bounded nesting) the assembly loader uses.
 """
 
 from __future__ import annotations
@@ -13,6 +13,10 @@ import stat
 import tempfile
 import threading
 from pathlib import Path
+
+import yaml
+
+from .errors import AssemblyError, Problem
 
 _UMASK_LOCK = threading.Lock()
 
@@ -71,7 +75,52 @@ def describe_path(path: str | Path, wanted: str) -> str:
     return "a file"
 
 
-# ----------------------------------------------------------------------------- round-trip YAML
+# ----------------------------------------------------------------------------- YAML
+
+
+class _StrictLoader(yaml.SafeLoader):
+    """Safe YAML without aliases (a few lines of anchors can expand to gigabytes) and without duplicate keys
+    (two parts with one id would silently become one)."""
+
+    def compose_node(self, parent, index):
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            raise yaml.constructor.ConstructorError(
+                None, None, "aliases (*name) are not allowed in assembly files; write the value out", event.start_mark)
+        return super().compose_node(parent, index)
+
+    def construct_mapping(self, node, deep=False):
+        seen = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            try:
+                if key in seen:
+                    raise yaml.constructor.ConstructorError(
+                        None, None, f"duplicate key {key!r} (first at line {seen[key] + 1}); each key may appear once",
+                        key_node.start_mark)
+                seen[key] = key_node.start_mark.line
+            except TypeError:  # an unhashable key: the base class reports it
+                pass
+        return super().construct_mapping(node, deep)
+
+
+_StrictLoader.add_constructor("tag:yaml.org,2002:map", _StrictLoader.construct_yaml_map)
+
+
+def parse_yaml(text: str, file: str):
+    """YAML text to plain data, with errors naming the line; no aliases, no duplicate keys, bounded nesting."""
+    try:
+        return yaml.load(text, Loader=_StrictLoader)  # noqa: S506 (a SafeLoader subclass)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
+        problem = getattr(e, "problem", None) or "not valid YAML"
+        kind = "YAML error" if isinstance(e, yaml.constructor.ConstructorError) else "YAML syntax error"
+        raise AssemblyError([Problem(file, "", f"{where}{kind}: {problem}")]) from None
+    except RecursionError:
+        raise AssemblyError([Problem(file, "", "nested far too deeply to be an assembly file")]) from None
+
+
 
 
 def _same(a, b) -> bool:

@@ -19,9 +19,9 @@ from .assembly import Assembly, StepView
 from .config import CameraIntrinsics
 from .errors import RenderError
 from .mesh import PartModel, base_mesh
+from .noise import NOISE_MODELS, noise_texture, add_depth_noise
 from .raycast import RayGrid, body, pixel_window
 
-NOISE_MODELS = ("none", "gaussian", "realsense")
 BASE_POSES = ("yaw", "fixed")
 
 
@@ -295,47 +295,8 @@ def shade(hit: "Hits", scene: Scene, T_world_camera: np.ndarray, rng: np.random.
     rgb = (np.clip(rgb * gain, 0, 1) * 255 + 0.5).astype(np.int16)
     h, w = rgb.shape[:2]
     dv, du = rng.integers(0, 64, 2)  # sensor noise: a random window of a fixed noise texture
-    rgb += _noise_texture(h, w)[dv:dv + h, du:du + w, None]
+    rgb += noise_texture(h, w)[dv:dv + h, du:du + w, None]
     return np.clip(rgb, 0, 255).astype(np.uint8)
-
-
-_NOISE: dict[tuple[int, int], np.ndarray] = {}
-
-
-def _noise_texture(h: int, w: int) -> np.ndarray:
-    if (h, w) not in _NOISE:
-        _NOISE[(h, w)] = np.round(np.random.default_rng(12345).normal(0, 3.0, (h + 64, w + 64))).astype(np.int16)
-    return _NOISE[(h, w)]
-
-
-def add_depth_noise(depth: np.ndarray, model: str, sigma_at_05m: float, rng: np.random.Generator,
-                    fx: float = 615.0) -> np.ndarray:
-    """Depth noise, metres in and out; 0 stays 0.
-
-    gaussian: axial N(0, sigma(z)), sigma(z) = sigma_at_05m * (z / 0.5)^2 (stereo error grows with z^2).
-    realsense: that, plus dropouts at depth edges (stereo matching fails at occlusion borders), a few
-    random holes, and quantisation in disparity (baseline 50 mm, 1/12-pixel subpixel steps).
-    """
-    if model == "none":
-        return depth
-    z = depth
-    valid = z > 0
-    noisy = z + rng.standard_normal(z.shape, dtype=np.float32) * np.float32(sigma_at_05m / 0.25) * z * z
-    if model == "realsense":
-        jump = np.zeros_like(z)
-        jump[:, :-1] = np.abs(np.diff(z, axis=1))
-        jump[:, 1:] = np.maximum(jump[:, 1:], jump[:, :-1])
-        dv = np.abs(np.diff(z, axis=0))
-        jump[:-1] = np.maximum(jump[:-1], dv)
-        jump[1:] = np.maximum(jump[1:], dv)
-        edge = jump > np.maximum(0.004, 0.02 * z)
-        u = rng.random(z.shape, dtype=np.float32)
-        drop = (edge & (u < 0.6)) | (u > 0.998)
-        fb, subpixel = np.float32(fx * 0.05), np.float32(1.0 / 12)  # baseline 50 mm, 1/12 px disparity steps
-        disparity = np.round(fb / np.maximum(noisy, 1e-6) / subpixel) * subpixel
-        noisy = fb / np.maximum(disparity, 1e-6)
-        valid &= ~drop
-    return np.where(valid & (noisy > 0), noisy, 0.0).astype(np.float32)
 
 
 # --------------------------------------------------------------------------------- one frame
@@ -375,53 +336,6 @@ def step_numbers(asm: Assembly, steps: list[int] | None) -> list[int]:
 # --------------------------------------------------------------------------------- whole datasets
 
 
-def _models_info(model: PartModel) -> dict:
-    """BOP models_info entry (millimetres)."""
-    lo, hi = model.aabb * 1000.0
-    info = {"diameter": model.diameter * 1000.0, "min_x": lo[0], "min_y": lo[1], "min_z": lo[2],
-            "size_x": hi[0] - lo[0], "size_y": hi[1] - lo[1], "size_z": hi[2] - lo[2]}
-    return {k: float(v) for k, v in info.items()}
-
-
-def _symmetry_info(part, model: PartModel) -> dict:
-    if part.symmetry is None:
-        return {}
-    if part.symmetry.order == 0:
-        return {"symmetries_continuous": [{"axis": list(part.symmetry.axis),
-                                           "offset": [v * 1000.0 for v in part.symmetry.origin]}]}
-    out = []
-    for S in model.symmetries[1:]:
-        S = S.copy()
-        S[:3, 3] *= 1000.0
-        out.append(S.reshape(-1).tolist())
-    return {"symmetries_discrete": out}
-
-
-def write_models(asm: Assembly, models: dict[str, PartModel], out) -> tuple[dict[str, int], Assembly]:
-    """models/ in BOP form and the assembly rewritten to point at them (units mm)."""
-    from dataclasses import replace
-    from pathlib import Path
-
-    from .assembly import save_assembly
-    from .dataset import write_json
-
-    mdir = Path(out) / "models"
-    mdir.mkdir(parents=True, exist_ok=True)
-    obj_ids, infos, parts = {}, {}, {}
-    for i, (pid, part) in enumerate(asm.parts.items(), start=1):
-        obj_ids[pid] = i
-        path = mdir / f"obj_{i:06d}.ply"
-        mm = models[pid].mesh.copy()
-        mm.apply_scale(1000.0)
-        path.write_bytes(mm.export(file_type="ply"))
-        infos[str(i)] = {**_models_info(models[pid]), **_symmetry_info(part, models[pid])}
-        parts[pid] = replace(part, mesh=path.resolve())
-    write_json(mdir / "models_info.json", infos)
-    ds_asm = replace(asm, units="mm", parts=parts)
-    save_assembly(ds_asm, Path(out) / "assembly.yaml")
-    return obj_ids, ds_asm
-
-
 def render_dataset(asm: Assembly, out, settings: RenderSettings, steps: list[int] | None = None,
                    overwrite: bool = False, progress: bool = True, models: dict[str, PartModel] | None = None) -> dict:
     """Render `settings.frames` views of every chosen step into a BOP-layout dataset at `out`.
@@ -432,7 +346,7 @@ def render_dataset(asm: Assembly, out, settings: RenderSettings, steps: list[int
     """
     from pathlib import Path
 
-    from .dataset import OutputLock, check_output_dir, make_output_dir
+    from .outdir import OutputLock, check_output_dir, make_output_dir
 
     settings.validate()
     numbers = step_numbers(asm, steps)
@@ -445,16 +359,54 @@ def render_dataset(asm: Assembly, out, settings: RenderSettings, steps: list[int
 def _render_into(asm: Assembly, out, settings: RenderSettings, numbers: list[int], progress: bool,
                  models: dict[str, PartModel] | None) -> dict:
     import time
-    from concurrent.futures import ThreadPoolExecutor
 
     from tqdm import tqdm
 
-    from .dataset import FORMAT, AnnotatedObject, SceneWriter, remove_previous_dataset, write_json, write_manifest
+    from .dataset import SceneWriter
     from .mesh import load_parts
 
     t_setup = time.perf_counter()
-    remove_previous_dataset(out)
     models = models or load_parts(asm)
+    obj_ids, info = _start_dataset(asm, out, settings, numbers, models)
+    grid = RayGrid(settings.camera)
+    bar = tqdm(total=len(numbers) * settings.frames, unit="frame", desc=f"render {asm.name}", disable=not progress,
+               leave=False)
+    t0, done = time.perf_counter(), 0
+    queue = _FrameQueue(out, info, settings)
+    try:
+        for number in numbers:
+            view = asm.step_view(number)
+            base = base_mesh(models, view)
+            writer = SceneWriter(out, number, {
+                "step": number, "part": view.part, "base": list(view.base),
+                "part_obj_id": obj_ids[view.part], "base_obj_ids": [obj_ids[p] for p in view.base],
+                "T_base_part": view.T_base_part.tolist()})
+            for im_id in range(settings.frames):
+                rng = np.random.default_rng([settings.seed, number, im_id])
+                queue.submit(writer, im_id, render_frame(models, view, settings, grid, rng, base, noise=False), view,
+                             obj_ids)
+                if im_id % 25 == 24:
+                    queue.checkpoint(writer)
+                done += 1
+                bar.update(1)
+            queue.checkpoint(writer)
+    finally:
+        try:
+            queue.close()
+        finally:
+            bar.close()
+    seconds = time.perf_counter() - t0
+    return {"frames": done, "seconds": seconds, "fps": done / seconds if seconds > 0 else float("inf"),
+            "setup_seconds": t0 - t_setup}
+
+
+def _start_dataset(asm: Assembly, out, settings: RenderSettings, numbers: list[int],
+                   models: dict[str, PartModel]) -> tuple[dict[str, int], dict]:
+    """Remove an earlier render's files, write models/, camera.json and the manifest: (obj_ids, info)."""
+    from .dataset import FORMAT, write_json, write_models
+    from .outdir import remove_previous_dataset, write_manifest
+
+    remove_previous_dataset(out)
     obj_ids, _ = write_models(asm, models, out)
     cam = settings.camera
     write_json(out / "camera.json", {"cx": cam.cx, "cy": cam.cy, "depth_scale": 0.1, "fx": cam.fx, "fy": cam.fy,
@@ -468,63 +420,60 @@ def _render_into(asm: Assembly, out, settings: RenderSettings, numbers: list[int
                          "distance_range_m": list(settings.distance_range_m) if settings.distance_range_m else "auto",
                          "distractors": settings.distractors}}
     write_manifest(out, info)
+    return obj_ids, info
 
-    grid = RayGrid(cam)
-    total = len(numbers) * settings.frames
-    bar = tqdm(total=total, unit="frame", desc=f"render {asm.name}", disable=not progress, leave=False)
-    t0, done = time.perf_counter(), 0
-    pool = ThreadPoolExecutor(2)  # PNG encoding releases the GIL: overlaps the next frame's casting
-    pending: list = []  # (writer, future of the images, what to record once they are on disk)
 
-    def settle(keep: int) -> None:
+class _FrameQueue:
+    """Rendered frames on their way to disk: PNG encoding in two threads (it releases the GIL, so it
+    overlaps the next frame's casting), frames recorded in the scene's JSON in order, once their images
+    are on disk. An interrupt keeps every frame whose images made it."""
+
+    def __init__(self, out, info: dict, settings: RenderSettings):
+        from concurrent.futures import ThreadPoolExecutor
+
+        self.out, self.info, self.settings = out, info, settings
+        self.pool = ThreadPoolExecutor(2)
+        self.pending: list = []  # (writer, future of the images, what to record once they are on disk)
+        self.writer = None
+
+    def submit(self, writer, im_id: int, fr: RenderedFrame, view: StepView, obj_ids: dict[str, int]) -> None:
+        from .dataset import AnnotatedObject
+
+        self.writer = writer
+        annotated = [i for i, o in enumerate(fr.scene.objects) if o.part is not None]
+        objects = [AnnotatedObject(obj_ids[fr.scene.objects[i].part], fr.scene.objects[i].T_world_obj,
+                                   *fr.hits.object_stats(i)) for i in annotated]
+        extra = {"T_world_base": fr.scene.T_world_base, "T_world_part": fr.scene.T_world_base @ view.T_base_part,
+                 "T_world_camera": fr.T_world_camera}
+        fut = self.pool.submit(lambda: writer.write_images(im_id, fr.rgb, noisy_depth(fr, self.settings), objects))
+        self.pending.append((writer, fut, (im_id, self.settings.camera, fr.T_world_camera, objects, extra)))
+        self._settle(keep=4)
+
+    def _settle(self, keep: int) -> None:
         """Record finished frames in order, keeping at most `keep` in flight."""
-        while len(pending) > keep:
-            w, fut, args = pending.pop(0)
+        while len(self.pending) > keep:
+            w, fut, args = self.pending.pop(0)
             w.record(args[0], args[1], args[2], fut.result(), *args[3:])
 
-    writer = None
-    try:
-        for number in numbers:
-            view = asm.step_view(number)
-            base = base_mesh(models, view)
-            writer = SceneWriter(out, number, {
-                "step": number, "part": view.part, "base": list(view.base),
-                "part_obj_id": obj_ids[view.part], "base_obj_ids": [obj_ids[p] for p in view.base],
-                "T_base_part": view.T_base_part.tolist()})
-            for im_id in range(settings.frames):
-                rng = np.random.default_rng([settings.seed, number, im_id])
-                fr = render_frame(models, view, settings, grid, rng, base, noise=False)
-                annotated = [i for i, o in enumerate(fr.scene.objects) if o.part is not None]
-                objects = [AnnotatedObject(obj_ids[fr.scene.objects[i].part], fr.scene.objects[i].T_world_obj,
-                                           *fr.hits.object_stats(i)) for i in annotated]
-                extra = {"T_world_base": fr.scene.T_world_base,
-                         "T_world_part": fr.scene.T_world_base @ view.T_base_part,
-                         "T_world_camera": fr.T_world_camera}
-                fut = pool.submit(lambda w, i, f, objs: w.write_images(i, f.rgb, noisy_depth(f, settings), objs),
-                                  writer, im_id, fr, objects)
-                pending.append((writer, fut, (im_id, cam, fr.T_world_camera, objects, extra)))
-                settle(keep=4)
-                if im_id % 25 == 24:
-                    settle(keep=0)
-                    writer.flush()
-                    write_manifest(out, info)
-                done += 1
-                bar.update(1)
-            settle(keep=0)
-            writer.flush()
-    finally:
+    def checkpoint(self, writer) -> None:
+        """Every frame so far on disk and listed (scene JSON files and the manifest)."""
+        from .outdir import write_manifest
+
+        self._settle(keep=0)
+        writer.flush()
+        write_manifest(self.out, self.info)
+
+    def close(self) -> None:
+        from .outdir import write_manifest
+
         try:
-            for w, fut, args in pending:  # an interrupt: keep every frame whose images made it to disk
+            for w, fut, args in self.pending:  # an interrupt: keep every frame whose images made it to disk
                 try:
                     w.record(args[0], args[1], args[2], fut.result(), *args[3:])
                 except Exception:
                     pass
-            if writer is not None:
-                writer.flush()
-            write_manifest(out, info)
+            if self.writer is not None:
+                self.writer.flush()
+            write_manifest(self.out, self.info)
         finally:
-            pool.shutdown(wait=True)
-            bar.close()
-    seconds = time.perf_counter() - t0
-    return {"frames": done, "seconds": seconds, "fps": done / seconds if seconds > 0 else float("inf"),
-            "setup_seconds": t0 - t_setup}
+            self.pool.shutdown(wait=True)

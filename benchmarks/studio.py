@@ -78,22 +78,22 @@ def main() -> int:
     try:
         loads = []
         for k in range(3):  # each load adds a new part (dense_part, dense_part_2, ...): nothing is cached
-            st.f_mesh.value = str(stl)
+            st.files.f_mesh.value = str(stl)
             t0 = time.perf_counter()
-            st._guarded("add")(lambda c: st._on_add_parts(c))(Click())
+            st.guarded("add")(lambda c: st.files.on_add_parts(c))(Click())
             loads.append(time.perf_counter() - t0)
             pid = [p for p in st.asm.parts if p.startswith("dense_part")][-1]
-            assert pid in st.mesh_handles, "the part did not load"
-        st.i_prior.value = True
-        st._guarded("estimate")(lambda c: st._run_estimation(True, c))(Click())  # fills the cache
+            assert pid in st.steps.mesh_handles, "the part did not load"
+        st.inspect.i_prior.value = True
+        st.guarded("estimate")(lambda c: st.inspect.run_estimation(True, c))(Click())  # fills the cache
         assert len(st.cache) == args.frames, "estimation did not cache every frame"
         switches = []
         for rep in range(3):
             for f in range(args.frames):
                 t0 = time.perf_counter()
-                st.i_frame.value = f
+                st.inspect.i_frame.value = f
                 switches.append(time.perf_counter() - t0)
-                assert st.result is not None
+                assert st.inspect.result is not None
     finally:
         if browser is not None:
             browser.close()

@@ -13,7 +13,8 @@ from apose_studio.config import CameraIntrinsics
 from apose_studio.dataset import Dataset, load_capture, open_frames
 from apose_studio.errors import AposeError, DatasetError, RenderError
 from apose_studio.mesh import load_parts
-from apose_studio.render import RenderSettings, add_depth_noise, render_dataset
+from apose_studio.noise import add_depth_noise
+from apose_studio.render import RenderSettings, render_dataset
 
 from .conftest import SAMPLES
 
@@ -199,7 +200,7 @@ def test_overwrite_deletes_only_the_datasets_own_files(planetary, tmp_path):
 def test_a_second_render_into_the_same_folder_is_refused(planetary, tmp_path):
     import os
 
-    from apose_studio.dataset import OutputLock
+    from apose_studio.outdir import OutputLock
 
     asm, models = planetary
     out = tmp_path / "race"

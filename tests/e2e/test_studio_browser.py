@@ -157,24 +157,24 @@ def test_inspect_estimate_a_frame(browser, studio, gearbox_dataset):
     page.get_by_role("button", name="Open data").click()
     wait_until(lambda: "/inspect/scene" in studio.nodes, "the frame to be shown")
     field(page, "Orientation prior").first.check()
-    wait_until(lambda: studio.i_prior.value, "the prior checkbox")
+    wait_until(lambda: studio.inspect.i_prior.value, "the prior checkbox")
     page.get_by_role("button", name="Estimate frame").click()
-    wait_until(lambda: "/inspect/box_est" in studio.nodes and "final" in studio.i_stage_md.content, "the estimate", timeout=120)
+    wait_until(lambda: "/inspect/box_est" in studio.nodes and "final" in studio.results.i_stage_md.content, "the estimate", timeout=120)
     for name in ("/inspect/box_est", "/inspect/box_gt", "/inspect/target", "/inspect/source", "/inspect/camera"):
         assert name in studio.nodes, name
-    assert studio.result.ok and studio.score.mssd < 0.002
+    assert studio.inspect.result.ok and studio.inspect.score.mssd < 0.002
     page.get_by_text("MSSD", exact=True).first.wait_for(timeout=10000)
     page.get_by_text("final", exact=True).first.wait_for(timeout=10000)
     page.get_by_text("truth (dashed)").first.wait_for(timeout=10000)  # the legend
     # the object under inspection fills the view: its box spans a good part of the 3D view's width
     # (before: about 80 px of 1012)
     cam = client_of(studio, page).camera
-    wait_until(lambda: np.linalg.norm(np.asarray(cam.position) - studio.frame.T_world_part[:3, 3]) < 0.5,
+    wait_until(lambda: np.linalg.norm(np.asarray(cam.position) - studio.inspect.frame.T_world_part[:3, 3]) < 0.5,
                "the camera to frame the object")
     time.sleep(1.0)  # let the software renderer draw the clouds
     from apose_studio.registration import project_to_cloud
 
-    fr = studio.frame
+    fr = studio.inspect.frame
     pts = project_to_cloud(fr.depth, fr.base_mask(), fr.camera, fr.T_world_camera)
     uv = to_screen(page, cam, pts[::20])
     span = uv.max(axis=0) - uv.min(axis=0)
@@ -184,10 +184,10 @@ def test_inspect_estimate_a_frame(browser, studio, gearbox_dataset):
     assert "● Inspect" in studio.view.options
     shot(page, "inspect_tab.png")
     page.get_by_text("Full image").first.wait_for()
-    cropped = studio.i_image.image.shape
+    cropped = studio.results.i_image.image.shape
     field(page, "Full image").first.check()
-    wait_until(lambda: studio.i_image.image.shape[:2] == studio.frame.rgb.shape[:2], "the full image")
-    assert cropped[1] < studio.frame.rgb.shape[1] / 2  # the overlay was cropped around the object
+    wait_until(lambda: studio.results.i_image.image.shape[:2] == studio.inspect.frame.rgb.shape[:2], "the full image")
+    assert cropped[1] < studio.inspect.frame.rgb.shape[1] / 2  # the overlay was cropped around the object
     page.close()
 
 
@@ -273,7 +273,7 @@ def test_type_poses_into_two_new_steps_and_save(browser, studio, tmp_path):
     for pid in ("c_cap", "a_plate"):
         field(page, "Part").first.click()
         page.get_by_role("option", name=pid, exact=True).click()
-        wait_until(lambda: tuple(studio.f_color.value) == studio_colour[pid], f"the colour of {pid}")
+        wait_until(lambda: tuple(studio.files.f_color.value) == studio_colour[pid], f"the colour of {pid}")
     page.close()
 
 
@@ -396,11 +396,11 @@ def test_an_estimate_is_cached_under_the_settings_it_ran_with(browser, studio, g
     wait_until(lambda: studio.busy.locked(), "the estimate to start")
     field(b, "Preset").first.click()
     b.get_by_role("option", name="paper", exact=True).click()
-    wait_until(lambda: studio.i_preset.value == "paper", "page B's preset")
+    wait_until(lambda: studio.inspect.i_preset.value == "paper", "page B's preset")
     wait_until(lambda: not studio.busy.locked(), "the estimate to end", timeout=180)
     presets = {k[3] for k in studio.cache.entries}
     assert presets == {"default"}, presets
-    assert len(studio.cache) == len(studio.frames.image_ids(1))
-    assert studio.result is None  # page B shows `paper`, which nothing computed
+    assert len(studio.cache) == len(studio.inspect.frames.image_ids(1))
+    assert studio.inspect.result is None  # page B shows `paper`, which nothing computed
     a.close()
     b.close()

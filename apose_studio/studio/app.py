@@ -1,0 +1,244 @@
+"""The studio app: one viser server, the shared draft, the lock, the guarded door every callback goes
+through, notifications, the 3D view's two scenes, and `serve()`.
+
+Design: the GUI is an edge. Each folder of controls belongs to a panel class in its own module
+(assembly_panel, steps_panel, inspect_panel, results_view) that owns its widgets with their
+callbacks beside them; editing goes through `authoring` (pure, returns new Assemblies), drawing
+through `inspection` (pure). Every callback runs through `Studio.guarded`, so bad input becomes a
+notification to the browser that caused it and the server keeps serving. The state is shared by
+all browser tabs (one studio, one draft); notifications go to the tab that acted. A new panel (mates,
+prompted masks, view advice) arrives as a new module and one line in `build_gui`.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import traceback
+from functools import wraps
+from pathlib import Path
+
+import numpy as np
+
+from .. import authoring, inspection
+from ..assembly import Assembly
+from ..errors import AposeError, AssemblyError
+from ..mesh import PartModel, load_part
+from ..webguard import Workspace
+from .assembly_panel import AssemblyPanel
+from .inspect_panel import InspectPanel
+from .results_view import ResultsView
+from .steps_panel import StepsPanel
+from .viser_adapter import limit_uploads
+from .widgets import ACTIVE, MAX_UPLOAD_BYTES, VIEWS
+
+log = logging.getLogger(__name__)
+
+
+class Studio:
+    """One studio on one viser server. `assembly` and `dataset` are optional paths opened at start;
+    `workspace` holds the folders whose files the page may name (default: see `default_workspace`).
+
+    Panels: `files` (File, Parts), `steps` (Steps, Preview), `inspect` (Data, Estimate), `results`
+    (replay, Result, Layers)."""
+
+    def __init__(self, server, assembly: str | Path | None = None, dataset: str | Path | None = None,
+                 cache: inspection.ResultCache | None = None, workspace: Workspace | None = None):
+        import viser  # noqa: F401  (imported here so the core never needs it)
+
+        self.server = server
+        self.workspace = workspace if workspace is not None else default_workspace(assembly, dataset)
+        self.lock = threading.RLock()  # one edit at a time, whichever tab it comes from
+        self.busy = threading.Lock()  # one estimation at a time
+        self.asm: Assembly = authoring.new_assembly()
+        self.valid_asm: Assembly = self.asm  # last draft without problems: what the preview shows
+        self.problems: list = authoring.problems(self.asm)  # the empty draft is not saveable either
+        self.models: dict[tuple, PartModel] = {}  # (mesh path, units, colour, index) -> PartModel
+        self.nodes: dict[str, object] = {}  # scene nodes by name (tests look here)
+        self.cache = cache if cache is not None else inspection.ResultCache()
+        self.current_view = "Assembly"
+        self._notice_timer: threading.Timer | None = None
+        self._last_notice = ""
+        self.files = AssemblyPanel(self)
+        self.steps = StepsPanel(self)
+        self.inspect = InspectPanel(self)
+        self.results = ResultsView(self)
+        with self.lock:  # a page that connects while the start-up files load waits for them
+            self.build_gui()
+            server.on_client_connect(self.on_connect)
+            limit_uploads(server, MAX_UPLOAD_BYTES, lambda *a, **k: self.notify(*a, **k))
+            if assembly is not None:
+                self.files.open_assembly(Path(assembly))
+            if dataset is not None:
+                self.inspect.open_frames(str(dataset))
+
+    def notify(self, client, title: str, body: str, error: bool = False) -> None:
+        """Tell the tab that acted (or every tab when no one did)."""
+        (log.warning if error else log.info)("%s: %s", title, body)
+        clients = [client] if client is not None else list(self.server.get_clients().values())
+        for c in clients:
+            try:
+                c.add_notification(title, body, auto_close_seconds=None if error else 4.0,
+                                   color="red" if error else "green")
+            except Exception:  # a tab that just closed
+                pass
+
+    def guarded(self, title: str):
+        """Decorator for callbacks: AposeError -> its message; anything else -> a short report. Never raises."""
+        def wrap(fn):
+            @wraps(fn)
+            def run(event=None):
+                client = getattr(event, "client", None)
+                try:
+                    with self.lock:
+                        fn(client)
+                except AssemblyError as e:
+                    lines = [str(p) for p in e.problems[:6]]
+                    more = f"\n(+{len(e.problems) - 6} more)" if len(e.problems) > 6 else ""
+                    self.notify(client, title, "\n".join(lines) + more, error=True)
+                except AposeError as e:
+                    self.notify(client, title, str(e), error=True)
+                except Exception as e:  # a bug: say so, keep serving
+                    log.error("%s failed:\n%s", title, traceback.format_exc())
+                    self.notify(client, title, f"internal error ({type(e).__name__}: {e}); the server log has details",
+                                error=True)
+            return run
+        return wrap
+
+    def on_connect(self, client) -> None:
+        client.camera.up_direction = (0.0, 0.0, 1.0)
+
+    def build_gui(self) -> None:
+        gui = self.server.gui
+        gui.configure_theme(control_layout="fixed", control_width="large", show_share_button=False,
+                            brand_color=(40, 90, 230))
+        self.server.scene.set_up_direction("+z")
+        self.view = gui.add_button_group("3D view", VIEWS)
+        self.view.on_click(lambda e: self.guarded("3D view")(lambda c: self.on_view_button(e.target.value))(e))
+        tabs = gui.add_tab_group()
+        with tabs.add_tab("Assembly"):
+            self.files.build()
+            self.steps.build()
+        with tabs.add_tab("Inspect"):
+            self.inspect.build()
+            self.results.build()
+        self.server.scene.add_grid("/grid", width=1.0, height=1.0, cell_size=0.01, section_size=0.1,
+                                   plane="xy", position=(0.0, 0.0, -0.0005))
+        self.show_view("Assembly")
+
+    def on_view_button(self, label: str) -> None:
+        which = label.removeprefix(ACTIVE)
+        self.show_view(which)
+        if which == "Inspect":
+            self.inspect.frame_camera_on_frame()
+        else:
+            self.steps.frame_camera_on_assembly()
+
+    def show_view(self, which: str) -> None:
+        self.current_view = which
+        self.view.options = tuple(ACTIVE + v if v == which else v for v in VIEWS)
+        for name, handle in list(self.nodes.items()):
+            if name.startswith("/assembly") or name.startswith("/inspect"):
+                want = name.startswith("/assembly") == (which == "Assembly")
+                handle.visible = want and getattr(handle, "_apose_visible", True)
+        for pid, h in self.steps.mesh_handles.items():
+            h.visible = which == "Assembly" and getattr(h, "_apose_visible", True)
+
+    def node(self, name: str, handle, visible: bool = True):
+        handle._apose_visible = visible
+        handle.visible = visible and name.startswith("/" + self.current_view.lower())
+        self.nodes[name] = handle
+        return handle
+
+    def look_at(self, centre: np.ndarray, radius: float, direction: np.ndarray) -> None:
+        """Every tab's camera (and a new tab's) looking at a sphere from `direction`, the sphere filling
+        most of the view."""
+        direction = np.asarray(direction, float) / max(np.linalg.norm(direction), 1e-9)
+        clients = list(self.server.get_clients().values())
+        for c in clients + [None]:
+            cam = c.camera if c is not None else self.server.initial_camera
+            fov = float(getattr(cam, "fov", 0.0) or np.radians(50.0))
+            eye = centre + direction * (radius / np.sin(fov / 2.0)) * 1.1
+            cam.position, cam.look_at = tuple(float(v) for v in eye), tuple(float(v) for v in centre)
+
+    def model(self, pid: str, asm: Assembly | None = None) -> PartModel:
+        """A part's loaded mesh and derived geometry, cached by file, unit, colour and index."""
+        asm = asm if asm is not None else self.asm
+        part = asm.parts[pid]
+        key = (str(part.mesh), asm.units, part.color, list(asm.parts).index(pid))
+        if key not in self.models:
+            self.models[key] = load_part(part, asm.units, key[3])
+        return self.models[key]
+
+    def set_assembly(self, asm: Assembly, client=None, quiet: bool = False) -> None:
+        """Adopt a new draft: validate, remember the last valid one, refresh every view of it."""
+        self.asm = asm
+        self.problems = authoring.problems(asm)
+        hard = [p for p in self.problems if p.key != "steps"]  # "no steps yet" is not an error
+        if not hard:
+            self.valid_asm = asm
+        elif not quiet:
+            self.notice_problems_later(client)
+        if self.steps.step_index is not None and self.steps.step_index >= len(asm.steps):
+            self.steps.step_index = len(asm.steps) - 1 if asm.steps else None
+        self.refresh_assembly_widgets()
+        self.steps.refresh_assembly_scene()
+
+    def notice_problems_later(self, client, delay: float = 0.8) -> None:
+        """Notify about a draft's problems once typing pauses (a text field updates on every key)."""
+        if self._notice_timer is not None:
+            self._notice_timer.cancel()
+
+        def fire():
+            with self.lock:
+                hard = [p for p in self.problems if p.key != "steps"]
+                text = "\n".join(f"{p.key}: {p.what}" for p in hard[:4])
+                if hard and text != self._last_notice:
+                    self._last_notice = text
+                    self.notify(client, "Assembly has problems", text, error=True)
+                elif not hard:
+                    self._last_notice = ""
+
+        self._notice_timer = threading.Timer(delay, fire)
+        self._notice_timer.daemon = True
+        self._notice_timer.start()
+
+    def require_valid(self) -> None:
+        if self.problems:
+            raise AssemblyError(self.problems)
+
+    def refresh_assembly_widgets(self) -> None:
+        self.files.refresh_files()
+        self.steps.refresh_steps()
+
+
+def default_workspace(assembly=None, dataset=None, root=None) -> Workspace:
+    """The folders the page may name: `root` if given, else the current directory, or the assembly
+    file's folder when the file lies outside it; a dataset given at start is always readable."""
+    if root is None:
+        cwd = Path.cwd().resolve()
+        folder = Path(assembly).expanduser().resolve().parent if assembly is not None else cwd
+        root = cwd if folder.is_relative_to(cwd) else folder
+    return Workspace.of(root, dataset)
+
+
+def serve(assembly=None, dataset=None, host: str = "127.0.0.1", port: int = 8080, cache=None, root=None,
+          token: str | None = None):
+    """Start the studio in the background; returns (server, studio). `server.stop()` ends it.
+
+    Only the studio's own page may connect (Origin check). Bound beyond loopback, the page and its
+    websocket need `token` (made up when None); `studio.url` is the address to open."""
+    from ..webguard import is_loopback_bind, new_token, start_viser, studio_url
+
+    if not 0 < int(port) < 65536:
+        raise AposeError(f"--port {port}: expected a port number from 1 to 65535")
+    if token is None and not is_loopback_bind(host):
+        token = new_token()
+    server = start_viser(host, port, token)
+    try:
+        studio = Studio(server, assembly, dataset, cache, default_workspace(assembly, dataset, root))
+    except BaseException:
+        server.stop()
+        raise
+    studio.url = studio_url(host, server.get_port(), token)
+    return server, studio

@@ -1,0 +1,306 @@
+"""The Assembly tab's File and Parts folders: open, new, save (atomic, asking before it replaces a file
+this studio did not open), download; name and units; parts added by path, folder or upload, their
+colours and removal. Every path goes through the studio's workspace."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+
+from .. import authoring
+from ..assembly import dump_assembly, load_assembly, save_assembly
+from ..errors import AposeError
+from ..fileio import describe_path
+from ..mesh import supported_extensions
+from .widgets import MAX_UPLOAD_BYTES, UNITS, esc, hex_colour
+
+log = logging.getLogger(__name__)
+
+
+class AssemblyPanel:
+    def __init__(self, app):
+        self.app = app
+        self._syncing = False
+        self.saved_path: Path | None = None
+        self._pending_save: Path | None = None  # a file that Save would replace, waiting for "Replace"
+
+    def build(self) -> None:
+        gui = self.app.server.gui
+        with gui.add_folder("File"):
+            self.f_path = gui.add_text("Assembly file", "", hint="path on the server; relative mesh paths resolve against its folder")
+            row = gui.add_button_group("File actions", ("Open", "New", "Save", "Download"))
+            row.on_click(self.on_file_action)
+            self.f_name = gui.add_text("Name", self.app.asm.name)
+            self.f_units = gui.add_dropdown("Units", UNITS, initial_value=self.app.asm.units,
+                                            hint="unit of mesh coordinates and translations in the file")
+            self.f_name.on_update(self.app.guarded("Rename")(self.on_name))
+            self.f_units.on_update(self.app.guarded("Units")(self.on_units))
+        with gui.add_folder("Parts"):
+            self.parts_html = gui.add_html("")
+            self.f_mesh = gui.add_text("Mesh path or folder", "", hint=f"on the server: {', '.join(supported_extensions())}")
+            b = gui.add_button("Add part(s)")
+            b.on_click(self.app.guarded("Add part")(self.on_add_parts))
+            self.upload = gui.add_upload_button("Upload mesh", hint=f"up to {MAX_UPLOAD_BYTES // 2**20} MB; saved beside the assembly file")
+            self.upload.on_upload(self.app.guarded("Upload")(self.on_upload))
+            self.f_part = gui.add_dropdown("Part", ("—",))
+            self.f_part.on_update(self.app.guarded("Part")(lambda c: self.show_part_colour()))
+            self.f_color = gui.add_rgb("Colour", (230, 158, 0))
+            self.f_color.on_update(self.app.guarded("Colour")(self.on_color))
+            b = gui.add_button("Remove part", color="red")
+            b.on_click(self.app.guarded("Remove part")(self.on_remove_part))
+
+    def open_assembly(self, path: Path, client=None) -> None:
+        asm = load_assembly(path)
+        for pid in asm.parts:  # load every mesh now: a bad one is reported before anything changes
+            self.app.model(pid, asm)
+        for h in self.app.steps.mesh_handles.values():
+            h.remove()
+        self.app.steps.mesh_handles.clear()
+        self.app.steps.step_index = 0 if asm.steps else None
+        self.saved_path = asm.path
+        self.f_path.value = str(asm.path)
+        self.app.set_assembly(asm, client)
+        self.app.steps.f_upto.value = len(asm.steps)
+        self.app.steps.frame_camera_on_assembly()
+        self.warn_units(client)
+
+    def warn_units(self, client) -> None:
+        warnings = [w for w in (self.app.model(p).unit_warning for p in self.app.asm.parts) if w]
+        if warnings:
+            self.app.notify(client, "Units look wrong", "\n".join(warnings), error=True)
+
+    def on_file_action(self, event) -> None:
+        action = event.target.value
+        handler = {"Open": self.on_open, "New": self.on_new, "Save": self.on_save, "Download": self.on_download}[action]
+        self.app.guarded(action)(handler)(event)
+
+    def on_open(self, client) -> None:
+        text = self.f_path.value.strip()
+        if not text:
+            raise AposeError("type the path of an assembly file (on the server) into 'Assembly file' first")
+        self.open_assembly(self.app.workspace.resolve(text, "assembly file"), client)
+        self.app.notify(client, "Opened", f"{self.app.asm.name}: {len(self.app.asm.parts)} parts, {len(self.app.asm.steps)} steps")
+
+    def on_new(self, client) -> None:
+        """A new, empty draft that Save will write to the path typed in 'Assembly file' (a .yaml file that
+        does not exist yet, or a folder to hold untitled.yaml); an existing file is never a new one's target."""
+        text = self.f_path.value.strip()
+        target = self.app.workspace.resolve(text or "untitled.yaml", "assembly file")
+        if target.is_dir():
+            target = target / "untitled.yaml"
+        if target.suffix.lower() not in (".yaml", ".yml"):
+            raise AposeError(f"{target.name}: a new assembly is saved as a .yaml file; type a path ending in .yaml")
+        if target.exists():
+            raise AposeError(f"{target} already exists: press Open to edit it, or type a new file name for the new "
+                             "assembly into 'Assembly file'")
+        if not target.parent.is_dir():
+            raise AposeError(f"{target.parent}: folder does not exist; create it or type another path")
+        for h in self.app.steps.mesh_handles.values():
+            h.remove()
+        self.app.steps.mesh_handles.clear()
+        self.app.steps.step_index = None
+        name = target.stem
+        self.app.valid_asm = authoring.new_assembly(name, self.f_units.value, target.parent)  # an empty preview
+        self.app.set_assembly(authoring.new_assembly(name, self.f_units.value, target.parent), client, quiet=True)
+        self.saved_path = None
+        self.f_path.value = str(target)
+        self.app.notify(client, "New assembly", f"{name}: add parts, then steps; Save writes {target}")
+
+    def save_target(self) -> Path:
+        text = self.f_path.value.strip()
+        if not text:
+            raise AposeError("type where to save into 'Assembly file' (a .yaml path on the server)")
+        path = self.app.workspace.resolve(text, "assembly file")
+        if path.suffix.lower() not in (".yaml", ".yml"):
+            raise AposeError(f"{path.name}: save as a .yaml file")
+        if not path.parent.is_dir():
+            raise AposeError(f"{path.parent}: folder does not exist; create it or pick another path")
+        if path.exists() and not path.is_file():
+            raise AposeError(f"{path}: {describe_path(path, 'a .yaml file')}")
+        return path
+
+    def on_save(self, client, confirmed: bool = False) -> None:
+        """Save the draft (never an invalid one). Replacing a file the studio did not open or save asks
+        first; the replaced version is kept as NAME.yaml.bak."""
+        self.app.require_valid()
+        path = self.save_target()
+        if path.exists() and path != self.saved_path and not confirmed:
+            self.ask_replace(client, path)
+            return
+        path = save_assembly(self.app.asm, path, backup=True)
+        self.saved_path = path
+        self.app.asm = load_assembly(path)  # what is on disk is what the studio now edits (paths re-anchored)
+        self.app.valid_asm = self.app.asm
+        self.app.steps.refresh_status()
+        bak = path.with_name(path.name + ".bak")
+        self.app.notify(client, "Saved", str(path) + (f" (previous version: {bak.name})" if bak.exists() else ""))
+
+    def ask_replace(self, client, path: Path) -> None:
+        """A dialog in the tab that pressed Save: replace a file this studio did not open, or not."""
+        if client is None:
+            raise AposeError(f"{path} exists and was not opened here; open it first, or save under another name")
+        with client.gui.add_modal("Replace file?") as modal:
+            client.gui.add_markdown(f"**{esc(path)}** exists, and this studio did not open it. Replace it with the "
+                                    f"draft? The current file is kept as {esc(path.name)}.bak.")
+            yes = client.gui.add_button("Replace", color="red")
+            no = client.gui.add_button("Cancel")
+
+        def replace(event) -> None:
+            modal.close()
+            if self.f_path.value.strip() and self.save_target() == path:
+                self.on_save(event.client, confirmed=True)
+            else:
+                raise AposeError("the path in 'Assembly file' changed meanwhile; press Save again")
+
+        yes.on_click(lambda e: self.app.guarded("Save")(lambda c: replace(e))(e))
+        no.on_click(lambda e: modal.close())
+
+    def on_download(self, client) -> None:
+        self.app.require_valid()
+        folder = self.save_target().parent if self.f_path.value.strip() else authoring.folder_of(self.app.asm)
+        text = dump_assembly(self.app.asm, folder)
+        if client is None:
+            raise AposeError("no browser to send the download to")
+        client.send_file_download(f"{self.app.asm.name}.yaml", text.encode("utf-8"))
+
+    def on_name(self, client) -> None:
+        if self._syncing:
+            return
+        from dataclasses import replace
+
+        name = self.f_name.value.strip()
+        if not name:
+            raise AposeError("the assembly needs a name")
+        self.app.set_assembly(replace(self.app.asm, name=name), client)
+
+    def on_units(self, client) -> None:
+        if self._syncing or self.f_units.value == self.app.asm.units:
+            return
+        from dataclasses import replace
+
+        for h in self.app.steps.mesh_handles.values():
+            h.remove()
+        self.app.steps.mesh_handles.clear()
+        self.app.set_assembly(replace(self.app.asm, units=self.f_units.value), client)
+        self.warn_units(client)
+
+    def add_mesh_file(self, path: Path, client) -> str:
+        asm, pid = authoring.add_part(self.app.asm, path)
+        model = self.app.model(pid, asm)  # raises MeshError before anything changes
+        self.app.set_assembly(asm, client, quiet=True)
+        if model.unit_warning:
+            self.app.notify(client, "Units look wrong", model.unit_warning, error=True)
+        return pid
+
+    def on_add_parts(self, client) -> None:
+        text = self.f_mesh.value.strip()
+        if not text:
+            raise AposeError("type a mesh path or a folder of meshes (on the server) into 'Mesh path or folder'")
+        path = self.app.workspace.resolve(text, "mesh")
+        if path.is_dir():
+            files = sorted(p for p in path.iterdir() if p.suffix.lower() in supported_extensions() and p.is_file())
+            if not files:
+                raise AposeError(f"{path}: no meshes here ({', '.join(supported_extensions())})")
+        elif path.is_file():
+            files = [path]
+        else:
+            raise AposeError(f"{path}: {describe_path(path, 'a mesh file or a folder of meshes')}")
+        added, failed = [], []
+        for f in files:
+            try:
+                added.append(self.add_mesh_file(f, client))
+            except AposeError as e:
+                failed.append(str(e))
+        if added:
+            self.app.notify(client, "Parts added", ", ".join(added))
+        if failed:
+            self.app.notify(client, "Some meshes were not added", "\n".join(failed[:5]), error=True)
+        self.app.steps.frame_camera_on_assembly()
+
+    def on_upload(self, client) -> None:
+        f = self.upload.value
+        if f is None:
+            return
+        if len(f.content) > MAX_UPLOAD_BYTES:
+            raise AposeError(f"{f.name} is {len(f.content) / 2**20:.0f} MB; the limit is {MAX_UPLOAD_BYTES // 2**20} MB")
+        name = Path(f.name).name
+        if Path(name).suffix.lower() not in supported_extensions():
+            raise AposeError(f"{name}: not a mesh format the studio reads ({', '.join(supported_extensions())})")
+        folder = self.app.workspace.resolve(authoring.folder_of(self.app.asm) / "meshes", "assembly file")
+        folder.mkdir(parents=True, exist_ok=True)
+        target = folder / name
+        k = 2
+        while target.exists() and target.read_bytes() != f.content:
+            target = folder / f"{Path(name).stem}_{k}{Path(name).suffix}"
+            k += 1
+        if not target.exists():
+            tmp = target.with_name(f".{target.name}.part")
+            tmp.write_bytes(f.content)
+            tmp.replace(target)
+        try:
+            pid = self.add_mesh_file(target, client)
+        except AposeError:
+            target.unlink(missing_ok=True)  # a corrupt upload leaves nothing behind
+            raise
+        self.app.notify(client, "Part uploaded", f"{pid} ← {name} (saved as {target})")
+
+    def show_part_colour(self) -> None:
+        """The Colour field shows the selected part's colour."""
+        if self.f_part.value not in self.app.asm.parts:
+            return
+        rgb = tuple(int(round(255 * c)) for c in self.app.model(self.f_part.value).color)
+        if tuple(self.f_color.value) != rgb:
+            self._syncing = True
+            try:
+                self.f_color.value = rgb
+            finally:
+                self._syncing = False
+
+    def on_color(self, client) -> None:
+        if self._syncing or self.f_part.value not in self.app.asm.parts:
+            return
+        pid = self.f_part.value
+        rgb = tuple(c / 255.0 for c in self.f_color.value)
+        if pid in self.app.steps.mesh_handles:
+            self.app.steps.mesh_handles.pop(pid).remove()
+        self.app.set_assembly(authoring.set_part_color(self.app.asm, pid, rgb), client)
+
+    def on_remove_part(self, client) -> None:
+        pid = self.f_part.value
+        if pid not in self.app.asm.parts:
+            raise AposeError("choose a part to remove")
+        asm = authoring.remove_part(self.app.asm, pid)
+        if pid in self.app.steps.mesh_handles:
+            self.app.steps.mesh_handles.pop(pid).remove()
+        self.app.set_assembly(asm, client)
+
+    def refresh_files(self) -> None:
+        asm = self.app.asm
+        self._syncing = True
+        try:
+            self.f_name.value = asm.name
+            self.f_units.value = asm.units
+            self.f_part.options = list(asm.parts) or ["—"]
+        finally:
+            self._syncing = False
+        self.show_part_colour()
+        self.refresh_parts_table()
+
+    def refresh_parts_table(self) -> None:
+        rows = []
+        for pid, part in self.app.asm.parts.items():
+            try:
+                m = self.app.model(pid)
+            except AposeError as e:
+                rows.append(f"<tr><td>{esc(pid)}</td><td colspan=4 style='color:#c00'>{esc(e)}</td></tr>")
+                continue
+            size = " × ".join(f"{v * 1000:.1f}" for v in m.size)
+            warn = f"<br><span style='color:#c60'>⚠ {esc(m.unit_warning)}</span>" if m.unit_warning else ""
+            rows.append(f"<tr><td><span style='display:inline-block;width:10px;height:10px;background:{hex_colour(m.color)};"
+                        f"border-radius:2px'></span> {esc(pid)}</td><td>{esc(part.mesh.name)}</td><td>{esc(self.app.asm.units)}</td>"
+                        f"<td>{size}{warn}</td></tr>")
+        body = "".join(rows) or "<tr><td colspan=4><i>no parts yet: add a mesh path, a folder, or upload</i></td></tr>"
+        self.parts_html.content = (
+            "<table style='font-size:0.8em;width:100%;border-collapse:collapse'>"
+            "<tr style='text-align:left'><th>part</th><th>file</th><th>unit</th><th>size (mm)</th></tr>" + body + "</table>")

@@ -1,0 +1,331 @@
+"""The Inspect tab's Data and Estimate folders: datasets and captures, step and frame, the estimator's
+settings, the crop box, and estimates (fixed to the settings of the moment they are asked for, run
+without the studio lock, cached)."""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .. import inspection, se3
+from ..assembly import Assembly
+from ..errors import AposeError
+from .widgets import PRESETS, esc
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class EstimateJob:
+    """What one press of Estimate computes, fixed when it is pressed (see Studio._job)."""
+
+    frames: object  # a Dataset or a capture Frame
+    frames_path: str
+    assembly: Assembly
+    models: dict
+    step: int
+    ids: tuple[int, ...]
+    preset: str
+    upright: bool
+    mask: str
+    prior: bool
+    crop: tuple | None  # (T_world_box, size in metres) for depth masks, or None
+
+    def key(self, cache: inspection.ResultCache, im_id: int) -> tuple:
+        mask = self.mask
+        if self.crop is not None:
+            mask = (mask, tuple(np.round(self.crop[0], 4).ravel()), tuple(np.round(self.crop[1], 4)))
+        preset = self.preset + (" free" if not self.upright and self.preset == "default" else "")
+        return cache.key(self.frames_path, self.step, im_id, preset, mask, self.prior)
+
+
+class InspectPanel:
+    def __init__(self, app):
+        self.app = app
+        self._syncing = False
+        self.frames = None  # a Dataset or a capture Frame
+        self.frames_path: str | None = None
+        self.frame = None
+        self.result = None
+        self.score = None
+        self.contexts: dict = {}  # (assembly identity, step) -> StepContext
+        self._part_models: dict = {}  # id(assembly) -> its PartModels
+
+    def build(self) -> None:
+        gui = self.app.server.gui
+        with gui.add_folder("Data"):
+            self.i_path = gui.add_text("Dataset or capture", "", hint="a folder from `apose render`, or rgb.png + depth.png + camera.json")
+            b = gui.add_button("Open data")
+            b.on_click(self.app.guarded("Open data")(lambda c: self.on_open_data(c)))
+            self.i_step = gui.add_dropdown("Inspect step", ("—",))
+            self.i_step.on_update(self.app.guarded("Step")(lambda c: self.on_frame_changed()))
+            self.i_frame = gui.add_slider("Frame", 0, 1, 1, 0)
+            self.i_frame.on_update(self.app.guarded("Frame")(lambda c: self.on_frame_changed()))
+        with gui.add_folder("Estimate"):
+            self.i_preset = gui.add_dropdown("Preset", PRESETS, initial_value="default")
+            from ..evaluate import MASK_SOURCES
+
+            self.i_mask = gui.add_dropdown("Mask", MASK_SOURCES, initial_value=MASK_SOURCES[0],
+                                           hint="gt: the dataset's masks; depth: table removal + 3D clustering; or a trained model")
+            self.i_model = gui.add_text("Mask model (.pt)", "", hint="a model from `apose train-seg` for this assembly")
+            b = gui.add_button("Use model")
+            b.on_click(self.app.guarded("Mask model")(self.on_use_model))
+            self.i_crop = gui.add_checkbox("Crop box", False, hint="limit depth masks to a box you drag around the base object")
+            self.i_crop_size = gui.add_vector3("Crop size (mm)", (150.0, 150.0, 100.0), min=(1.0, 1.0, 1.0), step=5.0)
+            self.i_crop.on_update(self.app.guarded("Crop box")(lambda c: self.show_crop()))
+            self.i_crop_size.on_update(self.app.guarded("Crop box")(lambda c: self.show_crop()))
+            self.i_upright = gui.add_checkbox("Upright", True,
+                                              hint="where a table is seen, search first the yaw of the base standing on it as "
+                                              "modelled, then freely if that fits poorly (preset default)")
+            self.i_prior = gui.add_checkbox("Orientation prior", False, hint="take the CAD orientation as the base's (the paper's assumption)")
+            for w in (self.i_preset, self.i_mask, self.i_prior, self.i_upright):
+                w.on_update(self.app.guarded("Estimator")(lambda c: self.on_frame_changed()))
+            row = gui.add_button_group("Run", ("Estimate frame", "Estimate step"))
+            row.on_click(self.on_estimate)
+            self.i_progress = gui.add_progress_bar(0.0, visible=False)
+
+    def on_open_data(self, client) -> None:
+        try:
+            text = self.i_path.value.strip()
+            if not text:
+                raise AposeError("type a dataset folder (from `apose render`) or a capture folder into 'Dataset or capture'")
+            self.open_frames(str(self.app.workspace.resolve(text, "dataset or capture")), client)
+        except AposeError as e:
+            if self.frames_path is not None:  # say what stays on screen
+                raise AposeError(f"{e}\n(still showing the data opened before: {self.frames_path})") from None
+            raise
+
+    def open_frames(self, text: str, client=None) -> None:
+        from ..dataset import Dataset, open_frames
+
+        frames = open_frames(Path(text).expanduser())
+        if isinstance(frames, Dataset):
+            steps = [f"{s}. {frames.assembly.steps[s - 1].part}" for s in frames.steps]
+        else:
+            if not self.app.valid_asm.steps:
+                raise AposeError("a capture needs an assembly: open one in the Assembly tab first")
+            steps = [f"{i + 1}. {s.part}" for i, s in enumerate(self.app.valid_asm.steps)]
+        self.frames, self.frames_path = frames, str(Path(text).expanduser().resolve())
+        self.result = self.score = None
+        self.i_path.value = self.frames_path
+        self._syncing = True
+        try:
+            self.i_step.options = steps
+            self.i_step.value = steps[0]
+        finally:
+            self._syncing = False
+        self.app.show_view("Inspect")
+        self.on_frame_changed()
+        self.frame_camera_on_frame()
+
+    def frame_camera_on_frame(self) -> None:
+        """Frame the object under inspection (its mask, else the estimate's points, else the middle of the
+        depth image), seen from beside and above the dataset's camera so its frustum does not block the view."""
+        fr = self.frame
+        if fr is None:
+            return
+        from ..registration import project_to_cloud
+
+        mask = fr.base_mask()
+        if not mask.any() and self.result is not None and len(self.result.target_cloud):
+            pts = self.result.target_cloud
+        else:
+            if not mask.any():
+                h, w = fr.depth.shape
+                mask = np.zeros_like(mask)
+                mask[h // 3: 2 * h // 3, w // 3: 2 * w // 3] = True
+            pts = project_to_cloud(fr.depth, mask & np.isfinite(fr.depth) & (fr.depth > 0), fr.camera, fr.T_world_camera)
+        if not len(pts):
+            return
+        centre = np.median(pts, axis=0)
+        radius = max(float(np.percentile(np.linalg.norm(pts - centre, axis=1), 95)), 0.02)
+        to_camera = fr.T_world_camera[:3, 3] - centre
+        direction = se3.axis_angle_matrix([0.0, 0.0, 1.0], np.radians(35.0)) @ to_camera
+        direction[2] = max(direction[2], 0.6 * np.linalg.norm(direction[:2]))  # from above the table
+        self.app.look_at(centre, 1.3 * radius, direction)
+
+    def inspect_assembly(self) -> Assembly:
+        from ..dataset import Dataset
+
+        return self.frames.assembly if isinstance(self.frames, Dataset) else self.app.valid_asm
+
+    def current_step(self) -> int:
+        return int(str(self.i_step.value).split(".")[0])
+
+    def job(self, step: int, ids: list[int]) -> "EstimateJob":
+        """Everything an estimate depends on, read from the widgets now: a later click in any tab (another
+        dataset, another preset) cannot change what a running estimate is computed with or cached under."""
+        crop = None
+        if self.i_mask.value == "depth" and self.i_crop.value and "/inspect/crop" in self.app.nodes:  # the box is part of the mask
+            g = self.app.nodes["/inspect/crop"]
+            crop = (se3.make_T(se3.quat_wxyz_to_matrix(np.asarray(g.wxyz)), np.asarray(g.position)),
+                    np.asarray(self.i_crop_size.value, dtype=float) / 1000.0)
+        asm = self.inspect_assembly()
+        return EstimateJob(self.frames, self.frames_path, asm, self.inspect_models(), step, tuple(ids),
+                           self.i_preset.value, bool(self.i_upright.value), self.i_mask.value, bool(self.i_prior.value),
+                           crop)
+
+    def cache_key(self, step: int, im_id: int) -> tuple:
+        return self.job(step, [im_id]).key(self.app.cache, im_id)
+
+    def load_frame(self, step: int, im_id: int, frames=None, asm: Assembly | None = None):
+        from ..dataset import Dataset
+
+        frames = self.frames if frames is None else frames
+        if isinstance(frames, Dataset):
+            return frames.frame(step, im_id)
+        frames.base = (asm or self.app.valid_asm).steps[step - 1].base
+        return frames
+
+    def on_frame_changed(self) -> None:
+        from ..dataset import Dataset
+
+        if self._syncing or self.frames is None:
+            return
+        step = self.current_step()
+        if isinstance(self.frames, Dataset):
+            ids = self.frames.image_ids(step)
+            self._syncing = True
+            try:
+                self.i_frame.max = max(len(ids) - 1, 1)
+                self.i_frame.disabled = len(ids) <= 1
+                if self.i_frame.value > len(ids) - 1:
+                    self.i_frame.value = 0
+            finally:
+                self._syncing = False
+            im_id = ids[int(self.i_frame.value)]
+        else:
+            im_id = 0
+        self.frame = self.load_frame(step, im_id)
+        cached = self.app.cache.get(self.cache_key(step, im_id))
+        self.result, self.score = cached if cached is not None else (None, None)
+        self.app.results.draw_frame()
+
+    def inspect_models(self) -> dict:
+        from ..mesh import load_parts
+
+        asm = self.inspect_assembly()
+        if id(asm) not in self._part_models:
+            self._part_models = {id(asm): load_parts(asm)}  # keep one assembly's meshes, not every draft's
+        return self._part_models[id(asm)]
+
+    def context(self, step: int):
+        from ..evaluate import StepContext
+
+        asm = self.inspect_assembly()
+        key = (id(asm), step)
+        if key not in self.contexts:
+            self.contexts[key] = StepContext(asm, self.inspect_models(), step)
+        return self.contexts[key]
+
+    def estimate(self, job: "EstimateJob", im_id: int):
+        """Estimate one frame of `job` and cache it under the job's key (runs without the studio lock)."""
+        from ..evaluate import StepContext, estimate_and_score
+        from ..registration import resolve_params
+
+        ctx = StepContext(job.assembly, job.models, job.step)
+        frame = self.load_frame(job.step, im_id, job.frames, job.assembly)
+        extra = {"upright": job.upright} if job.preset == "default" else {}
+        params = resolve_params(job.preset, job.assembly.registration, **extra)
+        mask = None
+        if job.crop is not None:
+            from ..segment import depth_mask
+
+            keep = inspection.pixels_in_box(frame.depth, frame.camera, frame.T_world_camera, *job.crop)
+            mask = depth_mask(frame.depth, frame.camera, keep=keep)
+        result, score = estimate_and_score(frame, ctx, params, job.mask, job.prior, trace_iterations=True, mask=mask)
+        self.app.cache.put(job.key(self.app.cache, im_id), (result, score))
+        return result, score
+
+    def show_crop(self) -> None:
+        """The crop box: a gizmo with a wireframe box as its child, first placed on the base object's
+        likely spot (the depth point at the image centre)."""
+        for name in ("/inspect/crop/box",):
+            if name in self.app.nodes:
+                self.app.nodes.pop(name).remove()
+        if not self.i_crop.value or self.frame is None:
+            if "/inspect/crop" in self.app.nodes:
+                self.app.nodes.pop("/inspect/crop").remove()
+            return
+        size = np.asarray(self.i_crop_size.value, dtype=float) / 1000.0
+        g = self.app.nodes.get("/inspect/crop")
+        if g is None:
+            fr = self.frame
+            h, w = fr.depth.shape
+            win = fr.depth[h // 2 - 20:h // 2 + 20, w // 2 - 20:w // 2 + 20]
+            z = float(np.median(win[np.isfinite(win) & (win > 0)])) if (np.isfinite(win) & (win > 0)).any() else 0.5
+            centre = se3.transform_points(fr.T_world_camera, np.array([[0.0, 0.0, z]]))[0]
+            g = self.app.node("/inspect/crop", self.app.server.scene.add_transform_controls(
+                "/inspect/crop", scale=float(size.max()), position=tuple(centre)))
+        import trimesh
+
+        box = trimesh.creation.box(size)
+        self.app.node("/inspect/crop/box", self.app.server.scene.add_mesh_simple(
+            "/inspect/crop/box", box.vertices.astype(np.float32), box.faces.astype(np.uint32), color=(255, 170, 0),
+            wireframe=True))
+
+    def on_use_model(self, client) -> None:
+        from ..evaluate import check_mask_source
+
+        text = self.i_model.value.strip()
+        if not text:
+            raise AposeError("type the path of a model file (.pt) from `apose train-seg` into 'Mask model (.pt)'")
+        path = check_mask_source(str(self.app.workspace.resolve(text, "mask model")), self.inspect_assembly())
+        options = list(self.i_mask.options)
+        if path not in options:
+            self.i_mask.options = options + [path]
+        self.i_mask.value = path
+        self.app.notify(client, "Mask model", f"using {Path(path).name} for masks")
+
+    def on_estimate(self, event) -> None:
+        which = event.target.value
+        self.app.guarded(which)(lambda c: self.run_estimation(which == "Estimate step", c))(event)
+
+    def run_estimation(self, whole_step: bool, client) -> None:
+        from ..dataset import Dataset
+
+        if self.frames is None:
+            raise AposeError("open a dataset or capture first")
+        if not self.app.busy.acquire(blocking=False):
+            raise AposeError("an estimation is already running; wait for it to finish")
+        try:
+            step = self.current_step()
+            if whole_step and isinstance(self.frames, Dataset):
+                ids = self.frames.image_ids(step)
+            else:
+                ids = [self.frame.im_id]
+            job = self.job(step, ids)  # the settings of this moment, whatever other tabs do meanwhile
+        except BaseException:
+            self.app.busy.release()
+            raise
+        self.app.lock.release()  # estimation is long: let other tabs edit meanwhile
+        try:
+            self.i_progress.visible = True
+            self.i_progress.value = 0.0
+            failed, unsure, t0 = [], [], time.perf_counter()
+            for k, im_id in enumerate(ids):
+                cached = self.app.cache.get(job.key(self.app.cache, im_id))
+                result = cached[0] if cached is not None else self.estimate(job, im_id)[0]
+                if not result.ok:
+                    failed.append(f"frame {im_id}: {result.reason}")
+                elif not result.confident:
+                    unsure.append(f"frame {im_id}: coverage {result.coverage:.0%}")
+                self.i_progress.value = 100.0 * (k + 1) / len(ids)
+            dt = time.perf_counter() - t0
+        finally:
+            self.app.lock.acquire()
+            self.app.busy.release()
+            self.i_progress.visible = False
+        self.on_frame_changed()
+        self.frame_camera_on_frame()
+        if failed:
+            self.app.notify(client, "Estimation failed", esc("\n".join(failed[:5])), error=True)
+        elif unsure:
+            self.app.notify(client, "Estimated, low confidence", "the model explains too little of the target (likely "
+                        "wrong): " + esc("; ".join(unsure[:5])), error=True)
+        else:
+            self.app.notify(client, "Estimated", f"{len(ids)} frame(s) in {dt:.1f} s")

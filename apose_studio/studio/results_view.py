@@ -1,0 +1,195 @@
+"""The Inspect tab's Registration replay, Result and Layers folders, and the frame in the 3D view: clouds,
+boxes (estimate, truth, alternatives) in their legend colours with labels, the ghost part, the RGB
+overlay cropped around the object, the pose as numbers and JSON."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+import numpy as np
+
+from .. import inspection, se3
+from ..errors import AposeError
+from .widgets import LAYERS, legend_html, pos, wxyz
+
+log = logging.getLogger(__name__)
+
+
+class ResultsView:
+    def __init__(self, app):
+        self.app = app
+        self._syncing = False
+        self.stages: list = []
+
+    def build(self) -> None:
+        gui = self.app.server.gui
+        with gui.add_folder("Registration replay"):
+            self.i_stage = gui.add_slider("Stage", 0, 1, 1, 0, disabled=True)
+            self.i_stage.on_update(self.app.guarded("Stage")(lambda c: self.show_stage()))
+            b = gui.add_button("Play registration")
+            b.on_click(self.app.guarded("Play registration")(self.on_play_registration))
+            self.i_stage_md = gui.add_markdown("")
+        with gui.add_folder("Result"):
+            self.i_legend = gui.add_html(legend_html())
+            self.i_metrics = gui.add_markdown("")
+            self.i_pose = gui.add_markdown("")
+            b = gui.add_button("Download pose (JSON)", hint="T_world_part, T_camera_part and T_world_base of the estimate")
+            b.on_click(self.app.guarded("Download pose")(self.on_download_pose))
+            self.i_image = gui.add_image(np.zeros((48, 64, 3), np.uint8), label="RGB")
+            self.i_full = gui.add_checkbox("Full image", False, hint="show the whole RGB image instead of the part around the object")
+            self.i_full.on_update(self.app.guarded("Full image")(lambda c: self.draw_overlay()))
+        with gui.add_folder("Layers", expand_by_default=False):
+            self.layers = {k: gui.add_checkbox(k, True) for k in LAYERS}
+            for w in self.layers.values():
+                w.on_update(self.app.guarded("Layers")(lambda c: self.apply_layers()))
+
+    def draw_frame(self) -> None:
+        """The frame and its estimate in the 3D view (each thing in its legend colour, labelled) and the
+        RGB overlay in the panel."""
+        fr = self.app.inspect.frame
+        scene = self.app.server.scene
+        cam = fr.camera
+        asm = self.app.inspect.inspect_assembly()
+        part_model = self.app.inspect.inspect_models()[asm.steps[self.app.inspect.current_step() - 1].part]
+        small = fr.rgb[::2, ::2] if fr.rgb.shape[1] > 400 else fr.rgb
+        fov = 2.0 * np.arctan2(cam.height / 2.0, cam.fy)
+        Tc = fr.T_world_camera
+        self.app.node("/inspect/camera", scene.add_camera_frustum("/inspect/camera", fov=float(fov), aspect=cam.width / cam.height,
+                                                               scale=0.03, image=small, format="jpeg", jpeg_quality=80,
+                                                               wxyz=wxyz(Tc), position=pos(Tc), color=(60, 60, 60)))
+        pts, cols = inspection.scene_cloud(fr.depth, fr.rgb, cam, Tc)
+        stride = max(1, int(np.ceil(np.sqrt(fr.depth.size / 60000))))
+        # about one pixel's footprint at the scene's depth: dense, but never blobs that hide the boxes
+        footprint = 0.5 * float(np.median(se3.transform_points(se3.inv(Tc), pts)[:, 2])) / cam.fx * stride if len(pts) else 0.001
+        self.app.node("/inspect/scene", scene.add_point_cloud("/inspect/scene", pts, cols, point_size=footprint,
+                                                           point_shape="circle"))
+        for name in [n for n in self.app.nodes if n.startswith(("/inspect/box_", "/inspect/label_", "/inspect/ghost"))] + [
+                "/inspect/target", "/inspect/source"]:
+            if name in self.app.nodes:
+                self.app.nodes.pop(name).remove()
+        r = self.app.inspect.result
+        corners = part_model.box_corners()
+        d = part_model.diameter
+        labels = []
+        if fr.T_world_part is not None:  # truth: amber, dashed, a little outside so it never z-fights the estimate
+            seg = inspection.dashed(inspection.box_segments(inspection.inflate(corners, 0.03), fr.T_world_part))
+            self.app.node("/inspect/box_gt", scene.add_line_segments("/inspect/box_gt", seg.astype(np.float32), inspection.AMBER,
+                                                                  thickness=4.0, thickness_units="screen"))
+            labels.append(("truth", se3.transform_points(fr.T_world_part, corners).min(axis=0), "top-right"))
+        if r is not None and r.ok:
+            seg = inspection.box_segments(corners, r.T_world_part)
+            self.app.node("/inspect/box_est", scene.add_line_segments("/inspect/box_est", seg.astype(np.float32), inspection.GREEN,
+                                                                   thickness=3.0, thickness_units="screen"))
+            labels.append(("estimate", se3.transform_points(r.T_world_part, corners).max(axis=0), "bottom-left"))
+            alts = [c.T_world_part for c in r.alternatives]
+            if alts:
+                seg = np.concatenate([inspection.box_segments(corners, T) for T in alts])
+                self.app.node("/inspect/box_alt", scene.add_line_segments("/inspect/box_alt", seg.astype(np.float32),
+                                                                       inspection.MAGENTA, thickness=2.0, thickness_units="screen"))
+                labels.append(("alternative", se3.transform_points(alts[0], corners).max(axis=0), "bottom-left"))
+            mesh = part_model.mesh
+            self.app.node("/inspect/ghost", scene.add_mesh_simple(
+                "/inspect/ghost", mesh.vertices.astype(np.float32), mesh.faces.astype(np.uint32), color=inspection.GREEN,
+                opacity=0.45, wxyz=wxyz(r.T_world_part), position=pos(r.T_world_part)))
+        if r is not None and len(r.target_cloud):
+            tgt = inspection.thin(r.target_cloud, 20000).astype(np.float32)
+            self.app.node("/inspect/target", scene.add_point_cloud("/inspect/target", tgt, inspection.RED, point_size=d / 120,
+                                                                point_shape="circle"))
+            labels.append(("target cloud", tgt[np.argmax(tgt[:, 2])], "bottom-right"))
+        for k, (text, where, anchor) in enumerate(labels):
+            name = f"/inspect/label_{k}"
+            self.app.node(name, scene.add_label(name, text, position=tuple(float(v) for v in where), anchor=anchor,
+                                             font_screen_scale=0.8))
+        self.stages = inspection.replay(r) if (r is not None and r.ok) else []
+        self._syncing = True
+        try:
+            self.i_stage.max = max(len(self.stages) - 1, 1)
+            self.i_stage.value = max(len(self.stages) - 1, 0)
+            self.i_stage.disabled = len(self.stages) < 2
+        finally:
+            self._syncing = False
+        self.show_stage()
+        self.i_metrics.content = inspection.metrics_markdown(self.app.inspect.score, r)
+        self.i_pose.content = inspection.pose_markdown(inspection.pose_report(r, Tc)) if (r is not None and r.ok) else ""
+        self.draw_overlay()
+        self.apply_layers()
+
+    def draw_overlay(self) -> None:
+        """The RGB image with the boxes drawn, cropped around the object unless 'Full image' is ticked."""
+        fr, r = self.app.inspect.frame, self.app.inspect.result
+        if fr is None:
+            return
+        asm = self.app.inspect.inspect_assembly()
+        corners = self.app.inspect.inspect_models()[asm.steps[self.app.inspect.current_step() - 1].part].box_corners()
+        boxes = []  # earlier boxes are drawn thicker: truth under estimate
+        if fr.T_world_part is not None:
+            boxes.append((fr.T_world_part, inspection.AMBER))
+        if r is not None and r.ok:
+            boxes.append((r.T_world_part, inspection.GREEN))
+            boxes += [(c.T_world_part, inspection.MAGENTA) for c in r.alternatives]
+        image = inspection.draw_boxes(fr.rgb, fr.camera, fr.T_world_camera, corners, boxes)
+        if not self.i_full.value:
+            uv = np.concatenate([inspection.project_points(se3.transform_points(T, corners), fr.T_world_camera, fr.camera)[0]
+                                 for T, _ in boxes]) if boxes else np.zeros((0, 2))
+            if not boxes:  # no boxes: around the base object, if its mask is known
+                vs, us = np.nonzero(fr.base_mask())
+                uv = np.stack([us, vs], axis=1)[:: max(1, len(us) // 500)]
+            x0, y0, x1, y1 = inspection.crop_window(fr.rgb.shape[:2], uv)
+            image = image[y0:y1, x0:x1]
+        self.i_image.image = image
+        truth = ", truth (amber)" if fr.T_world_part is not None else ""
+        self.i_image.label = f"RGB: estimate (green){truth}" if boxes else "RGB"
+
+    def on_download_pose(self, client) -> None:
+        import json
+
+        r = self.app.inspect.result
+        if r is None or not r.ok or self.app.inspect.frame is None:
+            raise AposeError("no estimate on this frame yet: press Estimate frame first")
+        report = inspection.pose_report(r, self.app.inspect.frame.T_world_camera)
+        report.update({"source": self.app.inspect.frames_path, "step": self.app.inspect.current_step(), "frame": int(self.app.inspect.frame.im_id),
+                       "units": "metres (matrices), mm (translation_mm)"})
+        if client is None:
+            raise AposeError("no browser to send the download to")
+        client.send_file_download(f"pose_step{self.app.inspect.current_step()}_frame{self.app.inspect.frame.im_id}.json",
+                                  json.dumps(report, indent=1).encode("utf-8"))
+
+    def show_stage(self) -> None:
+        if self._syncing:
+            return
+        if not self.stages:
+            self.i_stage_md.content = "" if self.app.inspect.result is None else "_no registration trace (estimation failed)_"
+            return
+        k = int(np.clip(self.i_stage.value, 0, len(self.stages) - 1))
+        s = self.stages[k]
+        d = self.app.inspect.inspect_models()[self.app.inspect.inspect_assembly().steps[self.app.inspect.current_step() - 1].part].diameter
+        self.app.node("/inspect/source", self.app.server.scene.add_point_cloud(
+            "/inspect/source", s.source_world, inspection.BLUE, point_size=d / 120, point_shape="circle"),
+            visible=bool(self.layers["source cloud"].value))
+        self.i_stage_md.content = (f"**{s.name}** ({k + 1}/{len(self.stages)}): fitness {s.fitness:.3f}, "
+                                   f"inlier RMSE {s.inlier_rmse * 1000:.2f} mm")
+
+    def on_play_registration(self, client) -> None:
+        if len(self.stages) < 2:
+            raise AposeError("estimate this frame first; then the registration can be replayed")
+        n = len(self.stages)
+
+        def play():
+            for k in range(n):
+                self.i_stage.value = k
+                time.sleep(max(0.08, 2.5 / n))
+
+        threading.Thread(target=play, daemon=True).start()
+
+    def apply_layers(self) -> None:
+        which = {"/inspect/scene": "scene cloud", "/inspect/target": "target cloud", "/inspect/source": "source cloud",
+                 "/inspect/box_gt": "boxes", "/inspect/box_est": "boxes", "/inspect/box_alt": "boxes",
+                 "/inspect/ghost": "part at estimate", "/inspect/camera": "camera"}
+        which.update({n: "labels" for n in self.app.nodes if n.startswith("/inspect/label_")})
+        for name, layer in which.items():
+            if name in self.app.nodes:
+                h = self.app.nodes[name]
+                h._apose_visible = bool(self.layers[layer].value)
+                h.visible = h._apose_visible and self.app.current_view == "Inspect"

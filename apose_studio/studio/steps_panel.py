@@ -1,0 +1,307 @@
+"""The Assembly tab's Steps and Preview folders, and the assembly in the 3D view: the steps table, the
+step's part, base and pose (typed, or dragged with the gizmo), the preview up to a step, exploded
+along insertion directions, and the sequence played for demos."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+import numpy as np
+
+from .. import authoring, se3
+from ..errors import AposeError
+from .widgets import esc, pos, wxyz
+
+log = logging.getLogger(__name__)
+
+
+class StepsPanel:
+    def __init__(self, app):
+        self.app = app
+        self._syncing = False
+        self.step_index: int | None = None  # selected step, 0-based
+        self.mesh_handles: dict[str, object] = {}
+        self._preview: dict = {}
+
+    def build(self) -> None:
+        gui = self.app.server.gui
+        with gui.add_folder("Steps") as self.steps_folder:
+            self.steps_html = gui.add_html("")
+            self.f_step = gui.add_dropdown("Step", ("—",))
+            self.f_step.on_update(self.app.guarded("Select step")(self.on_select_step))
+            row = gui.add_button_group("Step actions", ("Add", "Delete", "Up", "Down"))
+            row.on_click(self.on_step_action)
+            self.f_step_part = gui.add_dropdown("Part to place", ("—",))
+            self.f_step_part.on_update(self.app.guarded("Part to place")(self.on_step_part))
+            self.f_base = gui.add_text("Base parts", "", hint="comma-separated part ids; the first is the frame of the pose")
+            self.f_base.on_update(self.app.guarded("Base parts")(self.on_base))
+            self.f_t = gui.add_vector3("Translation (mm)", (0.0, 0.0, 0.0), step=0.1)
+            self.f_r = gui.add_vector3("Rotation xyz (°)", (0.0, 0.0, 0.0), step=0.1)
+            self.f_t.on_update(self.app.guarded("Translation")(self.on_typed_pose))
+            self.f_r.on_update(self.app.guarded("Rotation")(self.on_typed_pose))
+            self.f_snap_mm = gui.add_number("Snap (mm)", 0.5, min=0.0, step=0.1, hint="0 = off")
+            self.f_snap_deg = gui.add_number("Snap (°)", 5.0, min=0.0, step=1.0, hint="0 = off")
+        with gui.add_folder("Preview"):
+            self.f_upto = gui.add_slider("Assembled up to step", 0, 1, 1, 0)
+            self.f_upto.on_update(self.app.guarded("Preview")(lambda c: self.refresh_assembly_scene()))
+            self.f_explode = gui.add_slider("Explode", 0.0, 1.0, 0.05, 0.0)
+            self.f_explode.on_update(self.app.guarded("Preview")(lambda c: self.on_explode()))
+            b = gui.add_button("Play sequence")
+            b.on_click(self.app.guarded("Play")(self.on_play_sequence))
+        self.status_md = gui.add_markdown("")
+
+    def on_step_action(self, event) -> None:
+        action = event.target.value
+        self.app.guarded(f"{action} step")(lambda c: self.step_action(action, c))(event)
+
+    def step_action(self, action: str, client) -> None:
+        i = self.step_index
+        if action == "Add":
+            asm = authoring.add_step(self.app.asm)
+            self.step_index = len(asm.steps) - 1
+        else:
+            if i is None:
+                raise AposeError("select a step first")
+            if action == "Delete":
+                asm = authoring.delete_step(self.app.asm, i)
+                self.step_index = min(i, len(asm.steps) - 1) if asm.steps else None
+            else:
+                asm = authoring.move_step(self.app.asm, i, -1 if action == "Up" else 1)
+                self.step_index = int(np.clip(i + (-1 if action == "Up" else 1), 0, len(asm.steps) - 1))
+        self.app.set_assembly(asm, client)
+        if self.step_index is not None:
+            self.f_upto.value = self.step_index + 1
+
+    def on_select_step(self, client) -> None:
+        if self._syncing or not self.app.asm.steps:
+            return
+        self.step_index = int(self.f_step.value.split(".")[0]) - 1
+        self.app.refresh_assembly_widgets()
+        self.f_upto.value = self.step_index + 1
+
+    def on_step_part(self, client) -> None:
+        if self._syncing or self.step_index is None:
+            return
+        self.app.set_assembly(authoring.edit_step(self.app.asm, self.step_index, part=self.f_step_part.value), client)
+
+    def on_base(self, client) -> None:
+        if self._syncing or self.step_index is None:
+            return
+        base = [b.strip() for b in self.f_base.value.split(",") if b.strip()]
+        if not base:
+            raise AposeError("a step needs at least one base part")
+        self.app.set_assembly(authoring.edit_step(self.app.asm, self.step_index, base=base), client)
+
+    def on_typed_pose(self, client) -> None:
+        if self._syncing or self.step_index is None:
+            return
+        T = authoring.pose_from_typed(self.f_t.value, self.f_r.value)
+        self.set_pose(T, client, sync_fields=False)
+
+    def set_pose(self, T: np.ndarray, client, sync_fields: bool = True) -> None:
+        self.app.asm = authoring.edit_step(self.app.asm, self.step_index, T_base_part=T)
+        self.app.problems = authoring.problems(self.app.asm)
+        if not [p for p in self.app.problems if p.key != "steps"]:
+            self.app.valid_asm = self.app.asm
+        if sync_fields:
+            self.sync_typed_pose()
+        self.refresh_status()
+        self.refresh_assembly_scene(gizmo=sync_fields)  # mid-drag, the gizmo stays where the hand puts it
+
+    def on_gizmo(self, event) -> None:
+        """A drag of the gizmo (viser's TransformControlsEvent: phase start / update / end, the pose in
+        event.target). The part follows every update; the typed fields are rewritten at the end."""
+        if self._syncing or self.step_index is None or not self.app.asm.steps:
+            return
+        g = event.target
+        step = self.app.asm.steps[self.step_index]
+        T_world_base = self._preview[step.base[0]]
+        T = se3.inv(T_world_base) @ se3.make_T(se3.quat_wxyz_to_matrix(np.asarray(g.wxyz)), np.asarray(g.position))
+        T = authoring.snap_pose(T, float(self.f_snap_mm.value or 0), float(self.f_snap_deg.value or 0))
+        self.set_pose(T, None, sync_fields=event.phase == "end")
+
+    def make_pose_fields(self, t, e) -> None:
+        """(Re)create the typed pose inputs holding `t` (mm) and `e` (°).
+
+        A value the server pushes into an existing number input is shown, but the browser's input
+        (Mantine's NumberInput in viser 1.1) keeps its own idea of the last value typed, and drops the
+        next edit that it takes for no change: after "Add" step, typed translations vanished. Fresh
+        inputs have no such memory, so the server never writes into these two; it replaces them, in
+        the same place in the panel."""
+        t = tuple(round(float(v), 4) for v in t)
+        e = tuple(round(float(v), 4) for v in e)
+        if tuple(self.f_t.value) == t and tuple(self.f_r.value) == e:
+            return
+        gui = self.app.server.gui
+        orders = (self.f_t.order, self.f_r.order)
+        self.f_t.remove()
+        self.f_r.remove()
+        with self.steps_folder:
+            self.f_t = gui.add_vector3("Translation (mm)", t, step=0.1, order=orders[0])
+            self.f_r = gui.add_vector3("Rotation xyz (°)", e, step=0.1, order=orders[1])
+        self.f_t.on_update(self.app.guarded("Translation")(self.on_typed_pose))
+        self.f_r.on_update(self.app.guarded("Rotation")(self.on_typed_pose))
+
+    def sync_typed_pose(self) -> None:
+        if self.step_index is None:
+            return
+        self.make_pose_fields(*authoring.typed_pose(self.app.asm.steps[self.step_index].T_base_part))
+
+    def on_play_sequence(self, client) -> None:
+        n = len(self.app.valid_asm.steps)
+        if n == 0:
+            raise AposeError("nothing to play: add steps first")
+
+        def play():
+            for k in range(n + 1):
+                self.f_upto.value = k
+                time.sleep(0.8)
+
+        threading.Thread(target=play, daemon=True).start()
+
+    def refresh_steps(self) -> None:
+        asm = self.app.asm
+        self._syncing = True
+        try:
+            self.f_step_part.options = list(asm.parts) or ["—"]
+            steps = [f"{i + 1}. {s.part}" for i, s in enumerate(asm.steps)] or ["—"]
+            self.f_step.options = steps
+            if self.step_index is not None:
+                s = asm.steps[self.step_index]
+                self.f_step.value = steps[self.step_index]
+                self.f_step_part.value = s.part
+                self.f_base.value = ", ".join(s.base)
+                self.make_pose_fields(*authoring.typed_pose(s.T_base_part))
+            self.f_upto.max = max(len(asm.steps), 1)
+        finally:
+            self._syncing = False
+        self.refresh_status()
+
+    def refresh_status(self) -> None:
+        bad = authoring.problem_steps(self.app.problems)
+        rows = []
+        for i, s in enumerate(self.app.asm.steps):
+            style = "background:#fde2e2;" if i in bad else ("background:#e3ecfc;" if i == self.step_index else "")
+            mark = "⚠ " if i in bad else ("▶ " if i == self.step_index else "")
+            t = s.T_base_part[:3, 3] * 1000
+            rows.append(f"<tr style='{style}'><td>{mark}{i + 1}</td><td>{esc(s.part)}</td><td>{esc(', '.join(s.base))}</td>"
+                        f"<td>({t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f})</td></tr>")
+        body = "".join(rows) or "<tr><td colspan=4><i>no steps yet: press Add</i></td></tr>"
+        self.steps_html.content = (
+            "<table style='font-size:0.8em;width:100%;border-collapse:collapse'>"
+            "<tr style='text-align:left'><th>#</th><th>part</th><th>on base</th><th>t (mm)</th></tr>" + body + "</table>")
+        if not self.app.problems:
+            saved = f" Saved as {esc(self.app.files.saved_path)}." if self.app.files.saved_path else ""
+            self.status_md.content = f"✅ **Valid**: {len(self.app.asm.parts)} parts, {len(self.app.asm.steps)} steps.{saved}"
+        else:
+            lines = "\n".join(f"- {esc(p.key or 'file')}: {esc(p.what)}" for p in self.app.problems[:6])
+            self.status_md.content = f"⚠ **{len(self.app.problems)} problem(s)**; saving is off until fixed:\n{lines}"
+
+    def refresh_assembly_scene(self, gizmo: bool = True) -> None:
+        """Meshes at their preview poses; the gizmo on the selected step's part."""
+        asm = self.app.valid_asm
+        diam = {}
+        for p in asm.parts:
+            try:
+                diam[p] = self.app.model(p, asm).diameter
+            except AposeError:
+                pass
+        upto = min(int(self.f_upto.value), len(asm.steps))
+        explode = float(self.f_explode.value)
+        centres = {p: self.app.model(p, asm).box_corners().mean(axis=0) for p in diam}
+        self._preview = authoring.preview_poses(asm, upto, diam, explode, centres)
+        show = self.app.current_view == "Assembly"
+        for name in [n for n in self.app.nodes if n.startswith("/assembly/step_label")]:
+            self.app.nodes.pop(name).remove()
+        if explode > 0:  # the exploded view names each step at its part
+            for i, st in enumerate(asm.steps[:upto]):
+                if st.part in self._preview:
+                    where = se3.transform_points(self._preview[st.part], centres[st.part][None])[0]
+                    name = f"/assembly/step_label_{i}"
+                    self.app.node(name, self.app.server.scene.add_label(name, f"{i + 1}. {st.part}", position=tuple(where),
+                                                                 anchor="bottom-center", font_screen_scale=0.8))
+        for pid in asm.parts:
+            if pid not in diam:
+                continue
+            h = self.mesh_handles.get(pid)
+            if h is None:
+                m = self.app.model(pid, asm)
+                color = tuple(int(255 * c) for c in m.color)
+                h = self.app.server.scene.add_mesh_simple(f"/parts/{pid}", m.mesh.vertices.astype(np.float32),
+                                                      m.mesh.faces.astype(np.uint32), color=color, flat_shading=False)
+                self.mesh_handles[pid] = h
+            T = self._preview.get(pid)
+            h._apose_visible = T is not None
+            h.visible = show and T is not None
+            if T is not None:
+                h.position, h.wxyz = pos(T), wxyz(T)
+        for pid in [p for p in self.mesh_handles if p not in asm.parts]:
+            self.mesh_handles.pop(pid).remove()
+        if gizmo:
+            self.place_gizmo()
+        elif self.step_index is not None and self.step_index < len(asm.steps):  # the dragged part follows the hand
+            step = asm.steps[self.step_index]
+            if step.part in self.mesh_handles and step.base[0] in self._preview:
+                T = self._preview[step.base[0]] @ self.app.asm.steps[self.step_index].T_base_part
+                self.mesh_handles[step.part].position, self.mesh_handles[step.part].wxyz = pos(T), wxyz(T)
+
+    def preview_radius(self) -> float:
+        ds = [self.app.model(p, self.app.valid_asm).diameter for p in self._preview if p in self.app.valid_asm.parts]
+        return max(ds or [0.1]) / 2.0
+
+    def on_explode(self) -> None:
+        self.refresh_assembly_scene()
+        self.frame_camera_on_assembly()  # the whole assembly stays in view as it spreads out
+
+    def place_gizmo(self) -> None:
+        asm = self.app.valid_asm
+        i = self.step_index
+        editable = (i is not None and i < len(asm.steps) and asm.steps[i].part == self.app.asm.steps[i].part
+                    and float(self.f_explode.value) == 0.0 and asm.steps[i].base[0] in self._preview)
+        if not editable:
+            for name in ("/assembly/gizmo", "/assembly/base_frame"):
+                if name in self.app.nodes:
+                    self.app.nodes.pop(name).remove()
+            return
+        step = asm.steps[i]
+        T_world_base = self._preview[step.base[0]]
+        T = T_world_base @ step.T_base_part
+        d = self.app.model(step.part, asm).diameter
+        frame = self.app.nodes.get("/assembly/base_frame")
+        if frame is None:
+            frame = self.app.node("/assembly/base_frame", self.app.server.scene.add_frame(
+                "/assembly/base_frame", axes_length=0.3 * d, axes_radius=0.01 * d))
+        frame.position, frame.wxyz = pos(T_world_base), wxyz(T_world_base)
+        g = self.app.nodes.get("/assembly/gizmo")
+        if g is None:
+            g = self.app.node("/assembly/gizmo", self.app.server.scene.add_transform_controls(
+                "/assembly/gizmo", scale=max(0.6 * d, 0.25 * self.preview_radius()), depth_test=False))  # on top of the parts
+            g.on_update(lambda e: self.app.guarded("Move part")(lambda c: self.on_gizmo(e))(e))
+        self._syncing = True
+        try:
+            g.position, g.wxyz = pos(T), wxyz(T)
+        finally:
+            self._syncing = False
+        if step.part in self.mesh_handles:  # the part shows where the draft puts it, even past the slider
+            h = self.mesh_handles[step.part]
+            h._apose_visible = True
+            h.visible = self.app.current_view == "Assembly"
+            h.position, h.wxyz = pos(T), wxyz(T)
+
+    def frame_camera_on_assembly(self) -> None:
+        """Frame every part shown in the preview (exploded or not)."""
+        spheres = []
+        for pid, T in self._preview.items():
+            try:
+                m = self.app.model(pid, self.app.valid_asm)
+            except (AposeError, KeyError):
+                continue
+            spheres.append((se3.transform_points(T, m.box_corners()).mean(axis=0), m.diameter / 2.0))
+        if not spheres:
+            return
+        centres = np.array([c for c, _ in spheres])
+        centre = (centres.min(axis=0) + centres.max(axis=0)) / 2.0
+        radius = max(float(np.linalg.norm(c - centre)) + r for c, r in spheres)
+        self.app.look_at(centre, radius, np.array([1.0, -1.0, 0.75]))

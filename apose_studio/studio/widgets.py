@@ -1,0 +1,40 @@
+"""Small pieces every panel uses: constants, HTML escaping, colours, poses for viser (wxyz, position)."""
+
+from __future__ import annotations
+
+import html
+
+import numpy as np
+
+from .. import inspection, se3
+
+MAX_UPLOAD_BYTES = 200 * 1024 * 1024  # a CAD part above this is almost surely the wrong file
+UNITS = ("m", "cm", "mm", "in")
+PRESETS = ("default", "paper")
+VIEWS = ("Assembly", "Inspect")
+ACTIVE = "● "  # marks the 3D view on show in the button group
+LAYERS = ("scene cloud", "target cloud", "source cloud", "boxes", "part at estimate", "labels", "camera")
+
+
+def esc(text) -> str:
+    """User- or file-derived text made safe to place in HTML or markdown (part ids, file names, messages)."""
+    return html.escape(str(text), quote=True)
+
+
+def hex_colour(color) -> str:
+    return "#" + "".join(f"{int(round(255 * c)):02x}" for c in color)
+
+
+def legend_html() -> str:
+    items = "".join(f"<span style='white-space:nowrap;margin-right:10px'><span style='display:inline-block;width:14px;"
+                    f"height:4px;vertical-align:middle;background:{hex_colour([c / 255 for c in rgb])}'></span> {esc(name)}</span>"
+                    for name, rgb in inspection.LEGEND)
+    return f"<div style='font-size:0.8em;line-height:1.8'>{items}</div>"
+
+
+def wxyz(T: np.ndarray) -> tuple:
+    return tuple(float(v) for v in se3.matrix_to_quat_wxyz(T[:3, :3]))
+
+
+def pos(T: np.ndarray) -> tuple:
+    return tuple(float(v) for v in T[:3, 3])

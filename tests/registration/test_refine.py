@@ -1,0 +1,52 @@
+"""The polish (scene-to-model ICP with the model's normals)."""
+
+import numpy as np
+
+from apose_studio import se3
+from apose_studio.registration import (
+    icp,
+    project_to_cloud,
+    raycast_source,
+    resolve_params,
+)
+from apose_studio.registration.stages import cloud
+
+from .conftest import CAM, synthetic_view
+
+
+def test_polish_refines_a_noisy_view_onto_the_model(gearbox_step2):
+    """The last refinement registers the (noisy) target onto the model seen at the pose, with the
+    model's exact normals: from 1 mm and 0.5 deg off, on a view with 1 mm depth noise, it ends within
+    0.15 mm (ADI of the base), where the usual ICP (target normals) at the same start does clearly worse."""
+    from apose_studio.metrics import adi
+    from apose_studio.registration import Observation, mask_edge
+    from apose_studio.registration.problem import prepare_problem
+    from apose_studio.registration.refine import polish
+
+    _, base, _ = gearbox_step2
+    T_world_camera = se3.look_at([0.25, -0.2, 0.3], [0, 0, 0.01])
+    T_true = se3.make_T(se3.axis_angle_matrix([0, 0, 1.0], np.radians(25)), [0.01, -0.02, 0.0])
+    depth, mask = synthetic_view(base, T_true, T_world_camera)
+    rng = np.random.default_rng(0)
+    depth = np.where(mask, depth + rng.normal(0, 0.001, depth.shape), 0).astype(np.float32)
+    target = cloud(project_to_cloud(depth, mask, CAM, T_world_camera))
+    p = resolve_params("default")
+    voxel = p.voxel(base.diameter)
+    T_start = se3.make_T(se3.axis_angle_matrix([1.0, 1.0, 0], np.radians(0.5)), [0.001, 0, 0]) @ T_true
+    pb = prepare_problem(np.asarray(target.points), CAM, T_world_camera, base, np.eye(4), p, voxel,
+                         Observation(mask, depth, mask_edge(mask)))
+    T, seen = polish(pb, T_start, None)
+    err = adi(T, T_true, base.samples)
+    assert adi(T_start, T_true, base.samples) > 5e-4 and err < 1.5e-4, err
+    assert seen.shape[1] == 3 and len(seen) > 1000
+    # the same start, refined the usual way: model points onto the target, with the target's normals
+    import open3d as o3d
+
+    fine = target.voxel_down_sample(voxel * p.polish_voxel_factor)
+    fine.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=p.normal_radius_factor * voxel, max_nn=30))
+    fine.orient_normals_towards_camera_location(T_world_camera[:3, 3])
+    src_w, _ = raycast_source(base, T_start, T_world_camera, CAM)
+    src = cloud(se3.transform_points(se3.inv(T_start), src_w)).voxel_down_sample(voxel * p.polish_voxel_factor)
+    T_usual = icp(src, fine, T_start, p.polish_threshold_factor * voxel, 30)
+    assert adi(T_usual, T_true, base.samples) > 1.5 * err, (adi(T_usual, T_true, base.samples), err)  # 0.09 vs 0.035 mm
+

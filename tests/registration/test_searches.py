@@ -1,0 +1,87 @@
+"""The searches: prior fast path, upright yaw search, and their fallbacks."""
+
+import numpy as np
+
+from apose_studio import se3
+from apose_studio.assembly import load_assembly
+from apose_studio.mesh import load_parts
+from apose_studio.metrics import mssd
+from apose_studio.registration import estimate, prepare_base, resolve_params
+
+from ..conftest import SAMPLES
+from .conftest import CAM, synthetic_view
+
+
+def test_a_wrong_prior_falls_back_to_the_global_search(gearbox_step2):
+    view, base, _ = gearbox_step2
+    T_world_base = se3.make_T(np.eye(3), [0.05, 0.02, 0.0])
+    T_world_camera = se3.look_at([0.35, -0.25, 0.3], [0.05, 0.02, 0.01])
+    depth, mask = synthetic_view(base, T_world_base, T_world_camera)
+    wrong = se3.make_T(se3.axis_angle_matrix([0, 0, 1], np.radians(90)))
+    r = estimate(depth, mask, CAM, T_world_camera, base, view.T_base_part, resolve_params("default"),
+                 prior_T_world_base=wrong)
+    assert r.ok and r.stages[1].name == "global" and {"prior", "global", "icp"} <= set(r.timings)
+
+
+def test_upright_search_finds_the_yaw_without_ransac(gearbox_yaw):
+    """--upright: the table's normal from the depth around the base, then every yaw about it (no
+    RANSAC, so deterministic); both frames land within a millimetre."""
+    from apose_studio.evaluate import StepContext, estimate_frame
+    from apose_studio.registration import table_normal
+
+    ds = gearbox_yaw
+    ctx = StepContext(ds.assembly, load_parts(ds.assembly), 2)
+    p = resolve_params("default", upright=True)
+    for im_id in ds.image_ids(2):
+        fr = ds.frame(2, im_id)
+        n = table_normal(fr.depth, fr.base_mask(), fr.camera, fr.T_world_camera)
+        assert n is not None and n[2] > 0.999  # the table is the world's xy plane
+        r = estimate_frame(fr, ctx, p)
+        assert r.ok and "global" in r.timings
+        err = mssd(r.T_world_part, fr.T_world_part, ctx.part.samples, ctx.part.symmetries)
+        assert err < 1e-3, (im_id, err)
+
+
+def test_a_base_not_standing_as_modelled_falls_back_to_the_free_search(gearbox_yaw):
+    """Upright is on by default and a table is seen, but here the CAD's z axis is not the table's
+    normal (the same frames, with the base's model turned a quarter about x, as if it lay on its
+    side): the upright yaws screen poorly (or end in a fit that is not confident), so the free search
+    runs and still lands within 1 mm. Either guard alone passes this test; neither fails it."""
+    from apose_studio.evaluate import StepContext
+
+    ds = gearbox_yaw
+    ctx = StepContext(ds.assembly, load_parts(ds.assembly), 2)
+    T_new_old = se3.make_T(se3.axis_angle_matrix([1.0, 0, 0], np.radians(90)), [0, 0, 0])  # old CAD frame -> new
+    mesh = ctx.base.mesh.copy()
+    mesh.apply_transform(T_new_old)
+    base = prepare_base(mesh)
+    T_base_part = T_new_old @ ctx.view.T_base_part
+    p = resolve_params("default")
+    assert p.upright
+    for im_id in ds.image_ids(2):
+        fr = ds.frame(2, im_id)
+        r = estimate(fr.depth, fr.base_mask(), fr.camera, fr.T_world_camera, base, T_base_part, p, trace_iterations=False)
+        assert r.ok and r.confident, (im_id, r.reason, r.coverage)
+        err = mssd(r.T_world_part, fr.T_world_part, ctx.part.samples, ctx.part.symmetries)
+        assert err < 1e-3, (im_id, err)
+
+
+def test_a_right_prior_is_accepted_on_noisy_depth(tmp_path):
+    """With RealSense-like noise, the depth at the mask's outline (mixed pixels) and its dropouts
+    can neither confirm nor deny the model; left out of the prior's check, a right prior is taken
+    at once (no global search), and the pose is within 0.5 mm."""
+    from apose_studio.dataset import Dataset
+    from apose_studio.evaluate import StepContext, estimate_frame
+    from apose_studio.render import RenderSettings, render_dataset
+
+    asm = load_assembly(SAMPLES / "helical_gearbox" / "assembly.yaml")
+    render_dataset(asm, tmp_path / "ds", RenderSettings(frames=3, seed=11, noise="realsense", base_pose="fixed"),
+                   steps=[3], progress=False)
+    ds = Dataset(tmp_path / "ds")
+    ctx = StepContext(ds.assembly, load_parts(ds.assembly), 3)
+    for im_id in ds.image_ids(3):
+        fr = ds.frame(3, im_id)
+        r = estimate_frame(fr, ctx, resolve_params("default"), orientation_prior=True)
+        assert r.ok and "prior" in r.timings and "global" not in r.timings, (im_id, r.timings)
+        assert mssd(r.T_world_part, fr.T_world_part, ctx.part.samples, ctx.part.symmetries) < 5e-4
+

@@ -1,0 +1,74 @@
+"""Shared by the studio tests: a studio on a free port whose notifications are collected, and a click
+that goes through `Studio.guarded` as the browser's does (no browser here; tests/e2e drives the real page)."""
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from apose_studio.studio import serve
+
+from ..conftest import SAMPLES, free_port
+
+
+class Click:
+    client = None
+
+
+@pytest.fixture
+def studio(monkeypatch, tmp_path):
+    made = []
+
+    def start(assembly=None, dataset=None, root=tmp_path):
+        server, st = serve(assembly, dataset, host="127.0.0.1", port=free_port(), root=root)
+        st.notes = []
+        monkeypatch.setattr(st, "notify", lambda client, title, body, error=False: st.notes.append((title, body, error)))
+        made.append(server)
+        return st
+
+    yield start
+    for s in made:
+        s.stop()
+
+
+def act(st, fn, *args):
+    st.guarded("test")(lambda c: fn(*args, c))(Click())
+
+
+def errors(st):
+    return [n for n in st.notes if n[2]]
+
+
+@pytest.fixture
+def gearbox_copy(tmp_path) -> Path:
+    dst = tmp_path / "gearbox"
+    shutil.copytree(SAMPLES / "helical_gearbox", dst)
+    return dst / "assembly.yaml"
+
+
+@pytest.fixture
+def capture(gearbox_dataset, tmp_path) -> Path:
+    """A real-capture folder (rgb.png, depth.png in mm, camera.json) made from a rendered frame."""
+    import json
+
+    import cv2
+
+    from apose_studio.dataset import Dataset
+
+    fr = Dataset(gearbox_dataset).frame(1, 1)
+    cap = tmp_path / "capture"
+    cap.mkdir()
+    cv2.imwrite(str(cap / "rgb.png"), fr.rgb[..., ::-1])
+    cv2.imwrite(str(cap / "depth.png"), (fr.depth * 1000).astype(np.uint16))
+    (cap / "camera.json").write_text(json.dumps({"fx": fr.camera.fx, "fy": fr.camera.fy, "cx": fr.camera.cx,
+                                                 "cy": fr.camera.cy, "depth_scale": 1.0}))
+    return cap
+
+
+def open_capture(studio, cap):
+    st = studio(SAMPLES / "helical_gearbox" / "assembly.yaml")
+    st.inspect.i_path.value = str(cap)
+    act(st, lambda c: st.inspect.open_frames(st.inspect.i_path.value, c))
+    return st
+

@@ -1,0 +1,116 @@
+"""The Assembly tab's File and Parts folders: open, new, save, add, upload; bad input; the workspace."""
+
+from pathlib import Path
+
+import numpy as np
+import trimesh
+import yaml
+
+from apose_studio import se3
+from apose_studio.assembly import load_assembly
+from apose_studio.studio import MAX_UPLOAD_BYTES
+
+from .conftest import act, errors
+
+
+def test_open_add_step_type_pose_save(studio, gearbox_copy, tmp_path):
+    st = studio(gearbox_copy)
+    assert st.problems == [] and set(st.steps.mesh_handles) == {"casing", "pinion", "wheel", "lid"}
+    trimesh.creation.cylinder(radius=0.004, height=0.02).export(tmp_path / "pin.stl")  # in metres: a unit warning
+    st.files.f_mesh.value = str(tmp_path / "pin.stl")
+    act(st, lambda c: st.files.on_add_parts(c))
+    assert "pin" in st.asm.parts
+    assert any("looks like it is in m" in n[1] for n in errors(st))  # 0.02 "mm" across is suspicious
+    act(st, st.steps.step_action, "Add")
+    assert st.steps.step_index == 3 and st.asm.steps[3].part == "pin"
+    st.steps.f_t.value = (5.0, -2.5, 30.0)  # typing fires the same callback as the browser
+    st.steps.f_r.value = (0.0, 90.0, 0.0)
+    T = st.asm.steps[3].T_base_part
+    np.testing.assert_allclose(T[:3, 3], [0.005, -0.0025, 0.030], atol=1e-12)
+    np.testing.assert_allclose(T[:3, :3], se3.euler_deg_to_matrix([0, 90, 0], "xyz"), atol=1e-9)
+    act(st, st.files.on_save)
+    on_disk = yaml.safe_load(gearbox_copy.read_text())
+    assert on_disk["steps"][3]["part"] == "pin" and on_disk["steps"][3]["pose_in_base"]["translation"] == [5, -2.5, 30]
+    back = load_assembly(gearbox_copy)
+    np.testing.assert_allclose(back.steps[3].T_base_part, T, atol=1e-9)
+    assert ("Saved", f"{gearbox_copy.resolve()} (previous version: assembly.yaml.bak)", False) in st.notes
+
+
+def test_bad_input_is_reported_and_nothing_is_lost(studio, gearbox_copy, tmp_path):
+    st = studio(gearbox_copy)
+    before = st.asm
+    broken = tmp_path / "broken.yaml"
+    broken.write_text("format: apose-assembly/1\nparts: [oops\n")
+    st.files.f_path.value = str(broken)
+    act(st, st.files.on_open)
+    assert "YAML syntax error" in errors(st)[-1][1] and st.asm is before
+    # a step reordered into an invalid order: flagged, and Save refuses instead of writing a bad file
+    st.steps.step_index = 1
+    act(st, st.steps.step_action, "Up")
+    assert st.problems and "placed only by a later step" in st.steps.status_md.content
+    st.files.f_path.value = str(tmp_path / "out.yaml")
+    act(st, st.files.on_save)
+    assert not (tmp_path / "out.yaml").exists() and "placed only by a later step" in errors(st)[-1][1]
+    act(st, st.steps.step_action, "Down")
+    assert st.problems == []
+    # a corrupt upload: an error, and no file left behind
+    from viser import UploadedFile
+
+    st.files.upload._impl.value = UploadedFile("garbage.stl", b"solid x\n this is not a mesh\n")
+    act(st, st.files.on_upload)
+    assert errors(st)[-1][0] == "test" and "garbage" in errors(st)[-1][1]
+    assert not list((gearbox_copy.parent / "meshes").glob("garbage*"))
+    st.files.upload._impl.value = UploadedFile("notes.txt", b"hello")
+    act(st, st.files.on_upload)
+    assert "not a mesh format" in errors(st)[-1][1]
+    # a good upload lands beside the assembly and becomes a part
+    m = trimesh.creation.box((10, 10, 10))
+    st.files.upload._impl.value = UploadedFile("cube.stl", m.export(file_type="stl"))
+    act(st, st.files.on_upload)
+    assert "cube" in st.asm.parts and (gearbox_copy.parent / "meshes" / "cube.stl").is_file()
+
+
+def test_oversize_upload_is_refused_when_it_starts(studio):
+    from viser import _messages
+
+    st = studio()
+    msg = _messages.FileTransferStartUpload(source_component_uuid=st.files.upload._impl.uuid, transfer_uuid="t1",
+                                            filename="huge.stl", mime_type="model/stl", part_count=4000,
+                                            size_bytes=MAX_UPLOAD_BYTES + 1)
+    gui = st.server.gui
+    for handler in gui._websock_interface._incoming_handlers[_messages.FileTransferStartUpload]:
+        handler(0, msg)
+    assert "t1" not in gui._current_file_upload_states  # nothing is buffered
+    assert "huge.stl" in errors(st)[-1][1] and "limit" in errors(st)[-1][1]
+
+
+def test_new_assembly_never_overwrites_the_open_file(studio, gearbox_copy):
+    st = studio(gearbox_copy)
+    before = gearbox_copy.read_text()
+    act(st, st.files.on_new)  # 'Assembly file' still names the open file: refused, nothing changes
+    assert "already exists: press Open to edit it" in errors(st)[-1][1] and len(st.asm.parts) == 4
+    st.files.f_path.value = str(gearbox_copy.parent / "fixture.yaml")  # New uses the typed path
+    act(st, st.files.on_new)
+    assert st.asm.parts == {} and st.asm.name == "fixture" and Path(st.files.f_path.value) == gearbox_copy.parent.resolve() / "fixture.yaml"
+    act(st, st.files.on_save)  # an empty assembly is refused, and the sample is untouched
+    assert "no parts yet" in errors(st)[-1][1] and gearbox_copy.read_text() == before
+    assert not (gearbox_copy.parent / "fixture.yaml").exists()
+    st.files.f_path.value = str(gearbox_copy.parent)  # a folder: untitled.yaml in it
+    act(st, st.files.on_new)
+    assert Path(st.files.f_path.value) == gearbox_copy.parent.resolve() / "untitled.yaml"
+
+
+def test_files_outside_the_workspace_are_refused_and_never_echoed(studio, gearbox_copy, tmp_path):
+    st = studio(gearbox_copy, root=gearbox_copy.parent)
+    before = st.asm
+    for path in ("/etc/passwd", tmp_path / "elsewhere.yaml"):
+        st.files.f_path.value = str(path)
+        act(st, st.files.on_open)
+        assert "outside the studio's workspace" in errors(st)[-1][1] and "root:" not in errors(st)[-1][1]
+        act(st, st.files.on_save)
+        assert "outside the studio's workspace" in errors(st)[-1][1]
+    assert not (tmp_path / "elsewhere.yaml").exists() and st.asm is before
+    st.files.f_mesh.value = "/etc"
+    act(st, st.files.on_add_parts)
+    assert "outside the studio's workspace" in errors(st)[-1][1]
+

@@ -1,0 +1,124 @@
+"""The Inspect tab: datasets and captures, estimates, replay, cache, crop box, alternatives."""
+
+
+import numpy as np
+
+from apose_studio.studio import serve
+
+from ..conftest import SAMPLES, free_port
+from .conftest import act, errors, open_capture
+
+
+def test_inspect_estimate_replay_and_cache(studio, gearbox_dataset):
+    st = studio(SAMPLES / "helical_gearbox" / "assembly.yaml", gearbox_dataset)
+    assert st.inspect.frame is not None and {"/inspect/camera", "/inspect/scene", "/inspect/box_gt"} <= set(st.nodes)
+    assert "/inspect/box_est" not in st.nodes
+    st.inspect.i_prior.value = True
+    act(st, st.inspect.run_estimation, True)  # the whole step: both frames
+    assert len(st.cache) == 2 and not errors(st)
+    assert {"/inspect/target", "/inspect/source", "/inspect/box_est", "/inspect/box_gt"} <= set(st.nodes)
+    assert st.inspect.score.mssd < 0.002 and "MSSD" in st.results.i_metrics.content
+    n = len(st.results.stages)
+    assert n >= 4 and st.results.stages[0].name == "initial" and st.results.stages[-1].name == "final"
+    final = st.nodes["/inspect/source"].points.copy()
+    st.results.i_stage.value = 0
+    first = st.nodes["/inspect/source"].points
+    assert np.abs(first - final).max() > 0 and "initial" in st.results.i_stage_md.content
+    # the 2D view draws both boxes: green (estimate) and amber (truth) pixels appear on the RGB
+    img = st.results.i_image.image
+    assert ((img[..., 1] > 150) & (img[..., 0] < 80)).any()
+    assert ((img[..., 0] > 230) & (img[..., 1] > 130) & (img[..., 1] < 190) & (img[..., 2] < 50)).any()
+    st.inspect.i_frame.value = 1
+    assert st.inspect.result is not None and st.inspect.frame.im_id == 1  # cached: no estimation needed
+
+
+def test_an_ambiguous_result_shows_the_other_placements_in_magenta(studio, gearbox_dataset):
+    """When several placements fit equally, the others are drawn as magenta boxes (3D and on the RGB)
+    and the metrics say so; a clear result draws none."""
+    from dataclasses import replace
+
+    from apose_studio import se3
+    from apose_studio.registration import Candidate
+
+    st = studio(SAMPLES / "helical_gearbox" / "assembly.yaml", gearbox_dataset)
+    st.inspect.i_prior.value = True
+    act(st, st.inspect.run_estimation, False)
+    assert "/inspect/box_alt" not in st.nodes and "magenta" not in st.results.i_metrics.content
+
+    def magenta(img):
+        return ((img[..., 0] > 200) & (img[..., 1] < 90) & (img[..., 2] > 200)).any()
+    assert not magenta(st.results.i_image.image)
+    T_other = st.inspect.result.T_world_part @ se3.make_T(se3.axis_angle_matrix([0, 0, 1.0], np.pi), [0.02, 0, 0])
+    other = Candidate(st.inspect.result.T_world_base, T_other, 0.99, 0.99, 0.001, 0.99, 1)
+    st.inspect.result = replace(st.inspect.result, ambiguous=True, alternatives=[other])
+    st.results.draw_frame()
+    assert "/inspect/box_alt" in st.nodes and "2 placements fit" in st.results.i_metrics.content
+    np.testing.assert_allclose(st.nodes["/inspect/box_alt"].points.reshape(-1, 3).mean(axis=0),
+                               se3.transform_points(T_other, st.inspect.inspect_models()[st.inspect.inspect_assembly().steps[0].part]
+                                                    .box_corners()).mean(axis=0), atol=1e-5)
+    assert magenta(st.results.i_image.image)
+
+
+def test_capture_without_a_mask_fails_cleanly(studio, capture):
+    st = open_capture(studio, capture)
+    assert "/inspect/scene" in st.nodes and "/inspect/box_gt" not in st.nodes
+    act(st, st.inspect.run_estimation, False)
+    assert "empty mask" in errors(st)[-1][1] and "failed" in st.results.i_metrics.content.lower()
+
+
+def test_capture_with_depth_masks_and_model_choice(studio, capture, tmp_path):
+    st = open_capture(studio, capture)
+    st.inspect.i_mask.value = "depth"
+    act(st, st.inspect.run_estimation, False)
+    assert st.inspect.result is not None and st.inspect.result.ok, st.notes
+    assert {"/inspect/target", "/inspect/source", "/inspect/box_est"} <= set(st.nodes)
+    # a model file that is not one: refused with the reason, the mask choice unchanged
+    (tmp_path / "junk.pt").write_bytes(b"junk")
+    st.inspect.i_model.value = str(tmp_path / "junk.pt")
+    act(st, st.inspect.on_use_model)
+    assert "not a readable model file" in errors(st)[-1][1] and st.inspect.i_mask.value == "depth"
+
+
+def test_crop_box_limits_depth_masks(studio, gearbox_dataset):
+    from apose_studio.dataset import Dataset
+
+    st = studio(SAMPLES / "helical_gearbox" / "assembly.yaml", gearbox_dataset)
+    st.inspect.i_mask.value = "depth"
+    st.inspect.i_crop.value = True
+    assert "/inspect/crop" in st.nodes and "/inspect/crop/box" in st.nodes
+    fr = Dataset(gearbox_dataset).frame(1, 0)
+    g = st.nodes["/inspect/crop"]
+    # put the box on the ground-truth base pose: the mask stays on the base
+    g._impl.position = tuple(fr.T_world_base[:3, 3])
+    act(st, st.inspect.run_estimation, False)
+    assert st.inspect.result.ok and st.inspect.score.mask_iou > 0.7
+    # a box far away from everything leaves nothing to register: a clear failure, not a crash
+    # (the cache knows the box moved: no stale result)
+    g._impl.position = (5.0, 5.0, 5.0)
+    act(st, st.inspect.run_estimation, False)
+    assert not st.inspect.result.ok and "failed" in st.results.i_metrics.content.lower()
+
+
+def test_demo_estimates_are_found_in_the_cache(gearbox_dataset):
+    """`apose demo` caches its estimates under the key the studio builds for its default settings."""
+    from apose_studio.inspection import ResultCache
+
+    server, st = serve(SAMPLES / "helical_gearbox" / "assembly.yaml", gearbox_dataset, port=free_port())
+    try:
+        assert st.inspect.i_upright.value is True
+        assert st.inspect.cache_key(1, 0) == ResultCache.key(gearbox_dataset.resolve(), 1, 0, "default", "gt", False)
+        st.inspect.i_upright.value = False  # a free search is another result
+        assert st.inspect.cache_key(1, 0) == ResultCache.key(gearbox_dataset.resolve(), 1, 0, "default free", "gt", False)
+    finally:
+        server.stop()
+
+
+def test_a_failed_open_says_what_stays_on_screen(studio, gearbox_dataset, tmp_path):
+    st = studio(SAMPLES / "helical_gearbox" / "assembly.yaml", gearbox_dataset, root=tmp_path)
+    shown = st.inspect.frames_path
+    (tmp_path / "broken").mkdir()
+    st.inspect.i_path.value = str(tmp_path / "broken")
+    act(st, st.inspect.on_open_data)
+    assert "neither a dataset" in errors(st)[-1][1] and f"still showing the data opened before: {shown}" in errors(st)[-1][1]
+    assert st.inspect.frames_path == shown
+
