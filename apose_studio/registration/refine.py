@@ -40,21 +40,22 @@ def select_starts(found: Found, voxel: float, use_symmetries: bool) -> list[Star
     twins that fit nearly as well, and the prior's best start (always refined and scored)."""
     coarse = found.coarse
     keep: list[Start] = []
-
-    def new(c: Start) -> bool:  # a coarse pose not (nearly) one already kept
-        return not any(poses_within(c.T_coarse, q.T_coarse, 2 * voxel, 10.0) for q in keep)
-
     for c in coarse:
         if len(keep) == KEEP_DISTINCT or c.explained < coarse[0].explained - KEEP_MARGIN:
             break
-        if new(c):
+        if is_new(c, keep, voxel):
             keep.append(c)
     if use_symmetries:
         for c in found.twins:  # one at a time: a twin that lands on one kept just before is not new
-            if new(c) and c.explained >= coarse[0].explained - TWIN_MARGIN:
+            if is_new(c, keep, voxel) and c.explained >= coarse[0].explained - TWIN_MARGIN:
                 keep.append(c)
     prior_best = [c for c in coarse if c.symmetry == -1][:1]
     return keep + [c for c in prior_best if not any(c is q for q in keep)]
+
+
+def is_new(c: Start, keep: list[Start], voxel: float) -> bool:
+    """A coarse pose not (nearly) one already kept."""
+    return not any(poses_within(c.T_coarse, q.T_coarse, 2 * voxel, 10.0) for q in keep)
 
 
 def refine_candidates(pb, starts: list[Start], trace_iterations: bool) -> list[Refined]:
