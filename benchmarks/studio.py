@@ -64,7 +64,7 @@ def main() -> int:
     render_dataset(load_assembly(sample), ds, RenderSettings(frames=args.frames, noise="realsense", base_pose="fixed", seed=2),
                    steps=[2], progress=False)
 
-    server, st = serve(sample, ds, port=8765)
+    server, st = serve(sample, ds, port=8765, root=tmp)  # the workspace: the part to load is in tmp
     pw = browser = None
     if args.browser:
         from playwright.sync_api import sync_playwright
@@ -73,7 +73,7 @@ def main() -> int:
         browser = pw.chromium.launch(executable_path="/usr/bin/chromium", args=[
             "--headless", "--no-sandbox", "--disable-gpu", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"])
         page = browser.new_page()
-        page.goto(f"http://127.0.0.1:{server.get_port()}")
+        page.goto(st.url)
         page.get_by_role("button", name="Add part(s)").wait_for(timeout=30000)
     try:
         loads = []

@@ -54,9 +54,7 @@ class AssemblyPanel:
         asm = load_assembly(path)
         for pid in asm.parts:  # load every mesh now: a bad one is reported before anything changes
             self.app.model(pid, asm)
-        for h in self.app.steps.mesh_handles.values():
-            h.remove()
-        self.app.steps.mesh_handles.clear()
+        self.app.steps.drop_meshes()
         self.app.steps.step_index = 0 if asm.steps else None
         self.saved_path = asm.path
         self.f_path.value = str(asm.path)
@@ -96,9 +94,7 @@ class AssemblyPanel:
                              "assembly into 'Assembly file'")
         if not target.parent.is_dir():
             raise AposeError(f"{target.parent}: folder does not exist; create it or type another path")
-        for h in self.app.steps.mesh_handles.values():
-            h.remove()
-        self.app.steps.mesh_handles.clear()
+        self.app.steps.drop_meshes()
         self.app.steps.step_index = None
         name = target.stem
         self.app.valid_asm = authoring.new_assembly(name, self.f_units.value, target.parent)  # an empty preview
@@ -179,9 +175,7 @@ class AssemblyPanel:
             return
         from dataclasses import replace
 
-        for h in self.app.steps.mesh_handles.values():
-            h.remove()
-        self.app.steps.mesh_handles.clear()
+        self.app.steps.drop_meshes()
         self.app.set_assembly(replace(self.app.asm, units=self.f_units.value), client)
         self.warn_units(client)
 
@@ -262,8 +256,7 @@ class AssemblyPanel:
             return
         pid = self.f_part.value
         rgb = tuple(c / 255.0 for c in self.f_color.value)
-        if pid in self.app.steps.mesh_handles:
-            self.app.steps.mesh_handles.pop(pid).remove()
+        self.app.steps.drop_meshes(pid)
         self.app.set_assembly(authoring.set_part_color(self.app.asm, pid, rgb), client)
 
     def on_remove_part(self, client) -> None:
@@ -271,8 +264,7 @@ class AssemblyPanel:
         if pid not in self.app.asm.parts:
             raise AposeError("choose a part to remove")
         asm = authoring.remove_part(self.app.asm, pid)
-        if pid in self.app.steps.mesh_handles:
-            self.app.steps.mesh_handles.pop(pid).remove()
+        self.app.steps.drop_meshes(pid)
         self.app.set_assembly(asm, client)
 
     def refresh_files(self) -> None:

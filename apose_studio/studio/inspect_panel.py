@@ -153,6 +153,10 @@ class InspectPanel:
 
         return self.frames.assembly if isinstance(self.frames, Dataset) else self.app.valid_asm
 
+    def part_model(self):
+        """The PartModel of the part the inspected step places."""
+        return self.inspect_models()[self.inspect_assembly().steps[self.current_step() - 1].part]
+
     def current_step(self) -> int:
         return int(str(self.i_step.value).split(".")[0])
 

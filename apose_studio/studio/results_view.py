@@ -51,8 +51,7 @@ class ResultsView:
         fr = self.app.inspect.frame
         scene = self.app.server.scene
         cam = fr.camera
-        asm = self.app.inspect.inspect_assembly()
-        part_model = self.app.inspect.inspect_models()[asm.steps[self.app.inspect.current_step() - 1].part]
+        part_model = self.app.inspect.part_model()
         small = fr.rgb[::2, ::2] if fr.rgb.shape[1] > 400 else fr.rgb
         fov = 2.0 * np.arctan2(cam.height / 2.0, cam.fy)
         Tc = fr.T_world_camera
@@ -121,8 +120,7 @@ class ResultsView:
         fr, r = self.app.inspect.frame, self.app.inspect.result
         if fr is None:
             return
-        asm = self.app.inspect.inspect_assembly()
-        corners = self.app.inspect.inspect_models()[asm.steps[self.app.inspect.current_step() - 1].part].box_corners()
+        corners = self.app.inspect.part_model().box_corners()
         boxes = []  # earlier boxes are drawn thicker: truth under estimate
         if fr.T_world_part is not None:
             boxes.append((fr.T_world_part, inspection.AMBER))
@@ -149,7 +147,8 @@ class ResultsView:
         if r is None or not r.ok or self.app.inspect.frame is None:
             raise AposeError("no estimate on this frame yet: press Estimate frame first")
         report = inspection.pose_report(r, self.app.inspect.frame.T_world_camera)
-        report.update({"source": self.app.inspect.frames_path, "step": self.app.inspect.current_step(), "frame": int(self.app.inspect.frame.im_id),
+        ins = self.app.inspect
+        report.update({"source": ins.frames_path, "step": ins.current_step(), "frame": int(ins.frame.im_id),
                        "units": "metres (matrices), mm (translation_mm)"})
         if client is None:
             raise AposeError("no browser to send the download to")
@@ -164,7 +163,7 @@ class ResultsView:
             return
         k = int(np.clip(self.i_stage.value, 0, len(self.stages) - 1))
         s = self.stages[k]
-        d = self.app.inspect.inspect_models()[self.app.inspect.inspect_assembly().steps[self.app.inspect.current_step() - 1].part].diameter
+        d = self.app.inspect.part_model().diameter
         self.app.node("/inspect/source", self.app.server.scene.add_point_cloud(
             "/inspect/source", s.source_world, inspection.BLUE, point_size=d / 120, point_shape="circle"),
             visible=bool(self.layers["source cloud"].value))

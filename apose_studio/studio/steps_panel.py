@@ -25,6 +25,12 @@ class StepsPanel:
         self.mesh_handles: dict[str, object] = {}
         self._preview: dict = {}
 
+    def drop_meshes(self, pid: str | None = None) -> None:
+        """Remove a part's mesh from the 3D view (every part's with None); the next refresh adds it anew."""
+        for p in [pid] if pid is not None else list(self.mesh_handles):
+            if p in self.mesh_handles:
+                self.mesh_handles.pop(p).remove()
+
     def build(self) -> None:
         gui = self.app.server.gui
         with gui.add_folder("Steps") as self.steps_folder:
