@@ -63,6 +63,8 @@ class RegistrationConfig:
     seed: int | None = None
     use_orientation_prior: bool | None = None
     upright: bool | None = None
+    deterministic: bool | None = None
+    max_seconds: float | None = None
 
     def overrides(self) -> dict:
         """The parameters that were set, by name."""
@@ -87,6 +89,8 @@ _REG_RULES: dict[str, tuple[str, object, str]] = {
     "seed": ("int", lambda v: v >= 0, "a non-negative integer"),
     "use_orientation_prior": ("bool", lambda v: True, "true or false"),
     "upright": ("bool", lambda v: True, "true or false"),
+    "deterministic": ("bool", lambda v: True, "true or false"),
+    "max_seconds": ("float", lambda v: v >= 0, "seconds, 0 for no limit"),
 }
 
 

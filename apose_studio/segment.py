@@ -341,6 +341,8 @@ def table_objects(depth: np.ndarray, cam, plane_tol: float | None = None, gap: f
     import open3d as o3d
     from scipy.spatial import cKDTree
 
+    from .plane import fit_plane
+
     valid = np.isfinite(depth) & (depth > 0)
     if valid.sum() < 100:
         return None
@@ -351,10 +353,10 @@ def table_objects(depth: np.ndarray, cam, plane_tol: float | None = None, gap: f
     gap = 0.02 * med if gap is None else gap
     rng = np.random.default_rng(0)
     sub = pts[rng.choice(len(pts), min(len(pts), 20000), replace=False)]
-    (a, b, c, d), _ = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(sub)).segment_plane(plane_tol, 3, 300)
-    n = np.array([a, b, c])
-    if d < 0:  # orient the normal towards the camera (the origin): objects are on the camera's side
-        n, d = -n, -d
+    fit = fit_plane(sub, plane_tol, seed=0, towards=np.zeros(3))  # objects are on the camera's (the origin's) side
+    if fit is None:
+        return None
+    n, d = fit[0], fit[1]
     above = (pts @ n + d) > plane_tol
     if keep is not None:
         above &= keep[vs, us]

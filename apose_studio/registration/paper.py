@@ -37,7 +37,8 @@ def estimate_paper(target_pts, cam, T_world_camera, base, T_base_part, p: Params
     timings["global"] = time.perf_counter() - t
     t = time.perf_counter()
     trace: list | None = [] if trace_iterations else None
-    T_i = icp(source, target, T_g, p.icp_threshold_factor * voxel, p.icp_max_iterations, trace)
+    T_i = icp(source, target, T_g, p.icp_threshold_factor * voxel, p.icp_max_iterations, trace,
+              p.deterministic)
     timings["icp"] = time.perf_counter() - t
     thr = p.icp_threshold_factor * voxel
     T_world_base = T_i @ T_world_source

@@ -41,6 +41,8 @@ class Params:
     polish_voxel_factor: float = 0.0  # ours: > 0, a last ICP of the target (down-sampled at voxel x this) onto the
     # model seen at the chosen pose, with the model's exact normals (the noisy target's normals bias point-to-plane)
     polish_threshold_factor: float = 1.0  # its correspondence distance, x voxel
+    deterministic: bool = True  # numpy's seeded ICP and RANSAC: the same input gives the same pose in any process
+    max_seconds: float = 0.0  # ours: > 0, a time budget for the searches; a search that runs out stops and says so
     upright: bool = False  # ours: where a table is seen, first search the yaw of the base standing on it as modelled
     # (CAD +z along the table's normal); no table, or no confident upright fit: the free search
 

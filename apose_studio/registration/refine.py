@@ -66,12 +66,12 @@ def refine_candidates(pb, starts: list[Start], trace_iterations: bool) -> list[R
         trace: list | None = [] if trace_iterations else None
         src_w, src_n = raycast_source(pb.base, s.T_coarse, pb.T_world_camera, pb.cam)  # what the camera would see
         src = cloud(se3.transform_points(se3.inv(s.T_coarse), src_w)).voxel_down_sample(voxel)
-        T = icp(src, pb.fine, s.T_coarse, pb.vg, p.icp_max_iterations, trace)
+        T = icp(src, pb.fine, s.T_coarse, pb.vg, p.icp_max_iterations, trace, p.deterministic)
         if any(poses_within(T, r.candidate.T_world_base, voxel, 2.0) for r in out):
             continue  # converged onto a pose already refined: nothing new to score
         if p.polish_voxel_factor <= 0:  # else no ICP at thr: only the chosen pose needs the last tenth of a
             # millimetre, and the polish gives it that (on the yaw renders 10 % faster, 0.004 mm more mean ADI)
-            T = icp(src, pb.fine, T, pb.thr, p.icp_max_iterations, trace)
+            T = icp(src, pb.fine, T, pb.thr, p.icp_max_iterations, trace, p.deterministic)
         # scored on what the camera sees at the coarse pose, moved with the refinement (small after the coarse
         # ICP): one ray-cast per candidate instead of two, same recall on the yaw renders (benchmarks/tune.py)
         D = T @ se3.inv(s.T_coarse)
@@ -128,7 +128,7 @@ def polish(pb, T_world_base: np.ndarray, trace: list | None, seen_world: tuple |
     v = voxel * p.polish_voxel_factor
     steps: list | None = [] if trace is not None else None
     T = icp(pb.target_full.voxel_down_sample(v), seen.voxel_down_sample(v), T_base_world,
-            p.polish_threshold_factor * voxel, POLISH_ITERATIONS, steps)
+            p.polish_threshold_factor * voxel, POLISH_ITERATIONS, steps, p.deterministic)
     if trace is not None:
         trace.extend(se3.inv(S) for S in steps)
     T_new = se3.inv(T)

@@ -18,6 +18,7 @@ import numpy as np
 
 from .. import se3
 from ..config import CameraIntrinsics
+from ..plane import fit_plane
 from .refine import polish
 from .results import MIN_POINTS, RegistrationResult
 from .scoring import agreement_tolerance, score_seen, visible_agreement
@@ -71,13 +72,13 @@ def try_prior(pb, prior: np.ndarray, trace_iterations: bool, timings: dict, **kw
     trace: list | None = [] if trace_iterations else None
     T = T0
     for factor in (8.0, 4.0, 2.0):
-        T = icp(src, fine, T, factor * voxel, 10, trace)
+        T = icp(src, fine, T, factor * voxel, 10, trace, p.deterministic)
     if p.polish_voxel_factor > 0:
         T, src_w = polish(pb, T, trace)
     else:
         src_w, _ = raycast_source(base, T, T_world_camera, cam)  # what the camera sees at the refined pose
         src = cloud(se3.transform_points(se3.inv(T), src_w)).voxel_down_sample(voxel)
-        T = icp(src, fine, T, thr, p.icp_max_iterations, trace)
+        T = icp(src, fine, T, thr, p.icp_max_iterations, trace, p.deterministic)
         src_w, _ = raycast_source(base, T, T_world_camera, cam)
     cand, src_w = score_seen(pb, T, src_w)
     # the depth's word on the model, leaving out what it cannot judge: the mask's outline (mixed
@@ -94,9 +95,10 @@ def try_prior(pb, prior: np.ndarray, trace_iterations: bool, timings: dict, **kw
 
 
 def table_normal(depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray,
-                 min_inlier_share: float = 0.3) -> np.ndarray | None:
-    """World unit normal of the plane the base stands on (pointing at the camera), fitted by RANSAC
-    to the depth outside the base's mask; None when no plane holds min_inlier_share of those points."""
+                 min_inlier_share: float = 0.3, seed: int = 0) -> np.ndarray | None:
+    """World unit normal of the plane the base stands on (pointing at the camera), fitted by a seeded
+    RANSAC to the depth outside the base's mask, among the planes the base is not behind; None when no
+    such plane holds min_inlier_share of those points."""
     step = max(1, int(np.sqrt(mask.size / 5000)))  # about 5000 pixels on a regular grid are plenty for a plane
     d = depth[::step, ::step]
     vs, us = np.nonzero(~mask[::step, ::step] & np.isfinite(d) & (d > 0))
@@ -104,11 +106,12 @@ def table_normal(depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics, T_w
         return None
     pts = se3.transform_points(T_world_camera, cam.backproject(us * step, vs * step, d[vs, us]))
     tol = 0.004 * float(np.median(np.linalg.norm(pts - T_world_camera[:3, 3], axis=1)))
-    (a, b, c, d), inliers = cloud(pts).segment_plane(tol, 3, 300)
-    if len(inliers) < min_inlier_share * len(pts):
+    mv, mu = np.nonzero(mask[::step, ::step] & np.isfinite(d) & (d > 0))
+    obj = se3.transform_points(T_world_camera, cam.backproject(mu * step, mv * step, d[mv, mu]))
+    fit = fit_plane(pts, tol, seed, towards=T_world_camera[:3, 3], above=obj)  # the plane under the object
+    if fit is None or fit[2].sum() < min_inlier_share * len(pts):
         return None
-    n = np.array([a, b, c]) / np.linalg.norm([a, b, c])
-    return n if n @ T_world_camera[:3, 3] + d / np.linalg.norm([a, b, c]) > 0 else -n
+    return fit[0]
 
 
 def upright_starts(base, up: np.ndarray, target_pts: np.ndarray, cam_pos: np.ndarray,
@@ -202,7 +205,7 @@ class ModelSearch:
             src = cloud(facing(self.model_pts, self.model_nrm, T0, cam_pos))
             if len(src.points) < MIN_POINTS:
                 continue
-            T = icp(src, pb.target, T0, 2.0 * vg, 8, None)
+            T = icp(src, pb.target, T0, 2.0 * vg, 8, None, pb.params.deterministic)
             seen = se3.transform_points(T, facing(self.model_pts, self.model_nrm, T, cam_pos))
             f_quick = float(np.mean(pb.fine_tree.query(seen, distance_upper_bound=vg)[0] < np.inf)) if len(seen) else 0.0
             out.append(Start(f_quick, k, T0, T))
@@ -251,7 +254,7 @@ def search_poses(pb, ms: ModelSearch, prior: np.ndarray | None, T_world_source: 
     up = None
     if p.upright and prior is None:
         obs = pb.observation
-        up = table_normal(obs.depth, obs.mask, pb.cam, pb.T_world_camera)
+        up = table_normal(obs.depth, obs.mask, pb.cam, pb.T_world_camera, seed=p.seed)
     if up is None:
         T_g = ms.ransac()
     extra = prior_starts(pb, ms, T_world_source) if prior is not None else []

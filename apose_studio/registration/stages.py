@@ -78,7 +78,15 @@ def normals_fpfh(pc, voxel: float, p: Params, camera_pos: np.ndarray | None):
 
 
 def global_registration(source, target, f_source, f_target, voxel: float, p: Params) -> np.ndarray:
-    """PCDREG, global part: RANSAC on FPFH matches. Returns T_target_source."""
+    """PCDREG, global part: RANSAC on FPFH matches. Returns T_target_source. With p.deterministic, numpy's
+    seeded RANSAC (the same result in every process); else Open3D's (multi-threaded)."""
+    if p.deterministic:
+        from .solvers import ransac_feature_matching
+
+        return ransac_feature_matching(np.asarray(source.points), np.asarray(target.points),
+                                       np.asarray(f_source.data).T, np.asarray(f_target.data).T,
+                                       p.ransac_distance_factor * voxel, p.ransac_edge_length, p.ransac_max_iterations,
+                                       p.ransac_confidence, p.seed, max(1, p.feature_matches))
     import open3d as o3d
 
     reg = o3d.pipelines.registration
@@ -103,11 +111,18 @@ def global_registration(source, target, f_source, f_target, voxel: float, p: Par
     return np.asarray(res.transformation)
 
 
-def icp(source, target, T_init: np.ndarray, threshold: float, iterations: int, trace: list | None = None) -> np.ndarray:
+def icp(source, target, T_init: np.ndarray, threshold: float, iterations: int, trace: list | None = None,
+        deterministic: bool = True) -> np.ndarray:
     """Point-to-plane ICP, L(T) = sum ((p - T q) . n_p)^2 with target normals n_p. Returns T_target_source.
 
-    With `trace`, runs one iteration at a time and appends each T (same result, for replay).
+    With `trace`, appends each iteration's T (same result, for replay). `deterministic`: numpy's
+    solver (the same result in every process); else Open3D's (multi-threaded, not bit-repeatable).
     """
+    if deterministic:
+        from .solvers import icp_point_to_plane
+
+        return icp_point_to_plane(np.asarray(source.points), np.asarray(target.points), np.asarray(target.normals),
+                                  T_init, threshold, iterations, trace)
     import open3d as o3d
 
     reg = o3d.pipelines.registration
