@@ -39,7 +39,7 @@ def cmd_demo(args) -> int:
     from .dataset import Dataset
     from .evaluate import StepContext, estimate_and_score
     from .mesh import load_parts
-    from .registration import resolve_params
+    from .registration import doubts, resolve_params
     from .render import RenderSettings, render_dataset
 
     path = Path(args.assembly) if args.assembly else DEFAULT_SAMPLE
@@ -74,7 +74,7 @@ def cmd_demo(args) -> int:
         print(f"  step {step}: place {ctx.part.id:<8} at ({t[0]:+7.1f}, {t[1]:+7.1f}, {t[2]:+7.1f}) mm in the world; "
               f"error vs truth: MSSD {sc.mssd * 1000:.2f} mm, ADI {sc.adi * 1000:.2f} mm; {r.seconds * 1000:.0f} ms"
               + ("  (ambiguous: symmetric base)" if r.ambiguous else "")
-              + ("" if r.confident else f"  (low confidence: {r.coverage:.0%} of the target near the model, likely wrong)"))
+              + ("" if r.confident else f"  (low confidence: {doubts(r)}; likely wrong)"))
     print(f"\nnext: `apose eval {out}` for the per-step table, `apose estimate {out} --step 1` for one frame")
     if args.no_studio:
         return 0
@@ -115,6 +115,11 @@ def _pair(text: str, what: str) -> tuple[float, float]:
     except ValueError:
         raise argparse.ArgumentTypeError(f"{what}: expected two numbers as min,max (e.g. 20,70), got {text!r}") from None
     return a, b
+
+
+def _finite(x: float) -> float | None:
+    """JSON has no NaN: an unknown number is null."""
+    return float(x) if np.isfinite(x) else None
 
 
 def _check_output_file(path: Path, flag: str) -> None:
@@ -188,7 +193,7 @@ def cmd_estimate(args) -> int:
     from .dataset import Dataset
     from .evaluate import StepContext
     from .mesh import load_parts
-    from .registration import resolve_params
+    from .registration import doubts, resolve_params
 
     ds = Dataset(args.dataset)
     asm = ds.assembly
@@ -206,7 +211,8 @@ def cmd_estimate(args) -> int:
         doc.update(preset=params.preset, part=ctx.part.id, base=list(ctx.view.base), reason=r.reason,
                    stages=[{"name": st.name, "T_world_base": st.T_world_base.tolist(), "fitness": st.fitness,
                             "inlier_rmse": st.inlier_rmse} for st in r.stages],
-                   timings_s=r.timings, voxel_m=r.voxel,
+                   timings_s=r.timings, voxel_m=r.voxel, coverage=_finite(r.coverage), contradiction=_finite(r.contradiction),
+                   out_of_time=r.out_of_time, doubts=doubts(r),
                    alternatives=[{"T_world_part": c.T_world_part.tolist(), "score": c.score} for c in r.alternatives])
         print(json.dumps(doc, indent=1))
         return 0 if r.ok else 1
@@ -222,7 +228,7 @@ def cmd_estimate(args) -> int:
     if sc.mask_iou is not None:
         print(f"mask ({args.mask}): IoU {sc.mask_iou:.3f} against the ground-truth base mask")
     if not r.confident:
-        print(f"low confidence: only {r.coverage:.0%} of the target points lie near the model; this pose is likely wrong")
+        print(f"low confidence: {doubts(r)}; this pose is likely wrong")
     if r.ambiguous:
         print(f"ambiguous: {len(r.alternatives) + 1} placements of {ctx.part.id} fit the data equally (the base object is "
               "(nearly) symmetric, and what tells them apart is not in view); the estimate and the others:")

@@ -184,7 +184,9 @@ def metrics_markdown(score, result: RegistrationResult | None) -> str:
         flags.append(f"ambiguous: {len(result.alternatives) + 1} placements fit the data equally (a (nearly) symmetric "
                      "base, and what tells them apart is not in view); the others are the magenta boxes")
     if not result.confident:
-        flags.append("low confidence: the model explains too little of the target")
+        from .registration import doubts
+
+        flags.append(f"low confidence: {doubts(result)}")
     table = "| metric | value |\n|---|---|\n" + "\n".join(f"| {k} | {v} |" for k, v in rows)
     return table + ("\n\n" + "\n\n".join(f"⚠ {f}" for f in flags) if flags else "")
 

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-PLANE_ITERATIONS = 500
-SCORE_POINTS = 2000  # hypotheses are scored on this many points; the winner is refitted on all its inliers
+PLANE_ITERATIONS = 200
+SCORE_POINTS = 1000  # hypotheses are scored on this many points; the winner is refitted on all its inliers
 
 
 def fit_plane(points: np.ndarray, tol: float, seed: int = 0, iterations: int = PLANE_ITERATIONS,
@@ -42,6 +42,7 @@ def fit_plane(points: np.ndarray, tol: float, seed: int = 0, iterations: int = P
         normals[flip], offsets[flip] = -normals[flip], -offsets[flip]
     counts = (np.abs(score @ normals.T + offsets) < tol).sum(axis=0)
     if above is not None and towards is not None and len(above):
+        above = above[:: max(1, len(above) // 500)]
         behind = np.mean((above @ normals.T + offsets) < -tol, axis=0)
         counts = np.where(behind > 0.5, -1, counts)
     best = int(np.argmax(counts))

@@ -20,12 +20,12 @@ from .base import BaseObject, NearGrid, prepare_base
 from .pipeline import estimate
 from .presets import PRESET_PARAMS, Params, resolve_params
 from .problem import scale_problem
-from .results import CONFIDENT_COVERAGE, MIN_POINTS, TIE_MARGIN, Candidate, RegistrationResult, Stage, failed
+from .results import CONFIDENT_COVERAGE, MIN_POINTS, TIE_MARGIN, Candidate, RegistrationResult, Stage, doubts, failed
 from .scoring import MASK_MARGIN_PX, Observation, mask_edge
 from .searches import table_normal, upright_starts
 from .stages import global_registration, icp, place_source, project_to_cloud, raycast_source
 
 __all__ = ["BaseObject", "CONFIDENT_COVERAGE", "Candidate", "MASK_MARGIN_PX", "MIN_POINTS", "NearGrid", "Observation",
-           "PRESET_PARAMS", "Params", "RegistrationResult", "Stage", "TIE_MARGIN", "detect_symmetries", "estimate",
+           "PRESET_PARAMS", "Params", "RegistrationResult", "Stage", "TIE_MARGIN", "detect_symmetries", "doubts", "estimate",
            "failed", "global_registration", "icp", "mask_edge", "place_source", "prepare_base", "project_to_cloud",
            "raycast_source", "resolve_params", "scale_problem", "table_normal", "upright_starts"]

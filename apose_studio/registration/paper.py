@@ -5,7 +5,10 @@ from __future__ import annotations
 
 import time
 
+import numpy as np
+
 from .. import se3
+from ..metrics import quick_tree
 from .presets import Params
 from .results import MIN_POINTS, Candidate, Degenerate, RegistrationResult
 from .stages import cloud, global_registration, icp, normals_fpfh, place_source, raycast_source, stage
@@ -48,6 +51,11 @@ def estimate_paper(target_pts, cam, T_world_camera, base, T_base_part, p: Params
     final = stage("final", T_world_base, target_pts, src_base, thr)
     stages.append(final)
     T_world_part = T_world_base @ T_base_part
-    cand = Candidate(T_world_base, T_world_part, final.fitness, float("nan"), final.inlier_rmse, final.fitness, 0)
+    # coverage as ours reports it: the share of target points within 2 voxels of the model as the camera sees it
+    seen = se3.transform_points(T_world_base, src_base)
+    coverage = float(np.mean(quick_tree(seen).query(target_pts, distance_upper_bound=max(thr, 2 * voxel))[0] < np.inf))
+    cand = Candidate(T_world_base, T_world_part, final.fitness, float("nan"), final.inlier_rmse, final.fitness, 0,
+                     coverage)
     return RegistrationResult(True, "", T_world_base, T_world_part, T_world_source, target_pts, src_base, stages,
-                              final.fitness, final.inlier_rmse, timings, [cand], False, voxel=voxel, **kw)
+                              final.fitness, final.inlier_rmse, timings, [cand], False, voxel=voxel, coverage=coverage,
+                              **kw)

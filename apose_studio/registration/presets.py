@@ -71,7 +71,7 @@ PRESET_PARAMS = {
         ransac_edge_length=0.9, ransac_distance_factor=1.5, mutual_filter=False, icp_threshold_factor=0.6,
         icp_max_iterations=15, global_source="model", source_camera=None, use_symmetries=True,
         use_orientation_prior=False, global_voxel_factor=2.0, ransac_retry_iterations=30000, use_flips=True,
-        prior_fast_path=True, upright=True, polish_voxel_factor=0.5),
+        prior_fast_path=True, upright=True, polish_voxel_factor=0.5, max_seconds=1.0),
 }
 
 

@@ -4,12 +4,14 @@ reads it instead of a clump of positional arguments."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ..config import CameraIntrinsics
-from ..metrics import quick_tree
 from .base import BaseObject
 from .presets import Params
 from .results import Degenerate
@@ -31,6 +33,21 @@ class Problem:
     target: object  # open3d PointCloud, down-sampled at the coarse voxel, outliers removed
     fine: object  # open3d PointCloud, down-sampled at the fine voxel, with normals facing the camera
     fine_tree: object  # k-d tree of fine's points
+    deadline: float = float("inf")  # time.perf_counter() by which the searches stop (params.max_seconds)
+    notes: list = field(default_factory=list)  # what the time budget cut short
+
+    def out_of_time(self, what: str) -> bool:
+        """Past the deadline: note that `what` was cut short, and say so."""
+        if time.perf_counter() < self.deadline:
+            return False
+        if what not in self.notes:
+            self.notes.append(what)
+        return True
+
+    @cached_property
+    def target_tree(self):
+        """k-d tree of the coarse target's points (built once, for the coarse ICPs)."""
+        return cKDTree(self.tp)  # balanced: queried by many ICP iterations
 
     @property
     def tp(self) -> np.ndarray:
@@ -57,7 +74,8 @@ class Problem:
 
 
 def prepare_problem(target_pts: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray, base: BaseObject,
-                    T_base_part: np.ndarray, p: Params, voxel: float, observation: Observation) -> Problem:
+                    T_base_part: np.ndarray, p: Params, voxel: float, observation: Observation,
+                    deadline: float = float("inf")) -> Problem:
     """The target down-sampled (coarse: flying pixels and speckle removed; fine: with normals). Raises
     Degenerate when too little of it is left, or when it is a line."""
     import open3d as o3d
@@ -77,7 +95,7 @@ def prepare_problem(target_pts: np.ndarray, cam: CameraIntrinsics, T_world_camer
     fine.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=p.normal_radius_factor * voxel, max_nn=30))
     fine.orient_normals_towards_camera_location(T_world_camera[:3, 3])
     return Problem(base, T_base_part, p, cam, T_world_camera, observation, voxel, target_pts, target_full, target, fine,
-                   quick_tree(np.asarray(fine.points)))
+                   cKDTree(np.asarray(fine.points)), deadline)  # balanced: queried by many ICP iterations
 
 
 def scale_problem(target_pts: np.ndarray, diameter: float) -> str | None:

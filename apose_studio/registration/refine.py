@@ -63,15 +63,17 @@ def refine_candidates(pb, starts: list[Start], trace_iterations: bool) -> list[R
     score; a start that converges onto a pose already refined adds nothing."""
     p, voxel, out = pb.params, pb.voxel, []
     for s in starts:
+        if out and pb.out_of_time("refining the other starting poses"):
+            break
         trace: list | None = [] if trace_iterations else None
         src_w, src_n = raycast_source(pb.base, s.T_coarse, pb.T_world_camera, pb.cam)  # what the camera would see
         src = cloud(se3.transform_points(se3.inv(s.T_coarse), src_w)).voxel_down_sample(voxel)
-        T = icp(src, pb.fine, s.T_coarse, pb.vg, p.icp_max_iterations, trace, p.deterministic)
+        T = icp(src, pb.fine, s.T_coarse, pb.vg, p.icp_max_iterations, trace, p.deterministic, pb.fine_tree)
         if any(poses_within(T, r.candidate.T_world_base, voxel, 2.0) for r in out):
             continue  # converged onto a pose already refined: nothing new to score
         if p.polish_voxel_factor <= 0:  # else no ICP at thr: only the chosen pose needs the last tenth of a
             # millimetre, and the polish gives it that (on the yaw renders 10 % faster, 0.004 mm more mean ADI)
-            T = icp(src, pb.fine, T, pb.thr, p.icp_max_iterations, trace, p.deterministic)
+            T = icp(src, pb.fine, T, pb.thr, p.icp_max_iterations, trace, p.deterministic, pb.fine_tree)
         # scored on what the camera sees at the coarse pose, moved with the refinement (small after the coarse
         # ICP): one ray-cast per candidate instead of two, same recall on the yaw renders (benchmarks/tune.py)
         D = T @ se3.inv(s.T_coarse)

@@ -9,6 +9,7 @@ import numpy as np
 MIN_POINTS = 30  # fewer target points than this cannot constrain 6 DoF with any confidence
 TIE_MARGIN = 0.03  # candidates scoring within this of the best explain the data equally well
 CONFIDENT_COVERAGE = 0.85  # below this share of target points within 2 voxels of the model, flag a poor fit
+CONFIDENT_CONTRADICTION = 0.05  # above this share of the model's view that the depth sees past, flag a poor fit
 
 
 @dataclass
@@ -52,6 +53,9 @@ class RegistrationResult:
     preset: str = ""
     voxel: float = 0.0
     coverage: float = float("nan")  # share of target points within 2 voxels of what the model shows (loose fitness)
+    contradiction: float = float("nan")  # share of what the model shows (confirmed or contradicted) that the camera
+    # sees past: the depth is farther than the model's surface there, so the model cannot be there
+    out_of_time: str = ""  # what the time budget cut short (empty: nothing); such a result is never confident
 
     @property
     def seconds(self) -> float:
@@ -59,8 +63,26 @@ class RegistrationResult:
 
     @property
     def confident(self) -> bool:
-        """The model explains most of the target; a poor fit is likely a wrong pose, whatever else it says."""
-        return bool(self.ok and (np.isnan(self.coverage) or self.coverage >= CONFIDENT_COVERAGE))
+        """The model explains most of the target (a poor fit is likely a wrong pose, whatever else it says),
+        the depth contradicts almost nothing the model shows, and no search was cut short. An unknown
+        coverage (NaN) is never confident."""
+        return bool(self.ok and np.isfinite(self.coverage) and self.coverage >= CONFIDENT_COVERAGE
+                    and not self.contradiction > CONFIDENT_CONTRADICTION and not self.out_of_time)
+
+
+def doubts(result: RegistrationResult) -> str:
+    """Why a result is not confident, in words ("" when it is, or when it failed)."""
+    if not result.ok or result.confident:
+        return ""
+    why = []
+    if not np.isfinite(result.coverage) or result.coverage < CONFIDENT_COVERAGE:
+        why.append(f"only {result.coverage:.0%} of the target lies near the model" if np.isfinite(result.coverage)
+                   else "how much of the target the model explains is unknown")
+    if result.contradiction > CONFIDENT_CONTRADICTION:
+        why.append(f"the depth contradicts {result.contradiction:.0%} of what the model shows")
+    if result.out_of_time:
+        why.append(f"the time budget cut short {result.out_of_time}")
+    return "; ".join(why)
 
 
 def failed(reason: str, **kw) -> RegistrationResult:

@@ -72,13 +72,13 @@ def try_prior(pb, prior: np.ndarray, trace_iterations: bool, timings: dict, **kw
     trace: list | None = [] if trace_iterations else None
     T = T0
     for factor in (8.0, 4.0, 2.0):
-        T = icp(src, fine, T, factor * voxel, 10, trace, p.deterministic)
+        T = icp(src, fine, T, factor * voxel, 10, trace, p.deterministic, pb.fine_tree)
     if p.polish_voxel_factor > 0:
         T, src_w = polish(pb, T, trace)
     else:
         src_w, _ = raycast_source(base, T, T_world_camera, cam)  # what the camera sees at the refined pose
         src = cloud(se3.transform_points(se3.inv(T), src_w)).voxel_down_sample(voxel)
-        T = icp(src, fine, T, thr, p.icp_max_iterations, trace, p.deterministic)
+        T = icp(src, fine, T, thr, p.icp_max_iterations, trace, p.deterministic, pb.fine_tree)
         src_w, _ = raycast_source(base, T, T_world_camera, cam)
     cand, src_w = score_seen(pb, T, src_w)
     # the depth's word on the model, leaving out what it cannot judge: the mask's outline (mixed
@@ -172,7 +172,8 @@ class ModelSearch:
     def ransac(self, p=None) -> np.ndarray:
         """T_world_base straight from RANSAC on FPFH matches (the model is in the base frame)."""
         pb = self.pb
-        return global_registration(self.model, pb.target, self.f_model, self.target_features(), pb.vg, p or pb.params)
+        return global_registration(self.model, pb.target, self.f_model, self.target_features(), pb.vg, p or pb.params,
+                                   pb.deadline)
 
     def explained(self, poses: list) -> np.ndarray:
         """Per pose: the share of (SCREEN_POINTS of) the target points near the model's outer surface."""
@@ -205,7 +206,7 @@ class ModelSearch:
             src = cloud(facing(self.model_pts, self.model_nrm, T0, cam_pos))
             if len(src.points) < MIN_POINTS:
                 continue
-            T = icp(src, pb.target, T0, 2.0 * vg, 8, None, pb.params.deterministic)
+            T = icp(src, pb.target, T0, 2.0 * vg, 8, None, pb.params.deterministic, pb.target_tree)
             seen = se3.transform_points(T, facing(self.model_pts, self.model_nrm, T, cam_pos))
             f_quick = float(np.mean(pb.fine_tree.query(seen, distance_upper_bound=vg)[0] < np.inf)) if len(seen) else 0.0
             out.append(Start(f_quick, k, T0, T))
@@ -266,7 +267,8 @@ def search_poses(pb, ms: ModelSearch, prior: np.ndarray | None, T_world_source: 
     else:
         found = Found(ms.coarse(ms.around(T_g) + extra, p.max_starts))
     coarse = found.coarse
-    if not found.upright and p.ransac_retry_iterations and (not coarse or coarse[0].explained < p.retry_below):
+    if (not found.upright and p.ransac_retry_iterations and (not coarse or coarse[0].explained < p.retry_below)
+            and not pb.out_of_time("the longer RANSAC retry")):
         # the fast RANSAC missed: try harder (the prior's starts are in already)
         T_g = ms.ransac(replace(p, ransac_max_iterations=p.ransac_retry_iterations, seed=p.seed + 1))
         found.coarse = sorted(coarse + ms.coarse(ms.around(T_g), p.max_starts), key=lambda x: -x.explained)

@@ -14,6 +14,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 
+QUERY_WORKERS = 1  # more threads cost more than they save on the few thousand points of one ICP step
+
+
 def _small_rotation(a: float, b: float, c: float) -> np.ndarray:
     """Rz(c) @ Ry(b) @ Rx(a), the update of a linearised point-to-plane step (as Open3D's)."""
     ca, sa, cb, sb, cc, sc = np.cos(a), np.sin(a), np.cos(b), np.sin(b), np.cos(c), np.sin(c)
@@ -34,7 +37,7 @@ def icp_point_to_plane(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.ndarray
 
     def match(T):
         p = src @ T[:3, :3].T + T[:3, 3]
-        d, i = tree.query(p, distance_upper_bound=threshold)
+        d, i = tree.query(p, distance_upper_bound=threshold, workers=QUERY_WORKERS)
         ok = np.isfinite(d)
         fit = float(ok.mean())
         rmse = float(np.sqrt(np.mean(d[ok] ** 2))) if ok.any() else 0.0
@@ -82,12 +85,15 @@ def _kabsch(S: np.ndarray, D: np.ndarray) -> np.ndarray:
 
 def ransac_feature_matching(src: np.ndarray, tgt: np.ndarray, f_src: np.ndarray, f_tgt: np.ndarray, distance: float,
                             edge_similarity: float, max_iterations: int, confidence: float, seed: int,
-                            matches: int = 1, batch: int = 256) -> np.ndarray:
+                            matches: int = 1, batch: int = 256, deadline: float = float("inf")) -> np.ndarray:
     """T_target_source from FPFH correspondences (each source point to its `matches` nearest target
     features), by RANSAC: three random correspondences whose pairwise lengths agree within
     `edge_similarity` and which land within `distance` after the fit; the hypothesis with the most
     correspondences within `distance` wins (then the lower RMSE), refitted on them. Stops early once
-    `confidence` is reached for the best inlier share (as Open3D's RANSACConvergenceCriteria)."""
+    `confidence` is reached for the best inlier share (as Open3D's RANSACConvergenceCriteria), or at
+    `deadline` (time.perf_counter()) with the best so far."""
+    import time
+
     if len(src) < 3 or len(tgt) < 3:
         return np.eye(4)
     _, j = cKDTree(f_tgt).query(f_src, k=matches)
@@ -98,7 +104,7 @@ def ransac_feature_matching(src: np.ndarray, tgt: np.ndarray, f_src: np.ndarray,
     rng = np.random.default_rng(seed)
     best = (-1, np.inf, np.eye(4))  # (inliers, rmse, T)
     needed, done = max_iterations, 0
-    while done < min(max_iterations, needed):
+    while done < min(max_iterations, needed) and (done == 0 or time.perf_counter() < deadline):
         b = min(batch, min(max_iterations, needed) - done)
         done += b
         pick = rng.integers(0, n, (b, 3))

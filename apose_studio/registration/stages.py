@@ -77,7 +77,8 @@ def normals_fpfh(pc, voxel: float, p: Params, camera_pos: np.ndarray | None):
     return reg.compute_fpfh_feature(pc, o3d.geometry.KDTreeSearchParamHybrid(radius=p.feature_radius_factor * voxel, max_nn=100))
 
 
-def global_registration(source, target, f_source, f_target, voxel: float, p: Params) -> np.ndarray:
+def global_registration(source, target, f_source, f_target, voxel: float, p: Params,
+                        deadline: float = float("inf")) -> np.ndarray:
     """PCDREG, global part: RANSAC on FPFH matches. Returns T_target_source. With p.deterministic, numpy's
     seeded RANSAC (the same result in every process); else Open3D's (multi-threaded)."""
     if p.deterministic:
@@ -86,7 +87,7 @@ def global_registration(source, target, f_source, f_target, voxel: float, p: Par
         return ransac_feature_matching(np.asarray(source.points), np.asarray(target.points),
                                        np.asarray(f_source.data).T, np.asarray(f_target.data).T,
                                        p.ransac_distance_factor * voxel, p.ransac_edge_length, p.ransac_max_iterations,
-                                       p.ransac_confidence, p.seed, max(1, p.feature_matches))
+                                       p.ransac_confidence, p.seed, max(1, p.feature_matches), deadline=deadline)
     import open3d as o3d
 
     reg = o3d.pipelines.registration
@@ -112,17 +113,18 @@ def global_registration(source, target, f_source, f_target, voxel: float, p: Par
 
 
 def icp(source, target, T_init: np.ndarray, threshold: float, iterations: int, trace: list | None = None,
-        deterministic: bool = True) -> np.ndarray:
+        deterministic: bool = True, target_tree=None) -> np.ndarray:
     """Point-to-plane ICP, L(T) = sum ((p - T q) . n_p)^2 with target normals n_p. Returns T_target_source.
 
     With `trace`, appends each iteration's T (same result, for replay). `deterministic`: numpy's
-    solver (the same result in every process); else Open3D's (multi-threaded, not bit-repeatable).
+    solver (the same result in every process), with `target_tree` (a k-d tree of the target's points)
+    reused when given; else Open3D's (multi-threaded, not bit-repeatable).
     """
     if deterministic:
         from .solvers import icp_point_to_plane
 
         return icp_point_to_plane(np.asarray(source.points), np.asarray(target.points), np.asarray(target.normals),
-                                  T_init, threshold, iterations, trace)
+                                  T_init, threshold, iterations, trace, target_tree)
     import open3d as o3d
 
     reg = o3d.pipelines.registration

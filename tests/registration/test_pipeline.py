@@ -98,3 +98,64 @@ def test_a_symmetric_base_reports_both_seats(fidget_yaml, tmp_path):
         errs = [mssd(T, fr.T_world_part, ctx.part.samples, ctx.part.symmetries) for T in (r.T_world_part, alt)]
         assert min(errs) < 1e-3, errs
 
+
+
+def test_junk_is_never_a_confident_pose(gearbox_dataset):
+    """A box on empty table, the wrong object, 40 points of noise: ok=False or not confident, every time."""
+    from apose_studio.dataset import Dataset
+    from apose_studio.evaluate import StepContext
+
+    ds = Dataset(gearbox_dataset)
+    ctx = StepContext(ds.assembly, load_parts(ds.assembly), 1)
+    p = resolve_params("default")
+    for im in ds.image_ids(1):
+        fr = ds.frame(1, im)
+        anything = np.zeros(fr.depth.shape, bool)
+        for m in fr.masks.values():
+            anything |= m
+        vs, us = np.nonzero(anything)
+        table = np.zeros_like(anything)
+        table[20:80, 20:80] = True  # a corner of the image: table, far from every object
+        assert not (table & anything).any() and (fr.depth[table] > 0).mean() > 0.9
+        rng = np.random.default_rng(im)
+        noise_depth = np.zeros_like(fr.depth)
+        noise_mask = np.zeros_like(anything)
+        v, u = rng.integers(0, fr.depth.shape[0], 40), rng.integers(0, fr.depth.shape[1], 40)
+        noise_depth[v, u], noise_mask[v, u] = rng.uniform(0.3, 0.8, 40), True
+        cases = {"empty table": (fr.depth, table), "the part lying beside it": (fr.depth, fr.masks[ctx.view.part]),
+                 "40 points of noise": (noise_depth, noise_mask)}
+        for what, (depth, mask) in cases.items():
+            r = estimate(depth, mask, fr.camera, fr.T_world_camera, ctx.base, ctx.view.T_base_part, p)
+            assert not (r.ok and r.confident), (what, im, r.coverage, r.reason)
+            assert r.seconds < 3.0, (what, r.seconds)  # the time budget holds (1 s, plus what it cannot cut)
+
+
+def test_a_pose_the_camera_cannot_have_seen_is_not_ok(gearbox_step2):
+    """judge(): behind the camera, outside the image, beyond the farthest depth, or explaining nothing."""
+    from apose_studio.registration import Candidate, RegistrationResult
+    from apose_studio.registration.pipeline import judge
+
+    _, base, _ = gearbox_step2
+    T_world_camera = np.eye(4)  # the camera at the origin, looking along +z
+    depth = np.full((CAM.height, CAM.width), 0.5, np.float32)
+
+    mask = np.zeros(depth.shape, bool)
+    mask[200:280, 280:360] = True
+    plane = np.stack(np.meshgrid(np.linspace(-0.01, 0.01, 5), np.linspace(-0.01, 0.01, 5), [0.0]), -1).reshape(-1, 3)
+
+    def result(t, fitness=0.9, coverage=0.95, seen_z=0.5):
+        T = se3.make_T(t=np.asarray(t, float) - base.centre)
+        c = Candidate(T, T, fitness, 0.9, 0.001, 0.9, 0, coverage)
+        seen = se3.transform_points(se3.inv(T), plane + [0, 0, seen_z])  # what the model shows, base frame
+        return RegistrationResult(True, "", T, T, T, fitness=fitness, coverage=coverage, candidates=[c],
+                                  source_cloud=seen, voxel=0.002)
+
+    r = judge(result([0, 0, 0.5]), depth, mask, CAM, T_world_camera, base)
+    assert r.ok and r.contradiction == 0.0 and r.confident
+    for t, kw, why in [([0, 0, -0.5], {}, "behind the camera"), ([5.0, 0, 0.5], {}, "outside the image"),
+                       ([0, 0, 3.0], {}, "beyond the farthest depth"),
+                       ([0, 0, 0.5], {"fitness": 0.0, "coverage": 0.0}, "explains almost none of the target"),
+                       ([0, 0, 0.5], {"seen_z": 0.3}, "the depth contradicts 100% of what the model shows")]:
+        r = judge(result(t, **kw), depth, mask, CAM, T_world_camera, base)
+        assert not r.ok and why in r.reason and "no pose is reported" in r.reason, (t, kw, r.reason)
+        assert not r.confident
