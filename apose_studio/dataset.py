@@ -217,11 +217,12 @@ class Dataset:
                      im_id=im_id, source=str(rgb_path))
 
 
-def read_capture_camera(path: Path, width: int, height: int) -> tuple[CameraIntrinsics, float, np.ndarray]:
-    """(intrinsics, depth_scale in mm per unit, T_world_camera) from a capture's camera.json, checked.
+def read_capture_camera(path: Path, width: int, height: int) -> tuple[CameraIntrinsics, float, np.ndarray | None]:
+    """(intrinsics, depth_scale in mm per unit, T_world_camera or None) from a capture's camera.json, checked.
 
     Two forms: ours ({fx, fy, cx, cy, depth_scale}) and BOP's ({cam_K: row-major 3x3, depth_scale});
-    either may add BOP's cam_R_w2c / cam_t_w2c (mm) for the camera pose, else the camera is the world."""
+    either may add BOP's cam_R_w2c / cam_t_w2c (mm) for the camera pose (else None: load_capture puts
+    the world on the table)."""
     cam = read_json(path)
     if not isinstance(cam, dict):
         raise DatasetError(f"{path}: expected a JSON object with fx, fy, cx, cy, depth_scale (or BOP's cam_K)")
@@ -254,7 +255,7 @@ def read_capture_camera(path: Path, width: int, height: int) -> tuple[CameraIntr
                            "are the intrinsics for another resolution?")
     if depth_scale <= 0:
         raise DatasetError(f"{path}: depth_scale must be positive (millimetres per depth unit), got {depth_scale:g}")
-    T_world_camera = np.eye(4)
+    T_world_camera = None  # none given: see load_capture
     if "cam_R_w2c" in cam or "cam_t_w2c" in cam:
         try:
             T_world_camera = se3.inv(_T_from_Rt(cam["cam_R_w2c"], cam["cam_t_w2c"]))
@@ -266,7 +267,9 @@ def read_capture_camera(path: Path, width: int, height: int) -> tuple[CameraIntr
 
 
 def load_capture(folder: str | Path) -> Frame:
-    """A real capture: rgb.png, depth.png (uint16) and camera.json (see read_capture_camera)."""
+    """A real capture: rgb.png, depth.png (uint16) and camera.json (see read_capture_camera). Without the
+    camera's pose, the world frame sits on the table plane when one is seen (z = 0 on it, z up, origin
+    where the optical axis meets it), else on the camera."""
     folder = Path(folder)
     rgb = read_rgb(folder / "rgb.png")
     h, w = rgb.shape[:2]
@@ -275,6 +278,12 @@ def load_capture(folder: str | Path) -> Frame:
     if depth.shape != rgb.shape[:2]:
         raise DatasetError(f"{folder}: depth.png is {depth.shape[1]}x{depth.shape[0]} but rgb.png is "
                            f"{rgb.shape[1]}x{rgb.shape[0]}; align depth to colour first")
+    if T_world_camera is None:  # no extrinsics: the world on the table (z = 0, z up) when one is seen
+        from .plane import table_frame
+
+        T_world_camera = table_frame(depth, intr)
+        if T_world_camera is None:
+            T_world_camera = np.eye(4)
     return Frame(rgb=rgb, depth=depth, camera=intr, T_world_camera=T_world_camera, source=str(folder))
 
 

@@ -139,6 +139,19 @@ def pixels_in_box(depth: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.n
     return inside & (z > 0)
 
 
+def point_on_ray(points: np.ndarray, origin: np.ndarray, direction: np.ndarray, max_offset: float) -> np.ndarray | None:
+    """The point a click's ray hits first: among points within `max_offset` of the ray (in front of its
+    origin), the one nearest the origin; None when the ray passes no point."""
+    d = direction / np.linalg.norm(direction)
+    rel = points - origin
+    along = rel @ d
+    off = np.linalg.norm(rel - along[:, None] * d, axis=1)
+    near = (along > 0) & (off < max_offset)
+    if not near.any():
+        return None
+    return points[near][np.argmin(along[near])].astype(float)
+
+
 def thin(points: np.ndarray, max_points: int, seed: int = 0) -> np.ndarray:
     if len(points) <= max_points:
         return points

@@ -57,3 +57,29 @@ def fit_plane(points: np.ndarray, tol: float, seed: int = 0, iterations: int = P
         n_new = np.linalg.svd(points[inl] - c, full_matrices=False)[2][2]
         n, d = (n_new, -float(n_new @ c)) if n_new @ n >= 0 else (-n_new, float(n_new @ c))
     return n, float(d), np.abs(points @ n + d) < tol
+
+
+def table_frame(depth: np.ndarray, cam, min_share: float = 0.3, seed: int = 0) -> np.ndarray | None:
+    """T_world_camera of a world frame on the plane most of the depth lies on (a table): z = 0 on it,
+    z up (towards the camera), the origin where the optical axis meets it (else below the camera), x
+    along the image's x. None when no plane holds `min_share` of the depth points."""
+    valid = np.isfinite(depth) & (depth > 0)
+    step = max(1, int(np.sqrt(depth.size / 20000)))
+    sub = valid[::step, ::step]
+    vs, us = np.nonzero(sub)
+    if len(vs) < 100:
+        return None
+    pts = cam.backproject(us * step, vs * step, depth[::step, ::step][vs, us])
+    fit = fit_plane(pts, 0.006 * float(np.median(pts[:, 2])), seed, towards=np.zeros(3))
+    if fit is None or fit[2].mean() < min_share:
+        return None
+    n, d, _ = fit
+    origin = np.array([0.0, 0.0, -d / n[2]]) if n[2] < -0.2 else -d * n  # the optical axis (+z) meets the plane
+    x = np.array([1.0, 0.0, 0.0]) - n[0] * n
+    if np.linalg.norm(x) < 1e-6:
+        x = np.array([0.0, 1.0, 0.0]) - n[1] * n
+    x /= np.linalg.norm(x)
+    T_camera_world = np.eye(4)
+    T_camera_world[:3, :3] = np.stack([x, np.cross(n, x), n], axis=1)
+    T_camera_world[:3, 3] = origin
+    return np.linalg.inv(T_camera_world)

@@ -58,3 +58,9 @@ def test_metrics_panel_and_cache():
     assert c.get(k) is None
     c.put(k, ("r", "s"))
     assert c.get(c.key("/d", 1, 3, "default", "gt", False)) == ("r", "s") and c.get(c.key("/d", 1, 3, "paper", "gt", False)) is None
+
+
+def test_point_on_ray_takes_the_nearest_hit():
+    pts = np.array([[0, 0, 2.0], [0, 0, 1.0], [0.5, 0, 0.5], [0, 0, -1.0]])
+    np.testing.assert_allclose(inspection.point_on_ray(pts, np.zeros(3), np.array([0, 0, 3.0]), 0.01), [0, 0, 1.0])
+    assert inspection.point_on_ray(pts, np.zeros(3), np.array([0, 1.0, 0]), 0.01) is None

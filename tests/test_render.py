@@ -255,7 +255,11 @@ def test_real_capture_folder(tmp_path):
     (tmp_path / "camera.json").write_text(json.dumps({"fx": 60, "fy": 60, "cx": 32, "cy": 24, "depth_scale": 1.0}))
     f = open_frames(tmp_path)
     assert f.rgb[0, 0, 0] == 200 and f.depth[0, 0] == pytest.approx(0.5)
-    assert f.camera.width == 64 and np.allclose(f.T_world_camera, np.eye(4)) and f.masks == {}
+    assert f.camera.width == 64 and f.masks == {}
+    # no extrinsics: the world sits on the plane the depth shows (a flat 500 mm view): the camera 0.5 m above
+    # it, looking straight down (its z along the world's -z)
+    np.testing.assert_allclose(f.T_world_camera[:3, 3], [0, 0, 0.5], atol=1e-6)
+    np.testing.assert_allclose(f.T_world_camera[:3, 2], [0, 0, -1], atol=1e-6)
     # BOP's form: cam_K row-major, camera pose in mm
     (tmp_path / "camera.json").write_text(json.dumps({"cam_K": [60, 0, 32, 0, 61, 24, 0, 0, 1], "depth_scale": 1.0,
                                                       "cam_R_w2c": [1, 0, 0, 0, 1, 0, 0, 0, 1], "cam_t_w2c": [0, 0, 100]}))
@@ -298,3 +302,19 @@ def test_five_frames_per_step_at_full_size(name, tmp_path, request):
         f = ds.frame(step, 4)
         assert f.rgb.shape == (480, 640, 3)
         assert f.base_mask().sum() > 500, (step, f.base_mask().sum())  # the base object is in view
+
+
+def test_a_capture_without_extrinsics_gets_the_table_as_its_world(gearbox_dataset, tmp_path):
+    """The camera's height above the table and its tilt, from the depth alone, match the renderer's truth."""
+    import cv2
+
+    fr = Dataset(gearbox_dataset).frame(1, 0)
+    cap = tmp_path / "cap"
+    cap.mkdir()
+    cv2.imwrite(str(cap / "rgb.png"), fr.rgb[..., ::-1])
+    cv2.imwrite(str(cap / "depth.png"), (fr.depth * 1000).astype(np.uint16))
+    (cap / "camera.json").write_text(json.dumps({"cam_K": fr.camera.K.reshape(-1).tolist(), "depth_scale": 1.0}))
+    got = load_capture(cap).T_world_camera
+    true = fr.T_world_camera  # the renderer's table is z = 0, z up
+    assert abs(got[2, 3] - true[2, 3]) < 0.003, (got[2, 3], true[2, 3])  # camera height above the table
+    assert abs(got[2, 2] - true[2, 2]) < 0.01  # the tilt of the optical axis against the table's normal

@@ -65,7 +65,7 @@ class InspectPanel:
             self.i_step.on_update(self.app.guarded("Step")(lambda c: self.on_frame_changed()))
             self.i_frame = gui.add_slider("Frame", 0, 1, 1, 0)
             self.i_frame.on_update(self.app.guarded("Frame")(lambda c: self.on_frame_changed()))
-        with gui.add_folder("Estimate"):
+        with gui.add_folder("Estimate") as self.estimate_folder:
             self.i_preset = gui.add_dropdown("Preset", PRESETS, initial_value="default")
             from ..evaluate import MASK_SOURCES
 
@@ -76,8 +76,13 @@ class InspectPanel:
             b.on_click(self.app.guarded("Mask model")(self.on_use_model))
             self.i_crop = gui.add_checkbox("Crop box", False, hint="limit depth masks to a box you drag around the base object")
             self.i_crop_size = gui.add_vector3("Crop size (mm)", (150.0, 150.0, 100.0), min=(1.0, 1.0, 1.0), step=5.0)
+            self.i_crop_centre = gui.add_vector3("Crop centre (mm)", (0.0, 0.0, 0.0), step=1.0,
+                                                 hint="world frame; typed, dragged with the box's gizmo, or clicked")
+            b = gui.add_button("Crop around click", hint="then click the base object in the 3D view")
+            b.on_click(self.app.guarded("Crop around click")(self.on_crop_around_click))
             self.i_crop.on_update(self.app.guarded("Crop box")(lambda c: self.show_crop()))
             self.i_crop_size.on_update(self.app.guarded("Crop box")(lambda c: self.show_crop()))
+            self.i_crop_centre.on_update(self.app.guarded("Crop box")(lambda c: self.on_crop_centre()))
             self.i_upright = gui.add_checkbox("Upright", True,
                                               hint="where a table is seen, search first the yaw of the base standing on it as "
                                               "modelled, then freely if that fits poorly (preset default)")
@@ -265,12 +270,72 @@ class InspectPanel:
             centre = se3.transform_points(fr.T_world_camera, np.array([[0.0, 0.0, z]]))[0]
             g = self.app.node("/inspect/crop", self.app.server.scene.add_transform_controls(
                 "/inspect/crop", scale=float(size.max()), position=tuple(centre)))
+            g.on_update(lambda e: self.app.guarded("Crop box")(lambda c: self.on_crop_drag(e))(e))
+            self.show_crop_centre()
         import trimesh
 
         box = trimesh.creation.box(size)
         self.app.node("/inspect/crop/box", self.app.server.scene.add_mesh_simple(
             "/inspect/crop/box", box.vertices.astype(np.float32), box.faces.astype(np.uint32), color=(255, 170, 0),
             wireframe=True))
+
+    def show_crop_centre(self) -> None:
+        """The typed centre follows the box (a fresh input: see make_pose_fields on why not a written value)."""
+        g = self.app.nodes.get("/inspect/crop")
+        if g is None:
+            return
+        value = tuple(round(float(v) * 1000.0, 1) for v in g.position)
+        if tuple(self.i_crop_centre.value) == value:
+            return
+        order = self.i_crop_centre.order
+        self.i_crop_centre.remove()
+        with self.estimate_folder:
+            self.i_crop_centre = self.app.server.gui.add_vector3(
+                "Crop centre (mm)", value, step=1.0, order=order, hint="world frame; typed, dragged with the box's gizmo, or clicked")
+        self.i_crop_centre.on_update(self.app.guarded("Crop box")(lambda c: self.on_crop_centre()))
+
+    def on_crop_centre(self) -> None:
+        """A typed centre moves the box there (and turns the box on)."""
+        centre = np.asarray(self.i_crop_centre.value, dtype=float) / 1000.0
+        if not np.isfinite(centre).all():
+            raise AposeError("the crop centre needs three finite numbers (mm, world frame)")
+        self.place_crop(centre)
+
+    def place_crop(self, centre: np.ndarray) -> None:
+        if self.frame is None:
+            raise AposeError("open a dataset or capture first")
+        if not self.i_crop.value:
+            self.i_crop.value = True  # creates the box (show_crop)
+        self.app.nodes["/inspect/crop"].position = tuple(float(v) for v in centre)
+        self.show_crop_centre()
+
+    def on_crop_drag(self, event) -> None:
+        if event.phase == "end":
+            self.show_crop_centre()
+
+    def on_crop_around_click(self, client) -> None:
+        """The next click in the 3D view (by this tab) centres the crop box on the scene point it hits."""
+        if self.frame is None:
+            raise AposeError("open a dataset or capture first")
+        if client is None:
+            raise AposeError("no browser to click in")
+
+        def clicked(event) -> None:
+            client.scene.remove_click_callback(clicked)
+            self.app.guarded("Crop around click")(lambda c: self.crop_at_ray(event.ray_origin, event.ray_direction, c))(event)
+
+        client.scene.on_click()(clicked)
+        self.app.notify(client, "Crop around click", "click the base object in the 3D view")
+
+    def crop_at_ray(self, origin, direction, client) -> None:
+        fr = self.frame
+        pts, _ = inspection.scene_cloud(fr.depth, fr.rgb, fr.camera, fr.T_world_camera)
+        hit = inspection.point_on_ray(pts, np.asarray(origin, float), np.asarray(direction, float),
+                                      max_offset=0.01 * float(np.median(fr.depth[fr.depth > 0])))
+        if hit is None:
+            raise AposeError("the click hit no depth point; click on the object itself")
+        self.place_crop(hit)
+        self.app.notify(client, "Crop box", "centred at ({:.0f}, {:.0f}, {:.0f}) mm".format(*(hit * 1000)))
 
     def on_use_model(self, client) -> None:
         from ..evaluate import check_mask_source

@@ -122,3 +122,27 @@ def test_a_failed_open_says_what_stays_on_screen(studio, gearbox_dataset, tmp_pa
     assert "neither a dataset" in errors(st)[-1][1] and f"still showing the data opened before: {shown}" in errors(st)[-1][1]
     assert st.inspect.frames_path == shown
 
+
+
+def test_crop_box_typed_or_centred_on_a_click(studio, gearbox_dataset):
+    from apose_studio import se3
+    from apose_studio.dataset import Dataset
+
+    st = studio(SAMPLES / "helical_gearbox" / "assembly.yaml", gearbox_dataset)
+    fr = Dataset(gearbox_dataset).frame(1, 0)
+    truth = fr.T_world_base[:3, 3] + [0.01, -0.005, 0.02]  # (the base itself sits at the origin)
+    st.inspect.i_crop_centre.value = tuple(truth * 1000)  # typed: the box goes there, and turns on
+    assert errors(st) == [] and st.inspect.i_crop.value
+    assert np.allclose(st.nodes["/inspect/crop"].position, truth, atol=1e-6)
+    # a click: the ray from the camera through the base's mask centre puts the box on the base's surface
+    vs, us = np.nonzero(fr.base_mask())
+    v, u = int(np.median(vs)), int(np.median(us))
+    z = fr.depth[v, u]
+    hit_true = se3.transform_points(fr.T_world_camera, fr.camera.backproject(np.array([u]), np.array([v]), np.array([z])))[0]
+    origin = fr.T_world_camera[:3, 3]
+    act(st, st.inspect.crop_at_ray, origin, hit_true - origin)
+    centre = np.asarray(st.nodes["/inspect/crop"].position)
+    assert np.linalg.norm(centre - hit_true) < 0.01, (centre, hit_true)
+    np.testing.assert_allclose(st.inspect.i_crop_centre.value, np.round(centre * 1000, 1), atol=0.05)
+    act(st, st.inspect.crop_at_ray, origin, -(hit_true - origin))  # pointing away from the scene
+    assert "hit no depth point" in errors(st)[-1][1]
