@@ -172,8 +172,7 @@ class ModelSearch:
     def ransac(self, p=None) -> np.ndarray:
         """T_world_base straight from RANSAC on FPFH matches (the model is in the base frame)."""
         pb = self.pb
-        return global_registration(self.model, pb.target, self.f_model, self.target_features(), pb.vg, p or pb.params,
-                                   pb.deadline)
+        return global_registration(self.model, pb.target, self.f_model, self.target_features(), pb.vg, p or pb.params)
 
     def explained(self, poses: list) -> np.ndarray:
         """Per pose: the share of (SCREEN_POINTS of) the target points near the model's outer surface."""

@@ -77,17 +77,9 @@ def normals_fpfh(pc, voxel: float, p: Params, camera_pos: np.ndarray | None):
     return reg.compute_fpfh_feature(pc, o3d.geometry.KDTreeSearchParamHybrid(radius=p.feature_radius_factor * voxel, max_nn=100))
 
 
-def global_registration(source, target, f_source, f_target, voxel: float, p: Params,
-                        deadline: float = float("inf")) -> np.ndarray:
-    """PCDREG, global part: RANSAC on FPFH matches. Returns T_target_source. With p.deterministic, numpy's
-    seeded RANSAC (the same result in every process); else Open3D's (multi-threaded)."""
-    if p.deterministic:
-        from .solvers import ransac_feature_matching
-
-        return ransac_feature_matching(np.asarray(source.points), np.asarray(target.points),
-                                       np.asarray(f_source.data).T, np.asarray(f_target.data).T,
-                                       p.ransac_distance_factor * voxel, p.ransac_edge_length, p.ransac_max_iterations,
-                                       p.ransac_confidence, p.seed, max(1, p.feature_matches), deadline=deadline)
+def global_registration(source, target, f_source, f_target, voxel: float, p: Params) -> np.ndarray:
+    """PCDREG, global part: RANSAC on FPFH matches (Open3D's, seeded with p.seed: it repeats exactly on one
+    OpenMP thread, see apose_studio/__init__.py). Returns T_target_source."""
     import open3d as o3d
 
     reg = o3d.pipelines.registration
