@@ -347,8 +347,7 @@ class TableObjects:
 def table_objects(depth: np.ndarray, cam, plane_tol: float | None = None, gap: float | None = None,
                   keep: np.ndarray | None = None) -> TableObjects | None:
     """Fit the table plane (seeded RANSAC), keep what rises above it by more than `plane_tol`, group those
-    points in 3D (DBSCAN: points closer than `gap` join), and split groups at depth discontinuities
-    (objects touching each other, see `split_at_depth_steps`). Tolerances default to fractions of the
+    points in 3D (DBSCAN: points closer than `gap` join). Tolerances default to fractions of the
     median depth (0.6 % and 2 %: 3 mm and 1 cm at 0.5 m). `keep` (H, W) bool limits the points to
     those pixels. None when the image has too little depth or nothing stands on the plane."""
     import open3d as o3d
@@ -381,50 +380,7 @@ def table_objects(depth: np.ndarray, cam, plane_tol: float | None = None, gap: f
     _, nearest = cKDTree(obj[pick]).query(obj)
     height = np.full(depth.shape, np.nan)
     height[vs, us] = pts @ n + d
-    noise = float(np.std((sub @ n + d)[fit[2]]))  # the sensor's depth noise here, from the table's residuals
-    labels = split_at_depth_steps(us[above], vs[above], obj[:, 2], groups[nearest], depth.shape, cam.fx, noise)
-    return TableObjects(us[above], vs[above], labels, depth.shape, height, med)
-
-
-def split_at_depth_steps(us: np.ndarray, vs: np.ndarray, z: np.ndarray, groups: np.ndarray, shape, fx: float,
-                         noise: float, min_points: int = 150) -> np.ndarray:
-    """Split 3D groups that hold objects touching each other (a can standing against a box joins it in
-    3D, where the gap between them is nil): neighbouring pixels of one surface differ in depth by at
-    most a steep slant's step (4 z / fx) plus the sensor's noise (4 sigma); where a group's pixels
-    connect only across larger steps (an object's outline against the one behind it), it splits, into
-    pieces of at least `min_points` pixels (smaller pieces stay with the largest)."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    idx = np.full(shape, -1, np.int64)
-    idx[vs, us] = np.arange(len(us))
-    tol = 4.0 * z / fx + 4.0 * noise
-    rows, cols = [], []
-    for dv, du in ((0, 1), (1, 0)):
-        a = idx[: shape[0] - dv, : shape[1] - du]
-        b = idx[dv:, du:]
-        ok = (a >= 0) & (b >= 0)
-        a, b = a[ok], b[ok]
-        keep = (groups[a] == groups[b]) & (groups[a] >= 0) & (np.abs(z[a] - z[b]) < np.minimum(tol[a], tol[b]))
-        rows.append(a[keep])
-        cols.append(b[keep])
-    r, c = np.concatenate(rows), np.concatenate(cols)
-    n = len(us)
-    _, comp = connected_components(coo_matrix((np.ones(len(r), bool), (r, c)), shape=(n, n)), directed=False)
-    out = groups.copy()
-    next_label = int(groups.max()) + 1 if len(groups) else 0
-    for g in np.unique(groups[groups >= 0]):
-        sel = np.nonzero(groups == g)[0]
-        ids, counts = np.unique(comp[sel], return_counts=True)
-        big = ids[counts >= min_points]
-        if len(big) < 2:
-            continue
-        largest = ids[np.argmax(counts)]
-        for k in big:
-            if k != largest:
-                out[sel[comp[sel] == k]] = next_label
-                next_label += 1
-    return out
+    return TableObjects(us[above], vs[above], groups[nearest], depth.shape, height, med)
 
 
 def depth_mask(depth: np.ndarray, cam, box: tuple[int, int, int, int] | None = None, min_points: int = 150,

@@ -124,34 +124,3 @@ def test_eval_command_puts_gt_masks_beside(gearbox_dataset):
     assert "masks depth" in r.stdout and "mask IoU" in r.stdout
     assert "the same frames with ground-truth masks" in r.stdout and "points), mask IoU" in r.stdout
 
-
-def test_touching_objects_are_told_apart_by_depth_steps():
-    """A can standing against a box, from six sides, with and without RealSense-like noise: each is its
-    own group (3D distance alone joins them: they touch). Ground truth from the ray caster's labels."""
-    import trimesh
-
-    from apose_studio import se3
-    from apose_studio.config import CameraIntrinsics
-    from apose_studio.noise import add_depth_noise
-    from apose_studio.raycast import RayGrid
-    from apose_studio.render import Scene, SceneObject, cast
-    from apose_studio.segment import table_objects
-
-    cam = CameraIntrinsics()
-    box = trimesh.creation.box((0.12, 0.08, 0.10))
-    can = trimesh.creation.cylinder(radius=0.033, height=0.12, sections=48)
-    scene = Scene([SceneObject("box", box, se3.make_T(t=[0, 0, 0.05]), (0.5, 0.5, 0.5)),
-                   SceneObject("can", can, se3.make_T(t=[0, 0.04 + 0.033, 0.06]), (0.8, 0.2, 0.2))],
-                  np.eye(4), np.array([0, 0.03, 0.05]), 0.15)
-    grid = RayGrid(cam)
-    for k, yaw in enumerate(np.linspace(0, 300, 6)):
-        eye = se3.axis_angle_matrix([0, 0, 1], np.radians(yaw)) @ np.array([0.0, -0.6, 0.45])
-        hits = cast(scene, grid, se3.look_at(eye, [0, 0.03, 0.05]))
-        for noise in ("none", "realsense"):
-            depth = add_depth_noise(hits.depth, noise, 0.001, np.random.default_rng(k), cam.fx)
-            objs = table_objects(depth, cam)
-            masks = [objs.mask(g) for g in objs.groups(150)]
-            for label, what in ((0, "box"), (1, "can")):
-                truth = hits.labels == label
-                best = max(iou(m, truth) for m in masks)
-                assert best > 0.8, (what, yaw, noise, best)
