@@ -74,3 +74,20 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def write_capture(frame, folder: Path, camera: dict | None = None) -> Path:
+    """A real-capture folder (rgb.png, depth.png in mm, camera.json) from a rendered frame; `camera` replaces
+    the camera file's contents (default: fx, fy, cx, cy and depth_scale 1.0, no extrinsics)."""
+    import json
+
+    import cv2
+    import numpy as np
+
+    folder.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(folder / "rgb.png"), frame.rgb[..., ::-1])
+    cv2.imwrite(str(folder / "depth.png"), (frame.depth * 1000).astype(np.uint16))
+    cam = frame.camera
+    (folder / "camera.json").write_text(json.dumps(camera or {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
+                                                              "depth_scale": 1.0}))
+    return folder

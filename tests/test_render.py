@@ -306,14 +306,10 @@ def test_five_frames_per_step_at_full_size(name, tmp_path, request):
 
 def test_a_capture_without_extrinsics_gets_the_table_as_its_world(gearbox_dataset, tmp_path):
     """The camera's height above the table and its tilt, from the depth alone, match the renderer's truth."""
-    import cv2
+    from .conftest import write_capture
 
     fr = Dataset(gearbox_dataset).frame(1, 0)
-    cap = tmp_path / "cap"
-    cap.mkdir()
-    cv2.imwrite(str(cap / "rgb.png"), fr.rgb[..., ::-1])
-    cv2.imwrite(str(cap / "depth.png"), (fr.depth * 1000).astype(np.uint16))
-    (cap / "camera.json").write_text(json.dumps({"cam_K": fr.camera.K.reshape(-1).tolist(), "depth_scale": 1.0}))
+    cap = write_capture(fr, tmp_path / "cap", {"cam_K": fr.camera.K.reshape(-1).tolist(), "depth_scale": 1.0})
     got = load_capture(cap).T_world_camera
     true = fr.T_world_camera  # the renderer's table is z = 0, z up
     assert abs(got[2, 3] - true[2, 3]) < 0.003, (got[2, 3], true[2, 3])  # camera height above the table

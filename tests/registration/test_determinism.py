@@ -8,7 +8,7 @@ import sys
 
 import numpy as np
 
-from ..conftest import SAMPLES
+from ..conftest import SAMPLES, write_capture
 
 SCRIPT = r"""
 import hashlib, json, sys
@@ -37,17 +37,10 @@ print(json.dumps(out))
 
 
 def test_two_fresh_processes_give_identical_masks_and_poses(gearbox_dataset, tmp_path):
-    import cv2
-
     from apose_studio.dataset import Dataset
 
     fr = Dataset(gearbox_dataset).frame(1, 1)
-    cap = tmp_path / "capture"
-    cap.mkdir()
-    cv2.imwrite(str(cap / "rgb.png"), fr.rgb[..., ::-1])
-    cv2.imwrite(str(cap / "depth.png"), (fr.depth * 1000).astype(np.uint16))
-    (cap / "camera.json").write_text(json.dumps({"fx": fr.camera.fx, "fy": fr.camera.fy, "cx": fr.camera.cx,
-                                                 "cy": fr.camera.cy, "depth_scale": 1.0}))
+    cap = write_capture(fr, tmp_path / "capture")
     vs, us = np.nonzero(fr.base_mask())
     box = [int(us.min()) - 5, int(vs.min()) - 5, int(us.max()) + 5, int(vs.max()) + 5]
     runs = []

@@ -4,12 +4,11 @@ that goes through `Studio.guarded` as the browser's does (no browser here; tests
 import shutil
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from apose_studio.studio import serve
 
-from ..conftest import SAMPLES, free_port
+from ..conftest import SAMPLES, free_port, write_capture
 
 
 class Click:
@@ -50,20 +49,9 @@ def gearbox_copy(tmp_path) -> Path:
 @pytest.fixture
 def capture(gearbox_dataset, tmp_path) -> Path:
     """A real-capture folder (rgb.png, depth.png in mm, camera.json) made from a rendered frame."""
-    import json
-
-    import cv2
-
     from apose_studio.dataset import Dataset
 
-    fr = Dataset(gearbox_dataset).frame(1, 1)
-    cap = tmp_path / "capture"
-    cap.mkdir()
-    cv2.imwrite(str(cap / "rgb.png"), fr.rgb[..., ::-1])
-    cv2.imwrite(str(cap / "depth.png"), (fr.depth * 1000).astype(np.uint16))
-    (cap / "camera.json").write_text(json.dumps({"fx": fr.camera.fx, "fy": fr.camera.fy, "cx": fr.camera.cx,
-                                                 "cy": fr.camera.cy, "depth_scale": 1.0}))
-    return cap
+    return write_capture(Dataset(gearbox_dataset).frame(1, 1), tmp_path / "capture")
 
 
 def open_capture(studio, cap):
