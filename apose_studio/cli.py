@@ -165,7 +165,7 @@ def cmd_render(args) -> int:
 
     asm = load_assembly(args.assembly)
     settings = RenderSettings(frames=args.frames, seed=args.seed, noise=args.noise, noise_sigma_at_05m=args.noise_sigma,
-                              base_pose=args.base_pose, distractors=args.distractors)
+                              base_pose=args.base_pose, distractors=args.distractors, clutter=args.clutter)
     if asm.camera is not None:
         settings = replace(settings, camera=asm.camera)
     for name, attr in (("yaw_range", "yaw_range_deg"), ("pitch_range", "pitch_range_deg"),
@@ -189,59 +189,118 @@ def _pose_lines(T: np.ndarray) -> list[str]:
         f"  q (w,x,y,z) = ({q[0]:+.5f}, {q[1]:+.5f}, {q[2]:+.5f}, {q[3]:+.5f})"]
 
 
+def _open_estimate_input(args):
+    """(frame, assembly) for `apose estimate`: a rendered dataset, a capture folder or a BOP scene folder."""
+    from .api import step_context
+    from .assembly import load_assembly
+    from .bop import BopScene
+    from .dataset import Dataset, open_frames
+
+    src = open_frames(args.input)
+    asm = load_assembly(args.assembly) if args.assembly else None
+    if isinstance(src, Dataset):
+        asm = asm or src.assembly
+        if args.step not in src.steps:
+            step_context(asm, args.step)  # a step the assembly lacks says so first
+            raise AposeError(f"{src.root}: step {args.step} was not rendered; rendered steps: {', '.join(map(str, src.steps))}")
+        return src.frame(args.step, args.frame), asm
+    if asm is None:
+        raise AposeError(f"{args.input}: a capture has no assembly of its own; give --assembly A.yaml (and --step)")
+    _, ctx = step_context(asm, args.step)
+    if isinstance(src, BopScene):
+        from .bop import parse_obj_map
+
+        src.obj_of_part = parse_obj_map(args.obj_map, asm.parts)
+        return src.frame(args.frame, ctx.view), asm
+    src.base, src.part, src.step = tuple(ctx.view.base), ctx.view.part, args.step
+    return src, asm
+
+
+def _estimate_mask(args, frame, asm) -> tuple[np.ndarray, str]:
+    from .api import check_mask, find_mask
+    from .evaluate import check_mask_source, frame_mask
+    from .prompt import parse_box, parse_point
+
+    box = parse_box(args.box) if args.box else None
+    point = parse_point(args.point) if args.point else None
+    if box is not None or point is not None:
+        if args.mask not in (None, "depth"):
+            raise AposeError(f"--mask {args.mask} and --box/--point: give one way to find the object")
+        return find_mask(frame.rgb, frame.depth, frame.camera, box=box, point=point)
+    source = args.mask or ("gt" if frame.masks else "depth")
+    if source.lower().endswith((".png", ".jpg", ".bmp", ".tif", ".tiff")):
+        import cv2
+
+        from .dataset import _read_image
+
+        return check_mask(_read_image(Path(source), cv2.IMREAD_GRAYSCALE), frame.depth.shape, source), source
+    if source == "gt" and not frame.masks:
+        raise AposeError(f"{args.input}: no ground-truth masks here; use --box x0,y0,x1,y1, --point u,v, --mask depth "
+                         "or --mask MASK.png")
+    return frame_mask(frame, check_mask_source(source, asm)), source
+
+
 def cmd_estimate(args) -> int:
-    from .dataset import Dataset
-    from .evaluate import StepContext
-    from .mesh import load_parts
-    from .registration import doubts, resolve_params
+    from .api import run_registration, step_context
+    from .evaluate import score_frame
+    from .registration import resolve_params
 
-    ds = Dataset(args.dataset)
-    asm = ds.assembly
+    t0 = time.perf_counter()
+    frame, asm = _open_estimate_input(args)
+    _, ctx = step_context(asm, args.step)
     params = resolve_params(args.preset, asm.registration, **_upright(args))
-    ctx = StepContext(asm, load_parts(asm), args.step) if args.step in ds.steps else None
-    if ctx is None:
-        raise AposeError(f"{ds.root}: step {args.step} was not rendered; rendered steps: {', '.join(map(str, ds.steps))}")
-    from .evaluate import check_mask_source, estimate_and_score
-
-    source = check_mask_source(args.mask, asm)
-    frame = ds.frame(args.step, args.frame)
-    r, sc = estimate_and_score(frame, ctx, params, source, args.orientation_prior, trace_iterations=True)
+    mask, source = _estimate_mask(args, frame, asm)
+    est = run_registration(frame.depth, mask, source, frame.camera, frame.T_world_camera, asm, ctx, params,
+                           args.orientation_prior, t0, time.perf_counter() - t0, trace_iterations=True)
+    r = est.result
+    sc = score_frame(frame, r, ctx.part, None if source == "gt" else mask) if frame.T_world_part is not None else None
     if args.json:
-        doc = sc.to_json()
-        doc.update(preset=params.preset, part=ctx.part.id, base=list(ctx.view.base), reason=r.reason,
+        doc = est.to_json()
+        doc.update(step=args.step, frame=args.frame, preset=params.preset, part=ctx.part.id, base=list(ctx.view.base),
                    stages=[{"name": st.name, "T_world_base": st.T_world_base.tolist(), "fitness": st.fitness,
                             "inlier_rmse": st.inlier_rmse} for st in r.stages],
-                   timings_s=r.timings, voxel_m=r.voxel, coverage=_finite(r.coverage), contradiction=_finite(r.contradiction),
-                   out_of_time=r.out_of_time, doubts=doubts(r),
-                   alternatives=[{"T_world_part": c.T_world_part.tolist(), "score": c.score} for c in r.alternatives])
+                   voxel_m=r.voxel, fitness=r.fitness, contradiction=_finite(r.contradiction), out_of_time=r.out_of_time,
+                   alternatives_scores=[c.score for c in r.alternatives])
+        if sc is not None:
+            doc["truth"] = sc.to_json()
         print(json.dumps(doc, indent=1))
         return 0 if r.ok else 1
     print(f"step {args.step}, frame {args.frame}: place {ctx.part.id} on [{', '.join(ctx.view.base)}]  (preset {params.preset})")
+    print(f"mask: {source}, {int(mask.sum())} pixels ({est.timings['mask'] * 1000:.0f} ms)")
     if not r.ok:
         print(f"estimation failed: {r.reason}")
         return 1
     print("T_world_part (estimated assembly pose):")
     print("\n".join(_pose_lines(r.T_world_part)))
+    print("T_camera_part:")
+    print("\n".join(_pose_lines(est.T_camera_part)))
     print(f"registration: fitness {r.fitness:.4f}, inlier RMSE {r.inlier_rmse * 1000:.3f} mm, voxel {r.voxel * 1000:.2f} mm, "
           f"{len(r.stages) - 3} ICP iterations, {r.seconds * 1000:.0f} ms "
           f"({', '.join(f'{k} {v * 1000:.0f}' for k, v in r.timings.items())} ms)")
-    if sc.mask_iou is not None:
-        print(f"mask ({args.mask}): IoU {sc.mask_iou:.3f} against the ground-truth base mask")
+    if sc is not None and sc.mask_iou is not None:
+        print(f"mask ({source}): IoU {sc.mask_iou:.3f} against the ground-truth base mask")
     if not r.confident:
-        print(f"low confidence: {doubts(r)}; this pose is likely wrong")
+        print(f"low confidence: {est.doubts}; this pose is likely wrong")
     if r.ambiguous:
-        print(f"ambiguous: {len(r.alternatives) + 1} placements of {ctx.part.id} fit the data equally (the base object is "
-              "(nearly) symmetric, and what tells them apart is not in view); the estimate and the others:")
-        def xyz(T) -> str:
-            return "xyz ({:+.1f}, {:+.1f}, {:+.1f}) mm".format(*(T[:3, 3] * 1000))
-        print(f"  estimate {xyz(r.T_world_part)}")
-        for c in r.alternatives:
-            apart = np.linalg.norm(c.T_world_part[:3, 3] - r.T_world_part[:3, 3]) * 1000
-            turn = se3.rotation_angle_deg(c.T_world_part[:3, :3].T @ r.T_world_part[:3, :3])
-            print(f"  other    {xyz(c.T_world_part)}, score {c.score:.3f}, {apart:.1f} mm and {turn:.0f}° from the estimate")
-    print(f"against ground truth: ADI {sc.adi * 1000:.3f} mm, MSSD {sc.mssd * 1000:.3f} mm, "
-          f"te {sc.te * 1000:.3f} mm, re {sc.re_deg:.3f}°")
+        _print_alternatives(r, ctx.part.id)
+    if sc is not None:
+        print(f"against ground truth: ADI {sc.adi * 1000:.3f} mm, MSSD {sc.mssd * 1000:.3f} mm, "
+              f"te {sc.te * 1000:.3f} mm, re {sc.re_deg:.3f}°")
     return 0
+
+
+def _print_alternatives(r, part: str) -> None:
+    print(f"ambiguous: {len(r.alternatives) + 1} placements of {part} fit the data equally (the base object is "
+          "(nearly) symmetric, and what tells them apart is not in view); the estimate and the others:")
+
+    def xyz(T) -> str:
+        return "xyz ({:+.1f}, {:+.1f}, {:+.1f}) mm".format(*(T[:3, 3] * 1000))
+
+    print(f"  estimate {xyz(r.T_world_part)}")
+    for c in r.alternatives:
+        apart = np.linalg.norm(c.T_world_part[:3, 3] - r.T_world_part[:3, 3]) * 1000
+        turn = se3.rotation_angle_deg(c.T_world_part[:3, :3].T @ r.T_world_part[:3, :3])
+        print(f"  other    {xyz(c.T_world_part)}, score {c.score:.3f}, {apart:.1f} mm and {turn:.0f}° from the estimate")
 
 
 def cmd_eval(args) -> int:
@@ -292,11 +351,13 @@ def _upright(args) -> dict:
     return {"upright": args.upright}
 
 
-def _estimator_args(p: argparse.ArgumentParser) -> None:
+def _estimator_args(p: argparse.ArgumentParser, mask_default: str | None = "gt") -> None:
     p.add_argument("--preset", default="default", choices=["default", "paper"], help="estimator settings (default: ours)")
-    p.add_argument("--mask", default="gt", metavar="gt|depth|MODEL.pt",
-                   help="the base object's mask: gt (the dataset's ground truth, default), depth (table-plane "
-                   "removal and 3D clustering, no training) or a model from `apose train-seg`")
+    p.add_argument("--mask", default=mask_default, metavar="gt|depth|box|MODEL.pt|MASK.png",
+                   help="the base object's mask: gt (the data's ground truth; the default where there is one), depth "
+                   "(table-plane removal and 3D clustering, no training; the default for captures), box (eval: the "
+                   "prompted mask from the ground truth's visible box, as a detector would give), a model from "
+                   "`apose train-seg`, or a mask image")
     p.add_argument("--orientation-prior", action="store_true",
                    help="take the CAD's orientation as the base's orientation in the world (true for --base-pose fixed renders)")
     p.add_argument("--upright", action=argparse.BooleanOptionalAction, default=None,
@@ -366,9 +427,10 @@ def _add_render(sub) -> None:
     p.add_argument("--frames", type=int, default=10, help="views per step (default 10)")
     p.add_argument("--seed", type=int, default=0, help="random seed; the same seed gives the same dataset")
     p.add_argument("--steps", type=_steps, help="only these steps, e.g. 1,3 (default: all)")
-    p.add_argument("--noise", default="none", choices=["none", "gaussian", "realsense"],
+    p.add_argument("--noise", default="none", choices=["none", "gaussian", "realsense", "kinect"],
                    help="depth noise: none; gaussian (axial, grows with z^2); realsense (gaussian + edge "
-                   "dropouts + disparity quantisation)")
+                   "dropouts + disparity quantisation); kinect (Kinect v1 as in LINEMOD: coarser quantisation, "
+                   "projector shadows beside edges, no depth on dark or glossy surfaces)")
     p.add_argument("--noise-sigma", type=float, default=0.001, help="axial depth noise at 0.5 m, metres (default 0.001)")
     p.add_argument("--base-pose", default="yaw", choices=["yaw", "fixed"],
                    help="yaw: base at a random position and yaw on the table (default); fixed: base at a known pose, "
@@ -380,18 +442,29 @@ def _add_render(sub) -> None:
     p.add_argument("--distance-range", type=lambda t: _pair(t, "--distance-range"), metavar="MIN,MAX",
                    help="camera distance to the base centre, metres (default: the base fills 25-50%% of the image)")
     p.add_argument("--distractors", type=int, default=2, help="random boxes, cylinders and balls on the table (default 2)")
+    p.add_argument("--clutter", action="store_true",
+                   help="a cluttered bench: objects of the base's height standing against it and around it, the base "
+                   "off-centre in the image (tests prompted masks: --box / --point)")
     p.add_argument("--overwrite", action="store_true", help="replace a dataset already in --out")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_render)
 
 
 def _add_estimate(sub) -> None:
-    p = sub.add_parser("estimate", help="estimate the assembly pose in one frame of a dataset")
-    p.add_argument("dataset", help="dataset folder made by `apose render`")
+    p = sub.add_parser("estimate", help="estimate the assembly pose in one frame: a rendered dataset, a capture or a BOP scene",
+                       description="Exit codes: 0 a pose, 1 the estimate failed (the reason is printed), 2 bad input.")
+    p.add_argument("input", help="dataset folder from `apose render`, capture folder (rgb.png, depth.png, camera.json "
+                   "with fx,fy,cx,cy or BOP's cam_K) or BOP scene folder (scene_camera.json, rgb/, depth/)")
+    p.add_argument("--assembly", help="assembly YAML (needed for a capture or BOP scene; a dataset has its own)")
     p.add_argument("--step", type=int, required=True, help="assembly step (1-based)")
-    p.add_argument("--frame", type=int, default=0, help="image id within the step (default 0)")
-    _estimator_args(p)
-    p.add_argument("--json", action="store_true", help="print JSON (metres), with every registration stage")
+    p.add_argument("--frame", type=int, default=0, help="image id within the step or BOP scene (default 0)")
+    p.add_argument("--box", metavar="X0,Y0,X1,Y1", help="a box around the base object in pixels: the mask from depth and colour")
+    p.add_argument("--point", metavar="U,V", help="a click on the base object in pixels: the mask from depth and colour")
+    p.add_argument("--obj-map", action="append", metavar="PART=OBJ_ID",
+                   help="BOP scene: which BOP obj_id each part is (repeatable), for the ground truth in scene_gt.json")
+    p.add_argument("--json", action="store_true", help="print JSON (metres): ok, reason, T_world_base, T_world_part, "
+                   "T_camera_part, confident, coverage, ambiguous, alternatives, mask, timings, stages")
+    _estimator_args(p, mask_default=None)
     p.set_defaults(func=cmd_estimate)
 
 
@@ -448,10 +521,10 @@ def main(argv=None) -> int:
         return 2
     try:
         return args.func(args)
-    except AposeError as e:
+    except AposeError as e:  # bad input: the message names the thing and the fix
         for line in str(e).splitlines():
             print(f"error: {line}", file=sys.stderr)
-        return 1
+        return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130

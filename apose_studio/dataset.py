@@ -9,7 +9,8 @@ Layout (one BOP scene per assembly step; BOP's own files keep BOP's units, milli
       models/obj_000001.ply   BOP: one mesh per part, in mm; models_info.json (diameter, symmetries)
       test/000001/            BOP scene = assembly step 1
         rgb/000000.jpg (JPEG q95, as BOP's PBR sets)  depth/000000.png (uint16, depth_mm = value * depth_scale)
-        mask_visib/000000_000000.png   (image id, index into scene_gt's list)
+        mask_visib/000000_000000.png   (image id, index into scene_gt's list): the visible part
+        mask/000000_000000.png         the whole silhouette (as if nothing occluded it), as BOP writes
         scene_camera.json  scene_gt.json  scene_gt_info.json
         scene_assembly.json   apose extension, metres: the step's base, part, T_base_part, and per
                               image T_world_base, T_world_part (ground-truth assembly pose),
@@ -223,46 +224,51 @@ def read_capture_camera(path: Path, width: int, height: int) -> tuple[CameraIntr
     Two forms: ours ({fx, fy, cx, cy, depth_scale}) and BOP's ({cam_K: row-major 3x3, depth_scale});
     either may add BOP's cam_R_w2c / cam_t_w2c (mm) for the camera pose (else None: load_capture puts
     the world on the table)."""
-    cam = read_json(path)
+    return check_camera_entry(read_json(path), str(path), width, height)
+
+
+def check_camera_entry(cam, where: str, width: int, height: int) -> tuple[CameraIntrinsics, float, np.ndarray | None]:
+    """One camera entry (a capture's camera.json, or one image of BOP's scene_camera.json), checked;
+    errors start with `where`."""
     if not isinstance(cam, dict):
-        raise DatasetError(f"{path}: expected a JSON object with fx, fy, cx, cy, depth_scale (or BOP's cam_K)")
+        raise DatasetError(f"{where}: expected a JSON object with fx, fy, cx, cy, depth_scale (or BOP's cam_K)")
 
     def number(key, value=None):
         v = cam.get(key) if value is None else value
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
-            raise DatasetError(f"{path}: {key} must be a finite number, got {v!r}"[:200])
+            raise DatasetError(f"{where}: {key} must be a finite number, got {v!r}"[:200])
         return float(v)
 
     if "cam_K" in cam:
         K = cam["cam_K"]
         if not (isinstance(K, list) and len(K) == 9):
-            raise DatasetError(f"{path}: cam_K must be 9 numbers (a row-major 3x3 matrix, BOP's form)")
+            raise DatasetError(f"{where}: cam_K must be 9 numbers (a row-major 3x3 matrix, BOP's form)")
         fx, _, cx, _, fy, cy = (number(f"cam_K[{i}]", K[i]) for i in (0, 1, 2, 3, 4, 5))
     else:
         missing = [k for k in ("fx", "fy", "cx", "cy") if k not in cam]
         if missing:
-            raise DatasetError(f"{path}: missing {', '.join(missing)}: give the intrinsics in pixels as fx, fy, cx, cy, "
+            raise DatasetError(f"{where}: missing {', '.join(missing)}: give the intrinsics in pixels as fx, fy, cx, cy, "
                                "or as BOP's cam_K")
         fx, fy, cx, cy = (number(k) for k in ("fx", "fy", "cx", "cy"))
     if "depth_scale" not in cam:
-        raise DatasetError(f"{path}: missing depth_scale (millimetres per depth unit: 1.0 for RealSense and Kinect "
+        raise DatasetError(f"{where}: missing depth_scale (millimetres per depth unit: 1.0 for RealSense and Kinect "
                            "PNGs in mm, 0.1 for apose renders)")
     depth_scale = number("depth_scale")
     if fx <= 0 or fy <= 0:
-        raise DatasetError(f"{path}: fx and fy must be positive focal lengths in pixels, got fx={fx:g}, fy={fy:g}")
+        raise DatasetError(f"{where}: fx and fy must be positive focal lengths in pixels, got fx={fx:g}, fy={fy:g}")
     if not (0 <= cx <= width and 0 <= cy <= height):
-        raise DatasetError(f"{path}: the principal point ({cx:g}, {cy:g}) lies outside the {width}x{height} image; "
+        raise DatasetError(f"{where}: the principal point ({cx:g}, {cy:g}) lies outside the {width}x{height} image; "
                            "are the intrinsics for another resolution?")
     if depth_scale <= 0:
-        raise DatasetError(f"{path}: depth_scale must be positive (millimetres per depth unit), got {depth_scale:g}")
-    T_world_camera = None  # none given: see load_capture
+        raise DatasetError(f"{where}: depth_scale must be positive (millimetres per depth unit), got {depth_scale:g}")
+    T_world_camera = None  # none given: the caller puts the world on the table
     if "cam_R_w2c" in cam or "cam_t_w2c" in cam:
         try:
             T_world_camera = se3.inv(_T_from_Rt(cam["cam_R_w2c"], cam["cam_t_w2c"]))
         except (KeyError, ValueError, TypeError):
-            raise DatasetError(f"{path}: cam_R_w2c (9 numbers) and cam_t_w2c (3 numbers, mm) go together") from None
+            raise DatasetError(f"{where}: cam_R_w2c (9 numbers) and cam_t_w2c (3 numbers, mm) go together") from None
         if not np.isfinite(T_world_camera).all():
-            raise DatasetError(f"{path}: cam_R_w2c / cam_t_w2c hold non-finite numbers")
+            raise DatasetError(f"{where}: cam_R_w2c / cam_t_w2c hold non-finite numbers")
     return CameraIntrinsics(width, height, fx, fy, cx, cy), depth_scale, T_world_camera
 
 
@@ -288,13 +294,21 @@ def load_capture(folder: str | Path) -> Frame:
 
 
 def open_frames(path: str | Path):
-    """A Dataset for a rendered folder, or a single Frame for a real-capture folder."""
+    """A Dataset for a rendered folder, a BopScene for a BOP scene folder, or a single Frame for a
+    real-capture folder."""
     path = Path(path)
     if (path / "dataset_info.json").is_file():
         return Dataset(path)
     if (path / "rgb.png").is_file():
         return load_capture(path)
-    raise DatasetError(f"{path}: neither a dataset (dataset_info.json) nor a capture (rgb.png, depth.png, camera.json)")
+    from .bop import BopScene, is_bop_scene
+
+    if is_bop_scene(path):
+        return BopScene(path)
+    if not path.exists():
+        raise DatasetError(f"{path}: no such folder")
+    raise DatasetError(f"{path}: neither a dataset (dataset_info.json), a capture (rgb.png, depth.png, camera.json) "
+                       "nor a BOP scene (scene_camera.json, rgb/, depth/)")
 
 
 # ----------------------------------------------------------------------------------- writing
@@ -331,7 +345,7 @@ class SceneWriter:
 
     def __init__(self, root: Path, step: int, view_info: dict):
         self.dir = scene_dir(root, step)
-        for sub in ("rgb", "depth", "mask_visib"):
+        for sub in ("rgb", "depth", "mask", "mask_visib"):
             (self.dir / sub).mkdir(parents=True, exist_ok=True)
         self.camera, self.gt, self.gt_info = {}, {}, {}
         self.assembly = dict(view_info, frames={})
@@ -345,6 +359,7 @@ class SceneWriter:
         _imwrite(self.dir / "depth" / f"{name}.png", depth_u16)
         for i, o in enumerate(objects):
             _imwrite(self.dir / "mask_visib" / f"{name}_{i:06d}.png", o.paste(o.visible, depth_u16.shape) * np.uint8(255))
+            _imwrite(self.dir / "mask" / f"{name}_{i:06d}.png", o.paste(o.full, depth_u16.shape) * np.uint8(255))
         return depth_u16
 
     def record(self, im_id: int, cam: CameraIntrinsics, T_world_camera: np.ndarray, depth_u16: np.ndarray,

@@ -15,7 +15,8 @@ from .errors import AposeError
 from .mesh import PartModel, base_mesh, load_parts
 from .registration import TIE_MARGIN, BaseObject, Params, RegistrationResult, estimate, prepare_base
 
-MASK_SOURCES = ("gt", "depth")  # or the path of a model from `apose train-seg`
+MASK_SOURCES = ("gt", "depth", "box")  # or the path of a model from `apose train-seg`
+BOX_MARGIN = 0.04  # the box prompt of `--mask box`: the ground truth's visible box, this much wider on each side
 
 
 @dataclass
@@ -89,9 +90,25 @@ def frame_mask(frame: Frame, source: str) -> np.ndarray:
         from .segment import depth_mask
 
         return depth_mask(frame.depth, frame.camera)
+    if source == "box":
+        from .prompt import prompted_mask
+
+        box = truth_box(frame.base_mask())
+        return prompted_mask(frame.rgb, frame.depth, frame.camera, box=box).mask if box else frame.base_mask()
     if _is_model(source):
         return _segmenter(str(Path(source).resolve())).mask(frame.rgb, frame.depth, frame.base, frame.camera)
     raise ValueError(f"unknown mask source {source!r}; available: {', '.join(MASK_SOURCES)} or a .pt model")
+
+
+def truth_box(mask: np.ndarray, margin: float = BOX_MARGIN) -> tuple[int, int, int, int] | None:
+    """The box a user or detector would draw: the visible mask's box, `margin` of its size wider per side."""
+    if not mask.any():
+        return None
+    ys, xs = np.nonzero(mask)
+    mx, my = margin * (np.ptp(xs) + 1), margin * (np.ptp(ys) + 1)
+    h, w = mask.shape
+    return (max(int(xs.min() - mx), 0), max(int(ys.min() - my), 0), min(int(xs.max() + 1 + mx), w),
+            min(int(ys.max() + 1 + my), h))
 
 
 def score_frame(frame: Frame, result: RegistrationResult, part: PartModel, mask: np.ndarray | None = None) -> FrameScore:

@@ -38,6 +38,7 @@ class RenderSettings:
     distance_range_m: tuple[float, float] | None = None  # None: chosen so the base fills 25-50 % of the image
     base_pose: str = "yaw"
     distractors: int = 2
+    clutter: bool = False  # a cluttered bench: objects of the base's height touching it and around it, base off-centre
     camera: CameraIntrinsics = field(default_factory=CameraIntrinsics)
 
     def validate(self) -> None:
@@ -156,6 +157,15 @@ def sample_scene(models: dict[str, PartModel], view: StepView, settings: RenderS
                for pid, T in view.T_base_members.items()]
 
     placed = [(centre[:2], base_d / 2)]  # discs already taken on the table
+    look = centre
+    if settings.clutter:
+        from .clutter import clutter_around
+
+        bench, look = clutter_around(base.copy().apply_transform(T_world_base), rng, touching=int(rng.integers(2, 4)))
+        for mesh, T in bench:
+            color = tuple(float(c) for c in rng.uniform(0.15, 0.95, 3))
+            objects.append(SceneObject(None, mesh, T, color))
+            placed.append((T[:2, 3], float(np.linalg.norm(mesh.extents[:2])) / 2))
 
     def free_spot(radius: float) -> np.ndarray:
         for _ in range(100):
@@ -177,7 +187,7 @@ def sample_scene(models: dict[str, PartModel], view: StepView, settings: RenderS
         color = tuple(float(c) for c in rng.uniform(0.15, 0.95, 3))
         objects.append(SceneObject(None, mesh, _resting_pose(mesh, rng.uniform(0, 2 * np.pi), free_spot(r)), color))
     grey = float(rng.uniform(0.45, 0.75))
-    return Scene(objects, T_world_base, centre, base_d, (grey, grey * 0.97, grey * 0.92), max(2.0, 20 * base_d))
+    return Scene(objects, T_world_base, look, base_d, (grey, grey * 0.97, grey * 0.92), max(2.0, 20 * base_d))
 
 
 def auto_distance_range(base_diameter: float, cam: CameraIntrinsics) -> tuple[float, float]:
@@ -318,7 +328,7 @@ def render_frame(models: dict[str, PartModel], view: StepView, settings: RenderS
 
 def noisy_depth(frame: RenderedFrame, settings: RenderSettings) -> np.ndarray:
     return add_depth_noise(frame.hits.depth, settings.noise, settings.noise_sigma_at_05m,
-                           np.random.default_rng(frame.noise_seed), settings.camera.fx)
+                           np.random.default_rng(frame.noise_seed), settings.camera.fx, rgb=frame.rgb)
 
 
 def step_numbers(asm: Assembly, steps: list[int] | None) -> list[int]:

@@ -105,6 +105,8 @@ def test_bop_files(planetary_ds):
     for i, entry in enumerate(gt_info["1"]):
         m = cv2.imread(str(sc / "mask_visib" / f"000001_{i:06d}.png"), cv2.IMREAD_GRAYSCALE) > 0
         assert m.sum() == entry["px_count_visib"]
+        full = cv2.imread(str(sc / "mask" / f"000001_{i:06d}.png"), cv2.IMREAD_GRAYSCALE) > 0  # BOP's mask/
+        assert full.sum() == entry["px_count_all"] and not (m & ~full).any()
         if m.any():
             x, y, w, h = entry["bbox_visib"]
             ys, xs = np.nonzero(m)

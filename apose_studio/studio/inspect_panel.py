@@ -108,6 +108,11 @@ class InspectPanel:
         from ..dataset import Dataset, open_frames
 
         frames = open_frames(Path(text).expanduser())
+        from ..bop import BopScene
+
+        if isinstance(frames, BopScene):
+            raise AposeError(f"{text}: a BOP scene folder; the studio opens apose datasets and single captures "
+                             "(run `apose estimate` on BOP scenes)")
         if isinstance(frames, Dataset):
             steps = [f"{s}. {frames.assembly.steps[s - 1].part}" for s in frames.steps]
         else:

@@ -1,0 +1,154 @@
+"""One call for robot code: the assembly pose from one RGB-D frame held in arrays.
+
+    from apose_studio.api import estimate_pose
+    est = estimate_pose(rgb, depth_m, K, "assembly.yaml", step=2, box=(210, 140, 420, 330))
+    if est.ok and est.confident:
+        robot.place(est.T_world_part)        # 4x4, metres; T_camera_part without extrinsics
+
+Masks, in order of preference: the caller's `mask`; a prompt (`box` x0,y0,x1,y1 or `point` u,v in
+pixels: `prompt.prompted_mask`); else depth alone (`segment.depth_mask`, the object nearest the image
+centre). Without `T_world_camera`, the world frame lies on the table (z up) when one is seen.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from . import se3
+from .config import CameraIntrinsics
+from .errors import AposeError
+
+
+@dataclass
+class PoseEstimate:
+    ok: bool
+    reason: str
+    T_world_camera: np.ndarray
+    T_world_base: np.ndarray | None
+    T_world_part: np.ndarray | None
+    T_camera_part: np.ndarray | None
+    confident: bool
+    coverage: float
+    ambiguous: bool
+    alternatives: list[np.ndarray]  # T_world_part of the other placements that fit as well
+    mask: np.ndarray
+    mask_source: str  # "given", "box", "point", "depth", "gt", "MASK.png", a model path
+    timings: dict[str, float] = field(default_factory=dict)  # seconds: mask, registration, total
+    result: object = None  # the full registration.RegistrationResult
+    doubts: str = ""
+
+    def to_json(self) -> dict:
+        def m(T):
+            return None if T is None else np.asarray(T).tolist()
+
+        cov = self.coverage if np.isfinite(self.coverage) else None
+        return {"ok": self.ok, "reason": self.reason, "T_world_base": m(self.T_world_base),
+                "T_world_part": m(self.T_world_part), "T_camera_part": m(self.T_camera_part),
+                "T_world_camera": m(self.T_world_camera), "confident": self.confident, "coverage": cov,
+                "doubts": self.doubts, "ambiguous": self.ambiguous, "alternatives": [m(T) for T in self.alternatives],
+                "mask": {"source": self.mask_source, "pixels": int(self.mask.sum())},
+                "timings_s": {k: round(v, 4) for k, v in self.timings.items()}}
+
+
+def camera_from_K(K, width: int, height: int) -> CameraIntrinsics:
+    K = np.asarray(K, float)
+    if K.shape == (9,):
+        K = K.reshape(3, 3)
+    if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise AposeError(f"K must be a 3x3 intrinsic matrix with positive fx, fy; got {np.asarray(K).tolist()}"[:200])
+    return CameraIntrinsics.from_K(K, width, height)
+
+
+def check_mask(mask: np.ndarray, shape: tuple[int, int], what: str = "mask") -> np.ndarray:
+    mask = np.asarray(mask)
+    if mask.ndim == 3:
+        mask = mask[..., 0]
+    if mask.shape != shape:
+        raise AposeError(f"{what} is {mask.shape[1] if mask.ndim > 1 else '?'}x{mask.shape[0]} but the depth is "
+                         f"{shape[1]}x{shape[0]}; give a mask of the same size as the image")
+    return mask > 0
+
+
+_CONTEXTS: dict = {}
+
+
+def step_context(assembly, step: int):
+    """(Assembly, StepContext) for an assembly (path or Assembly) and a 1-based step, cached per file."""
+    from .assembly import Assembly, load_assembly
+    from .evaluate import StepContext
+    from .mesh import load_parts
+
+    asm = assembly if isinstance(assembly, Assembly) else load_assembly(assembly)
+    if not 1 <= step <= len(asm.steps):
+        raise AposeError(f"{asm.path}: step {step} does not exist; the assembly has steps 1..{len(asm.steps)}"
+                         if asm.steps else f"{asm.path}: the assembly has no steps")
+    key = (str(asm.path), Path(asm.path).stat().st_mtime if Path(str(asm.path)).exists() else id(asm), step)
+    if key not in _CONTEXTS:
+        if len(_CONTEXTS) > 8:
+            _CONTEXTS.clear()
+        _CONTEXTS[key] = StepContext(asm, load_parts(asm), step)
+    return asm, _CONTEXTS[key]
+
+
+def find_mask(rgb, depth, cam, mask=None, box=None, point=None) -> tuple[np.ndarray, str]:
+    """The base object's mask and where it came from (see the module's doc)."""
+    if mask is not None:
+        return check_mask(mask, depth.shape), "given"
+    if box is not None or point is not None:
+        from .prompt import prompted_mask
+
+        return prompted_mask(rgb, depth, cam, box=box, point=point).mask, "box" if box is not None else "point"
+    from .segment import depth_mask
+
+    return depth_mask(depth, cam), "depth"
+
+
+def estimate_pose(rgb: np.ndarray, depth: np.ndarray, K, assembly, step: int, *, T_world_camera=None,
+                  mask=None, box=None, point=None, preset: str = "default", orientation_prior: bool = False,
+                  **params) -> PoseEstimate:
+    """The assembly pose of `step`'s part from one frame. rgb (H, W, 3) uint8; depth (H, W) metres (0 or
+    NaN where missing); K 3x3. Raises AposeError on bad input; a failed estimate is ok=False with a reason."""
+    from .evaluate import StepContext  # noqa: F401  (loads the core)
+    from .registration import resolve_params
+
+    t0 = time.perf_counter()
+    depth = np.asarray(depth, np.float32)
+    if depth.ndim != 2:
+        raise AposeError(f"depth must be an (H, W) image in metres, got shape {depth.shape}")
+    rgb = np.asarray(rgb)
+    if rgb.shape[:2] != depth.shape:
+        raise AposeError(f"RGB is {rgb.shape[1]}x{rgb.shape[0]} but depth is {depth.shape[1]}x{depth.shape[0]}; "
+                         "align depth to colour first")
+    depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0).astype(np.float32)
+    cam = camera_from_K(K, depth.shape[1], depth.shape[0])
+    if T_world_camera is None:
+        from .plane import table_frame
+
+        T_world_camera = table_frame(depth, cam)
+        T_world_camera = np.eye(4) if T_world_camera is None else T_world_camera
+    asm, ctx = step_context(assembly, step)
+    m, source = find_mask(rgb, depth, cam, mask, box, point)
+    t_mask = time.perf_counter() - t0
+    return run_registration(depth, m, source, cam, np.asarray(T_world_camera, float), asm, ctx,
+                            resolve_params(preset, asm.registration, **params), orientation_prior, t0, t_mask)
+
+
+def run_registration(depth, mask, source, cam, T_world_camera, asm, ctx, params, orientation_prior, t0, t_mask,
+                     trace_iterations: bool = False) -> PoseEstimate:
+    from .registration import doubts, estimate
+
+    ctx.base.warm_up(params)
+    t1 = time.perf_counter()
+    r = estimate(depth, mask, cam, T_world_camera, ctx.base, ctx.view.T_base_part, params,
+                 prior_T_world_base=np.eye(4) if orientation_prior else None, trace_iterations=trace_iterations)
+    t2 = time.perf_counter()
+    T_camera_part = se3.inv(T_world_camera) @ r.T_world_part if r.ok else None
+    return PoseEstimate(r.ok, r.reason, T_world_camera, r.T_world_base if r.ok else None, r.T_world_part if r.ok else None,
+                        T_camera_part, bool(r.confident), float(r.coverage), bool(r.ambiguous),
+                        [c.T_world_part for c in r.alternatives], mask, source,
+                        {"mask": t_mask, "registration": t2 - t1, "total": t2 - t0}, r,
+                        "" if r.confident or not r.ok else doubts(r))

@@ -1,0 +1,182 @@
+"""BOP interoperability: BOP scene folders as input, the BOP19 results CSV out and in.
+
+A BOP scene folder holds scene_camera.json, rgb/ (or gray/), depth/ and, with ground truth,
+scene_gt.json (+ mask_visib/). A split folder (e.g. lmo/test) holds scene folders named by number.
+Units are BOP's at the edge (mm, row-major R) and metres inside. Facts checked against bop_toolkit:
+../shared/docs/BOP_NOTES.md.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from . import se3
+from .config import CameraIntrinsics
+from .dataset import DatasetError, Frame, _read_image, _T_from_Rt, read_depth, read_json, read_rgb
+
+CSV_HEADER = ["scene_id", "im_id", "obj_id", "score", "R", "t", "time"]
+
+
+def is_bop_scene(path: Path) -> bool:
+    path = Path(path)
+    return (path / "scene_camera.json").is_file() and (path / "depth").is_dir()
+
+
+def scene_folders(split: Path) -> list[Path]:
+    """The BOP scene folders of a split folder (or the folder itself when it is one scene)."""
+    split = Path(split)
+    if is_bop_scene(split):
+        return [split]
+    return sorted(p for p in split.iterdir() if p.is_dir() and p.name.isdigit() and is_bop_scene(p)) if split.is_dir() else []
+
+
+def parse_obj_map(items: list[str] | None, parts) -> dict[str, int]:
+    """['can=5', ...] -> {part id: BOP obj_id}; DatasetError naming the flag for a bad entry."""
+    out: dict[str, int] = {}
+    for item in items or []:
+        name, _, num = item.partition("=")
+        if not num.strip().isdigit():
+            raise DatasetError(f"--obj-map {item}: expected PART=OBJ_ID, e.g. can=5")
+        if name not in parts:
+            raise DatasetError(f"--obj-map {item}: the assembly has no part {name!r}; parts: {', '.join(parts)}")
+        out[name] = int(num)
+    return out
+
+
+class BopScene:
+    """One BOP scene folder, read lazily: frames with the camera of each image and, where scene_gt.json
+    maps an object to a part (obj_of_part), its pose and visible mask."""
+
+    def __init__(self, folder: str | Path, obj_of_part: dict[str, int] | None = None):
+        self.dir = Path(folder)
+        if not is_bop_scene(self.dir):
+            raise DatasetError(f"{self.dir}: not a BOP scene folder (scene_camera.json and depth/ expected)")
+        self.camera = read_json(self.dir / "scene_camera.json")
+        gt = self.dir / "scene_gt.json"
+        self.gt = read_json(gt) if gt.is_file() else {}
+        self.obj_of_part = dict(obj_of_part or {})
+        self.scene_id = int(self.dir.name) if self.dir.name.isdigit() else 0
+
+    def image_ids(self) -> list[int]:
+        return sorted(int(k) for k in self.camera)
+
+    def _image(self, sub: str, im_id: int) -> Path:
+        for ext in (".png", ".jpg", ".tif"):
+            p = self.dir / sub / f"{im_id:06d}{ext}"
+            if p.exists():
+                return p
+        return self.dir / sub / f"{im_id:06d}.png"
+
+    def frame(self, im_id: int, view=None) -> Frame:
+        """Frame im_id (metres). With a step's view, its ground truth T_world_base / T_world_part when
+        scene_gt.json shows base[0] (mapped to an obj_id)."""
+        key = str(im_id)
+        if key not in self.camera:
+            ids = self.image_ids()
+            raise DatasetError(f"{self.dir}: no image {im_id} in scene_camera.json; images are "
+                               f"{ids[0]}..{ids[-1]}" if ids else f"{self.dir}: scene_camera.json lists no images")
+        from .dataset import check_camera_entry
+
+        rgb_path = self._image("rgb", im_id)
+        if not rgb_path.exists() and self._image("gray", im_id).exists():
+            rgb_path = self._image("gray", im_id)
+        rgb = read_rgb(rgb_path)
+        h, w = rgb.shape[:2]
+        cam, scale, T_world_camera = check_camera_entry(self.camera[key], f"{self.dir / 'scene_camera.json'}: {key}", w, h)
+        depth = read_depth(self._image("depth", im_id), scale)
+        if depth.shape != (h, w):
+            raise DatasetError(f"{self.dir}: image {im_id}: depth is {depth.shape[1]}x{depth.shape[0]} but RGB is {w}x{h}")
+        if T_world_camera is None:
+            from .plane import table_frame
+
+            T_world_camera = table_frame(depth, cam)
+            T_world_camera = np.eye(4) if T_world_camera is None else T_world_camera
+        frame = Frame(rgb=rgb, depth=depth, camera=cam, T_world_camera=T_world_camera, im_id=im_id,
+                      source=str(rgb_path), step=self.scene_id)
+        part_of = {v: k for k, v in self.obj_of_part.items()}
+        for i, g in enumerate(self.gt.get(key, [])):
+            pid = part_of.get(int(g["obj_id"]))
+            if pid is None or pid in frame.poses:
+                continue
+            frame.poses[pid] = T_world_camera @ _T_from_Rt(g["cam_R_m2c"], g["cam_t_m2c"])
+            mpath = self.dir / "mask_visib" / f"{im_id:06d}_{i:06d}.png"
+            if mpath.exists():
+                import cv2
+
+                frame.masks[pid] = _read_image(mpath, cv2.IMREAD_GRAYSCALE) > 127
+        if view is not None:
+            frame.part, frame.base, frame.T_base_part = view.part, tuple(view.base), view.T_base_part
+            if view.base[0] in frame.poses:
+                frame.T_world_base = frame.poses[view.base[0]]
+                frame.T_world_part = frame.T_world_base @ view.T_base_part
+        return frame
+
+
+# --------------------------------------------------------------------------------------- results CSV
+
+
+@dataclass
+class BopResult:
+    scene_id: int
+    im_id: int
+    obj_id: int
+    score: float
+    T_camera_obj: np.ndarray  # metres
+    time: float  # seconds for the image (-1: unknown)
+
+
+def write_results_csv(path: Path, rows: list[BopResult]) -> None:
+    """BOP19 results: one line per estimate, R row-major and t in mm, space-separated (atomic write)."""
+    from .fileio import atomic_write_text
+
+    lines = [",".join(CSV_HEADER)]
+    for r in rows:
+        R, t = r.T_camera_obj[:3, :3].reshape(-1), r.T_camera_obj[:3, 3] * 1000.0
+        lines.append(f"{r.scene_id},{r.im_id},{r.obj_id},{r.score!r},{' '.join(repr(float(v)) for v in R)},"
+                     f"{' '.join(repr(float(v)) for v in t)},{r.time!r}")
+    atomic_write_text(Path(path), "\n".join(lines) + "\n")
+
+
+def read_results_csv(path: Path) -> list[BopResult]:
+    """A BOP19 results CSV from any method; DatasetError naming the line for a malformed one."""
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(f"{path}: no such results file")
+    rows = []
+    with path.open(newline="") as fh:
+        reader = csv.reader(fh)
+        header = next(reader, None)
+        if header is None or [h.strip() for h in header] != CSV_HEADER:
+            raise DatasetError(f"{path}: line 1: expected the BOP19 header {','.join(CSV_HEADER)}")
+        for n, rec in enumerate(reader, start=2):
+            if not rec:
+                continue
+            try:
+                scene, im, obj, score, R, t, tm = rec
+                R9 = np.array([float(v) for v in R.split()], float)
+                t3 = np.array([float(v) for v in t.split()], float)
+                if R9.shape != (9,) or t3.shape != (3,) or not (np.isfinite(R9).all() and np.isfinite(t3).all()):
+                    raise ValueError
+                rows.append(BopResult(int(scene), int(im), int(obj), float(score),
+                                      se3.make_T(R9.reshape(3, 3), t3 / 1000.0), float(tm)))
+            except ValueError:
+                raise DatasetError(f"{path}: line {n}: expected scene_id,im_id,obj_id,score,R (9 numbers),t (3 numbers, "
+                                   "mm),time") from None
+    return rows
+
+
+def best_per_image(rows: list[BopResult], obj_id: int) -> dict[tuple[int, int], BopResult]:
+    """The highest-scoring estimate of obj_id per (scene_id, im_id) (BOP's rule for one instance)."""
+    out: dict[tuple[int, int], BopResult] = {}
+    for r in rows:
+        if r.obj_id != obj_id:
+            continue
+        k = (r.scene_id, r.im_id)
+        if k not in out or (r.score > out[k].score and not math.isnan(r.score)):
+            out[k] = r
+    return out

@@ -1,0 +1,252 @@
+"""Prompted masks on cluttered benches, with no training: the user (or a detector) gives a 2D box or a
+click on the base object, and the mask follows from depth and colour.
+
+1. The table plane is fitted (seeded RANSAC, `plane.fit_plane`) and removed.
+2. Depth discontinuities are hard borders: what stands on the table splits into surface patches
+   where the (median-filtered) depth jumps.
+3. The patches the prompt picks (the clicked one; those mostly inside the box) seed OpenCV's GrabCut
+   as "probably the object", the rest of the box as "probably not", the table and everything outside
+   the box as "surely not". GrabCut's colour models then cut what depth cannot: an object standing
+   against the base at the same depth.
+4. The result keeps only pixels above the table (or without depth: sensor holes on the object), as
+   one connected piece around the prompt.
+
+Pixels (u, v) are image columns and rows; a box is (x0, y0, x1, y1) with x1, y1 exclusive.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from .config import CameraIntrinsics
+from .errors import AposeError
+
+MIN_PATCH_PX = 20  # depth patches smaller than this are noise
+
+
+class PromptError(AposeError):
+    """A prompt that cannot pick an object: a box off the image, a click on the table or on no depth."""
+
+
+@dataclass
+class PromptedMask:
+    mask: np.ndarray  # (H, W) bool
+    method: str  # "depth+colour" or "depth"
+    seconds: float
+    notes: list[str] = field(default_factory=list)
+
+
+def parse_box(text: str) -> tuple[int, int, int, int]:
+    """'x0,y0,x1,y1' (pixels) -> a box; PromptError naming the flag otherwise."""
+    try:
+        x0, y0, x1, y1 = (int(round(float(t))) for t in text.split(","))
+    except ValueError:
+        raise PromptError(f"--box {text}: expected four pixel numbers x0,y0,x1,y1 (left, top, right, bottom)") from None
+    return x0, y0, x1, y1
+
+
+def parse_point(text: str) -> tuple[int, int]:
+    try:
+        u, v = (int(round(float(t))) for t in text.split(","))
+    except ValueError:
+        raise PromptError(f"--point {text}: expected two pixel numbers u,v (column, row)") from None
+    return u, v
+
+
+def check_box(box, shape: tuple[int, int]) -> tuple[int, int, int, int]:
+    """The box clipped to the image; PromptError when it is empty, inverted or (mostly) off the image."""
+    h, w = shape
+    x0, y0, x1, y1 = (int(v) for v in box)
+    if x1 <= x0 or y1 <= y0:
+        raise PromptError(f"box {x0},{y0},{x1},{y1}: expected x0 < x1 and y0 < y1 (left, top, right, bottom in pixels)")
+    cx0, cy0, cx1, cy1 = max(x0, 0), max(y0, 0), min(x1, w), min(y1, h)
+    if cx1 - cx0 < 4 or cy1 - cy0 < 4 or (cx1 - cx0) * (cy1 - cy0) < 0.5 * (x1 - x0) * (y1 - y0):
+        raise PromptError(f"box {x0},{y0},{x1},{y1} lies outside the {w}x{h} image (or mostly so); give it in this "
+                          "image's pixels")
+    return cx0, cy0, cx1, cy1
+
+
+@dataclass
+class Surfaces:
+    """The depth image split into surface patches standing on the table."""
+
+    labels: np.ndarray  # (H, W) int32 patch id, 0 = none (table, no depth, an edge)
+    table: np.ndarray  # (H, W) bool: on the table plane
+    above: np.ndarray  # (H, W) bool: valid depth above the table
+    valid: np.ndarray  # (H, W) bool: depth present
+
+
+def surfaces(depth: np.ndarray, cam: CameraIntrinsics, window: tuple[int, int, int, int] | None = None) -> Surfaces:
+    """Table plane removed (fitted on the whole image), the rest cut at depth discontinuities."""
+    from .noise import depth_edges
+    from .plane import fit_plane
+
+    h, w = depth.shape
+    z = np.where(np.isfinite(depth) & (depth > 0), depth, 0).astype(np.float32)
+    valid = z > 0
+    vs, us = np.nonzero(valid)
+    table = np.zeros((h, w), bool)
+    above = valid.copy()
+    if len(vs) >= 100:
+        pts = cam.backproject(us, vs, z[vs, us])
+        med = float(np.median(pts[:, 2]))
+        tol = 0.006 * med
+        rng = np.random.default_rng(0)
+        sub = pts[rng.choice(len(pts), min(len(pts), 20000), replace=False)]
+        fit = fit_plane(sub, tol, seed=0, towards=np.zeros(3))
+        if fit is not None:
+            height = pts @ fit[0] + fit[1]
+            table[vs, us] = height <= tol
+            above[vs, us] = height > tol
+    smooth = cv2.medianBlur(z, 5)
+    smooth = np.where(valid, smooth, 0)
+    edges = depth_edges(smooth, rel=0.012, floor=0.004) & valid
+    region = (above & ~edges).astype(np.uint8)
+    _, labels = cv2.connectedComponents(region, connectivity=4)
+    return Surfaces(labels.astype(np.int32), table, above, valid)
+
+
+def _seed_patches(s: Surfaces, box, point) -> tuple[np.ndarray, np.ndarray]:
+    """(H, W) bool twice: the patches the prompt picks (clipped to the box), and those of them that
+    lie wholly in the box (a clicked patch counts as whole)."""
+    h, w = s.labels.shape
+    if point is not None:
+        u, v = point
+        if not (0 <= u < w and 0 <= v < h):
+            raise PromptError(f"point {u},{v} lies outside the {w}x{h} image; give it in this image's pixels")
+        win = s.labels[max(v - 4, 0):v + 5, max(u - 4, 0):u + 5]
+        ids, counts = np.unique(win[win > 0], return_counts=True)
+        if not len(ids):
+            if not s.valid[v, u]:
+                raise PromptError(f"point {u},{v} falls on a pixel without depth (a sensor hole); click on the object "
+                                  "where it has depth")
+            if s.table[v, u]:
+                raise PromptError(f"point {u},{v} falls on the table, not on an object standing on it; click on the object")
+            raise PromptError(f"point {u},{v} falls on a depth edge; click inside the object")
+        picked = s.labels == ids[np.argmax(counts)]
+        return picked, picked
+    x0, y0, x1, y1 = box
+    inside = np.zeros((h, w), bool)
+    inside[y0:y1, x0:x1] = True
+    n = int(s.labels.max()) + 1
+    total = np.bincount(s.labels.ravel(), minlength=n)
+    within = np.bincount(s.labels[inside], minlength=n)
+    # a patch mostly inside the box, or a big piece of the box (the base merged with something touching
+    # it at the same depth: the box's part of it is the seed, colour cuts the rest)
+    pick = (within >= MIN_PATCH_PX) & ((within >= 0.5 * total) | (within >= 0.1 * inside.sum()))
+    pick[0] = False
+    if not pick.any():
+        raise PromptError(f"box {x0},{y0},{x1},{y1} holds nothing standing on the table (only table, or no depth); "
+                          "draw it around the object")
+    whole = pick & (within >= 0.9 * total)
+    return pick[s.labels] & inside, whole[s.labels]
+
+
+def _largest_near(mask: np.ndarray, seed: np.ndarray, gap: int = 9) -> np.ndarray:
+    """The pieces of `mask` around the one that overlaps `seed` most: pieces closer than `gap` pixels
+    count as one (an object's patches are split by its own depth edges); groups with under 20 % of the
+    best group's overlap leave."""
+    grouped = cv2.dilate(mask.astype(np.uint8), np.ones((gap, gap), np.uint8))
+    n, lab = cv2.connectedComponents(grouped, connectivity=8)
+    if n <= 1:
+        return mask
+    overlap = np.bincount(lab[seed & mask], minlength=n)
+    overlap[0] = 0
+    if overlap.max() == 0:
+        return mask
+    return np.isin(lab, np.flatnonzero(overlap >= 0.2 * overlap.max())) & mask
+
+
+def fill_holes(mask: np.ndarray) -> np.ndarray:
+    """The mask with every region it encloses filled (the low floor of a housing, a gap inside the object)."""
+    pad = np.pad(mask, 1).astype(np.uint8)
+    flood = pad.copy()
+    cv2.floodFill(flood, np.zeros((pad.shape[0] + 2, pad.shape[1] + 2), np.uint8), (0, 0), 2)
+    return (flood != 2)[1:-1, 1:-1]
+
+
+def complete(mask: np.ndarray, s: Surfaces, in_box: np.ndarray) -> np.ndarray:
+    """What depth patches miss of an object: its rim (depth edges, steep faces and sensor holes next to
+    it, up to 2 % of the box's diagonal)
+    and what it encloses (a housing's floor near table height), closed over small gaps; never another
+    patch that the mask does not touch."""
+    free = (s.labels == 0) & ~s.table & in_box
+    m = mask.copy()
+    k3 = np.ones((3, 3), np.uint8)
+    ys, xs = np.nonzero(in_box)
+    for _ in range(max(3, int(0.02 * np.hypot(np.ptp(xs) + 1, np.ptp(ys) + 1)))):
+        m |= (cv2.dilate(m.astype(np.uint8), k3) > 0) & free
+    size = max(5, int(0.03 * np.hypot(np.ptp(xs) + 1, np.ptp(ys) + 1)) | 1)
+    def close(k: int) -> np.ndarray:
+        return cv2.morphologyEx(m.astype(np.uint8), cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0
+
+    closed, bridged = close(size), close(3 * size)  # bridged: gaps in a rim up to ~9 % of the box closed
+    out = (closed | (fill_holes(bridged) & ~bridged)) & in_box  # plus what the bridged rim encloses
+    touched = np.unique(s.labels[mask & (s.labels > 0)])
+    other = (s.labels > 0) & ~np.isin(s.labels, touched)
+    return out & ~other
+
+
+def prompted_mask(rgb: np.ndarray, depth: np.ndarray, cam: CameraIntrinsics, box=None, point=None,
+                  colour: bool = True) -> PromptedMask:
+    """The base object's mask from a box (x0, y0, x1, y1) or a click (u, v) (one of them; a click
+    inside a box picks within it). `colour=False`: depth patches only (no GrabCut)."""
+    t0 = time.perf_counter()
+    h, w = depth.shape
+    if rgb.shape[:2] != (h, w):
+        raise PromptError(f"RGB is {rgb.shape[1]}x{rgb.shape[0]} but depth is {w}x{h}; align depth to colour first")
+    if box is None and point is None:
+        raise PromptError("give a box (x0,y0,x1,y1) or a point (u,v) on the object")
+    if box is not None:
+        box = check_box(box, (h, w))
+    s = surfaces(depth, cam)
+    if box is None:  # a click: the clicked patch, then the patches in a box around it (its extent and a margin)
+        clicked, _ = _seed_patches(s, None, point)
+        ys, xs = np.nonzero(clicked)
+        mx, my = int(0.15 * (np.ptp(xs) + 1)) + 4, int(0.15 * (np.ptp(ys) + 1)) + 4
+        box = (max(xs.min() - mx, 0), max(ys.min() - my, 0), min(xs.max() + 1 + mx, w), min(ys.max() + 1 + my, h))
+        seed, whole = _seed_patches(s, box, None)
+        seed, whole = seed | clicked, whole | clicked
+    else:
+        seed, whole = _seed_patches(s, box, None)
+    x0, y0, x1, y1 = box
+    in_box = np.zeros((h, w), bool)
+    in_box[y0:y1, x0:x1] = True
+    depth_only = _largest_near(seed & in_box, seed)
+    merged = seed & ~whole  # patches that run out of the box: the base and something touching it
+    if not colour or not merged.any() or not whole.any():
+        return PromptedMask(complete(depth_only, s, in_box), "depth", time.perf_counter() - t0)
+    # colour decides the merged patches only. The other thing's colours: its pixels outside the box. The
+    # object's: the patches wholly in the box, and the merged pixels deep inside the box (far from where
+    # the other thing comes in). Each merged pixel in the box goes to the nearer colour (Lab, 5 nearest).
+    from scipy.spatial import cKDTree
+
+    ids = np.unique(s.labels[merged])
+    other = np.isin(s.labels, ids) & ~in_box
+    reach = cv2.distanceTransform((~other).astype(np.uint8), cv2.DIST_L2, 3)
+    deep = merged & (reach > 0.25 * max(x1 - x0, y1 - y0))
+    lab = cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB).astype(np.float32)
+    rng = np.random.default_rng(0)
+
+    def samples(m: np.ndarray) -> np.ndarray:
+        c = lab[m]
+        return c[rng.choice(len(c), min(len(c), 3000), replace=False)] if len(c) else c
+
+    obj_c, oth_c = samples(whole | deep), samples(other)
+    notes = []
+    if len(obj_c) < 20 or len(oth_c) < 20:
+        notes.append("too few pixels to learn colours from; the depth patches are the mask")
+        return PromptedMask(complete(depth_only, s, in_box), "depth", time.perf_counter() - t0, notes)
+    q = lab[merged]
+    d_obj = cKDTree(obj_c).query(q, k=5)[0].mean(axis=1)
+    d_oth = cKDTree(oth_c).query(q, k=5)[0].mean(axis=1)
+    keep = np.zeros((h, w), np.uint8)
+    keep[merged] = (d_obj <= d_oth).astype(np.uint8)
+    keep = cv2.medianBlur(keep * 255, 5) > 127  # one decision per little area, not per noisy pixel
+    drop = merged & ~keep
+    fg = _largest_near(depth_only & ~drop, seed & ~drop)
+    return PromptedMask(complete(fg, s, in_box), "depth+colour", time.perf_counter() - t0, notes)
