@@ -91,3 +91,16 @@ def write_capture(frame, folder: Path, camera: dict | None = None) -> Path:
     (folder / "camera.json").write_text(json.dumps(camera or {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
                                                               "depth_scale": 1.0}))
     return folder
+
+
+@pytest.fixture(scope="session")
+def clutter_dataset(tmp_path_factory) -> Path:
+    """Kinect-like cluttered benches (objects standing against the base, base off-centre): gearbox step 2,
+    three views (rendered once)."""
+    from apose_studio.assembly import load_assembly
+    from apose_studio.render import RenderSettings, render_dataset
+
+    out = tmp_path_factory.mktemp("clutter") / "ds"
+    asm = load_assembly(SAMPLES / "helical_gearbox" / "assembly.yaml")
+    render_dataset(asm, out, RenderSettings(frames=3, noise="kinect", clutter=True, seed=3), steps=[2], progress=False)
+    return out

@@ -46,17 +46,33 @@ def estimate(depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics, T_world
         prior_T_world_base = np.eye(4)  # the CAD's orientation is the base's orientation in the world
     voxel = params.voxel(base.diameter)
     deadline = t0 + params.max_seconds if params.max_seconds > 0 else float("inf")
+    noise = frame_noise(depth, mask)
     try:
         if params.global_source == "raycast":  # the paper: TFORM + RCAST of the CAD as oriented, then PCDREG
             result = estimate_paper(target_pts, cam, T_world_camera, base, T_base_part, params, voxel,
                                     prior_T_world_base, trace_iterations, timings, preset=params.preset)
         else:
-            observation = Observation(mask, depth, mask_edge(mask))
+            observation = Observation(mask, depth, mask_edge(mask), noise)
             result = estimate_default(target_pts, cam, T_world_camera, base, T_base_part, params, voxel,
                                       prior_T_world_base, trace_iterations, timings, observation, deadline)
     except Degenerate as e:
         return failed(str(e), target_cloud=target_pts, timings=timings, preset=params.preset, voxel=voxel)
+    result.depth_noise = noise
     return judge(result, depth, mask, cam, T_world_camera, base)  # ok only when the data supports the pose
+
+
+def frame_noise(depth: np.ndarray, mask: np.ndarray) -> float:
+    """The depth noise (metres, one sigma) around the object: in its mask's box, twice as large. 0 when
+    it cannot be measured (too few pixels)."""
+    from ..noise import estimate_depth_noise
+
+    ys, xs = np.nonzero(mask)
+    h, w = mask.shape
+    cy, cx, hy, hx = (ys.min() + ys.max()) / 2, (xs.min() + xs.max()) / 2, np.ptp(ys) + 1, np.ptp(xs) + 1
+    region = np.zeros_like(mask, dtype=bool)
+    region[max(int(cy - hy), 0):min(int(cy + hy) + 1, h), max(int(cx - hx), 0):min(int(cx + hx) + 1, w)] = True
+    sigma = estimate_depth_noise(depth, region)
+    return sigma if np.isfinite(sigma) else 0.0
 
 
 def estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Params, voxel, prior, trace_iterations,
@@ -148,7 +164,7 @@ def judge(result: RegistrationResult, depth: np.ndarray, mask: np.ndarray, cam: 
     if len(result.source_cloud):
         seen = se3.transform_points(result.T_world_base, result.source_cloud)
         confirmed, contradicted = evidence(seen, T_world_camera, cam, depth, mask, ~(mask | mask_edge(mask)),
-                                           agreement_tolerance(result.voxel))
+                                           agreement_tolerance(result.voxel, result.depth_noise))
         result.contradiction = contradicted / max(confirmed + contradicted, 1)
     reason = None
     centre = se3.transform_points(se3.inv(T_world_camera) @ result.T_world_base, base.centre[None])[0]

@@ -27,6 +27,7 @@ class Observation(NamedTuple):
     mask: np.ndarray
     depth: np.ndarray
     edge: np.ndarray
+    noise: float = 0.0  # the frame's own axial depth noise (metres, one sigma; noise.estimate_depth_noise)
 
 
 def mask_edge(mask: np.ndarray, px: int = MASK_MARGIN_PX) -> np.ndarray:
@@ -71,9 +72,13 @@ def poses_within(A: np.ndarray, B: np.ndarray, metres: float, degrees: float) ->
     return bool(np.linalg.norm(A[:3, 3] - B[:3, 3]) < metres and se3.rotation_angle_deg(A[:3, :3].T @ B[:3, :3]) < degrees)
 
 
-def agreement_tolerance(voxel: float) -> float:
-    """How far a model point may lie from the observed depth and still count as confirmed (metres)."""
-    return max(2 * voxel, 0.002)
+NOISE_SIGMAS = 3.0  # a point within this many sigmas of the frame's depth noise agrees with it
+
+
+def agreement_tolerance(voxel: float, noise: float = 0.0) -> float:
+    """How far a model point may lie from the observed depth and still count as confirmed (metres): two
+    voxels, 2 mm, or three sigmas of the frame's own depth noise, whichever is widest."""
+    return max(2 * voxel, 0.002, NOISE_SIGMAS * noise)
 
 
 def score_pose(pb: "Problem", T_world_base: np.ndarray, symmetry: int = 0) -> tuple[Candidate, np.ndarray, np.ndarray]:
@@ -88,14 +93,14 @@ def score_seen(pb: "Problem", T_world_base: np.ndarray, src_w: np.ndarray, symme
     """score_pose with what the camera sees of the base at T_world_base given (world points). One
     query gives the fitness and RMSE (within thr) and the coverage (within 2 voxels)."""
     thr, fine_pts = pb.thr, pb.fine_pts
-    loose = max(thr, 2 * pb.voxel)
+    loose = max(thr, 2 * pb.voxel, NOISE_SIGMAS * pb.observation.noise)
     d = quick_tree(src_w).query(fine_pts, distance_upper_bound=loose)[0] if len(src_w) and len(fine_pts) \
         else np.full(len(fine_pts), np.inf)
     inl = d < thr
     fit, rmse = (float(inl.mean()), float(np.sqrt(np.mean(d[inl] ** 2)))) if inl.any() else (0.0, 0.0)
     coverage = float(np.mean(d < loose)) if len(d) else 0.0
     obs = pb.observation
-    agree = visible_agreement(src_w, pb.T_world_camera, pb.cam, obs.depth, obs.mask, agreement_tolerance(pb.voxel))
+    agree = visible_agreement(src_w, pb.T_world_camera, pb.cam, obs.depth, obs.mask, agreement_tolerance(pb.voxel, obs.noise))
     return Candidate(T_world_base, T_world_base @ pb.T_base_part, fit, agree, rmse, 0.5 * (fit + agree), symmetry,
                      coverage), src_w
 
@@ -128,7 +133,7 @@ def discriminate(pb: "Problem", close: list[int], cands: list[Candidate], traces
     them) stay tied."""
     fine_pts, T_world_camera, cam, voxel, thr = pb.fine_pts, pb.T_world_camera, pb.cam, pb.voxel, pb.thr
     observation = pb.observation
-    tol = agreement_tolerance(voxel)
+    tol = agreement_tolerance(voxel, observation.noise)
     mask_img, depth_img = observation.mask, observation.depth
     outside = ~(mask_img | observation.edge)
     seen = {i: traces[i][2] for i in close}

@@ -84,7 +84,7 @@ def try_prior(pb, prior: np.ndarray, trace_iterations: bool, timings: dict, **kw
     # the depth's word on the model, leaving out what it cannot judge: the mask's outline (mixed
     # pixels) and dropouts; with RealSense-like noise those alone cost 5-7 % of the agreement
     confirmed = visible_agreement(src_w, T_world_camera, cam, observation.depth, observation.mask,
-                                  agreement_tolerance(voxel), observation.edge)
+                                  agreement_tolerance(voxel, observation.noise), observation.edge)
     timings["prior"] = time.perf_counter() - t
     if cand.coverage < PRIOR_ACCEPT or confirmed < PRIOR_ACCEPT:
         return None
