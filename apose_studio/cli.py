@@ -261,8 +261,9 @@ def cmd_estimate(args) -> int:
                             "inlier_rmse": st.inlier_rmse} for st in r.stages],
                    voxel_m=r.voxel, fitness=r.fitness, contradiction=_finite(r.contradiction), out_of_time=r.out_of_time,
                    alternatives_scores=[c.score for c in r.alternatives])
-        if sc is not None:
+        if sc is not None:  # against the ground truth; also at the top level, as before (mask_iou, adi, mssd, ...)
             doc["truth"] = sc.to_json()
+            doc.update({k: v for k, v in doc["truth"].items() if k not in doc})
         print(json.dumps(doc, indent=1))
         return 0 if r.ok else 1
     print(f"step {args.step}, frame {args.frame}: place {ctx.part.id} on [{', '.join(ctx.view.base)}]  (preset {params.preset})")

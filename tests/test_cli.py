@@ -48,7 +48,7 @@ def test_show_invalid_file_one_line_per_problem(tiny_dir):
     bad = tiny_dir / "bad.yaml"
     bad.write_text((tiny_dir / "assembly.yaml").read_text().replace("[10, 0, 5]", "[10, 0]").replace("units: mm", "units: yd"))
     r = run("show", bad)
-    assert r.returncode == 1
+    assert r.returncode == 2
     lines = r.stderr.strip().splitlines()
     assert lines == [f"error: {bad}: units: expected one of m, cm, mm, in, got the text 'yd'",
                      f"error: {bad}: steps[0].pose_in_base.translation: expected 3 numbers, got 2"]
@@ -58,7 +58,7 @@ def test_show_invalid_file_one_line_per_problem(tiny_dir):
 def test_show_bad_mesh_is_one_line(tiny_dir):
     (tiny_dir / "peg.stl").write_bytes(b"\x00" * 10)
     r = run("show", tiny_dir / "assembly.yaml")
-    assert r.returncode == 1 and "Traceback" not in r.stderr
+    assert r.returncode == 2 and "Traceback" not in r.stderr
     assert r.stderr.startswith("error: part 'peg': ") and "peg.stl" in r.stderr
 
 
@@ -88,9 +88,9 @@ def test_render_cli(tmp_path):
     info = json.loads((out / "dataset_info.json").read_text())
     assert info["settings"]["base_pose"] == "fixed" and info["settings"]["pitch_range_deg"] == [30.0, 60.0]
     again = run("render", SAMPLES / "helical_gearbox" / "assembly.yaml", "--out", out)
-    assert again.returncode == 1 and again.stderr.startswith(f"error: {out}: folder is not empty")
+    assert again.returncode == 2 and again.stderr.startswith(f"error: {out}: folder is not empty")
     bad = run("render", SAMPLES / "helical_gearbox" / "assembly.yaml", "--out", tmp_path / "x", "--steps", "0")
-    assert bad.returncode == 1 and "step 0 does not exist" in bad.stderr and "Traceback" not in bad.stderr
+    assert bad.returncode == 2 and "step 0 does not exist" in bad.stderr and "Traceback" not in bad.stderr
     bad = run("render", SAMPLES / "helical_gearbox" / "assembly.yaml", "--out", tmp_path / "x", "--yaw-range", "oops")
     assert bad.returncode == 2 and "expected two numbers as min,max" in bad.stderr
 
@@ -114,7 +114,7 @@ def test_malformed_inputs_get_one_clear_line(tiny_dir, gearbox_dataset, tmp_path
         y = tiny_dir / "m.yaml"
         y.write_text(base.replace("cap: {mesh: cap.stl}", f"cap: {{mesh: {mesh}}}"))
         r = run("show", y)
-        assert r.returncode == 1 and message in r.stderr and "unexpected" not in r.stderr, (mesh, r.stderr)
+        assert r.returncode == 2 and message in r.stderr and "unexpected" not in r.stderr, (mesh, r.stderr)
     for args, message in [(("eval", gearbox_dataset, "--json", tmp_path), "a folder; give a file name"),
                           (("train-seg", gearbox_dataset, "--out", tmp_path / "no" / "m.pt"), "does not exist"),
                           (("train-seg", gearbox_dataset, "--out", "m.pt", "--epochs", "0"), "at least 1, got '0'"),
@@ -148,5 +148,5 @@ def test_demo_refuses_a_folder_it_did_not_make(tmp_path):
     (out / "models").mkdir(parents=True)
     (out / "models" / "my_model.bin").write_text("checkpoint")
     r = run("demo", "--out", out, "--frames", "1", "--no-studio")
-    assert r.returncode == 1 and "holds files that no apose render wrote (models/my_model.bin)" in r.stderr
+    assert r.returncode == 2 and "holds files that no apose render wrote (models/my_model.bin)" in r.stderr
     assert (out / "models" / "my_model.bin").read_text() == "checkpoint"

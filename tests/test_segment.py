@@ -114,7 +114,7 @@ def test_train_seg_command(tiny_ds, tmp_path):
     assert "mask_iou" in doc and doc["mask_iou"] is not None
     r = subprocess.run([sys.executable, "-m", "apose_studio.cli", "eval", str(SAMPLES / ".." / "tests"), "--mask", str(out)],
                        capture_output=True, text=True)
-    assert r.returncode == 1 and r.stderr.startswith("error:") and "Traceback" not in r.stderr
+    assert r.returncode == 2 and r.stderr.startswith("error:") and "Traceback" not in r.stderr
 
 
 def test_eval_command_puts_gt_masks_beside(gearbox_dataset):

@@ -28,6 +28,7 @@ from ..webguard import Workspace
 from .assembly_panel import AssemblyPanel
 from .inspect_panel import InspectPanel
 from .results_view import ResultsView
+from .prompt_panel import PromptPanel
 from .steps_panel import StepsPanel
 from .viser_adapter import limit_uploads
 from .widgets import ACTIVE, MAX_UPLOAD_BYTES, VIEWS
@@ -63,6 +64,7 @@ class Studio:
         self.steps = StepsPanel(self)
         self.inspect = InspectPanel(self)
         self.results = ResultsView(self)
+        self.prompt = PromptPanel(self)
         with self.lock:  # a page that connects while the start-up files load waits for them
             self.build_gui()
             server.on_client_connect(self.on_connect)
@@ -121,6 +123,7 @@ class Studio:
             self.steps.build()
         with tabs.add_tab("Inspect"):
             self.inspect.build()
+            self.prompt.build()
             self.results.build()
         self.server.scene.add_grid("/grid", width=1.0, height=1.0, cell_size=0.01, section_size=0.1,
                                    plane="xy", position=(0.0, 0.0, -0.0005))

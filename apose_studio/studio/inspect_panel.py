@@ -34,11 +34,14 @@ class EstimateJob:
     mask: str
     prior: bool
     crop: tuple | None  # (T_world_box, size in metres) for depth masks, or None
+    prompt: tuple | None = None  # (box, point) for mask "prompt"
 
     def key(self, cache: inspection.ResultCache, im_id: int) -> tuple:
         mask = self.mask
         if self.crop is not None:
             mask = (mask, tuple(np.round(self.crop[0], 4).ravel()), tuple(np.round(self.crop[1], 4)))
+        if self.prompt is not None:
+            mask = (mask, self.prompt)
         preset = self.preset + (" free" if not self.upright and self.preset == "default" else "")
         return cache.key(self.frames_path, self.step, im_id, preset, mask, self.prior)
 
@@ -68,9 +71,12 @@ class InspectPanel:
         with gui.add_folder("Estimate") as self.estimate_folder:
             self.i_preset = gui.add_dropdown("Preset", PRESETS, initial_value="default")
             from ..evaluate import MASK_SOURCES
+            from .prompt_panel import PROMPT_SOURCE
 
-            self.i_mask = gui.add_dropdown("Mask", MASK_SOURCES, initial_value=MASK_SOURCES[0],
-                                           hint="gt: the dataset's masks; depth: table removal + 3D clustering; or a trained model")
+            self.i_mask = gui.add_dropdown("Mask", MASK_SOURCES + (PROMPT_SOURCE,), initial_value=MASK_SOURCES[0],
+                                           hint="gt: the dataset's masks; depth: table removal + 3D clustering; box: "
+                                           "prompted by the truth's box; prompt: your box or click (Prompt folder); "
+                                           "or a trained model")
             self.i_model = gui.add_text("Mask model (.pt)", "", hint="a model from `apose train-seg` for this assembly")
             b = gui.add_button("Use model")
             b.on_click(self.app.guarded("Mask model")(self.on_use_model))
@@ -179,12 +185,16 @@ class InspectPanel:
             crop = (se3.make_T(se3.quat_wxyz_to_matrix(np.asarray(g.wxyz)), np.asarray(g.position)),
                     np.asarray(self.i_crop_size.value, dtype=float) / 1000.0)
         asm = self.inspect_assembly()
+        prompt = self.app.prompt.prompt() if self.i_mask.value == "prompt" else None
         return EstimateJob(self.frames, self.frames_path, asm, self.inspect_models(), step, tuple(ids),
                            self.i_preset.value, bool(self.i_upright.value), self.i_mask.value, bool(self.i_prior.value),
-                           crop)
+                           crop, prompt)
 
-    def cache_key(self, step: int, im_id: int) -> tuple:
-        return self.job(step, [im_id]).key(self.app.cache, im_id)
+    def cache_key(self, step: int, im_id: int) -> tuple | None:
+        try:
+            return self.job(step, [im_id]).key(self.app.cache, im_id)
+        except AposeError:  # e.g. mask "prompt" before a prompt is typed: nothing cached under it yet
+            return None
 
     def load_frame(self, step: int, im_id: int, frames=None, asm: Assembly | None = None):
         from ..dataset import Dataset
@@ -251,6 +261,8 @@ class InspectPanel:
 
             keep = inspection.pixels_in_box(frame.depth, frame.camera, frame.T_world_camera, *job.crop)
             mask = depth_mask(frame.depth, frame.camera, keep=keep)
+        if job.prompt is not None:
+            mask = self.app.prompt.mask(frame, job.prompt)
         result, score = estimate_and_score(frame, ctx, params, job.mask, job.prior, trace_iterations=True, mask=mask)
         self.app.cache.put(job.key(self.app.cache, im_id), (result, score))
         return result, score
