@@ -180,3 +180,117 @@ def best_per_image(rows: list[BopResult], obj_id: int) -> dict[tuple[int, int], 
         if k not in out or (r.score > out[k].score and not math.isnan(r.score)):
             out[k] = r
     return out
+
+
+# --------------------------------------------------------------------------------------- our datasets
+
+
+def _step_truth(ds, step: int) -> tuple[dict, np.ndarray, int]:
+    """(frames of scene_assembly.json, T_base_part, obj_id of base[0]) of a rendered step."""
+    sa = ds._scene(step)["scene_assembly"]
+    return sa["frames"], np.asarray(sa["T_base_part"], float), ds.obj_ids[sa["base"][0]]
+
+
+def results_from_eval(ds, doc: dict) -> list[BopResult]:
+    """The BOP19 rows of an `apose eval` document: per estimated frame, base[0]'s pose in the camera
+    (T_camera_base = T_camera_world T_world_part T_part_base), scene_id = step, score 1 when confident
+    else 0.5."""
+    rows = []
+    for st in doc["steps"]:
+        frames, T_base_part, obj_id = _step_truth(ds, st["step"])
+        for f in st["frames"]:
+            if not f["ok"] or f["T_world_part_est"] is None:
+                continue
+            T_world_camera = np.asarray(frames[str(f["im_id"])]["T_world_camera"], float)
+            T = se3.inv(T_world_camera) @ np.asarray(f["T_world_part_est"], float) @ se3.inv(T_base_part)
+            rows.append(BopResult(st["step"], f["im_id"], obj_id, 1.0 if f["confident"] else 0.5, T, float(f["time_s"])))
+    return rows
+
+
+def score_results(ds, rows: list[BopResult], steps: list[int] | None = None, models=None) -> dict:
+    """Score any method's BOP19 results on one of our datasets with our metrics and tables: per step,
+    the highest-scoring estimate of base[0] per image, composed with the step's T_base_part into the
+    assembly pose; an image without an estimate counts as failed."""
+    from . import metrics
+    from .evaluate import FrameScore, summarise_step
+    from .mesh import load_parts
+
+    models = models or load_parts(ds.assembly)
+    doc = {"preset": "results file", "dataset": str(ds.root), "mask": "-", "orientation_prior": False, "steps": [],
+           "missing_steps": ds.missing_steps}
+    for step in steps or ds.steps:
+        frames, T_base_part, obj_id = _step_truth(ds, step)
+        best = best_per_image(rows, obj_id)
+        part = models[ds.assembly.step_view(step).part]
+        scores = []
+        for im_id in ds.image_ids(step):
+            fr = frames[str(im_id)]
+            G = np.asarray(fr["T_world_part"], float)
+            r = best.get((step, im_id))
+            if r is None:
+                scores.append(FrameScore(step, im_id, False, "no estimate in the results file", T_world_part_gt=G))
+                continue
+            T = np.asarray(fr["T_world_camera"], float) @ r.T_camera_obj @ T_base_part
+            s = FrameScore(step, im_id, True, T_world_part_est=T, T_world_part_gt=G, time_s=max(r.time, 0.0))
+            s.adi, s.mssd = metrics.adi(T, G, part.samples), metrics.mssd(T, G, part.samples, part.symmetries)
+            s.mssd_mod_base_sym, s.te, s.re_deg = s.mssd, metrics.te(T, G), metrics.re_deg(T, G)
+            s.confident = r.score >= 1.0
+            scores.append(s)
+        doc["steps"].append(summarise_step(step, scores, part))
+    return doc
+
+
+# --------------------------------------------------------------------------------------- BOP splits
+
+
+def evaluate_split(split: Path, asm, step: int, obj_of_part: dict[str, int], params, mask_source: str = "gt",
+                   frames: int | None = None, progress: bool = False) -> tuple[dict, list[BopResult]]:
+    """`apose eval` on a BOP split folder (real captures with downloaded ground truth): every image of
+    every scene whose scene_gt.json shows the step's base[0] (its obj_id from obj_of_part) is one frame;
+    the truth is T_world_base = that object's pose, composed with the step's T_base_part. Returns the
+    evaluation document (one step) and the BOP19 rows of the estimates."""
+    from tqdm import tqdm
+
+    from .api import step_context
+    from .errors import AposeError
+    from .evaluate import FrameScore, estimate_and_score, frame_mask, summarise_step
+
+    _, ctx = step_context(asm, step)
+    view = ctx.view
+    missing = [p for p in view.base if p not in obj_of_part]
+    if view.base[0] in missing:
+        raise AposeError(f"step {step} places {view.part} on {', '.join(view.base)}: map {view.base[0]} to its BOP object "
+                         f"id with --obj-map {view.base[0]}=ID")
+    scenes = scene_folders(split)
+    if not scenes:
+        raise DatasetError(f"{split}: no BOP scene folders here (numbered folders with scene_camera.json and depth/)")
+    todo = []
+    for folder in scenes:
+        sc = BopScene(folder, obj_of_part)
+        ids = [i for i in sc.image_ids() if any(int(g["obj_id"]) == obj_of_part[view.base[0]] for g in sc.gt.get(str(i), []))]
+        todo += [(sc, i) for i in (ids[:frames] if frames else ids)]
+    if not todo:
+        raise DatasetError(f"{split}: no image shows obj_id {obj_of_part[view.base[0]]} ({view.base[0]}) in scene_gt.json")
+    ctx.base.warm_up(params)
+    scores, rows = [], []
+    obj_id = obj_of_part[view.base[0]]
+    for sc, im_id in tqdm(todo, unit="frame", desc=f"eval {params.preset}", disable=not progress, leave=False):
+        try:
+            frame = sc.frame(im_id, view)
+        except DatasetError as e:
+            scores.append(FrameScore(sc.scene_id, im_id, False, f"unreadable frame: {e}"))
+            continue
+        if mask_source == "gt" and not frame.base_mask().any():
+            scores.append(FrameScore(sc.scene_id, im_id, False, "no mask_visib for the base in this image",
+                                     T_world_part_gt=frame.T_world_part))
+            continue
+        mask = frame_mask(frame, mask_source)
+        r, s = estimate_and_score(frame, ctx, params, mask_source, mask=mask)
+        s.scene_id = sc.scene_id
+        scores.append(s)
+        if r.ok:
+            T = se3.inv(frame.T_world_camera) @ r.T_world_base
+            rows.append(BopResult(sc.scene_id, im_id, obj_id, 1.0 if r.confident else 0.5, T, r.seconds))
+    doc = {"preset": params.preset, "dataset": str(split), "mask": mask_source, "orientation_prior": False,
+           "steps": [summarise_step(step, scores, ctx.part)], "missing_steps": []}
+    return doc, rows

@@ -309,7 +309,21 @@ def cmd_eval(args) -> int:
     from .evaluate import evaluate, format_table
     from .registration import resolve_params
 
+    if not (Path(args.dataset) / "dataset_info.json").is_file():
+        from .bop import scene_folders
+
+        if scene_folders(Path(args.dataset)):
+            return _eval_bop_split(args)
     ds = Dataset(args.dataset)
+    if args.score_results:
+        from .bop import read_results_csv, score_results
+
+        doc = score_results(ds, read_results_csv(Path(args.score_results)), args.steps)
+        print(format_table(doc))
+        if args.json:
+            from .dataset import write_json
+            write_json(Path(args.json), doc)
+        return 0
     params = resolve_params(args.preset, ds.assembly.registration, **_upright(args))
     if args.frames is not None and args.frames < 1:
         raise AposeError(f"--frames {args.frames}: expected at least 1")
@@ -317,6 +331,8 @@ def cmd_eval(args) -> int:
         raise AposeError(f"--workers {args.workers}: expected at least 1")
     if args.json:
         _check_output_file(Path(args.json), "--json")
+    if args.bop_results:
+        _check_output_file(Path(args.bop_results), "--bop-results")
     for step in ds.missing_steps:
         print(f"warning: step {step} is listed in {ds.root / 'dataset_info.json'} but its folder "
               f"test/{step:06d} is missing; it is left out", file=sys.stderr)
@@ -341,6 +357,40 @@ def cmd_eval(args) -> int:
         from .dataset import write_json
         write_json(Path(args.json), doc)
         print(f"wrote {args.json}")
+    if args.bop_results:
+        from .bop import results_from_eval, write_results_csv
+
+        write_results_csv(Path(args.bop_results), results_from_eval(ds, doc))
+        print(f"wrote {args.bop_results} (BOP19 results)")
+    return 0
+
+
+def _eval_bop_split(args) -> int:
+    from .assembly import load_assembly
+    from .bop import evaluate_split, parse_obj_map, write_results_csv
+    from .evaluate import format_table
+    from .registration import resolve_params
+
+    if not args.assembly or args.step is None:
+        raise AposeError(f"{args.dataset}: a BOP split; give --assembly A.yaml, --step K and --obj-map PART=OBJ_ID for the "
+                         "base's parts")
+    if args.score_results:
+        raise AposeError("--score-results scores a results file on an apose dataset; on BOP data use bop_toolkit")
+    asm = load_assembly(args.assembly)
+    for flag in ("json", "bop_results"):
+        if getattr(args, flag):
+            _check_output_file(Path(getattr(args, flag)), "--" + flag.replace("_", "-"))
+    params = resolve_params(args.preset, asm.registration, **_upright(args))
+    doc, rows = evaluate_split(Path(args.dataset), asm, args.step, parse_obj_map(args.obj_map, asm.parts), params,
+                               args.mask, args.frames, progress=sys.stderr.isatty())
+    print(format_table(doc))
+    if args.json:
+        from .dataset import write_json
+        write_json(Path(args.json), doc)
+        print(f"wrote {args.json}")
+    if args.bop_results:
+        write_results_csv(Path(args.bop_results), rows)
+        print(f"wrote {args.bop_results} (BOP19 results)")
     return 0
 
 
@@ -471,7 +521,8 @@ def _add_estimate(sub) -> None:
 
 def _add_eval(sub) -> None:
     p = sub.add_parser("eval", help="evaluate the estimator on a dataset: the paper's per-step table")
-    p.add_argument("dataset", help="dataset folder made by `apose render`")
+    p.add_argument("dataset", help="dataset folder made by `apose render`, or a BOP split folder (e.g. lmo/test: "
+                   "numbered scene folders) with --assembly, --step and --obj-map")
     _estimator_args(p)
     p.add_argument("--steps", type=_steps, help="only these steps, e.g. 1,3")
     p.add_argument("--frames", type=int, help="at most this many frames per step (default: all)")
@@ -479,6 +530,14 @@ def _add_eval(sub) -> None:
     p.add_argument("--json", metavar="OUT", help="also write the full results (per frame) as JSON")
     p.add_argument("--no-gt-compare", action="store_true",
                    help="with --mask depth|MODEL.pt, skip the second run with ground-truth masks")
+    p.add_argument("--assembly", help="BOP split: the assembly whose step to evaluate")
+    p.add_argument("--step", type=int, help="BOP split: the assembly step (1-based)")
+    p.add_argument("--obj-map", action="append", metavar="PART=OBJ_ID",
+                   help="BOP split: the BOP obj_id of a part (repeatable), e.g. --obj-map can=5")
+    p.add_argument("--bop-results", metavar="OUT.csv", help="also write the estimates as a BOP19 results CSV "
+                   "(scene_id = step, obj_id = base[0], R and t of base[0] in the camera, mm)")
+    p.add_argument("--score-results", metavar="CSV", help="score a BOP19 results CSV from any method on this dataset "
+                   "with our metrics and table, instead of running the estimator")
     p.set_defaults(func=cmd_eval)
 
 

@@ -169,13 +169,57 @@ def fill_holes(mask: np.ndarray) -> np.ndarray:
     return (flood != 2)[1:-1, 1:-1]
 
 
-def complete(mask: np.ndarray, s: Surfaces, in_box: np.ndarray) -> np.ndarray:
+def _nearer_colour(lab: np.ndarray, query: np.ndarray, ours: np.ndarray, theirs: np.ndarray) -> np.ndarray:
+    """(H, W) bool over `query` pixels: nearer (Lab, mean of the 5 nearest samples) to the colours of the
+    `ours` pixels than to those of `theirs`, decided per little area (5x5 median), not per noisy pixel."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(0)
+
+    def samples(m: np.ndarray) -> np.ndarray:
+        c = lab[m]
+        return c[rng.choice(len(c), min(len(c), 3000), replace=False)]
+
+    q = lab[query]
+    d_ours = cKDTree(samples(ours)).query(q, k=5)[0].mean(axis=1)
+    d_theirs = cKDTree(samples(theirs)).query(q, k=5)[0].mean(axis=1)
+    out = np.zeros(query.shape, np.uint8)
+    out[query] = (d_ours <= d_theirs).astype(np.uint8) * 255
+    return (cv2.medianBlur(out, 5) > 127) & query
+
+
+def small_patches(s: Surfaces) -> np.ndarray:
+    """(H, W) bool: pixels of patches under MIN_PATCH_PX (speckle of valid depth amid sensor holes)."""
+    sizes = np.bincount(s.labels.ravel())
+    small = sizes < MIN_PATCH_PX
+    small[0] = False
+    return small[s.labels]
+
+
+def sensor_holes(mask: np.ndarray, s: Surfaces, in_box: np.ndarray, lab: np.ndarray) -> np.ndarray:
+    """Pixels the depth cannot place that belong to the object: in the box, off the table, without depth
+    or with only specks of it (no patch), reached from the mask through such pixels, and nearer the
+    object's colours than the table's (a dark or glossy surface the sensor barely sees, as Kinect on a
+    black motor)."""
+    holes = in_box & ~s.table & (~s.valid | (s.labels == 0) | small_patches(s))
+    table = s.table & in_box
+    if not holes.any() or mask.sum() < 20 or table.sum() < 20:
+        return np.zeros_like(mask)
+    like = _nearer_colour(lab, holes, mask & s.valid, table)
+    n, comp = cv2.connectedComponents((like | mask).astype(np.uint8), connectivity=8)
+    keep = np.unique(comp[mask])
+    return like & np.isin(comp, keep[keep > 0])
+
+
+def complete(mask: np.ndarray, s: Surfaces, in_box: np.ndarray, lab: np.ndarray | None = None) -> np.ndarray:
     """What depth patches miss of an object: its rim (depth edges, steep faces and sensor holes next to
-    it, up to 2 % of the box's diagonal)
-    and what it encloses (a housing's floor near table height), closed over small gaps; never another
-    patch that the mask does not touch."""
-    free = (s.labels == 0) & ~s.table & in_box
+    it, up to 2 % of the box's diagonal), larger holes in its depth that look like it (with `lab`, the
+    image in Lab colours), and what it encloses (a housing's floor near table height), closed over small
+    gaps; never another patch that the mask does not touch."""
+    free = (s.labels == 0) & s.valid & ~s.table & in_box  # holes join by colour only (a projector's shadow is table)
     m = mask.copy()
+    if lab is not None:
+        m |= sensor_holes(mask, s, in_box, lab)
     k3 = np.ones((3, 3), np.uint8)
     ys, xs = np.nonzero(in_box)
     for _ in range(max(3, int(0.02 * np.hypot(np.ptp(xs) + 1, np.ptp(ys) + 1)))):
@@ -186,8 +230,8 @@ def complete(mask: np.ndarray, s: Surfaces, in_box: np.ndarray) -> np.ndarray:
 
     closed, bridged = close(size), close(3 * size)  # bridged: gaps in a rim up to ~9 % of the box closed
     out = (closed | (fill_holes(bridged) & ~bridged)) & in_box  # plus what the bridged rim encloses
-    touched = np.unique(s.labels[mask & (s.labels > 0)])
-    other = (s.labels > 0) & ~np.isin(s.labels, touched)
+    touched = np.unique(s.labels[m & (s.labels > 0)])
+    other = (s.labels > 0) & ~np.isin(s.labels, touched) & ~small_patches(s)
     return out & ~other
 
 
@@ -218,35 +262,23 @@ def prompted_mask(rgb: np.ndarray, depth: np.ndarray, cam: CameraIntrinsics, box
     in_box[y0:y1, x0:x1] = True
     depth_only = _largest_near(seed & in_box, seed)
     merged = seed & ~whole  # patches that run out of the box: the base and something touching it
-    if not colour or not merged.any() or not whole.any():
+    if not colour:
         return PromptedMask(complete(depth_only, s, in_box), "depth", time.perf_counter() - t0)
+    if not merged.any():
+        lab = cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB).astype(np.float32)
+        return PromptedMask(complete(depth_only, s, in_box, lab), "depth+colour", time.perf_counter() - t0)
     # colour decides the merged patches only. The other thing's colours: its pixels outside the box. The
     # object's: the patches wholly in the box, and the merged pixels deep inside the box (far from where
-    # the other thing comes in). Each merged pixel in the box goes to the nearer colour (Lab, 5 nearest).
-    from scipy.spatial import cKDTree
-
+    # the other thing comes in). Each merged pixel in the box goes to the nearer colour.
+    lab = cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB).astype(np.float32)
     ids = np.unique(s.labels[merged])
     other = np.isin(s.labels, ids) & ~in_box
     reach = cv2.distanceTransform((~other).astype(np.uint8), cv2.DIST_L2, 3)
     deep = merged & (reach > 0.25 * max(x1 - x0, y1 - y0))
-    lab = cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB).astype(np.float32)
-    rng = np.random.default_rng(0)
-
-    def samples(m: np.ndarray) -> np.ndarray:
-        c = lab[m]
-        return c[rng.choice(len(c), min(len(c), 3000), replace=False)] if len(c) else c
-
-    obj_c, oth_c = samples(whole | deep), samples(other)
     notes = []
-    if len(obj_c) < 20 or len(oth_c) < 20:
+    if (whole | deep).sum() < 20 or other.sum() < 20:
         notes.append("too few pixels to learn colours from; the depth patches are the mask")
-        return PromptedMask(complete(depth_only, s, in_box), "depth", time.perf_counter() - t0, notes)
-    q = lab[merged]
-    d_obj = cKDTree(obj_c).query(q, k=5)[0].mean(axis=1)
-    d_oth = cKDTree(oth_c).query(q, k=5)[0].mean(axis=1)
-    keep = np.zeros((h, w), np.uint8)
-    keep[merged] = (d_obj <= d_oth).astype(np.uint8)
-    keep = cv2.medianBlur(keep * 255, 5) > 127  # one decision per little area, not per noisy pixel
-    drop = merged & ~keep
+        return PromptedMask(complete(depth_only, s, in_box, lab), "depth", time.perf_counter() - t0, notes)
+    drop = merged & ~_nearer_colour(lab, merged, whole | deep, other)
     fg = _largest_near(depth_only & ~drop, seed & ~drop)
-    return PromptedMask(complete(fg, s, in_box), "depth+colour", time.perf_counter() - t0, notes)
+    return PromptedMask(complete(fg, s, in_box, lab), "depth+colour", time.perf_counter() - t0, notes)
