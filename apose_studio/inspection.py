@@ -222,3 +222,27 @@ class ResultCache:
 
     def __len__(self) -> int:
         return len(self.entries)
+
+
+def box_from_view_rect(points_world: np.ndarray, T_world_view: np.ndarray, fov: float, aspect: float,
+                       rect_min, rect_max, T_world_camera: np.ndarray, cam: CameraIntrinsics) -> tuple[int, int, int, int] | None:
+    """A box prompt (x0, y0, x1, y1 in the frame's pixels) from a rectangle dragged in the 3D view: the
+    scene points the rectangle covers (the view's camera: OpenCV axes, vertical field of view `fov` in
+    radians, width/height `aspect`, the rectangle in 0..1 screen coordinates), projected into the frame.
+    None when it covers no scene point."""
+    pc = se3.transform_points(se3.inv(T_world_view), points_world)
+    front = pc[:, 2] > 1e-6
+    t = np.tan(fov / 2.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sx = 0.5 + pc[:, 0] / np.where(front, pc[:, 2], 1.0) / (2.0 * t * aspect)
+        sy = 0.5 + pc[:, 1] / np.where(front, pc[:, 2], 1.0) / (2.0 * t)
+    (x0, y0), (x1, y1) = rect_min, rect_max
+    inside = front & (sx >= min(x0, x1)) & (sx <= max(x0, x1)) & (sy >= min(y0, y1)) & (sy <= max(y0, y1))
+    if inside.sum() < 3:
+        return None
+    uv, ok = project_points(points_world[inside], T_world_camera, cam)
+    uv = uv[ok]
+    if not len(uv):
+        return None
+    lo, hi = np.floor(uv.min(axis=0)), np.ceil(uv.max(axis=0)) + 1
+    return (int(max(lo[0], 0)), int(max(lo[1], 0)), int(min(hi[0], cam.width)), int(min(hi[1], cam.height)))

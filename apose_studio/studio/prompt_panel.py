@@ -26,6 +26,7 @@ def parse_prompt(text: str) -> tuple[tuple | None, tuple | None]:
 class PromptPanel:
     def __init__(self, app):
         self.app = app
+        self._masks: dict = {}  # (frame source, im_id, prompt) -> mask: redrawing the overlay is instant
 
     def build(self) -> None:
         gui = self.app.server.gui
@@ -34,6 +35,8 @@ class PromptPanel:
                                          "image pixels; then Mask: prompt")
             b = gui.add_button("Prompt at click", hint="then click the base object in the 3D view")
             b.on_click(self.app.guarded("Prompt at click")(self.on_prompt_at_click))
+            b = gui.add_button("Drag a box", hint="then drag a rectangle around the base object in the 3D view")
+            b.on_click(self.app.guarded("Drag a box")(self.on_drag_box))
             b = gui.add_button("Show mask", hint="the mask the prompt gives, drawn over the RGB image")
             b.on_click(self.app.guarded("Show mask")(lambda c: self.show_mask(c)))
 
@@ -47,21 +50,34 @@ class PromptPanel:
     def mask(self, frame, prompt=None) -> np.ndarray:
         from ..prompt import prompted_mask
 
-        box, point = prompt if prompt is not None else self.prompt()
-        return prompted_mask(frame.rgb, frame.depth, frame.camera, box=box, point=point).mask
+        prompt = prompt if prompt is not None else self.prompt()
+        key = (frame.source, frame.im_id, frame.step, prompt)
+        if key not in self._masks:
+            if len(self._masks) > 32:
+                self._masks.clear()
+            box, point = prompt
+            self._masks[key] = prompted_mask(frame.rgb, frame.depth, frame.camera, box=box, point=point).mask
+        return self._masks[key]
+
+    def overlay_mask(self, frame) -> np.ndarray | None:
+        """The prompted mask to draw over the RGB image: with Mask 'prompt' and a usable prompt, else None."""
+        if frame is None or self.app.inspect.i_mask.value != PROMPT_SOURCE or not self.i_prompt.value.strip():
+            return None
+        try:
+            return self.mask(frame)
+        except AposeError:
+            return None
 
     def show_mask(self, client) -> None:
+        """Compute the prompt's mask (errors say what is wrong with the prompt) and draw it over the RGB."""
         fr = self.app.inspect.frame
         if fr is None:
             raise AposeError("open a dataset or capture first")
         m = self.mask(fr)
-        image = fr.rgb.copy()
-        image[m] = (0.45 * image[m] + 0.55 * np.array([40, 220, 60])).astype(np.uint8)
-        vs, us = np.nonzero(m)
-        x0, y0, x1, y1 = inspection.crop_window(fr.rgb.shape[:2], np.stack([us, vs], axis=1)[:: max(1, len(us) // 500)])
-        self.app.results.i_image.image = image if self.app.results.i_full.value else image[y0:y1, x0:x1]
-        self.app.results.i_image.label = f"RGB: prompted mask (green), {int(m.sum())} pixels"
-        self.app.notify(client, "Mask", f"{int(m.sum())} pixels; set Mask to 'prompt' and estimate")
+        if self.app.inspect.i_mask.value != PROMPT_SOURCE:
+            self.app.inspect.i_mask.value = PROMPT_SOURCE  # its callback redraws the frame, with the mask
+        self.app.results.draw_overlay()
+        self.app.notify(client, "Mask", f"{int(m.sum())} pixels from the prompt; estimate with it (Mask: prompt)")
 
     def on_prompt_at_click(self, client) -> None:
         if self.app.inspect.frame is None:
@@ -76,6 +92,32 @@ class PromptPanel:
         client.scene.on_click()(clicked)
         self.app.notify(client, "Prompt at click", "click the base object in the 3D view")
 
+    def on_drag_box(self, client) -> None:
+        """The next rectangle dragged in the 3D view (by this tab) becomes the box prompt."""
+        if self.app.inspect.frame is None:
+            raise AposeError("open a dataset or capture first")
+        if client is None:
+            raise AposeError("no browser to drag in")
+
+        def dragged(event) -> None:
+            client.scene.remove_rect_select_callback(dragged)
+            cam = event.client.camera
+            view = se3.make_T(se3.quat_wxyz_to_matrix(np.asarray(cam.wxyz)), np.asarray(cam.position))
+            self.app.guarded("Drag a box")(lambda c: self.prompt_from_rect(view, cam.fov, cam.aspect, event.screen_min,
+                                                                           event.screen_max, c))(event)
+
+        client.scene.on_rect_select()(dragged)
+        self.app.notify(client, "Drag a box", "drag a rectangle around the base object in the 3D view")
+
+    def prompt_from_rect(self, T_world_view, fov, aspect, rect_min, rect_max, client) -> None:
+        fr = self.app.inspect.frame
+        pts, _ = inspection.scene_cloud(fr.depth, fr.rgb, fr.camera, fr.T_world_camera)
+        box = inspection.box_from_view_rect(pts, T_world_view, fov, aspect, rect_min, rect_max, fr.T_world_camera, fr.camera)
+        if box is None:
+            raise AposeError("the rectangle covers no depth point; drag it around the object itself")
+        self.i_prompt.value = ",".join(map(str, box))
+        self.show_mask(client)
+
     def prompt_at_ray(self, origin, direction, client) -> None:
         """The scene point the click's ray hits, as a pixel of the frame: the point prompt."""
         fr = self.app.inspect.frame
@@ -86,5 +128,4 @@ class PromptPanel:
             raise AposeError("the click hit no depth point; click on the object itself")
         u, v = fr.camera.project(se3.transform_points(se3.inv(fr.T_world_camera), hit[None]))
         self.i_prompt.value = f"{int(round(float(u[0])))},{int(round(float(v[0])))}"
-        self.app.inspect.i_mask.value = PROMPT_SOURCE
         self.show_mask(client)

@@ -128,17 +128,21 @@ class ResultsView:
             boxes.append((r.T_world_part, inspection.GREEN))
             boxes += [(c.T_world_part, inspection.MAGENTA) for c in r.alternatives]
         image = inspection.draw_boxes(fr.rgb, fr.camera, fr.T_world_camera, corners, boxes)
+        prompted = self.app.prompt.overlay_mask(fr)
+        if prompted is not None:  # the prompt's mask, tinted green under the boxes
+            image[prompted] = (0.45 * image[prompted] + 0.55 * np.array([40, 220, 60])).astype(np.uint8)
         if not self.i_full.value:
             uv = np.concatenate([inspection.project_points(se3.transform_points(T, corners), fr.T_world_camera, fr.camera)[0]
                                  for T, _ in boxes]) if boxes else np.zeros((0, 2))
             if not boxes:  # no boxes: around the base object, if its mask is known
-                vs, us = np.nonzero(fr.base_mask())
+                vs, us = np.nonzero(prompted if prompted is not None else fr.base_mask())
                 uv = np.stack([us, vs], axis=1)[:: max(1, len(us) // 500)]
             x0, y0, x1, y1 = inspection.crop_window(fr.rgb.shape[:2], uv)
             image = image[y0:y1, x0:x1]
         self.i_image.image = image
         truth = ", truth (amber)" if fr.T_world_part is not None else ""
-        self.i_image.label = f"RGB: estimate (green){truth}" if boxes else "RGB"
+        self.i_image.label = (f"RGB: estimate (green){truth}" if boxes else "RGB") + (
+            f"; prompted mask (green tint), {int(prompted.sum())} pixels" if prompted is not None else "")
 
     def on_download_pose(self, client) -> None:
         import json

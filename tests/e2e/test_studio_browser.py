@@ -404,3 +404,42 @@ def test_an_estimate_is_cached_under_the_settings_it_ran_with(browser, studio, g
     assert studio.inspect.result is None  # page B shows `paper`, which nothing computed
     a.close()
     b.close()
+
+
+def test_drag_a_box_prompt_in_the_3d_view_then_estimate(browser, studio, clutter_dataset):
+    """A cluttered bench: press 'Drag a box', drag a rectangle around the base in the 3D view with the
+    mouse; the box prompt, its mask over the RGB and an estimate with it follow."""
+    from apose_studio.registration import project_to_cloud
+    from apose_studio.segment import iou
+
+    page = open_page(browser, studio)
+    page.get_by_role("tab", name="Inspect").click()
+    type_into(page, "Dataset or capture", str(clutter_dataset))
+    page.get_by_role("button", name="Open data").click()
+    wait_until(lambda: "/inspect/scene" in studio.nodes, "the frame to be shown")
+    cam = client_of(studio, page).camera
+    fr = studio.inspect.frame
+    wait_until(lambda: np.linalg.norm(np.asarray(cam.position) - fr.T_world_base[:3, 3]) < 0.5, "the camera to frame it")
+    time.sleep(1.0)
+    page.get_by_role("button", name="Drag a box").click()
+    pts = project_to_cloud(fr.depth, fr.base_mask(), fr.camera, fr.T_world_camera)
+    uv = to_screen(page, cam, pts[::10])
+    lo, hi = uv.min(axis=0) - 6, uv.max(axis=0) + 6
+    time.sleep(1.5)  # the page learns of the rect-select callback
+    page.mouse.move(*hi)  # from the bottom right: the top left may lie under the notification
+    page.mouse.down()
+    page.mouse.move((lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, steps=5)
+    page.mouse.move(*lo, steps=5)
+    page.mouse.up()
+    wait_until(lambda: studio.prompt.i_prompt.value.count(",") == 3, "the box prompt")
+    wait_until(lambda: studio.inspect.i_mask.value == "prompt" and "prompted mask" in studio.results.i_image.label,
+               "the mask drawn over the RGB")
+    box = tuple(map(int, studio.prompt.i_prompt.value.split(",")))
+    ys, xs = np.nonzero(fr.base_mask())
+    assert box[0] <= xs.min() + 8 and box[1] <= ys.min() + 8 and box[2] >= xs.max() - 8 and box[3] >= ys.max() - 8, box
+    assert iou(studio.prompt.mask(fr), fr.base_mask()) > 0.6
+    page.get_by_role("button", name="Estimate frame").click()
+    wait_until(lambda: studio.inspect.result is not None, "the estimate", timeout=120)
+    assert studio.inspect.result.ok and studio.inspect.score.mssd < 0.1 * studio.inspect.part_model().diameter
+    shot(page, "prompt_box.png")
+    page.close()
