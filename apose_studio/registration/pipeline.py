@@ -106,7 +106,7 @@ def estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Para
         polish_chosen(pb, refined, chosen)
         timings["icp"] += time.perf_counter() - t
     result = compose(pb, refined, chosen, close, T_world_source, timings)  # T_world_part = T_world_base @ T_base_part
-    if found.upright and not result.confident and not pb.out_of_time("the free search after the upright one"):
+    if found.upright and not result.fits and not pb.out_of_time("the free search after the upright one"):
         return better_of_free_search(result, target_pts, pb, prior, trace_iterations, timings)  # not upright
     result.out_of_time = "; ".join(pb.notes)
     return result

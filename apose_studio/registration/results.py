@@ -67,14 +67,19 @@ class RegistrationResult:
         return float(sum(self.timings.values()))
 
     @property
+    def fits(self) -> bool:
+        """The fit part of `confident`: enough coverage, little contradiction, no search cut short (an
+        ambiguous result may fit: each of its placements explains the data)."""
+        return bool(self.ok and np.isfinite(self.coverage) and self.coverage >= CONFIDENT_COVERAGE
+                    and not self.contradiction > CONFIDENT_CONTRADICTION and not self.out_of_time)
+
+    @property
     def confident(self) -> bool:
         """One placement that the data supports: the model explains most of the target (a poor fit is likely
         a wrong pose, whatever else it says), the depth contradicts almost nothing the model shows, no
         search was cut short, and no other placement fits as well (ambiguous). An unknown coverage (NaN)
         is never confident."""
-        return bool(self.ok and np.isfinite(self.coverage) and self.coverage >= CONFIDENT_COVERAGE
-                    and not self.contradiction > CONFIDENT_CONTRADICTION and not self.out_of_time
-                    and not self.ambiguous)
+        return self.fits and not self.ambiguous
 
 
 def doubts(result: RegistrationResult) -> str:
