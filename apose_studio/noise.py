@@ -6,6 +6,7 @@ import cv2
 import numpy as np
 
 NOISE_MODELS = ("none", "gaussian", "realsense", "kinect")
+KINECT_FB = 580.0 * 0.075  # Kinect v1: IR focal length 580 px x baseline 75 mm: 1/8 px steps are 2.9 mm at 1 m
 
 _NOISE: dict[tuple[int, int], np.ndarray] = {}
 
@@ -81,7 +82,7 @@ def add_depth_noise(depth: np.ndarray, model: str, sigma_at_05m: float, rng: np.
         if rgb is not None:
             lum = rgb.astype(np.float32) @ np.float32([0.299, 0.587, 0.114])
             drop |= ((lum < 30) | (lum > 245)) & (u < 0.85)
-        noisy = quantise_disparity(noisy, fb, 1.0 / 8)
+        noisy = quantise_disparity(noisy, KINECT_FB, 1.0 / 8)  # the sensor's own steps, whatever the image's fx
         valid &= ~drop
     return np.where(valid & (noisy > 0), noisy, 0.0).astype(np.float32)
 

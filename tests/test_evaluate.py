@@ -62,7 +62,7 @@ def test_estimate_and_eval_commands(gearbox_fixed, tmp_path):
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0 and "T_world_part (estimated assembly pose):" in r.stdout and "q (w,x,y,z)" in r.stdout
     r = subprocess.run(cli + ["estimate", str(gearbox_fixed.root), "--step", "3"], capture_output=True, text=True)
-    assert r.returncode == 1 and "step 3 was not rendered; rendered steps: 2" in r.stderr
+    assert r.returncode == 2 and "step 3 was not rendered; rendered steps: 2" in r.stderr
     out = tmp_path / "eval.json"
     r = subprocess.run(cli + ["eval", str(gearbox_fixed.root), "--preset", "paper", "--frames", "1", "--json", str(out),
                               "--orientation-prior"], capture_output=True, text=True, timeout=300)

@@ -152,6 +152,46 @@ def test_depth_noise_models():
     assert len(np.unique(rs[rs > 0])) <= 3  # disparity quantisation: a flat depth keeps a few levels
 
 
+def test_kinect_noise_model():
+    """Kinect v1: coarser disparity steps than the RealSense model, the projector's shadow on the far
+    surface left of a nearer one (width = the disparity difference), no depth on dark surfaces."""
+    from apose_studio.noise import projector_shadow
+
+    rng = np.random.default_rng(1)
+    fx = 580.0
+    scene = np.full((60, 200), 1.0, np.float32)
+    scene[:, 100:150] = 0.8  # a nearer box; the projector (75 mm to the right) shades the far surface left of it
+    k = add_depth_noise(scene, "kinect", 0.0, rng, fx=fx)
+    width = fx * 0.075 * (1 / 0.8 - 1 / 1.0)  # 10.9 px
+    row = k[30]
+    assert (row[100 - int(width) + 1:98] == 0).all() and (row[:100 - int(width) - 3] > 0).mean() > 0.95
+    assert (row[152:] > 0).mean() > 0.95  # nothing is shaded right of the box
+    shadow = projector_shadow(scene, fx * 0.075)
+    assert shadow[:, 100 - int(width) + 1:100].all() and not shadow[:, 100:].any()
+    ramp = np.tile(np.linspace(0.95, 1.05, 400, dtype=np.float32), (4, 1))
+    levels = np.unique(add_depth_noise(ramp, "kinect", 0.0, rng, fx=fx))
+    gaps = np.diff(levels[levels > 0])
+    assert np.median(gaps) == pytest.approx(1.0 / (580 * 0.075 * 8), rel=0.1)  # 1/8 px of Kinect's disparity: 2.9 mm
+    flat = np.full((100, 100), 1.0, np.float32)
+    dark = np.zeros((100, 100, 3), np.uint8)
+    dark[:, 50:] = 120
+    kd = add_depth_noise(flat, "kinect", 0.0, rng, fx=fx, rgb=dark)
+    assert (kd[:, :50] == 0).mean() > 0.75 and (kd[:, 60:] == 0).mean() < 0.02
+
+
+def test_frame_noise_is_measured_from_the_depth_itself():
+    from apose_studio.noise import estimate_depth_noise
+
+    rng = np.random.default_rng(2)
+    v, u = np.mgrid[0:240, 0:320]
+    plane = (0.6 + 0.0004 * u + 0.0002 * v).astype(np.float32)  # a tilted table
+    for sigma in (0.0005, 0.002):
+        noisy = plane + rng.normal(0, sigma, plane.shape).astype(np.float32)
+        assert estimate_depth_noise(noisy) == pytest.approx(sigma, rel=0.15)
+    assert estimate_depth_noise(plane) < 1e-4
+    assert np.isnan(estimate_depth_noise(np.zeros((10, 10), np.float32)))
+
+
 def test_bad_inputs_are_refused(planetary, tmp_path):
     asm, models = planetary
     ok = RenderSettings(frames=1, camera=SMALL_CAM)
