@@ -69,7 +69,7 @@ def test_estimate_and_eval_commands(gearbox_fixed, tmp_path):
     assert r.returncode == 0, r.stderr
     assert "preset paper" in r.stdout and json.loads(out.read_text())["steps"][0]["n_frames"] == 1
     r = subprocess.run(cli + ["eval", str(tmp_path)], capture_output=True, text=True)
-    assert r.returncode == 1 and "not an apose dataset" in r.stderr and "Traceback" not in r.stderr
+    assert r.returncode == 2 and "not an apose dataset" in r.stderr and "Traceback" not in r.stderr
 
 
 def test_confidence_flag_follows_coverage():
