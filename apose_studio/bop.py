@@ -16,7 +16,6 @@ from pathlib import Path
 import numpy as np
 
 from . import se3
-from .config import CameraIntrinsics
 from .dataset import DatasetError, Frame, _read_image, _T_from_Rt, read_depth, read_json, read_rgb
 
 CSV_HEADER = ["scene_id", "im_id", "obj_id", "score", "R", "t", "time"]
