@@ -2,7 +2,7 @@
 """Real-capture conditions on renders: cluttered benches, every depth-noise model, a box prompt.
 
     .venv/bin/python benchmarks/captures.py [--frames 6] [--noise none,gaussian,realsense,kinect]
-                                            [--assemblies fidget,helical_gearbox,planetary_reducer]
+                                            [--assemblies fidget,helical_gearbox,planetary_reducer] [--preset paper]
 
 Renders `apose render --clutter` datasets (objects of the base's height standing against it and
 around it, the base off-centre; kept in artifacts/captures/ for the next run), then per frame: the
@@ -66,8 +66,9 @@ def main() -> int:
     ap.add_argument("--noise", default="none,gaussian,realsense,kinect")
     ap.add_argument("--assemblies", default=",".join(ASSEMBLIES))
     ap.add_argument("--data", default=str(REPO / "artifacts" / "captures"), help="where the renders are kept")
+    ap.add_argument("--preset", default="default", choices=["default", "paper"])
     args = ap.parse_args()
-    params = resolve_params("default")
+    params = resolve_params(args.preset)
     table: dict[str, list[dict]] = {}
     for name, asm, models in loaded_assemblies(args.assemblies.split(",")):
         for noise in args.noise.split(","):

@@ -145,6 +145,7 @@ def better_of_free_search(result: RegistrationResult, target_pts, pb: Problem, p
     return result
 
 
+CONFIDENCE_VOXELS_PER_DIAMETER = 50.0  # confidence is judged at diameter / 50 (ours) whatever the preset's voxel
 UNSUPPORTED_SHARE = 0.05  # fitness or coverage below this: the model explains (almost) none of the target
 UNSUPPORTED_CONTRADICTION = 0.5  # the camera sees past more than this share of what the model shows
 
@@ -161,10 +162,20 @@ def judge(result: RegistrationResult, depth: np.ndarray, mask: np.ndarray, cam: 
     their view; a base placed on the wrong object 7-100 % (CONFIDENT_CONTRADICTION is 5 %)."""
     if not result.ok:
         return result
-    if len(result.source_cloud):
-        seen = se3.transform_points(result.T_world_base, result.source_cloud)
-        confirmed, contradicted = evidence(seen, T_world_camera, cam, depth, mask, ~(mask | mask_edge(mask)),
-                                           agreement_tolerance(result.voxel, result.depth_noise))
+    seen = se3.transform_points(result.T_world_base, result.source_cloud) if len(result.source_cloud) else None
+    scale_voxel = base.diameter / CONFIDENCE_VOXELS_PER_DIAMETER
+    tol = agreement_tolerance(min(result.voxel, scale_voxel), result.depth_noise)
+    if result.voxel > 1.01 * scale_voxel:  # a coarse preset (the paper's fixed 8 mm): its fit is judged at the
+        # scale-aware tolerance, on what the camera sees of the model at the final pose, like ours
+        from ..metrics import quick_tree
+        from .stages import raycast_source
+
+        seen, _ = raycast_source(base, result.T_world_base, T_world_camera, cam)
+        if len(seen) and len(result.target_cloud):
+            d = quick_tree(seen).query(result.target_cloud, distance_upper_bound=tol)[0]
+            result.coverage = float(np.mean(d < tol))
+    if seen is not None and len(seen):
+        confirmed, contradicted = evidence(seen, T_world_camera, cam, depth, mask, ~(mask | mask_edge(mask)), tol)
         result.contradiction = contradicted / max(confirmed + contradicted, 1)
     reason = None
     centre = se3.transform_points(se3.inv(T_world_camera) @ result.T_world_base, base.centre[None])[0]

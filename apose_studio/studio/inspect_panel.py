@@ -330,27 +330,42 @@ class InspectPanel:
         if event.phase == "end":
             self.show_crop_centre()
 
-    def on_crop_around_click(self, client) -> None:
-        """The next click in the 3D view (by this tab) centres the crop box on the scene point it hits."""
+    def next_pointer(self, client, title: str, kind: str, handle, ask: str) -> None:
+        """The next click (kind "click") or dragged rectangle ("rect") in the 3D view of this tab goes to
+        handle(event, client), guarded like every callback; `ask` tells the user what to do."""
         if self.frame is None:
             raise AposeError("open a dataset or capture first")
         if client is None:
-            raise AposeError("no browser to click in")
+            raise AposeError("no browser to point in")
+        scene = client.scene
+        register, remove = ((scene.on_click, scene.remove_click_callback) if kind == "click"
+                            else (scene.on_rect_select, scene.remove_rect_select_callback))
 
-        def clicked(event) -> None:
-            client.scene.remove_click_callback(clicked)
-            self.app.guarded("Crop around click")(lambda c: self.crop_at_ray(event.ray_origin, event.ray_direction, c))(event)
+        def once(event) -> None:
+            remove(once)
+            self.app.guarded(title)(lambda c: handle(event, c))(event)
 
-        client.scene.on_click()(clicked)
-        self.app.notify(client, "Crop around click", "click the base object in the 3D view")
+        register()(once)
+        self.app.notify(client, title, ask)
 
-    def crop_at_ray(self, origin, direction, client) -> None:
+    def scene_point_at_ray(self, origin, direction) -> np.ndarray:
+        """The first depth point of the frame on a click's ray (world, metres)."""
         fr = self.frame
         pts, _ = inspection.scene_cloud(fr.depth, fr.rgb, fr.camera, fr.T_world_camera)
         hit = inspection.point_on_ray(pts, np.asarray(origin, float), np.asarray(direction, float),
                                       max_offset=0.01 * float(np.median(fr.depth[fr.depth > 0])))
         if hit is None:
             raise AposeError("the click hit no depth point; click on the object itself")
+        return hit
+
+    def on_crop_around_click(self, client) -> None:
+        """The next click in the 3D view (by this tab) centres the crop box on the scene point it hits."""
+        self.next_pointer(client, "Crop around click", "click",
+                          lambda e, c: self.crop_at_ray(e.ray_origin, e.ray_direction, c),
+                          "click the base object in the 3D view")
+
+    def crop_at_ray(self, origin, direction, client) -> None:
+        hit = self.scene_point_at_ray(origin, direction)
         self.place_crop(hit)
         self.app.notify(client, "Crop box", "centred at ({:.0f}, {:.0f}, {:.0f}) mm".format(*(hit * 1000)))
 

@@ -80,34 +80,20 @@ class PromptPanel:
         self.app.notify(client, "Mask", f"{int(m.sum())} pixels from the prompt; estimate with it (Mask: prompt)")
 
     def on_prompt_at_click(self, client) -> None:
-        if self.app.inspect.frame is None:
-            raise AposeError("open a dataset or capture first")
-        if client is None:
-            raise AposeError("no browser to click in")
-
-        def clicked(event) -> None:
-            client.scene.remove_click_callback(clicked)
-            self.app.guarded("Prompt at click")(lambda c: self.prompt_at_ray(event.ray_origin, event.ray_direction, c))(event)
-
-        client.scene.on_click()(clicked)
-        self.app.notify(client, "Prompt at click", "click the base object in the 3D view")
+        """The next click in the 3D view (by this tab) becomes the point prompt."""
+        self.app.inspect.next_pointer(client, "Prompt at click", "click",
+                                      lambda e, c: self.prompt_at_ray(e.ray_origin, e.ray_direction, c),
+                                      "click the base object in the 3D view")
 
     def on_drag_box(self, client) -> None:
         """The next rectangle dragged in the 3D view (by this tab) becomes the box prompt."""
-        if self.app.inspect.frame is None:
-            raise AposeError("open a dataset or capture first")
-        if client is None:
-            raise AposeError("no browser to drag in")
-
-        def dragged(event) -> None:
-            client.scene.remove_rect_select_callback(dragged)
+        def dragged(event, c) -> None:
             cam = event.client.camera
             view = se3.make_T(se3.quat_wxyz_to_matrix(np.asarray(cam.wxyz)), np.asarray(cam.position))
-            self.app.guarded("Drag a box")(lambda c: self.prompt_from_rect(view, cam.fov, cam.aspect, event.screen_min,
-                                                                           event.screen_max, c))(event)
+            self.prompt_from_rect(view, cam.fov, cam.aspect, event.screen_min, event.screen_max, c)
 
-        client.scene.on_rect_select()(dragged)
-        self.app.notify(client, "Drag a box", "drag a rectangle around the base object in the 3D view")
+        self.app.inspect.next_pointer(client, "Drag a box", "rect", dragged,
+                                      "drag a rectangle around the base object in the 3D view")
 
     def prompt_from_rect(self, T_world_view, fov, aspect, rect_min, rect_max, client) -> None:
         fr = self.app.inspect.frame
@@ -121,11 +107,7 @@ class PromptPanel:
     def prompt_at_ray(self, origin, direction, client) -> None:
         """The scene point the click's ray hits, as a pixel of the frame: the point prompt."""
         fr = self.app.inspect.frame
-        pts, _ = inspection.scene_cloud(fr.depth, fr.rgb, fr.camera, fr.T_world_camera)
-        hit = inspection.point_on_ray(pts, np.asarray(origin, float), np.asarray(direction, float),
-                                      max_offset=0.01 * float(np.median(fr.depth[fr.depth > 0])))
-        if hit is None:
-            raise AposeError("the click hit no depth point; click on the object itself")
+        hit = self.app.inspect.scene_point_at_ray(origin, direction)
         u, v = fr.camera.project(se3.transform_points(se3.inv(fr.T_world_camera), hit[None]))
         self.i_prompt.value = f"{int(round(float(u[0])))},{int(round(float(v[0])))}"
         self.show_mask(client)
