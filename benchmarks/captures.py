@@ -3,6 +3,7 @@
 
     .venv/bin/python benchmarks/captures.py [--frames 6] [--noise none,gaussian,realsense,kinect]
                                             [--assemblies fidget,helical_gearbox,planetary_reducer] [--preset paper]
+                                            [--compare-depth]
 
 Renders `apose render --clutter` datasets (objects of the base's height standing against it and
 around it, the base off-centre; kept in artifacts/captures/ for the next run), then per frame: the
@@ -40,7 +41,7 @@ from apose_studio.render import RenderSettings, render_dataset  # noqa: E402
 from apose_studio.segment import iou  # noqa: E402
 
 
-def run(ds: Dataset, asm, models, params) -> list[dict]:
+def run(ds: Dataset, asm, models, params, compare_depth: bool = False) -> list[dict]:
     rows = []
     for step in ds.steps:
         ctx = StepContext(asm, models, step)
@@ -55,6 +56,10 @@ def run(ds: Dataset, asm, models, params) -> list[dict]:
             sc = score_frame(frame, r, ctx.part, mask)
             d = ctx.part.diameter
             right = bool(r.ok and sc.mssd < 0.1 * d)
+            if compare_depth:  # the unprompted grouping (DBSCAN in 3D) limited to the same box, for comparison
+                from apose_studio.segment import depth_mask
+
+                rows.append({"depth_iou": iou(depth_mask(frame.depth, frame.camera, box=truth_box(truth)), truth)})
             rows.append({"iou": iou(mask, truth), "right": right, "right_sym": bool(r.ok and sc.mssd_mod_base_sym < 0.1 * d),
                          "confident": bool(r.ok and r.confident), "seconds": seconds, "noise_mm": r.depth_noise * 1000})
     return rows
@@ -67,6 +72,7 @@ def main() -> int:
     ap.add_argument("--assemblies", default=",".join(ASSEMBLIES))
     ap.add_argument("--data", default=str(REPO / "artifacts" / "captures"), help="where the renders are kept")
     ap.add_argument("--preset", default="default", choices=["default", "paper"])
+    ap.add_argument("--compare-depth", action="store_true", help="also score the DBSCAN depth mask with the same box")
     args = ap.parse_args()
     params = resolve_params(args.preset)
     table: dict[str, list[dict]] = {}
@@ -76,7 +82,11 @@ def main() -> int:
             if not (root / "dataset_info.json").is_file():
                 render_dataset(asm, root, RenderSettings(frames=args.frames, seed=5, noise=noise, clutter=True),
                                overwrite=True, progress=False)
-            rows = run(Dataset(root), asm, models, params)
+            rows = run(Dataset(root), asm, models, params, args.compare_depth)
+            if args.compare_depth:
+                depth_ious = [r["depth_iou"] for r in rows if "depth_iou" in r]
+                rows = [r for r in rows if "depth_iou" not in r]
+                print(f"{name:18s} {noise:9s} DBSCAN depth mask with the same box: IoU {np.mean(depth_ious):.3f}")
             table.setdefault(noise, []).extend(rows)
             print(f"{name:18s} {noise:9s} {len(rows):3d} frames  IoU {np.mean([r['iou'] for r in rows]):.3f}  "
                   f"recall {np.mean([r['right'] for r in rows]):.2f}", flush=True)

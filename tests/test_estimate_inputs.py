@@ -66,12 +66,14 @@ def test_api_matches_the_cli(capture):
     from apose_studio.api import estimate_pose
 
     f = capture["frame"]
-    depth = cv2.imread(str(capture["ours"] / "depth.png"), cv2.IMREAD_ANYDEPTH).astype(np.float32) / 1000.0
+    from apose_studio.dataset import read_depth
+
+    depth = read_depth(capture["ours"] / "depth.png", 1.0)  # metres, as the CLI reads the capture
     est = estimate_pose(f.rgb, depth, f.camera.K, capture["asm"], 2, box=truth_box(f.base_mask()))
     r = run("estimate", capture["ours"], "--assembly", capture["asm"], "--step", 2, "--box", capture["box"], "--json")
     doc = json.loads(r.stdout)
-    # the same pose to within a micrometre (depth read as x 0.001 in float32 here, x np.float32(0.001) by the CLI)
-    assert est.ok and np.allclose(est.T_camera_part, np.asarray(doc["T_camera_part"]), atol=1e-6)
+    # the same input gives the same pose (to the JSON's printing of floats)
+    assert est.ok and np.allclose(est.T_camera_part, np.asarray(doc["T_camera_part"]), rtol=0, atol=1e-12)
 
 
 def _variant(capture, tmp_path, name, camera=None, depth=None, rgb=None):
