@@ -43,6 +43,8 @@ class Params:
     polish_threshold_factor: float = 1.0  # its correspondence distance, x voxel
     deterministic: bool = True  # numpy's seeded ICP and RANSAC: the same input gives the same pose in any process
     max_seconds: float = 0.0  # ours: > 0, a time budget for the searches; a search that runs out stops and says so
+    second_look: bool = False  # ours: a result that is not confident is estimated again on its mask cut to the model's
+    # view at that pose (no clutter beside it, no occluder in front of it); kept only if that one is confident
     upright: bool = False  # ours: where a table is seen, first search the yaw of the base standing on it as modelled
     # (CAD +z along the table's normal); no table, or no confident upright fit: the free search
 
@@ -72,7 +74,7 @@ PRESET_PARAMS = {
         ransac_edge_length=0.9, ransac_distance_factor=1.5, mutual_filter=False, icp_threshold_factor=0.6,
         icp_max_iterations=15, global_source="model", source_camera=None, use_symmetries=True,
         use_orientation_prior=False, global_voxel_factor=2.0, ransac_retry_iterations=30000, use_flips=True,
-        prior_fast_path=True, upright=True, polish_voxel_factor=0.5, max_seconds=1.0),
+        prior_fast_path=True, upright=True, polish_voxel_factor=0.5, max_seconds=1.0, second_look=True),
 }
 
 

@@ -59,6 +59,7 @@ class RegistrationResult:
     coverage: float = float("nan")  # share of target points within 2 voxels of what the model shows (loose fitness)
     contradiction: float = float("nan")  # share of what the model shows (confirmed or contradicted) that the camera
     # sees past: the depth is farther than the model's surface there, so the model cannot be there
+    second_look: np.ndarray | None = None  # the model-cut mask, when the second look gave this result
     depth_noise: float = 0.0  # the frame's depth noise around the object (metres, one sigma), which widens tolerances
     out_of_time: str = ""  # what the time budget cut short (empty: nothing); such a result is never confident
 
