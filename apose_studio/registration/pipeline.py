@@ -93,7 +93,7 @@ def second_look(result: RegistrationResult, depth, mask, cam, T_world_camera, ba
     object in front of it: estimate again on the mask cut to the model's view at that pose, and keep
     that result only if it is confident (and so, like any result, one placement that the data
     supports). Measured on 240 cluttered renders with box prompts (benchmarks/captures.py): right
-    poses called unconfident 57 -> 40, confident-and-wrong 0 -> 0, recall unchanged."""
+    poses called unconfident 56 -> 39, confident-and-wrong 0 -> 0, recall unchanged."""
     t = time.perf_counter()
     cut = model_cut_mask(result, depth, mask, cam, T_world_camera, base)
     if cut.sum() < MIN_POINTS or cut.sum() >= mask.sum():
