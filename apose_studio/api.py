@@ -112,7 +112,6 @@ def estimate_pose(rgb: np.ndarray, depth: np.ndarray, K, assembly, step: int, *,
                   **params) -> PoseEstimate:
     """The assembly pose of `step`'s part from one frame. rgb (H, W, 3) uint8; depth (H, W) metres (0 or
     NaN where missing); K 3x3. Raises AposeError on bad input; a failed estimate is ok=False with a reason."""
-    from .evaluate import StepContext  # noqa: F401  (loads the core)
     from .registration import resolve_params
 
     t0 = time.perf_counter()
@@ -133,12 +132,13 @@ def estimate_pose(rgb: np.ndarray, depth: np.ndarray, K, assembly, step: int, *,
     asm, ctx = step_context(assembly, step)
     m, source = find_mask(rgb, depth, cam, mask, box, point)
     t_mask = time.perf_counter() - t0
-    return run_registration(depth, m, source, cam, np.asarray(T_world_camera, float), asm, ctx,
+    return run_registration(depth, m, source, cam, np.asarray(T_world_camera, float), ctx,
                             resolve_params(preset, asm.registration, **params), orientation_prior, t0, t_mask)
 
 
-def run_registration(depth, mask, source, cam, T_world_camera, asm, ctx, params, orientation_prior, t0, t_mask,
+def run_registration(depth, mask, source, cam, T_world_camera, ctx, params, orientation_prior, t0, t_mask,
                      trace_iterations: bool = False) -> PoseEstimate:
+    """The registration step of estimate_pose (and of `apose estimate`), on a mask already found."""
     from .registration import doubts, estimate
 
     ctx.base.warm_up(params)

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from . import se3
-from .dataset import DatasetError, Frame, _read_image, _T_from_Rt, read_depth, read_json, read_rgb
+from .dataset import DatasetError, Frame, _read_image, _T_from_Rt, check_camera_entry, read_depth, read_json, read_rgb
 
 CSV_HEADER = ["scene_id", "im_id", "obj_id", "score", "R", "t", "time"]
 
@@ -79,8 +79,6 @@ class BopScene:
             ids = self.image_ids()
             raise DatasetError(f"{self.dir}: no image {im_id} in scene_camera.json; images are "
                                f"{ids[0]}..{ids[-1]}" if ids else f"{self.dir}: scene_camera.json lists no images")
-        from .dataset import check_camera_entry
-
         rgb_path = self._image("rgb", im_id)
         if not rgb_path.exists() and self._image("gray", im_id).exists():
             rgb_path = self._image("gray", im_id)
@@ -210,7 +208,6 @@ def score_results(ds, rows: list[BopResult], steps: list[int] | None = None, mod
     """Score any method's BOP19 results on one of our datasets with our metrics and tables: per step,
     the highest-scoring estimate of base[0] per image, composed with the step's T_base_part into the
     assembly pose; an image without an estimate counts as failed."""
-    from . import metrics
     from .evaluate import FrameScore, summarise_step
     from .mesh import load_parts
 
@@ -230,9 +227,8 @@ def score_results(ds, rows: list[BopResult], steps: list[int] | None = None, mod
                 scores.append(FrameScore(step, im_id, False, "no estimate in the results file", T_world_part_gt=G))
                 continue
             T = np.asarray(fr["T_world_camera"], float) @ r.T_camera_obj @ T_base_part
-            s = FrameScore(step, im_id, True, T_world_part_est=T, T_world_part_gt=G, time_s=max(r.time, 0.0))
-            s.adi, s.mssd = metrics.adi(T, G, part.samples), metrics.mssd(T, G, part.samples, part.symmetries)
-            s.mssd_mod_base_sym, s.te, s.re_deg = s.mssd, metrics.te(T, G), metrics.re_deg(T, G)
+            s = FrameScore(step, im_id, True, T_world_part_gt=G, time_s=max(r.time, 0.0))
+            s.set_errors(T, part)
             s.confident = r.score >= 1.0
             scores.append(s)
         doc["steps"].append(summarise_step(step, scores, part))

@@ -38,7 +38,8 @@ def _pose_lines(T: np.ndarray) -> list[str]:
 
 
 def _open_estimate_input(args):
-    """(frame, assembly) for `apose estimate`: a rendered dataset, a capture folder or a BOP scene folder."""
+    """(frame, assembly, step context) for `apose estimate`: a rendered dataset, a capture folder or a BOP
+    scene folder."""
     from .api import step_context
     from .assembly import load_assembly
     from .bop import BopScene
@@ -48,10 +49,10 @@ def _open_estimate_input(args):
     asm = load_assembly(args.assembly) if args.assembly else None
     if isinstance(src, Dataset):
         asm = asm or src.assembly
+        _, ctx = step_context(asm, args.step)  # a step the assembly lacks says so first
         if args.step not in src.steps:
-            step_context(asm, args.step)  # a step the assembly lacks says so first
             raise AposeError(f"{src.root}: step {args.step} was not rendered; rendered steps: {', '.join(map(str, src.steps))}")
-        return src.frame(args.step, args.frame), asm
+        return src.frame(args.step, args.frame), asm, ctx
     if asm is None:
         raise AposeError(f"{args.input}: a capture has no assembly of its own; give --assembly A.yaml (and --step)")
     _, ctx = step_context(asm, args.step)
@@ -59,9 +60,9 @@ def _open_estimate_input(args):
         from .bop import parse_obj_map
 
         src.obj_of_part = parse_obj_map(args.obj_map, asm.parts)
-        return src.frame(args.frame, ctx.view), asm
+        return src.frame(args.frame, ctx.view), asm, ctx
     src.base, src.part, src.step = tuple(ctx.view.base), ctx.view.part, args.step
-    return src, asm
+    return src, asm, ctx
 
 
 def _estimate_mask(args, frame, asm) -> tuple[np.ndarray, str]:
@@ -89,16 +90,15 @@ def _estimate_mask(args, frame, asm) -> tuple[np.ndarray, str]:
 
 
 def cmd_estimate(args) -> int:
-    from .api import run_registration, step_context
+    from .api import run_registration
     from .evaluate import score_frame
     from .registration import resolve_params
 
     t0 = time.perf_counter()
-    frame, asm = _open_estimate_input(args)
-    _, ctx = step_context(asm, args.step)
+    frame, asm, ctx = _open_estimate_input(args)
     params = resolve_params(args.preset, asm.registration, **_upright(args))
     mask, source = _estimate_mask(args, frame, asm)
-    est = run_registration(frame.depth, mask, source, frame.camera, frame.T_world_camera, asm, ctx, params,
+    est = run_registration(frame.depth, mask, source, frame.camera, frame.T_world_camera, ctx, params,
                            args.orientation_prior, t0, time.perf_counter() - t0, trace_iterations=True)
     r = est.result
     sc = score_frame(frame, r, ctx.part, None if source == "gt" else mask) if frame.T_world_part is not None else None
@@ -166,21 +166,16 @@ def cmd_eval(args) -> int:
     if args.score_results:
         from .bop import read_results_csv, score_results
 
+        _check_outputs(args)
         doc = score_results(ds, read_results_csv(Path(args.score_results)), args.steps)
         print(format_table(doc))
-        if args.json:
-            from .dataset import write_json
-            write_json(Path(args.json), doc)
-        return 0
+        return _write_outputs(args, doc, None)
     params = resolve_params(args.preset, ds.assembly.registration, **_upright(args))
     if args.frames is not None and args.frames < 1:
         raise AposeError(f"--frames {args.frames}: expected at least 1")
     if args.workers < 1:
         raise AposeError(f"--workers {args.workers}: expected at least 1")
-    if args.json:
-        _check_output_file(Path(args.json), "--json")
-    if args.bop_results:
-        _check_output_file(Path(args.bop_results), "--bop-results")
+    _check_outputs(args)
     for step in ds.missing_steps:
         print(f"warning: step {step} is listed in {ds.root / 'dataset_info.json'} but its folder "
               f"test/{step:06d} is missing; it is left out", file=sys.stderr)
@@ -201,21 +196,35 @@ def cmd_eval(args) -> int:
                   f"({100 * (st['recall_mssd'] - sg['recall_mssd']):+.0f} points), mask IoU {st['mask_iou']:.3f}")
         doc["gt_masks"] = [{"step": sg["step"], "recall_mssd": sg["recall_mssd"], "adi": sg["adi"], "mssd": sg["mssd"]}
                            for sg in gt["steps"]]
+    from .bop import results_from_eval
+
+    return _write_outputs(args, doc, results_from_eval(ds, doc) if args.bop_results else None)
+
+
+def _check_outputs(args) -> None:
+    """--json and --bop-results must be writable file paths, checked before any long work."""
+    for flag in ("json", "bop_results"):
+        if getattr(args, flag):
+            _check_output_file(Path(getattr(args, flag)), "--" + flag.replace("_", "-"))
+
+
+def _write_outputs(args, doc: dict, rows) -> int:
+    """Write --json (the evaluation document) and --bop-results (BOP19 rows), as asked."""
+    from .bop import write_results_csv
+    from .dataset import write_json
+
     if args.json:
-        from .dataset import write_json
         write_json(Path(args.json), doc)
         print(f"wrote {args.json}")
-    if args.bop_results:
-        from .bop import results_from_eval, write_results_csv
-
-        write_results_csv(Path(args.bop_results), results_from_eval(ds, doc))
+    if args.bop_results and rows is not None:
+        write_results_csv(Path(args.bop_results), rows)
         print(f"wrote {args.bop_results} (BOP19 results)")
     return 0
 
 
 def _eval_bop_split(args) -> int:
     from .assembly import load_assembly
-    from .bop import evaluate_split, parse_obj_map, write_results_csv
+    from .bop import evaluate_split, parse_obj_map
     from .evaluate import format_table
     from .registration import resolve_params
 
@@ -225,21 +234,12 @@ def _eval_bop_split(args) -> int:
     if args.score_results:
         raise AposeError("--score-results scores a results file on an apose dataset; on BOP data use bop_toolkit")
     asm = load_assembly(args.assembly)
-    for flag in ("json", "bop_results"):
-        if getattr(args, flag):
-            _check_output_file(Path(getattr(args, flag)), "--" + flag.replace("_", "-"))
+    _check_outputs(args)
     params = resolve_params(args.preset, asm.registration, **_upright(args))
     doc, rows = evaluate_split(Path(args.dataset), asm, args.step, parse_obj_map(args.obj_map, asm.parts), params,
                                args.mask, args.frames, progress=sys.stderr.isatty())
     print(format_table(doc))
-    if args.json:
-        from .dataset import write_json
-        write_json(Path(args.json), doc)
-        print(f"wrote {args.json}")
-    if args.bop_results:
-        write_results_csv(Path(args.bop_results), rows)
-        print(f"wrote {args.bop_results} (BOP19 results)")
-    return 0
+    return _write_outputs(args, doc, rows)
 
 
 def _upright(args) -> dict:

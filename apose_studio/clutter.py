@@ -11,6 +11,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from . import se3
+from .mesh import sample_surface
 
 TOUCH_GAP_M = 0.0005  # a toucher stands this close to the base (surface to surface)
 
@@ -39,18 +40,6 @@ def clutter_pool(base_diameter: float, base_height: float) -> list[trimesh.Trime
     return _POOL[key]
 
 
-def surface_points(mesh: trimesh.Trimesh, n: int, rng: np.random.Generator) -> np.ndarray:
-    """n points spread over a mesh's surface by area (seeded)."""
-    tri = mesh.triangles
-    area = mesh.area_faces
-    idx = rng.choice(len(tri), n, p=area / area.sum())
-    a, b = rng.random((2, n, 1))
-    flip = (a + b) > 1
-    a, b = np.where(flip, 1 - a, a), np.where(flip, 1 - b, b)
-    t = tri[idx]
-    return t[:, 0] + a * (t[:, 1] - t[:, 0]) + b * (t[:, 2] - t[:, 0])
-
-
 def touching_pose(base_tree: cKDTree, centre_xy: np.ndarray, reach: float, mesh: trimesh.Trimesh, yaw: float,
                   angle: float, rng: np.random.Generator, step: float = 0.002) -> np.ndarray | None:
     """The resting pose that puts `mesh` (turned by `yaw`) against the base along direction `angle`
@@ -58,7 +47,7 @@ def touching_pose(base_tree: cKDTree, centre_xy: np.ndarray, reach: float, mesh:
     points in the world). Walks in from `reach` until the two come within `step`, then bisects.
     None when it never comes near (a direction through a hole in the base)."""
     R = se3.axis_angle_matrix((0, 0, 1), yaw)
-    pts = surface_points(mesh, 1500, rng) @ R.T
+    pts = sample_surface(mesh, 1500, rng) @ R.T
     lift = -float((mesh.vertices @ R.T)[:, 2].min())
     d = np.array([math.cos(angle), math.sin(angle)])
 
@@ -91,7 +80,7 @@ def clutter_around(base_world: trimesh.Trimesh, rng: np.random.Generator, touchi
     centre = (lo + hi) / 2
     base_d = float(np.linalg.norm(hi - lo))
     pool = clutter_pool(base_d, float(hi[2] - lo[2]))
-    tree = cKDTree(surface_points(base_world, 6000, rng))
+    tree = cKDTree(sample_surface(base_world, 6000, rng))
     out: list[tuple[trimesh.Trimesh, np.ndarray]] = []
     discs: list[tuple[np.ndarray, float]] = []
     start = rng.uniform(0, 2 * np.pi)

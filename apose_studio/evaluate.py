@@ -40,6 +40,15 @@ class FrameScore:
     candidates: list = field(default_factory=list)
     mask_iou: float | None = None  # predicted base mask against the ground truth (when not using gt)
 
+    def set_errors(self, T: np.ndarray, part: PartModel) -> None:
+        """The estimate T (T_world_part) and its errors against T_world_part_gt (MSSD modulo the base's
+        symmetries starts equal to MSSD)."""
+        G = self.T_world_part_gt
+        self.T_world_part_est = T
+        self.adi = metrics.adi(T, G, part.samples)
+        self.mssd = self.mssd_mod_base_sym = metrics.mssd(T, G, part.samples, part.symmetries)
+        self.te, self.re_deg = metrics.te(T, G), metrics.re_deg(T, G)
+
     def to_json(self) -> dict:
         out = {"scene_id": self.scene_id, "im_id": self.im_id, "ok": self.ok,
                "T_world_part_est": None if self.T_world_part_est is None else self.T_world_part_est.tolist(),
@@ -122,14 +131,11 @@ def score_frame(frame: Frame, result: RegistrationResult, part: PartModel, mask:
         s.mask_iou = iou(mask, frame.base_mask())
     if not result.ok:
         return s
-    T, G = result.T_world_part, frame.T_world_part
-    s.T_world_part_est = T
-    s.adi = metrics.adi(T, G, part.samples)
-    s.mssd = metrics.mssd(T, G, part.samples, part.symmetries)
+    G = frame.T_world_part
+    s.set_errors(result.T_world_part, part)
     best = result.candidates[0].score if result.candidates else 0.0
     tied = [c for c in result.candidates if c.score >= best - TIE_MARGIN] or result.candidates
     s.mssd_mod_base_sym = min([s.mssd] + [metrics.mssd(c.T_world_part, G, part.samples, part.symmetries) for c in tied])
-    s.te, s.re_deg = metrics.te(T, G), metrics.re_deg(T, G)
     s.fitness, s.inlier_rmse = result.fitness, result.inlier_rmse
     s.ambiguous, s.confident = bool(result.ambiguous), bool(result.confident)
     s.candidates = [{"T_world_part": c.T_world_part.tolist(), "score": c.score, "fitness": c.fitness,

@@ -219,10 +219,11 @@ def oriented_box(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
     return T_part_obb, hi - lo
 
 
-def sample_surface(mesh: trimesh.Trimesh, n: int, seed: int = 0, return_faces: bool = False):
-    """n points on the surface, area-weighted, deterministic for a seed. (n, 3) in the mesh frame,
-    and with return_faces the (n,) index of the triangle each point lies on."""
-    rng = np.random.default_rng(seed)
+def sample_surface(mesh: trimesh.Trimesh, n: int, seed: int | np.random.Generator = 0, return_faces: bool = False):
+    """n points on the surface, area-weighted, deterministic for a seed (or drawn from a generator the
+    caller owns). (n, 3) in the mesh frame, and with return_faces the (n,) index of the triangle each
+    point lies on."""
+    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
     areas = mesh.area_faces
     face = rng.choice(len(areas), size=n, p=areas / areas.sum())
     u, v = rng.random(n), rng.random(n)

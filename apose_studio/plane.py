@@ -9,6 +9,8 @@ most 0.03 degrees from the renderer's true one; tests/test_plane.py checks 0.5 d
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 PLANE_ITERATIONS = 200
@@ -60,6 +62,42 @@ def fit_plane(points: np.ndarray, tol: float, seed: int = 0, iterations: int = P
         n_new = np.linalg.svd(points[inl] - c, full_matrices=False)[2][2]
         n, d = (n_new, -float(n_new @ c)) if n_new @ n >= 0 else (-n_new, float(n_new @ c))
     return n, float(d), np.abs(points @ n + d) < tol
+
+
+TABLE_TOL = 0.006  # a point within this share of the median depth of the table plane is on it (3 mm at 0.5 m)
+
+
+@dataclass
+class TableFit:
+    """The table under what a depth image shows: its valid pixels (vs, us) and their camera-frame points,
+    the plane n . x + d = 0 (n towards the camera) and its tolerance; None where no plane was found."""
+
+    vs: np.ndarray
+    us: np.ndarray
+    pts: np.ndarray
+    median_depth: float
+    tol: float
+    plane: tuple[np.ndarray, float] | None
+
+    def heights(self) -> np.ndarray | None:
+        """(N,) metres above the plane of each valid pixel's point."""
+        return None if self.plane is None else self.pts @ self.plane[0] + self.plane[1]
+
+
+def fit_table(depth: np.ndarray, cam, tol: float | None = None, rng: np.random.Generator | None = None,
+              sample: int = 20000) -> TableFit | None:
+    """The table plane of a depth image (seeded RANSAC on `sample` of its points, objects on the camera's
+    side); None when it has fewer than 100 valid pixels. `tol` defaults to TABLE_TOL of the median depth."""
+    valid = np.isfinite(depth) & (depth > 0)
+    if valid.sum() < 100:
+        return None
+    vs, us = np.nonzero(valid)
+    pts = cam.backproject(us, vs, depth[vs, us])
+    med = float(np.median(pts[:, 2]))
+    tol = TABLE_TOL * med if tol is None else tol
+    rng = np.random.default_rng(0) if rng is None else rng
+    fit = fit_plane(pts[rng.choice(len(pts), min(len(pts), sample), replace=False)], tol, seed=0, towards=np.zeros(3))
+    return TableFit(vs, us, pts, med, tol, None if fit is None else (fit[0], fit[1]))
 
 
 def table_frame(depth: np.ndarray, cam, min_share: float = 0.3, seed: int = 0) -> np.ndarray | None:

@@ -17,7 +17,7 @@ Pixels (u, v) are image columns and rows; a box is (x0, y0, x1, y1) with x1, y1 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -78,36 +78,32 @@ class Surfaces:
     table: np.ndarray  # (H, W) bool: on the table plane
     above: np.ndarray  # (H, W) bool: valid depth above the table
     valid: np.ndarray  # (H, W) bool: depth present
+    specks: np.ndarray  # (H, W) bool: patches under MIN_PATCH_PX (specks of valid depth amid sensor holes)
 
 
-def surfaces(depth: np.ndarray, cam: CameraIntrinsics, window: tuple[int, int, int, int] | None = None) -> Surfaces:
-    """Table plane removed (fitted on the whole image), the rest cut at depth discontinuities."""
+def surfaces(depth: np.ndarray, cam: CameraIntrinsics) -> Surfaces:
+    """Table plane removed (`plane.fit_table`), the rest cut at depth discontinuities."""
     from .noise import depth_edges
-    from .plane import fit_plane
+    from .plane import fit_table
 
     h, w = depth.shape
     z = np.where(np.isfinite(depth) & (depth > 0), depth, 0).astype(np.float32)
     valid = z > 0
-    vs, us = np.nonzero(valid)
     table = np.zeros((h, w), bool)
     above = valid.copy()
-    if len(vs) >= 100:
-        pts = cam.backproject(us, vs, z[vs, us])
-        med = float(np.median(pts[:, 2]))
-        tol = 0.006 * med
-        rng = np.random.default_rng(0)
-        sub = pts[rng.choice(len(pts), min(len(pts), 20000), replace=False)]
-        fit = fit_plane(sub, tol, seed=0, towards=np.zeros(3))
-        if fit is not None:
-            height = pts @ fit[0] + fit[1]
-            table[vs, us] = height <= tol
-            above[vs, us] = height > tol
+    fit = fit_table(z, cam)
+    if fit is not None and fit.plane is not None:
+        height = fit.heights()
+        table[fit.vs, fit.us] = height <= fit.tol
+        above[fit.vs, fit.us] = height > fit.tol
     smooth = cv2.medianBlur(z, 5)
     smooth = np.where(valid, smooth, 0)
     edges = depth_edges(smooth, rel=0.012, floor=0.004) & valid
     region = (above & ~edges).astype(np.uint8)
     _, labels = cv2.connectedComponents(region, connectivity=4)
-    return Surfaces(labels.astype(np.int32), table, above, valid)
+    small = np.bincount(labels.ravel()) < MIN_PATCH_PX
+    small[0] = False
+    return Surfaces(labels.astype(np.int32), table, above, valid, small[labels])
 
 
 def _seed_patches(s: Surfaces, box, point) -> tuple[np.ndarray, np.ndarray]:
@@ -192,20 +188,12 @@ def _nearer_colour(lab: np.ndarray, query: np.ndarray, ours: np.ndarray, theirs:
     return (cv2.medianBlur(out, 5) > 127) & query
 
 
-def small_patches(s: Surfaces) -> np.ndarray:
-    """(H, W) bool: pixels of patches under MIN_PATCH_PX (speckle of valid depth amid sensor holes)."""
-    sizes = np.bincount(s.labels.ravel())
-    small = sizes < MIN_PATCH_PX
-    small[0] = False
-    return small[s.labels]
-
-
 def sensor_holes(mask: np.ndarray, s: Surfaces, in_box: np.ndarray, lab: np.ndarray) -> np.ndarray:
     """Pixels the depth cannot place that belong to the object: in the box, off the table, without depth
     or with only specks of it (no patch), reached from the mask through such pixels, and nearer the
     object's colours than the table's (a dark or glossy surface the sensor barely sees, as Kinect on a
     black motor)."""
-    holes = in_box & ~s.table & (~s.valid | (s.labels == 0) | small_patches(s))
+    holes = in_box & ~s.table & (~s.valid | (s.labels == 0) | s.specks)
     table = s.table & in_box
     if not holes.any() or mask.sum() < 20 or table.sum() < 20:
         return np.zeros_like(mask)
@@ -226,16 +214,18 @@ def complete(mask: np.ndarray, s: Surfaces, in_box: np.ndarray, lab: np.ndarray 
         m |= sensor_holes(mask, s, in_box, lab)
     k3 = np.ones((3, 3), np.uint8)
     ys, xs = np.nonzero(in_box)
-    for _ in range(max(3, int(0.02 * np.hypot(np.ptp(xs) + 1, np.ptp(ys) + 1)))):
+    diagonal = float(np.hypot(np.ptp(xs) + 1, np.ptp(ys) + 1))
+    for _ in range(max(3, int(0.02 * diagonal))):
         m |= (cv2.dilate(m.astype(np.uint8), k3) > 0) & free
-    size = max(5, int(0.03 * np.hypot(np.ptp(xs) + 1, np.ptp(ys) + 1)) | 1)
+    size = max(5, int(0.03 * diagonal) | 1)
+
     def close(k: int) -> np.ndarray:
         return cv2.morphologyEx(m.astype(np.uint8), cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0
 
     closed, bridged = close(size), close(3 * size)  # bridged: gaps in a rim up to ~9 % of the box closed
     out = (closed | (fill_holes(bridged) & ~bridged)) & in_box  # plus what the bridged rim encloses
     touched = np.unique(s.labels[m & (s.labels > 0)])
-    other = (s.labels > 0) & ~np.isin(s.labels, touched) & ~small_patches(s)
+    other = (s.labels > 0) & ~np.isin(s.labels, touched) & ~s.specks
     return out & ~other
 
 
@@ -256,8 +246,6 @@ def prompted_mask(rgb: np.ndarray, depth: np.ndarray, cam: CameraIntrinsics, box
         x0, y0, x1, y1 = check_box(box, (h, w))
         m = max(x1 - x0, y1 - y0)
         wx0, wy0, wx1, wy1 = max(x0 - m, 0), max(y0 - m, 0), min(x1 + m, w), min(y1 + m, h)
-        from dataclasses import replace
-
         sub_cam = replace(cam, width=wx1 - wx0, height=wy1 - wy0, cx=cam.cx - wx0, cy=cam.cy - wy0)
         out = _prompted(rgb[wy0:wy1, wx0:wx1], depth[wy0:wy1, wx0:wx1], sub_cam,
                         (x0 - wx0, y0 - wy0, x1 - wx0, y1 - wy0), None, colour)
@@ -269,7 +257,7 @@ def prompted_mask(rgb: np.ndarray, depth: np.ndarray, cam: CameraIntrinsics, box
 
 
 def _prompted(rgb, depth, cam, box, point, colour: bool) -> PromptedMask:
-    t0 = time.perf_counter()
+    """prompted_mask on an image (or a window of it); its caller times it."""
     h, w = depth.shape
     s = surfaces(depth, cam)
     if box is None:  # a click: the clicked patch, then the patches in a box around it (its extent and a margin)
@@ -287,22 +275,20 @@ def _prompted(rgb, depth, cam, box, point, colour: bool) -> PromptedMask:
     depth_only = _largest_near(seed & in_box, seed)
     merged = seed & ~whole  # patches that run out of the box: the base and something touching it
     if not colour:
-        return PromptedMask(complete(depth_only, s, in_box), "depth", time.perf_counter() - t0)
+        return PromptedMask(complete(depth_only, s, in_box), "depth", 0.0)
+    lab = cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB)
     if not merged.any():
-        lab = cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB)
-        return PromptedMask(complete(depth_only, s, in_box, lab), "depth+colour", time.perf_counter() - t0)
+        return PromptedMask(complete(depth_only, s, in_box, lab), "depth+colour", 0.0)
     # colour decides the merged patches only. The other thing's colours: its pixels outside the box. The
     # object's: the patches wholly in the box, and the merged pixels deep inside the box (far from where
     # the other thing comes in). Each merged pixel in the box goes to the nearer colour.
-    lab = cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB)
     ids = np.unique(s.labels[merged])
     other = np.isin(s.labels, ids) & ~in_box
     reach = cv2.distanceTransform((~other).astype(np.uint8), cv2.DIST_L2, 3)
     deep = merged & (reach > 0.25 * max(x1 - x0, y1 - y0))
-    notes = []
     if (whole | deep).sum() < 20 or other.sum() < 20:
-        notes.append("too few pixels to learn colours from; the depth patches are the mask")
-        return PromptedMask(complete(depth_only, s, in_box, lab), "depth", time.perf_counter() - t0, notes)
+        return PromptedMask(complete(depth_only, s, in_box, lab), "depth", 0.0,
+                            ["too few pixels to learn colours from; the depth patches are the mask"])
     drop = merged & ~_nearer_colour(lab, merged, whole | deep, other)
     fg = _largest_near(depth_only & ~drop, seed & ~drop)
-    return PromptedMask(complete(fg, s, in_box, lab), "depth+colour", time.perf_counter() - t0, notes)
+    return PromptedMask(complete(fg, s, in_box, lab), "depth+colour", 0.0)

@@ -353,23 +353,16 @@ def table_objects(depth: np.ndarray, cam, plane_tol: float | None = None, gap: f
     import open3d as o3d
     from scipy.spatial import cKDTree
 
-    from .plane import fit_plane
+    from .plane import fit_table
 
-    valid = np.isfinite(depth) & (depth > 0)
-    if valid.sum() < 100:
-        return None
-    vs, us = np.nonzero(valid)
-    pts = cam.backproject(us, vs, depth[vs, us])
-    med = float(np.median(pts[:, 2]))
-    plane_tol = 0.006 * med if plane_tol is None else plane_tol
-    gap = 0.02 * med if gap is None else gap
     rng = np.random.default_rng(0)
-    sub = pts[rng.choice(len(pts), min(len(pts), 20000), replace=False)]
-    fit = fit_plane(sub, plane_tol, seed=0, towards=np.zeros(3))  # objects are on the camera's (the origin's) side
-    if fit is None:
+    table = fit_table(depth, cam, plane_tol, rng)
+    if table is None or table.plane is None:
         return None
-    n, d = fit[0], fit[1]
-    above = (pts @ n + d) > plane_tol
+    vs, us, pts, med, plane_tol = table.vs, table.us, table.pts, table.median_depth, table.tol
+    gap = 0.02 * med if gap is None else gap
+    heights = table.heights()
+    above = heights > plane_tol
     if keep is not None:
         above &= keep[vs, us]
     if above.sum() < 30:
@@ -379,7 +372,7 @@ def table_objects(depth: np.ndarray, cam, plane_tol: float | None = None, gap: f
     groups = np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(obj[pick])).cluster_dbscan(gap, 8))
     _, nearest = cKDTree(obj[pick]).query(obj)
     height = np.full(depth.shape, np.nan)
-    height[vs, us] = pts @ n + d
+    height[vs, us] = heights
     return TableObjects(us[above], vs[above], groups[nearest], depth.shape, height, med)
 
 

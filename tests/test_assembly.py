@@ -214,10 +214,15 @@ def test_yaml_aliases_are_refused_before_they_expand(tmp_path):
         load_assembly(p)
 
 
+def _edited(tiny_dir, name: str, old: str, new: str):
+    """A copy of the tiny assembly with one piece of text replaced."""
+    path = tiny_dir / name
+    path.write_text((tiny_dir / "assembly.yaml").read_text().replace(old, new))
+    return path
+
+
 def test_duplicate_keys_and_deep_nesting_are_errors(tiny_dir):
-    text = (tiny_dir / "assembly.yaml").read_text()
-    dup = tiny_dir / "dup.yaml"
-    dup.write_text(text.replace("  cap: {mesh: cap.stl}\n", "  cap: {mesh: cap.stl}\n  peg: {mesh: cap.stl}\n"))
+    dup = _edited(tiny_dir, "dup.yaml", "  cap: {mesh: cap.stl}\n", "  cap: {mesh: cap.stl}\n  peg: {mesh: cap.stl}\n")
     with pytest.raises(AssemblyError, match=r"duplicate key 'peg' \(first at line 6\)"):
         load_assembly(dup)
     deep = tiny_dir / "deep.yaml"
@@ -227,9 +232,7 @@ def test_duplicate_keys_and_deep_nesting_are_errors(tiny_dir):
 
 
 def test_part_ids_are_plain_names(tiny_dir):
-    text = (tiny_dir / "assembly.yaml").read_text()
-    bad = tiny_dir / "bad.yaml"
-    bad.write_text(text.replace("  cap: {mesh: cap.stl}", '  "<img src=x onerror=alert(1)>": {mesh: cap.stl}'))
+    bad = _edited(tiny_dir, "bad.yaml", "  cap: {mesh: cap.stl}", '  "<img src=x onerror=alert(1)>": {mesh: cap.stl}')
     with pytest.raises(AssemblyError, match=r"a part id is 1 to 64 letters, digits, '_', '-' or '\.'"):
         load_assembly(bad)
 

@@ -20,7 +20,7 @@ from .presets import Params
 from .problem import Problem, prepare_problem, scale_problem
 from .refine import add_symmetric_twins, choose, polish_chosen, refine_candidates, select_starts
 from .results import CONFIDENT_COVERAGE, MIN_POINTS, Degenerate, RegistrationResult, failed
-from .scoring import Observation, agreement_tolerance, distinct_placements, evidence, mask_edge
+from .scoring import Observation, agreement_tolerance, distinct_placements, evidence, mask_edge, pixels
 from .searches import ModelSearch, search_poses, try_prior
 from .stages import place_source, project_to_cloud, trace_stages
 
@@ -74,13 +74,9 @@ def model_cut_mask(result: RegistrationResult, depth: np.ndarray, mask: np.ndarr
     from .stages import raycast_source
 
     seen, _ = raycast_source(base, result.T_world_base, T_world_camera, cam)
+    v, u, z, inside = pixels(seen, T_world_camera, cam)
     zbuf = np.full(mask.shape, np.inf, np.float32)
-    if len(seen):
-        pc = se3.transform_points(se3.inv(T_world_camera), seen)
-        u, v = cam.project(pc)
-        u, v = np.round(u).astype(int), np.round(v).astype(int)
-        ok = (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-        np.minimum.at(zbuf, (v[ok], u[ok]), pc[ok, 2].astype(np.float32))
+    np.minimum.at(zbuf, (v[inside], u[inside]), z[inside].astype(np.float32))
     zbuf = cv2.erode(zbuf, np.ones((5, 5), np.uint8))  # 2 px wider, the nearer surface winning
     tol = agreement_tolerance(result.voxel, result.depth_noise)
     in_front = (depth > 0) & (depth < zbuf - tol)
@@ -105,7 +101,7 @@ def second_look(result: RegistrationResult, depth, mask, cam, T_world_camera, ba
         result.timings["second look"] = seconds
         return result
     again.second_look = cut
-    again.timings = {**{k: v for k, v in result.timings.items()}, "second look": seconds}
+    again.timings = {**result.timings, "second look": seconds}
     return again
 
 

@@ -14,6 +14,7 @@ import numpy as np
 from .. import inspection, se3
 from ..assembly import Assembly
 from ..errors import AposeError
+from .prompt_panel import PROMPT_SOURCE
 from .widgets import PRESETS, esc
 
 log = logging.getLogger(__name__)
@@ -71,7 +72,7 @@ class InspectPanel:
         with gui.add_folder("Estimate") as self.estimate_folder:
             self.i_preset = gui.add_dropdown("Preset", PRESETS, initial_value="default")
             from ..evaluate import MASK_SOURCES
-            from .prompt_panel import PROMPT_SOURCE
+
 
             self.i_mask = gui.add_dropdown("Mask", MASK_SOURCES + (PROMPT_SOURCE,), initial_value=MASK_SOURCES[0],
                                            hint="gt: the dataset's masks; depth: table removal + 3D clustering; box: "
@@ -185,7 +186,7 @@ class InspectPanel:
             crop = (se3.make_T(se3.quat_wxyz_to_matrix(np.asarray(g.wxyz)), np.asarray(g.position)),
                     np.asarray(self.i_crop_size.value, dtype=float) / 1000.0)
         asm = self.inspect_assembly()
-        prompt = self.app.prompt.prompt() if self.i_mask.value == "prompt" else None
+        prompt = self.app.prompt.prompt() if self.i_mask.value == PROMPT_SOURCE else None
         return EstimateJob(self.frames, self.frames_path, asm, self.inspect_models(), step, tuple(ids),
                            self.i_preset.value, bool(self.i_upright.value), self.i_mask.value, bool(self.i_prior.value),
                            crop, prompt)
