@@ -73,7 +73,6 @@ class InspectPanel:
             self.i_preset = gui.add_dropdown("Preset", PRESETS, initial_value="default")
             from ..evaluate import MASK_SOURCES
 
-
             self.i_mask = gui.add_dropdown("Mask", MASK_SOURCES + (PROMPT_SOURCE,), initial_value=MASK_SOURCES[0],
                                            hint="gt: the dataset's masks; depth: table removal + 3D clustering; box: "
                                            "prompted by the truth's box; prompt: your box or click (Prompt folder); "
