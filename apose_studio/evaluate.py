@@ -299,7 +299,7 @@ def format_table(doc: dict) -> str:
     for st in doc["steps"]:
         fit = st["fitness"]["mean"]
         lines.append(f"{st['step']:>4} {st['part'][:12]:<12} {st['n_frames']:>4} {st['failed']:>4} "
-                     f"{fit if fit is not None else float('nan'):>8.4f} {mm(st, 'inlier_rmse'):>9} {mm(st, 'adi')} "
+                     f"{f'{fit:.4f}' if fit is not None else '-':>8} {mm(st, 'inlier_rmse'):>9} {mm(st, 'adi')} "
                      f"{mm_std(st, 'adi')} {mm(st, 'mssd')} {mm_std(st, 'mssd')} {st['time_s']['mean']:>8.3f} "
                      f"{st['time_s']['median']:>7.3f} {st['recall_mssd']:>6.2f} {st['recall_mssd_mod_base_sym']:>7.2f} "
                      f"{st['ar_mssd']:>5.2f}" + (f"  mask IoU {st['mask_iou']:.3f}" if st.get("mask_iou") is not None else ""))
