@@ -40,6 +40,8 @@ class PoseEstimate:
     timings: dict[str, float] = field(default_factory=dict)  # seconds: mask, registration, total
     result: object = None  # the full registration.RegistrationResult
     doubts: str = ""
+    equivalent: list[np.ndarray] = field(default_factory=list)  # T_world_part of the placements an exact symmetry of
+    # the base makes the same assembly (the part may equally go there)
 
     def to_json(self) -> dict:
         def m(T):
@@ -50,6 +52,7 @@ class PoseEstimate:
                 "T_world_part": m(self.T_world_part), "T_camera_part": m(self.T_camera_part),
                 "T_world_camera": m(self.T_world_camera), "confident": self.confident, "coverage": cov,
                 "doubts": self.doubts, "ambiguous": self.ambiguous, "alternatives": [m(T) for T in self.alternatives],
+                "equivalent": [m(T) for T in self.equivalent],
                 "mask": {"source": self.mask_source, "pixels": int(self.mask.sum())},
                 "timings_s": {k: round(v, 4) for k, v in self.timings.items()}}
 
@@ -153,4 +156,4 @@ def run_registration(depth, mask, source, cam, T_world_camera, ctx, params, orie
                         T_camera_part, bool(r.confident), float(r.coverage), bool(r.ambiguous),
                         [c.T_world_part for c in r.alternatives], mask, source,
                         {"mask": t_mask, "registration": t2 - t1, "total": t2 - t0}, r,
-                        "" if r.confident or not r.ok else doubts(r))
+                        "" if r.confident or not r.ok else doubts(r), r.equivalent if r.ok else [])

@@ -207,8 +207,9 @@ def results_from_eval(ds, doc: dict) -> list[BopResult]:
 def score_results(ds, rows: list[BopResult], steps: list[int] | None = None, models=None) -> dict:
     """Score any method's BOP19 results on one of our datasets with our metrics and tables: per step,
     the highest-scoring estimate of base[0] per image, composed with the step's T_base_part into the
-    assembly pose; an image without an estimate counts as failed."""
-    from .evaluate import FrameScore, summarise_step
+    assembly pose; an image without an estimate counts as failed. Exact symmetries of the base are
+    forgiven in `mssd_mod_base_sym`, as for our own estimates."""
+    from .evaluate import FrameScore, StepContext, summarise_step, truth_twins
     from .mesh import load_parts
 
     models = models or load_parts(ds.assembly)
@@ -218,6 +219,7 @@ def score_results(ds, rows: list[BopResult], steps: list[int] | None = None, mod
         frames, T_base_part, obj_id = _step_truth(ds, step)
         best = best_per_image(rows, obj_id)
         part = models[ds.assembly.step_view(step).part]
+        symmetries = StepContext(ds.assembly, models, step).base.symmetries
         scores = []
         for im_id in ds.image_ids(step):
             fr = frames[str(im_id)]
@@ -228,7 +230,7 @@ def score_results(ds, rows: list[BopResult], steps: list[int] | None = None, mod
                 continue
             T = np.asarray(fr["T_world_camera"], float) @ r.T_camera_obj @ T_base_part
             s = FrameScore(step, im_id, True, T_world_part_gt=G, time_s=max(r.time, 0.0))
-            s.set_errors(T, part)
+            s.set_errors(T, part, truth_twins(G, T_base_part, symmetries))
             s.confident = r.score >= 1.0
             scores.append(s)
         doc["steps"].append(summarise_step(step, scores, part))

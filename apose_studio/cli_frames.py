@@ -101,7 +101,8 @@ def cmd_estimate(args) -> int:
     est = run_registration(frame.depth, mask, source, frame.camera, frame.T_world_camera, ctx, params,
                            args.orientation_prior, t0, time.perf_counter() - t0, trace_iterations=True)
     r = est.result
-    sc = score_frame(frame, r, ctx.part, None if source == "gt" else mask) if frame.T_world_part is not None else None
+    sc = (score_frame(frame, r, ctx.part, None if source == "gt" else mask, ctx.base.symmetries)
+          if frame.T_world_part is not None else None)
     if args.json:
         doc = est.to_json()
         doc.update(step=args.step, frame=args.frame, preset=params.preset, part=ctx.part.id, base=list(ctx.view.base),
@@ -132,6 +133,9 @@ def cmd_estimate(args) -> int:
         print(f"low confidence: {est.doubts}; this pose is likely wrong")
     if r.ambiguous:
         _print_alternatives(r, ctx.part.id)
+    if r.equivalent:
+        print(f"the base object is symmetric: {len(r.equivalent)} other placement(s) of {ctx.part.id} are the same "
+              "assembly (listed as 'equivalent' in --json)")
     if sc is not None:
         print(f"against ground truth: ADI {sc.adi * 1000:.3f} mm, MSSD {sc.mssd * 1000:.3f} mm, "
               f"te {sc.te * 1000:.3f} mm, re {sc.re_deg:.3f}°")

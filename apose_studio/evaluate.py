@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import metrics
+from . import metrics, se3
 from .assembly import Assembly
 from .dataset import Dataset, Frame
 from .errors import AposeError
@@ -29,7 +29,10 @@ class FrameScore:
     T_world_part_gt: np.ndarray | None = None
     adi: float | None = None
     mssd: float | None = None
-    mssd_mod_base_sym: float | None = None  # best MSSD over the placements the base's symmetries allow
+    mssd_mod_base_sym: float | None = None  # MSSD to the nearest of the truth and its exact-symmetry twins (the same
+    # assembly: symmetry.EXACT_SYMMETRY_MAX_M); near-symmetric twins are not forgiven
+    mssd_best_tied: float | None = None  # the best MSSD among the placements tied with the estimate (its alternatives):
+    # a wrong estimate whose truth was among them is a near-symmetric twin told apart wrongly
     te: float | None = None
     re_deg: float | None = None
     fitness: float | None = None
@@ -40,20 +43,28 @@ class FrameScore:
     candidates: list = field(default_factory=list)
     mask_iou: float | None = None  # predicted base mask against the ground truth (when not using gt)
 
-    def set_errors(self, T: np.ndarray, part: PartModel) -> None:
-        """The estimate T (T_world_part) and its errors against T_world_part_gt (MSSD modulo the base's
-        symmetries starts equal to MSSD)."""
+    def set_errors(self, T: np.ndarray, part: PartModel, twins=()) -> None:
+        """The estimate T (T_world_part) and its errors against T_world_part_gt; `twins`: the truth's
+        placements that the base's exact symmetries make the same assembly (see `truth_twins`)."""
         G = self.T_world_part_gt
         self.T_world_part_est = T
         self.adi = metrics.adi(T, G, part.samples)
-        self.mssd = self.mssd_mod_base_sym = metrics.mssd(T, G, part.samples, part.symmetries)
+        self.mssd = metrics.mssd(T, G, part.samples, part.symmetries)
+        self.mssd_mod_base_sym = min([self.mssd] + [metrics.mssd(T, G2, part.samples, part.symmetries) for G2 in twins])
+        self.mssd_best_tied = self.mssd_mod_base_sym
         self.te, self.re_deg = metrics.te(T, G), metrics.re_deg(T, G)
+
+    def near_twin(self, diameter: float) -> bool:
+        """Wrong (exact twins aside), but right among the placements tied with it: a near-symmetric twin."""
+        return bool(self.ok and self.mssd_mod_base_sym is not None and self.mssd_mod_base_sym >= 0.1 * diameter
+                    and self.mssd_best_tied is not None and self.mssd_best_tied < 0.1 * diameter)
 
     def to_json(self) -> dict:
         out = {"scene_id": self.scene_id, "im_id": self.im_id, "ok": self.ok,
                "T_world_part_est": None if self.T_world_part_est is None else self.T_world_part_est.tolist(),
                "T_world_part_gt": None if self.T_world_part_gt is None else self.T_world_part_gt.tolist(),
-               "adi": self.adi, "mssd": self.mssd, "mssd_mod_base_sym": self.mssd_mod_base_sym, "te": self.te,
+               "adi": self.adi, "mssd": self.mssd, "mssd_mod_base_sym": self.mssd_mod_base_sym,
+               "mssd_best_tied": self.mssd_best_tied, "te": self.te,
                "re_deg": self.re_deg, "fitness": self.fitness, "inlier_rmse": self.inlier_rmse,
                "time_s": self.time_s, "ambiguous": self.ambiguous, "confident": self.confident,
                "candidates": self.candidates, "mask_iou": self.mask_iou}
@@ -120,9 +131,20 @@ def truth_box(mask: np.ndarray, margin: float = BOX_MARGIN) -> tuple[int, int, i
             min(int(ys.max() + 1 + my), h))
 
 
-def score_frame(frame: Frame, result: RegistrationResult, part: PartModel, mask: np.ndarray | None = None) -> FrameScore:
+def truth_twins(T_world_part_gt: np.ndarray, T_base_part: np.ndarray, base_symmetries) -> list[np.ndarray]:
+    """The ground truth's placements that the base's exact symmetries (T_base_base, identity first) make
+    the same assembly: the base turned onto itself, the part with it."""
+    if base_symmetries is None:
+        return []
+    T_world_base = T_world_part_gt @ se3.inv(T_base_part)
+    return [T_world_base @ S @ T_base_part for S in base_symmetries[1:]]
+
+
+def score_frame(frame: Frame, result: RegistrationResult, part: PartModel, mask: np.ndarray | None = None,
+                base_symmetries: np.ndarray | None = None) -> FrameScore:
     """Metrics of one estimate against the frame's ground truth (metres, degrees); with the mask the
-    estimate used, also its IoU against the ground-truth base mask."""
+    estimate used, also its IoU against the ground-truth base mask. `base_symmetries`: the base's exact
+    symmetries (StepContext.base.symmetries), which `mssd_mod_base_sym` forgives."""
     s = FrameScore(frame.step, frame.im_id, result.ok, result.reason, time_s=result.seconds,
                    T_world_part_gt=frame.T_world_part)
     if mask is not None and frame.masks:
@@ -132,10 +154,12 @@ def score_frame(frame: Frame, result: RegistrationResult, part: PartModel, mask:
     if not result.ok:
         return s
     G = frame.T_world_part
-    s.set_errors(result.T_world_part, part)
+    twins = truth_twins(G, frame.T_base_part, base_symmetries)
+    s.set_errors(result.T_world_part, part, twins)
     best = result.candidates[0].score if result.candidates else 0.0
     tied = [c for c in result.candidates if c.score >= best - TIE_MARGIN] or result.candidates
-    s.mssd_mod_base_sym = min([s.mssd] + [metrics.mssd(c.T_world_part, G, part.samples, part.symmetries) for c in tied])
+    s.mssd_best_tied = min([s.mssd_mod_base_sym] + [metrics.mssd(c.T_world_part, G2, part.samples, part.symmetries)
+                                                    for c in tied for G2 in [G] + twins])
     s.fitness, s.inlier_rmse = result.fitness, result.inlier_rmse
     s.ambiguous, s.confident = bool(result.ambiguous), bool(result.confident)
     s.candidates = [{"T_world_part": c.T_world_part.tolist(), "score": c.score, "fitness": c.fitness,
@@ -163,6 +187,7 @@ def summarise_step(step: int, scores: list[FrameScore], part: PartModel) -> dict
         "recall_mssd_mod_base_sym": metrics.recall(mssd_sym, part.diameter),
         "ar_mssd": metrics.average_recall(mssd, part.diameter),
         "ambiguous": int(sum(s.ambiguous for s in scores)),
+        "near_twins": int(sum(s.near_twin(part.diameter) for s in scores)),
         "mask_iou": _stats(s.mask_iou for s in scores)["mean"],
         "frames": [s.to_json() for s in scores],
     }
@@ -202,7 +227,7 @@ def estimate_and_score(frame: Frame, ctx: StepContext, params: Params, mask_sour
                             trace_iterations=trace_iterations, mask=mask)
     if frame.T_world_part is None:
         return result, None
-    return result, score_frame(frame, result, ctx.part, None if mask_source == "gt" else mask)
+    return result, score_frame(frame, result, ctx.part, None if mask_source == "gt" else mask, ctx.base.symmetries)
 
 
 _WORKER: dict = {}
@@ -302,7 +327,10 @@ def format_table(doc: dict) -> str:
                      f"{f'{fit:.4f}' if fit is not None else '-':>8} {mm(st, 'inlier_rmse'):>9} {mm(st, 'adi')} "
                      f"{mm_std(st, 'adi')} {mm(st, 'mssd')} {mm_std(st, 'mssd')} {st['time_s']['mean']:>8.3f} "
                      f"{st['time_s']['median']:>7.3f} {st['recall_mssd']:>6.2f} {st['recall_mssd_mod_base_sym']:>7.2f} "
-                     f"{st['ar_mssd']:>5.2f}" + (f"  mask IoU {st['mask_iou']:.3f}" if st.get("mask_iou") is not None else ""))
+                     f"{st['ar_mssd']:>5.2f}" + (f"  mask IoU {st['mask_iou']:.3f}" if st.get("mask_iou") is not None else "")
+                     + (f"  near-symmetric twins {st['near_twins']}" if st.get("near_twins") else ""))
     lines.append("recall: share of frames with MSSD < 0.1 x part diameter (failures count as misses); "
-                 "rec~sym: the same modulo the base object's symmetries; AR: BOP average over 0.05..0.5")
+                 "rec~sym: the same modulo the base object's exact symmetries (twins that are the same assembly: "
+                 "mean surface distance < 0.5 mm); near-symmetric twins: wrong placements that tied with the right one; "
+                 "AR: BOP average over 0.05..0.5")
     return "\n".join(lines)

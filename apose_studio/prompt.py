@@ -194,7 +194,10 @@ def sensor_holes(mask: np.ndarray, s: Surfaces, in_box: np.ndarray, lab: np.ndar
     object's colours than the table's (a dark or glossy surface the sensor barely sees, as Kinect on a
     black motor)."""
     holes = in_box & ~s.table & (~s.valid | (s.labels == 0) | s.specks)
-    table = s.table & in_box
+    # the table's colours from table pixels with table all round: the foot of an object, within the
+    # plane's tolerance of the table, is labelled table but has the object's colour (a black motor's
+    # lower sides taught "table" its own black and kept its sensor holes out of the mask)
+    table = (cv2.erode(s.table.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0) & in_box
     if not holes.any() or mask.sum() < 20 or table.sum() < 20:
         return np.zeros_like(mask)
     like = _nearer_colour(lab, holes, mask & s.valid, table)

@@ -11,6 +11,9 @@ from scipy.spatial import cKDTree
 from . import se3
 
 SYMMETRY_TOLERANCE = 0.005  # a symmetry: mean surface distance after the turn < 0.5 % of the diameter
+EXACT_SYMMETRY_MAX_M = 0.0005  # ... and < 0.5 mm: an exact symmetry, whose twins are physically the same
+# assembly (no sensor or gripper tells them apart); a turn that leaves more is a near-symmetry, whose
+# twin is a wrong placement (a motor turned so its connector is elsewhere)
 NEAR_SYMMETRY_TOLERANCE = 0.03  # a near-symmetry (a starting pose worth trying): < 3 %
 
 
@@ -61,6 +64,11 @@ def detect_symmetries(points: np.ndarray, diameter: float, tolerance: float = 0.
     found = found[: max_count - 1]
     syms = np.stack([np.eye(4)] + [T for T, _ in found])
     return syms, np.array([0.0] + [r for _, r in found])
+
+
+def exact_symmetry_limit(diameter: float) -> float:
+    """The largest mean surface distance (metres) a turn may leave and be an exact symmetry."""
+    return min(SYMMETRY_TOLERANCE * diameter, EXACT_SYMMETRY_MAX_M)
 
 
 def refine_self_map(T: np.ndarray, pts: np.ndarray, tree: cKDTree, max_dist: float, iterations: int = 10) -> np.ndarray:

@@ -35,3 +35,17 @@ def test_the_plane_under_the_object_beats_a_bigger_wall_behind_it():
     assert abs(d) < 1e-3 and inliers[:3000].all() and not inliers[3000:].any()
     again = fit_plane(pts, 0.003, seed=0, towards=camera, above=obj)
     assert np.array_equal(again[0], n) and again[1] == d  # the same seed, the same plane, bit for bit
+
+
+def test_an_object_whose_foot_is_hidden_still_stands_on_its_table_not_on_the_floor_below():
+    """Clutter in front hides the lower part of the base (only its top 70 % has depth): the table under
+    it is still its table, and the bigger floor 0.7 m below is not."""
+    rng = np.random.default_rng(1)
+    table = np.c_[rng.uniform(-0.3, 0.3, (3000, 2)), np.zeros(3000)]  # z = 0
+    floor = np.c_[rng.uniform(-1.0, 1.0, (8000, 2)), np.full(8000, -0.7)]  # bigger, far below
+    obj = np.c_[rng.uniform(-0.05, 0.05, (300, 2)), rng.uniform(0.03, 0.1, 300)]  # seen from 3 cm up
+    camera = np.array([0.0, -1.0, 0.8])
+    pts = np.concatenate([table, floor])
+    n, d, _ = fit_plane(pts, 0.003, seed=0, towards=camera, above=obj)
+    np.testing.assert_allclose(n, [0, 0, 1.0], atol=1e-3)
+    assert abs(d) < 1e-3

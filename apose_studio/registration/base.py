@@ -10,7 +10,7 @@ import numpy as np
 from .. import se3
 from ..config import CameraIntrinsics
 from ..metrics import quick_tree
-from ..symmetry import NEAR_SYMMETRY_TOLERANCE, SYMMETRY_TOLERANCE, detect_symmetries
+from ..symmetry import NEAR_SYMMETRY_TOLERANCE, detect_symmetries, exact_symmetry_limit
 from .presets import Params
 from .stages import cloud, normals_fpfh
 
@@ -24,7 +24,8 @@ class BaseObject:
     centre: np.ndarray  # (3,) centre of its bounding box, base frame
     samples: np.ndarray  # (N, 3) surface points, base frame
     sample_normals: np.ndarray  # (N, 3) outward unit normals at the samples
-    symmetries: np.ndarray  # (n, 4, 4) T_base_base that map the base (nearly) onto itself, identity first
+    symmetries: np.ndarray  # (n, 4, 4) T_base_base that map the base onto itself (exact symmetries: a mean
+    # surface distance under symmetry.exact_symmetry_limit), identity first
     symmetry_residuals: np.ndarray  # (n,) mean surface distance after each symmetry, metres
     near_symmetries: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))  # turns that almost fit but
     # are not symmetries (a motor block whose connector alone breaks its 4-fold symmetry): extra starting poses
@@ -135,5 +136,5 @@ def prepare_base(mesh, n_samples: int = 20000, seed: int = 0, detect: bool = Tru
     if not detect:
         return BaseObject(mesh, d, (lo + hi) / 2, pts, normals, np.eye(4)[None], np.zeros(1))
     near, res = detect_symmetries(pts, d, tolerance=NEAR_SYMMETRY_TOLERANCE)
-    strict = res < SYMMETRY_TOLERANCE * d
+    strict = res < exact_symmetry_limit(d)
     return BaseObject(mesh, d, (lo + hi) / 2, pts, normals, near[strict], res[strict], near[~strict])

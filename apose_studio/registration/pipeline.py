@@ -20,7 +20,8 @@ from .presets import Params
 from .problem import Problem, prepare_problem, scale_problem
 from .refine import add_symmetric_twins, choose, polish_chosen, refine_candidates, select_starts
 from .results import CONFIDENT_COVERAGE, MIN_POINTS, Degenerate, RegistrationResult, failed
-from .scoring import Observation, agreement_tolerance, distinct_placements, evidence, mask_edge, pixels
+from .scoring import (Observation, agreement_tolerance, distinct_placements, evidence, mask_edge, pixels,
+                      twin_placements)
 from .searches import ModelSearch, search_poses, try_prior
 from .stages import place_source, project_to_cloud, trace_stages
 
@@ -59,6 +60,8 @@ def estimate(depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics, T_world
         return failed(str(e), target_cloud=target_pts, timings=timings, preset=params.preset, voxel=voxel)
     result.depth_noise = noise
     result = judge(result, depth, mask, cam, T_world_camera, base)  # ok only when the data supports the pose
+    if result.ok and params.use_symmetries:
+        result.equivalent = twin_placements(result.T_world_base, result.T_world_part, base.symmetries)
     if params.second_look and result.ok and not result.confident:
         result = second_look(result, depth, mask, cam, T_world_camera, base, T_base_part, params, prior_T_world_base,
                              trace_iterations)
@@ -165,8 +168,9 @@ def compose(pb: Problem, refined: list, chosen: int, close: list[int], T_world_s
     src_b = se3.transform_points(se3.inv(c.T_world_base), r.seen)
     stages = trace_stages(T_world_source, "global", r.T_start, r.trace, c, src_b, pb.fine_pts, pb.thr)
     order = sorted(range(len(cands)), key=lambda i: -cands[i].score)
-    placements = distinct_placements([c] + [cands[i] for i in close if i != chosen], pb.voxel)
-    ambiguous = bool(len(placements) > 1 and c.coverage >= CONFIDENT_COVERAGE)
+    symmetries = pb.base.symmetries
+    placements = distinct_placements([c] + [cands[i] for i in close if i != chosen], pb.voxel, symmetries)
+    ambiguous = bool(len(placements) > 1 and c.coverage >= CONFIDENT_COVERAGE)  # exact twins are not ambiguity
     return RegistrationResult(True, "", c.T_world_base, c.T_world_part, T_world_source, pb.fine_pts, src_b, stages,
                               c.fitness, c.inlier_rmse, timings, [cands[i] for i in order], ambiguous,
                               placements[1:] if ambiguous else [], voxel=pb.voxel, coverage=float(c.coverage),

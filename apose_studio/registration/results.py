@@ -54,6 +54,8 @@ class RegistrationResult:
     candidates: list[Candidate] = field(default_factory=list)
     ambiguous: bool = False
     alternatives: list[Candidate] = field(default_factory=list)  # other placements of the part that fit as well
+    equivalent: list[np.ndarray] = field(default_factory=list)  # T_world_part of the placements an exact symmetry of
+    # the base makes physically the same assembly (the part may equally go there; not an ambiguity)
     preset: str = ""
     voxel: float = 0.0
     coverage: float = float("nan")  # share of target points within 2 voxels of what the model shows (loose fitness)

@@ -183,11 +183,20 @@ def discriminate(pb: "Problem", close: list[int], cands: list[Candidate], traces
     return kept or close
 
 
-def distinct_placements(cands: list[Candidate], voxel: float) -> list[Candidate]:
+def twin_placements(T_world_base: np.ndarray, T_world_part: np.ndarray, symmetries: np.ndarray) -> list[np.ndarray]:
+    """T_world_part of the part on the base turned by each exact symmetry (the first, the identity, skipped):
+    the placements that are physically the same assembly as T_world_part."""
+    T_base_part = se3.inv(T_world_base) @ T_world_part
+    return [T_world_base @ S @ T_base_part for S in symmetries[1:]]
+
+
+def distinct_placements(cands: list[Candidate], voxel: float, symmetries: np.ndarray | None = None) -> list[Candidate]:
     """The clearly different part placements (more than 3 voxels or 5 degrees apart) among the
-    candidates, the first one first."""
-    reps: list[Candidate] = []
+    candidates, the first one first. With the base's exact `symmetries`, a placement that one of them
+    turns onto another is the same placement (a twin that is physically the same assembly)."""
+    reps: list[tuple[Candidate, list[np.ndarray]]] = []
     for c in cands:
-        if not any(poses_within(c.T_world_part, r.T_world_part, 3 * voxel, 5.0) for r in reps):
-            reps.append(c)
-    return reps
+        if not any(poses_within(c.T_world_part, T, 3 * voxel, 5.0) for _, same in reps for T in same):
+            twins = twin_placements(c.T_world_base, c.T_world_part, symmetries) if symmetries is not None else []
+            reps.append((c, [c.T_world_part] + twins))
+    return [c for c, _ in reps]

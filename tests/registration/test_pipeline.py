@@ -79,11 +79,13 @@ def test_unit_errors_in_depth_are_named(gearbox_step2):
 
 
 def test_a_symmetric_base_reports_both_seats(fidget_yaml, tmp_path):
-    """The fidget's bottom casing is 2-fold symmetric: from it alone the left gear's two seats cannot
-    be told apart. Each result says `ambiguous` and gives the other seat (23 mm away, half a turn) as
-    its one alternative; the truth is the estimate or that alternative."""
+    """The fidget's bottom casing is exactly 2-fold symmetric: from it alone the left gear's two seats
+    cannot be told apart, and need not be, since both give the same assembly. Each result is not
+    `ambiguous` (that is for near-symmetric twins, which are wrong placements), gives the other seat (23
+    mm away, half a turn) as its one `equivalent` placement, and the truth is the estimate or that one;
+    the metric that forgives exact twins scores it right, the strict one need not."""
     from apose_studio.dataset import Dataset
-    from apose_studio.evaluate import StepContext, estimate_frame
+    from apose_studio.evaluate import StepContext, estimate_frame, score_frame
     from apose_studio.render import RenderSettings, render_dataset
 
     asm = load_assembly(fidget_yaml)
@@ -93,11 +95,13 @@ def test_a_symmetric_base_reports_both_seats(fidget_yaml, tmp_path):
     for im_id in ds.image_ids(1):
         fr = ds.frame(1, im_id)
         r = estimate_frame(fr, ctx, resolve_params("default"))
-        assert r.ok and r.ambiguous and len(r.alternatives) == 1, (im_id, r.ambiguous, len(r.alternatives))
-        alt = r.alternatives[0].T_world_part
+        assert r.ok and not r.ambiguous and not r.alternatives and len(r.equivalent) == 1, (im_id, r.ambiguous)
+        alt = r.equivalent[0]
         assert 0.015 < np.linalg.norm(alt[:3, 3] - r.T_world_part[:3, 3]) < 0.03
         errs = [mssd(T, fr.T_world_part, ctx.part.samples, ctx.part.symmetries) for T in (r.T_world_part, alt)]
         assert min(errs) < 1e-3, errs
+        sc = score_frame(fr, r, ctx.part, base_symmetries=ctx.base.symmetries)
+        assert sc.mssd_mod_base_sym < 1e-3 and sc.mssd == pytest.approx(errs[0])
 
 
 
@@ -163,10 +167,11 @@ def test_a_pose_the_camera_cannot_have_seen_is_not_ok(gearbox_step2):
 
 
 def test_the_paper_preset_is_not_confident_about_wrong_poses(tmp_path):
-    """The paper keeps the CAD's orientation. On a Kinect-like cluttered bench with the base at a random
-    yaw (benchmarks/captures.py's gearbox frame 3 of step 1) it lands 68 mm off with 97 % of the target
-    within its 16 mm tolerance; judged at the scale-aware tolerance on what the camera sees of the model
-    there, that pose is not confident (it was, before)."""
+    """The paper keeps the CAD's orientation. On Kinect-like cluttered benches with the base at a random
+    yaw (benchmarks/captures.py's gearbox frames of step 1) it lands off with most of the target within
+    its 16 mm tolerance; judged at the scale-aware tolerance on what the camera sees of the model there,
+    such poses are not confident (frame 3 was, before). Wrong = off by 0.1 x the part's diameter even
+    modulo the base's exact symmetries (its half turn is the same assembly)."""
     from apose_studio.assembly import load_assembly
     from apose_studio.dataset import Dataset
     from apose_studio.evaluate import StepContext, estimate_frame, frame_mask, score_frame
@@ -177,11 +182,15 @@ def test_the_paper_preset_is_not_confident_about_wrong_poses(tmp_path):
                    progress=False)
     ds = Dataset(tmp_path / "ds")
     ctx = StepContext(asm, load_parts(asm), 1)
-    fr = ds.frame(1, 3)
-    r = estimate_frame(fr, ctx, resolve_params("paper"), mask=frame_mask(fr, "box"))
-    sc = score_frame(fr, r, ctx.part)
-    assert r.ok and sc.mssd > 0.5 * ctx.part.diameter  # the case this test is about: a confidently wrong fit
-    assert np.isfinite(r.coverage) and not r.confident, (r.coverage, r.contradiction)
+    wrong = 0
+    for im_id in ds.image_ids(1):
+        fr = ds.frame(1, im_id)
+        r = estimate_frame(fr, ctx, resolve_params("paper"), mask=frame_mask(fr, "box"))
+        sc = score_frame(fr, r, ctx.part, base_symmetries=ctx.base.symmetries)
+        if r.ok and sc.mssd_mod_base_sym >= 0.1 * ctx.part.diameter:
+            wrong += 1
+            assert np.isfinite(r.coverage) and not r.confident, (im_id, r.coverage, r.contradiction)
+    assert wrong >= 1  # the case this test is about: the paper's wrong fits
 
 
 def test_second_look_cuts_clutter_from_the_mask(gearbox_dataset):
