@@ -149,8 +149,8 @@ def run_registration(depth, mask, source, cam, T_world_camera, ctx, params, orie
     r = estimate(depth, mask, cam, T_world_camera, ctx.base, ctx.view.T_base_part, params,
                  prior_T_world_base=np.eye(4) if orientation_prior else None, trace_iterations=trace_iterations)
     t2 = time.perf_counter()
-    if r.second_look is not None:  # the confident result came from the mask cut to the model's view
-        mask, source = r.second_look, f"{source}, cut to the model's view"
+    if r.model_mask is not None:  # what the model shows at the pose: occluders in front and clutter beside it cut
+        mask, source = r.model_mask, f"{source}, cut to the model's view"
     T_camera_part = se3.inv(T_world_camera) @ r.T_world_part if r.ok else None
     return PoseEstimate(r.ok, r.reason, T_world_camera, r.T_world_base if r.ok else None, r.T_world_part if r.ok else None,
                         T_camera_part, bool(r.confident), float(r.coverage), bool(r.ambiguous),

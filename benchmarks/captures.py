@@ -10,8 +10,8 @@ around it, the base off-centre; kept in artifacts/captures/ for the next run), t
 box prompt (the ground truth's visible box, 4 % wider per side, as a user or detector would draw it)
 -> prompted mask (prompt.py) -> estimate (default preset). Prints per noise model:
 - mask IoU against the renderer's own visible masks (ground truth independent of the code under test):
-  the prompted mask, and the mask the result came from (cut to the model's view where the second look
-  gave the result);
+  the prompted mask, and the result's mask (`model_mask`: the mask the pose came from, cut to what the
+  model shows at that pose; the prompted mask where the estimate failed);
 - pose recall (MSSD < 10 % of the part's diameter, modulo the base's exact symmetries: twins that are
   the same assembly; "strict": not even those; "near twins": wrong placements by a near-symmetry of the
   base that tied with the right one, flagged ambiguous);
@@ -64,7 +64,7 @@ def run(ds: Dataset, asm, models, params, compare_depth: bool = False) -> list[d
                 from apose_studio.segment import depth_mask
 
                 rows.append({"depth_iou": iou(depth_mask(frame.depth, frame.camera, box=truth_box(truth)), truth)})
-            final = r.second_look if r.second_look is not None else mask  # the mask the result came from
+            final = r.model_mask if r.model_mask is not None else mask  # cut to the model's view at the pose
             rows.append({"iou": iou(mask, truth), "final_iou": iou(final, truth), "right": right,
                          "strict": bool(r.ok and sc.mssd < 0.1 * d), "near_twin": sc.near_twin(d),
                          "confident": bool(r.ok and r.confident), "seconds": seconds, "noise_mm": r.depth_noise * 1000})
@@ -96,7 +96,7 @@ def main() -> int:
             table.setdefault(noise, []).extend(rows)
             print(f"{name:18s} {noise:9s} {len(rows):3d} frames  IoU {np.mean([r['iou'] for r in rows]):.3f}  "
                   f"recall {np.mean([r['right'] for r in rows]):.2f}", flush=True)
-    print("\n| noise | frames | mask IoU (mean / min) | after second look | recall (strict) | near twins | s/frame median (p90) "
+    print("\n| noise | frames | mask IoU (mean / min) | cut to the model | recall (strict) | near twins | s/frame median (p90) "
           "| depth noise mm (median) "
           "| conf & right | conf & wrong | unconf & right | unconf & wrong |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
@@ -118,7 +118,7 @@ def main() -> int:
     print(f"\ngoals: confident-and-wrong {cw:.1%} (goal <= 1 %), unconfident-and-right {ur:.1%} (goal <= 10 %)")
     if "kinect" in table:
         k = table["kinect"]
-        print(f"goals (kinect, box prompt): mask IoU {np.mean([r['iou'] for r in k]):.3f} (after the second look "
+        print(f"goals (kinect, box prompt): mask IoU {np.mean([r['iou'] for r in k]):.3f} (cut to the model's view "
               f"{np.mean([r['final_iou'] for r in k]):.3f}) (>= 0.90), recall "
               f"{np.mean([r['right'] for r in k]):.3f} (>= 0.95), {np.median([r['seconds'] for r in k]):.3f} s/frame "
               "median (<= 0.3)")

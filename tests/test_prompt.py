@@ -79,3 +79,48 @@ def test_bad_prompts_say_what_is_wrong(clutter_dataset):
     holed[100:120, 100:120] = 0
     with pytest.raises(PromptError, match="without depth"):
         prompted_mask(f.rgb, holed, f.camera, point=(110, 110))
+
+
+def test_the_estimate_cuts_the_prompted_mask_to_the_model(clutter_dataset):
+    """The result's mask is the prompted one cut to what the model shows at the estimated pose: never
+    more pixels, and closer to the renderer's own visible mask where an object stands in front of the
+    base or clutter beside it got in. A dark base's sensor holes stay in the prompted mask."""
+    from apose_studio.evaluate import StepContext, estimate_frame
+    from apose_studio.mesh import load_parts
+    from apose_studio.registration import resolve_params
+
+    ds = Dataset(clutter_dataset)
+    ctx = StepContext(ds.assembly, load_parts(ds.assembly), 2)
+    before, after = [], []
+    for f in _frames(clutter_dataset):
+        truth = f.base_mask()
+        m = prompted_mask(f.rgb, f.depth, f.camera, box=truth_box(truth)).mask
+        r = estimate_frame(f, ctx, resolve_params("default"), mask=m)
+        assert r.ok and r.model_mask is not None
+        given = m if r.second_look is None else r.second_look
+        assert not (r.model_mask & ~given).any()
+        before.append(iou(m, truth))
+        after.append(iou(r.model_mask, truth))
+    assert all(a > b - 0.005 for a, b in zip(after, before)) and np.mean(after) > np.mean(before), (before, after)
+
+
+def test_a_dark_base_keeps_its_sensor_holes(clutter_dataset):
+    """Kinect-like depth has holes on dark surfaces. The table's colours are learnt from the table's
+    interior: the foot of a dark base (within the plane's tolerance, so labelled table) must not teach
+    'table' the base's own colour. Here the base is painted dark, its lower 60 % near-black and with
+    depth on only 15 % of its pixels, as the Kinect model does on a black motor's sides: the prompted
+    mask still covers most of it (measured 0.92-1.00 of the base; 0.25-0.37 when the table's colours
+    came from every table pixel)."""
+    for f in _frames(clutter_dataset):
+        truth = f.base_mask()
+        ys = np.nonzero(truth)[0]
+        lower = np.zeros_like(truth)
+        lower[int(ys.min() + 0.4 * np.ptp(ys)):] = True
+        rgb = f.rgb.copy()
+        rgb[truth & lower] = (rgb[truth & lower] * 0.12).astype(np.uint8)  # near-black, the shading kept
+        rgb[truth & ~lower] = (rgb[truth & ~lower] * 0.5).astype(np.uint8)  # the lit top: dark grey
+        depth = f.depth.copy()
+        rng = np.random.default_rng(0)
+        depth[truth & lower & (rng.random(truth.shape) < 0.85)] = 0.0
+        m = prompted_mask(rgb, depth, f.camera, box=truth_box(truth)).mask
+        assert (m & truth).sum() > 0.8 * truth.sum(), (f.im_id, (m & truth).sum() / truth.sum())

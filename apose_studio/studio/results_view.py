@@ -129,7 +129,10 @@ class ResultsView:
             boxes += [(c.T_world_part, inspection.MAGENTA) for c in r.alternatives]
         image = inspection.draw_boxes(fr.rgb, fr.camera, fr.T_world_camera, corners, boxes)
         prompted = self.app.prompt.overlay_mask(fr)
-        if prompted is not None:  # the prompt's mask, tinted green under the boxes
+        what = "prompted mask"
+        if prompted is not None and r is not None and r.ok and r.model_mask is not None:
+            prompted, what = r.model_mask, "the estimate's mask: the prompted one cut to the model's view"
+        if prompted is not None:  # the prompt's mask (or the estimate's), tinted green under the boxes
             image[prompted] = (0.45 * image[prompted] + 0.55 * np.array([40, 220, 60])).astype(np.uint8)
         if not self.i_full.value:
             uv = np.concatenate([inspection.project_points(se3.transform_points(T, corners), fr.T_world_camera, fr.camera)[0]
@@ -142,7 +145,7 @@ class ResultsView:
         self.i_image.image = image
         truth = ", truth (amber)" if fr.T_world_part is not None else ""
         self.i_image.label = (f"RGB: estimate (green){truth}" if boxes else "RGB") + (
-            f"; prompted mask (green tint), {int(prompted.sum())} pixels" if prompted is not None else "")
+            f"; {what} (green tint), {int(prompted.sum())} pixels" if prompted is not None else "")
 
     def on_download_pose(self, client) -> None:
         import json
