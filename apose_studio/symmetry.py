@@ -11,9 +11,9 @@ from scipy.spatial import cKDTree
 from . import se3
 
 SYMMETRY_TOLERANCE = 0.005  # a symmetry: mean surface distance after the turn < 0.5 % of the diameter
-EXACT_SYMMETRY_MAX_M = 0.0005  # ... and < 0.5 mm: an exact symmetry, whose twins are physically the same
-# assembly (no sensor or gripper tells them apart); a turn that leaves more is a near-symmetry, whose
-# twin is a wrong placement (a motor turned so its connector is elsewhere)
+EXACT_SYMMETRY_MAX_M = 0.001  # an exact symmetry moves no point of the surface more than 1 mm off the surface:
+# its twins are physically the same assembly. A turn that moves some feature further (a motor's connector,
+# a boss: the mean distance stays tiny, the largest does not) is a near-symmetry, whose twin is a wrong placement
 NEAR_SYMMETRY_TOLERANCE = 0.03  # a near-symmetry (a starting pose worth trying): < 3 %
 
 
@@ -66,9 +66,19 @@ def detect_symmetries(points: np.ndarray, diameter: float, tolerance: float = 0.
     return syms, np.array([0.0] + [r for _, r in found])
 
 
-def exact_symmetry_limit(diameter: float) -> float:
-    """The largest mean surface distance (metres) a turn may leave and be an exact symmetry."""
-    return min(SYMMETRY_TOLERANCE * diameter, EXACT_SYMMETRY_MAX_M)
+def surface_offsets(mesh, points: np.ndarray, turns: np.ndarray) -> np.ndarray:
+    """(n,) for each turn T (n, 4, 4): the largest distance (metres) of the turned surface samples from
+    the mesh's surface itself (exact, by Open3D's distance query: no sampling spacing in it)."""
+    import open3d as o3d
+
+    from .raycast import body
+
+    scene = body(mesh).scene
+    out = np.zeros(len(turns))
+    for i, T in enumerate(turns):
+        moved = se3.transform_points(T, points).astype(np.float32)
+        out[i] = float(scene.compute_distance(o3d.core.Tensor(moved)).numpy().max()) if len(moved) else 0.0
+    return out
 
 
 def refine_self_map(T: np.ndarray, pts: np.ndarray, tree: cKDTree, max_dist: float, iterations: int = 10) -> np.ndarray:

@@ -10,7 +10,7 @@ import numpy as np
 from .. import se3
 from ..config import CameraIntrinsics
 from ..metrics import quick_tree
-from ..symmetry import NEAR_SYMMETRY_TOLERANCE, detect_symmetries, exact_symmetry_limit
+from ..symmetry import EXACT_SYMMETRY_MAX_M, NEAR_SYMMETRY_TOLERANCE, SYMMETRY_TOLERANCE, detect_symmetries, surface_offsets
 from .presets import Params
 from .stages import cloud, normals_fpfh
 
@@ -24,9 +24,12 @@ class BaseObject:
     centre: np.ndarray  # (3,) centre of its bounding box, base frame
     samples: np.ndarray  # (N, 3) surface points, base frame
     sample_normals: np.ndarray  # (N, 3) outward unit normals at the samples
-    symmetries: np.ndarray  # (n, 4, 4) T_base_base that map the base onto itself (exact symmetries: a mean
-    # surface distance under symmetry.exact_symmetry_limit), identity first
-    symmetry_residuals: np.ndarray  # (n,) mean surface distance after each symmetry, metres
+    symmetries: np.ndarray  # (n, 4, 4) T_base_base that map the base onto itself, identity first: exact symmetries,
+    # which move no point of its surface more than symmetry.EXACT_SYMMETRY_MAX_M off it (the same assembly)
+    symmetry_residuals: np.ndarray  # (n,) the largest distance a surface point moves off the surface, metres
+    close_twins: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))  # the near-symmetries that leave a
+    # tiny mean distance (< SYMMETRY_TOLERANCE, a small feature moved): twins that can fool a view that hides the
+    # feature, so every result's twins under them are scored (near_symmetries includes them)
     near_symmetries: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))  # turns that almost fit but
     # are not symmetries (a motor block whose connector alone breaks its 4-fold symmetry): extra starting poses
     _features: dict = field(default_factory=dict, repr=False)  # voxel -> (model cloud, FPFH): per step, not per frame
@@ -135,6 +138,12 @@ def prepare_base(mesh, n_samples: int = 20000, seed: int = 0, detect: bool = Tru
     lo, hi = mesh.bounds
     if not detect:
         return BaseObject(mesh, d, (lo + hi) / 2, pts, normals, np.eye(4)[None], np.zeros(1))
-    near, res = detect_symmetries(pts, d, tolerance=NEAR_SYMMETRY_TOLERANCE)
-    strict = res < exact_symmetry_limit(d)
-    return BaseObject(mesh, d, (lo + hi) / 2, pts, normals, near[strict], res[strict], near[~strict])
+    turns, mean = detect_symmetries(pts, d, tolerance=NEAR_SYMMETRY_TOLERANCE)
+    offsets = np.zeros(len(turns))
+    close = mean < SYMMETRY_TOLERANCE * d  # only these can be exact: the largest offset decides
+    close[0] = False
+    offsets[close] = surface_offsets(mesh, pts, turns[close])
+    exact = close & (offsets < EXACT_SYMMETRY_MAX_M)
+    exact[0] = True
+    return BaseObject(mesh, d, (lo + hi) / 2, pts, normals, turns[exact], offsets[exact], turns[close & ~exact],
+                      turns[~exact])

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .. import se3
-from .results import MIN_POINTS, TIE_MARGIN, Candidate
+from .results import MIN_POINTS, TIE_MARGIN, TWIN_TIE_MARGIN, Candidate
 from .scoring import discriminate, poses_within, score_pose, score_seen
 from .stages import cloud, icp, raycast_source
 
@@ -83,13 +83,15 @@ def refine_candidates(pb, starts: list[Start], trace_iterations: bool) -> list[R
 
 
 def add_symmetric_twins(pb, refined: list[Refined]) -> None:
-    """The best candidate turned by each of the base's symmetries, scored (and traced) as it: a turn
-    that maps the base onto itself maps the refined pose onto the pose ICP would refine the turned
-    start to, so the twin needs no registration of its own. Each is scored on what the camera would
-    see of it, so that a symmetry that is not quite one (a connector) can still be told apart."""
+    """The best candidate turned by each of the base's symmetries and close twins, scored (and traced)
+    as it: a turn that maps the base (nearly) onto itself maps the refined pose onto the pose ICP would
+    refine the turned start to, so the twin needs no registration of its own. Each is scored on what
+    the camera would see of it: a close twin (a motor turned so its connector is elsewhere) ties when
+    the view hides the connector (the result is then ambiguous) and loses when the view shows it."""
     best = max(refined, key=lambda r: r.candidate.score)
     T_b = best.candidate.T_world_base
-    for k, S in enumerate(pb.base.symmetries[1:], start=1):
+    turns = list(pb.base.symmetries[1:]) + list(pb.base.close_twins)
+    for k, S in enumerate(turns, start=1):
         T = T_b @ S
         if any(poses_within(T, r.candidate.T_world_base, pb.voxel, 2.0) for r in refined):
             continue
@@ -98,13 +100,23 @@ def add_symmetric_twins(pb, refined: list[Refined]) -> None:
         refined.append(Refined(cand, best.T_start @ S, trace, src_w, src_n))
 
 
+def is_twin(base, T_a: np.ndarray, T_b: np.ndarray, voxel: float) -> bool:
+    """T_b (T_world_base) is T_a turned by one of the base's symmetries or near-symmetries."""
+    D = se3.inv(T_a) @ T_b
+    return any(poses_within(D, S, 3 * voxel, 5.0) for S in list(base.symmetries[1:]) + list(base.near_symmetries))
+
+
 def choose(pb, refined: list[Refined], R_prior: np.ndarray | None) -> tuple[int, list[int]]:
     """(the chosen candidate, the candidates tied with the best score). Near-ties are looked at where
     the placements differ (the evidence there decides); what stays tied goes to the prior's orientation
     when there is one, else to the best score."""
     cands = [r.candidate for r in refined]
     best_score = max(c.score for c in cands)
-    close = [i for i, c in enumerate(cands) if c.score >= best_score - TIE_MARGIN]
+    # a twin (the best turned by a symmetry or a close twin) is looked at from further down: clutter in the
+    # mask where the wrong twin puts its connector can lift that twin's score past the right one's
+    T_best = max(cands, key=lambda c: c.score).T_world_base
+    close = [i for i, c in enumerate(cands) if c.score >= best_score - TIE_MARGIN
+             or (c.score >= best_score - TWIN_TIE_MARGIN and is_twin(pb.base, T_best, c.T_world_base, pb.voxel))]
     if R_prior is None and len(close) > 1:
         traces = [(r.T_start, r.trace, r.seen, r.seen_normals) for r in refined]
         close = discriminate(pb, close, cands, traces)

@@ -8,6 +8,9 @@ import numpy as np
 
 MIN_POINTS = 30  # fewer target points than this cannot constrain 6 DoF with any confidence
 TIE_MARGIN = 0.03  # candidates scoring within this of the best explain the data equally well
+TWIN_TIE_MARGIN = 0.045  # ... and a twin of the best (turned by a symmetry or close twin) within this: the evidence
+# where the two differ decides (benchmarks/captures.py: a planetary motor's wrong twin scored 0.034 above the right
+# one, its connector on clutter the mask took in; it was a confident miss)
 # below this share of target points near the model (2 voxels, or 3 sigmas of the frame's depth noise), flag a poor
 # fit. Calibrated on 160 cluttered renders under four noise models with box-prompted masks
 # (benchmarks/captures.py): 0.80 with "not ambiguous" gave 1 confident-and-wrong frame; 0.85 gave the same
@@ -34,7 +37,7 @@ class Candidate:
     source_fitness: float  # share of what the model shows the camera that the target confirms
     inlier_rmse: float
     score: float
-    symmetry: int  # index into BaseObject.symmetries it came from (0 = as registered)
+    symmetry: int  # the turn it came from: 0 as registered, k >= 1 the k-th of symmetries[1:] + close_twins
     coverage: float = float("nan")  # share of target points within 2 voxels of what the model shows (loose fitness)
 
 

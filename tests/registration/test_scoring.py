@@ -52,7 +52,8 @@ def test_a_nearly_symmetric_base_is_told_apart_where_the_view_allows(planetary_y
 
     ds = planetary_yaw
     ctx = StepContext(ds.assembly, load_parts(ds.assembly), 3)
-    assert len(ctx.base.symmetries) == 4  # the quarter turns fit within 0.5 % of the diameter
+    # the quarter turns leave a tiny mean distance, but move the connector 6 mm: close twins, not symmetries
+    assert len(ctx.base.symmetries) == 1 and len(ctx.base.close_twins) == 3
     p = resolve_params("default")
     right = 0
     for im_id in ds.image_ids(3):
