@@ -151,7 +151,8 @@ def cmd_render(args) -> int:
 
     asm = load_assembly(args.assembly)
     settings = RenderSettings(frames=args.frames, seed=args.seed, noise=args.noise, noise_sigma_at_05m=args.noise_sigma,
-                              base_pose=args.base_pose, distractors=args.distractors, clutter=args.clutter)
+                              base_pose=args.base_pose, distractors=args.distractors, clutter=args.clutter,
+                              views_per_scene=args.views_per_scene)
     if asm.camera is not None:
         settings = replace(settings, camera=asm.camera)
     for name, attr in (("yaw_range", "yaw_range_deg"), ("pitch_range", "pitch_range_deg"),
@@ -239,6 +240,9 @@ def _add_render(sub) -> None:
     p.add_argument("assembly", help="assembly YAML file")
     p.add_argument("--out", required=True, help="output folder (must be empty unless --overwrite)")
     p.add_argument("--frames", type=int, default=10, help="views per step (default 10)")
+    p.add_argument("--views-per-scene", type=int, default=1, metavar="K",
+                   help="camera poses per placement of the base, at least 30 degrees apart, as an eye-in-hand camera "
+                   "takes them (default 1); --frames stays the number of images per step")
     p.add_argument("--seed", type=int, default=0, help="random seed; the same seed gives the same dataset")
     p.add_argument("--steps", type=_steps, help="only these steps, e.g. 1,3 (default: all)")
     p.add_argument("--noise", default="none", choices=["none", "gaussian", "realsense", "kinect"],
@@ -267,13 +271,19 @@ def _add_render(sub) -> None:
 def _add_estimate(sub) -> None:
     p = sub.add_parser("estimate", help="estimate the assembly pose in one frame: a rendered dataset, a capture or a BOP scene",
                        description="Exit codes: 0 a pose, 1 the estimate failed (the reason is printed), 2 bad input.")
-    p.add_argument("input", help="dataset folder from `apose render`, capture folder (rgb.png, depth.png, camera.json "
-                   "with fx,fy,cx,cy or BOP's cam_K) or BOP scene folder (scene_camera.json, rgb/, depth/)")
+    p.add_argument("input", nargs="+", help="dataset folder from `apose render`, capture folder (rgb.png, depth.png, camera.json "
+                   "with fx,fy,cx,cy or BOP's cam_K) or BOP scene folder (scene_camera.json, rgb/, depth/); several "
+                   "capture folders of one placement (camera.json with cam_R_w2c, cam_t_w2c) give one fused estimate")
     p.add_argument("--assembly", help="assembly YAML (needed for a capture or BOP scene; a dataset has its own)")
     p.add_argument("--step", type=int, required=True, help="assembly step (1-based)")
     p.add_argument("--frame", type=int, default=0, help="image id within the step or BOP scene (default 0)")
-    p.add_argument("--box", metavar="X0,Y0,X1,Y1", help="a box around the base object in pixels: the mask from depth and colour")
-    p.add_argument("--point", metavar="U,V", help="a click on the base object in pixels: the mask from depth and colour")
+    p.add_argument("--views", type=int, default=1, metavar="K",
+                   help="a dataset: fuse up to K frames of --frame's placement (default 1); several capture folders are "
+                   "fused whatever this says")
+    p.add_argument("--box", metavar="X0,Y0,X1,Y1", action="append",
+                   help="a box around the base object in pixels: the mask from depth and colour (several views: once per view)")
+    p.add_argument("--point", metavar="U,V", action="append",
+                   help="a click on the base object in pixels: the mask from depth and colour (several views: once per view)")
     p.add_argument("--obj-map", action="append", metavar="PART=OBJ_ID",
                    help="BOP scene: which BOP obj_id each part is (repeatable), for the ground truth in scene_gt.json")
     p.add_argument("--json", action="store_true", help="print JSON (metres): ok, reason, T_world_base, T_world_part, "
@@ -289,7 +299,10 @@ def _add_eval(sub) -> None:
     _estimator_args(p)
     p.add_argument("--steps", type=_steps, help="only these steps, e.g. 1,3")
     p.add_argument("--frames", type=int, help="at most this many frames per step (default: all)")
-    p.add_argument("--workers", type=int, default=1, help="processes in parallel (default 1)")
+    p.add_argument("--workers", type=int, default=1, help="processes in parallel (default 1; --views runs in one)")
+    p.add_argument("--views", type=int, default=1, metavar="K",
+                   help="group the frames by placement (apose render --views-per-scene) and fuse up to K per estimate "
+                   "(default 1: every frame alone); the JSON records list the frames in im_ids")
     p.add_argument("--json", metavar="OUT", help="also write the full results (per frame) as JSON")
     p.add_argument("--no-gt-compare", action="store_true",
                    help="with --mask depth|MODEL.pt, skip the second run with ground-truth masks")

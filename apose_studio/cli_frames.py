@@ -91,6 +91,17 @@ def _estimate_mask(args, frame, asm) -> tuple[np.ndarray, str]:
 
 def cmd_estimate(args) -> int:
     from .api import run_registration
+
+    if len(args.input) > 1 or args.views > 1:
+        from .cli_views import cmd_estimate_views
+
+        return cmd_estimate_views(args)
+    args.input = args.input[0]
+    for flag in ("box", "point"):
+        given = getattr(args, flag) or []
+        if len(given) > 1:
+            raise AposeError(f"--{flag} given {len(given)} times for one view; give it once")
+        setattr(args, flag, given[0] if given else None)
     from .evaluate import score_frame
     from .registration import resolve_params
 
@@ -183,8 +194,10 @@ def cmd_eval(args) -> int:
     for step in ds.missing_steps:
         print(f"warning: step {step} is listed in {ds.root / 'dataset_info.json'} but its folder "
               f"test/{step:06d} is missing; it is left out", file=sys.stderr)
+    if args.views < 1:
+        raise AposeError(f"--views {args.views}: expected at least 1")
     doc = evaluate(ds, params, args.steps, args.frames, args.mask, args.orientation_prior,
-                   progress=sys.stderr.isatty(), workers=args.workers)
+                   progress=sys.stderr.isatty(), workers=args.workers, views=args.views)
     print(format_table(doc))
     unreadable = [f"step {st['step']} frame {f['im_id']}" for st in doc["steps"] for f in st.get("frames", [])
                   if str(f.get("reason", "")).startswith("unreadable frame")]
@@ -193,7 +206,7 @@ def cmd_eval(args) -> int:
               file=sys.stderr)
     if args.mask != "gt" and not args.no_gt_compare:  # the same frames with ground-truth masks, beside
         gt = evaluate(ds, params, args.steps, args.frames, "gt", args.orientation_prior,
-                      progress=sys.stderr.isatty(), workers=args.workers)
+                      progress=sys.stderr.isatty(), workers=args.workers, views=args.views)
         print(f"\nthe same frames with ground-truth masks (recall with {args.mask} masks -> with gt masks):")
         for st, sg in zip(doc["steps"], gt["steps"]):
             print(f"  step {st['step']}: recall {st['recall_mssd']:.2f} -> {sg['recall_mssd']:.2f} "

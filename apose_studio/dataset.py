@@ -78,6 +78,7 @@ class Frame:
     T_world_part: np.ndarray | None = None  # ground-truth assembly pose
     im_id: int = 0
     source: str = ""
+    placement: int | None = None  # frames of one step with the same placement show the base at the same pose
 
     @property
     def K(self) -> np.ndarray:
@@ -182,6 +183,15 @@ class Dataset:
         ids = set(sc["scene_gt"]) & set(sc["scene_camera"]) & set(sc["scene_assembly"]["frames"])
         return sorted(int(i) for i in ids)
 
+    def placements(self, step: int) -> dict[int, list[int]]:
+        """placement id -> its frames (im_ids, ascending): the frames that show the base at one pose
+        (`apose render --views-per-scene`; a dataset without placements has one frame per placement)."""
+        frames = self._scene(step)["scene_assembly"]["frames"]
+        out: dict[int, list[int]] = {}
+        for im_id in self.image_ids(step):
+            out.setdefault(int(frames[str(im_id)].get("placement", im_id)), []).append(im_id)
+        return out
+
     def frame(self, step: int, im_id: int) -> Frame:
         sc = self._scene(step)
         key = str(im_id)
@@ -215,7 +225,7 @@ class Dataset:
                      T_world_camera=T_world_camera, masks=masks, poses=poses, step=step, part=asm["part"],
                      base=tuple(asm["base"]), T_base_part=np.asarray(asm["T_base_part"]),
                      T_world_base=np.asarray(fr["T_world_base"]), T_world_part=np.asarray(fr["T_world_part"]),
-                     im_id=im_id, source=str(rgb_path))
+                     im_id=im_id, source=str(rgb_path), placement=int(fr.get("placement", im_id)))
 
 
 def read_capture_camera(path: Path, width: int, height: int) -> tuple[CameraIntrinsics, float, np.ndarray | None]:

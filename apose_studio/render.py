@@ -39,6 +39,7 @@ class RenderSettings:
     base_pose: str = "yaw"
     distractors: int = 2
     clutter: bool = False  # a cluttered bench: objects of the base's height touching it and around it, base off-centre
+    views_per_scene: int = 1  # camera poses per placement of the base (an eye-in-hand camera's looks), >= 30 deg apart
     camera: CameraIntrinsics = field(default_factory=CameraIntrinsics)
 
     def validate(self) -> None:
@@ -57,6 +58,8 @@ class RenderSettings:
             raise RenderError(f"--base-pose {self.base_pose}: expected one of {', '.join(BASE_POSES)}")
         if not 0 <= self.noise_sigma_at_05m < 0.05:
             raise RenderError(f"--noise-sigma {self.noise_sigma_at_05m}: expected metres at 0.5 m, in [0, 0.05)")
+        if not 1 <= self.views_per_scene <= self.frames:
+            raise RenderError(f"--views-per-scene {self.views_per_scene}: expected 1 to --frames ({self.frames})")
         if self.distractors < 0:
             raise RenderError("--distractors: expected 0 or more")
         rng_ok(self.yaw_range_deg, -360, 720, "yaw", "degrees")
@@ -318,12 +321,51 @@ def render_frame(models: dict[str, PartModel], view: StepView, settings: RenderS
     the noise later (the dataset writer does that in its threads); the result is the same either way."""
     scene = sample_scene(models, view, settings, rng, base)
     T_world_camera = sample_camera(rng, scene.base_centre, settings, scene.base_diameter)
+    return view_of(scene, T_world_camera, grid, rng, settings if noise else None)
+
+
+def view_of(scene: Scene, T_world_camera: np.ndarray, grid: RayGrid, rng: np.random.Generator,
+            settings: RenderSettings | None = None) -> RenderedFrame:
+    """The scene seen from T_world_camera; with `settings`, its depth noise added (else clean)."""
     hit = cast(scene, grid, T_world_camera)
     rgb = shade(hit, scene, T_world_camera, rng)
     frame = RenderedFrame(rgb, hit.depth, T_world_camera, scene, hit, int(rng.integers(2**62)))
-    if noise:
+    if settings is not None:
         frame.depth = noisy_depth(frame, settings)
     return frame
+
+
+MIN_VIEW_SEPARATION_DEG = 30.0
+
+
+def sample_cameras(rng: np.random.Generator, target: np.ndarray, settings: RenderSettings, base_diameter: float,
+                   k: int) -> list[np.ndarray]:
+    """k camera poses of one placement, their viewing directions at least MIN_VIEW_SEPARATION_DEG apart
+    (drawn like `sample_camera`, a draw too close to an earlier one drawn again; after 500 tries the
+    best-separated draw is taken)."""
+    poses: list[np.ndarray] = []
+    for _ in range(k):
+        best, best_sep = None, -1.0
+        for _ in range(500):
+            T = sample_camera(rng, target, settings, base_diameter)
+            sep = min((se3.rotation_angle_deg(T[:3, :3].T @ P[:3, :3]) for P in poses), default=180.0)
+            if sep > best_sep:
+                best, best_sep = T, sep
+            if sep >= MIN_VIEW_SEPARATION_DEG:
+                break
+        poses.append(best)
+    return poses
+
+
+def render_placement(models: dict[str, PartModel], view: StepView, settings: RenderSettings, grid: RayGrid,
+                     seed: list[int], base: trimesh.Trimesh | None = None, noise: bool = True) -> list[RenderedFrame]:
+    """`settings.views_per_scene` views of one placement of the base (one scene, cameras >= 30 deg apart).
+    The scene and cameras come from default_rng(seed), each view's shading from seed + [its index]."""
+    rng = np.random.default_rng(seed)
+    scene = sample_scene(models, view, settings, rng, base)
+    cams = sample_cameras(rng, scene.base_centre, settings, scene.base_diameter, settings.views_per_scene)
+    return [view_of(scene, T, grid, np.random.default_rng(seed + [j]), settings if noise else None)
+            for j, T in enumerate(cams)]
 
 
 def noisy_depth(frame: RenderedFrame, settings: RenderSettings) -> np.ndarray:
@@ -391,10 +433,18 @@ def _render_into(asm: Assembly, out, settings: RenderSettings, numbers: list[int
                 "step": number, "part": view.part, "base": list(view.base),
                 "part_obj_id": obj_ids[view.part], "base_obj_ids": [obj_ids[p] for p in view.base],
                 "T_base_part": view.T_base_part.tolist()})
+            k, group = settings.views_per_scene, []
             for im_id in range(settings.frames):
-                rng = np.random.default_rng([settings.seed, number, im_id])
-                queue.submit(writer, im_id, render_frame(models, view, settings, grid, rng, base, noise=False), view,
-                             obj_ids)
+                placement, j = divmod(im_id, k)
+                if k == 1:  # one view per placement: the renders of every earlier version, bit for bit
+                    rng = np.random.default_rng([settings.seed, number, im_id])
+                    fr = render_frame(models, view, settings, grid, rng, base, noise=False)
+                else:
+                    if j == 0:
+                        group = render_placement(models, view, settings, grid, [settings.seed, number, placement, k], base,
+                                                 noise=False)
+                    fr = group[j]
+                queue.submit(writer, im_id, fr, view, obj_ids, placement)
                 if im_id % 25 == 24:
                     queue.checkpoint(writer)
                 done += 1
@@ -428,7 +478,7 @@ def _start_dataset(asm: Assembly, out, settings: RenderSettings, numbers: list[i
                          "yaw_range_deg": list(settings.yaw_range_deg),
                          "pitch_range_deg": list(settings.pitch_range_deg),
                          "distance_range_m": list(settings.distance_range_m) if settings.distance_range_m else "auto",
-                         "distractors": settings.distractors}}
+                         "distractors": settings.distractors, "views_per_scene": settings.views_per_scene}}
     write_manifest(out, info)
     return obj_ids, info
 
@@ -446,7 +496,8 @@ class _FrameQueue:
         self.pending: list = []  # (writer, future of the images, what to record once they are on disk)
         self.writer = None
 
-    def submit(self, writer, im_id: int, fr: RenderedFrame, view: StepView, obj_ids: dict[str, int]) -> None:
+    def submit(self, writer, im_id: int, fr: RenderedFrame, view: StepView, obj_ids: dict[str, int],
+               placement: int) -> None:
         from .dataset import AnnotatedObject
 
         self.writer = writer
@@ -454,7 +505,7 @@ class _FrameQueue:
         objects = [AnnotatedObject(obj_ids[fr.scene.objects[i].part], fr.scene.objects[i].T_world_obj,
                                    *fr.hits.object_stats(i)) for i in annotated]
         extra = {"T_world_base": fr.scene.T_world_base, "T_world_part": fr.scene.T_world_base @ view.T_base_part,
-                 "T_world_camera": fr.T_world_camera}
+                 "T_world_camera": fr.T_world_camera, "placement": placement}
         fut = self.pool.submit(lambda: writer.write_images(im_id, fr.rgb, noisy_depth(fr, self.settings), objects))
         self.pending.append((writer, fut, (im_id, self.settings.camera, fr.T_world_camera, objects, extra)))
         self._settle(keep=4)

@@ -69,6 +69,7 @@ class RegistrationResult:
     # pose (an object in front of the base and clutter beside it removed): the base's mask as the estimate sees it
     depth_noise: float = 0.0  # the frame's depth noise around the object (metres, one sigma), which widens tolerances
     out_of_time: str = ""  # what the time budget cut short (empty: nothing); such a result is never confident
+    views: int = 1  # how many views the estimate fused (registration.fusion)
 
     @property
     def seconds(self) -> float:

@@ -1,0 +1,203 @@
+"""Several views of one placement of the base, with known camera poses (an eye-in-hand camera's looks):
+one estimate that every view's depth agrees with.
+
+1. The view with the most masked depth is estimated as usual (`pipeline.estimate`): its candidates,
+   with the twins of the best under every symmetry and close twin, are the placements to weigh.
+2. Every other view is prepared as its own registration problem (its cloud, its camera, its mask and
+   depth) and checked against the first: at the first view's pose it must explain most of its own
+   target, and ICP on it alone must not move that pose by more than 3 voxels or 3 degrees. Otherwise
+   the camera poses disagree (or the base moved between the looks): the result fails and says which
+   view and by how much; nothing is fused blindly.
+3. Each placement is scored in every view (the score each view gives it, weighted by its target
+   points). Near-ties are looked at where the placements differ, view by view: a placement that a
+   view tells apart clearly (the connector seen in one view, hidden in the other) loses.
+4. The chosen pose gets a last ICP on the fused cloud (every view's target, world frame) onto what
+   each camera sees of the model.
+
+Frames: T_<to>_<from>, metres.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from .. import se3
+from ..config import CameraIntrinsics
+from .base import BaseObject
+from .pipeline import estimate, frame_noise, judge
+from .presets import Params
+from .problem import Problem, prepare_problem
+from .refine import POLISH_ITERATIONS, is_twin
+from .results import CONFIDENT_COVERAGE, MIN_POINTS, TIE_MARGIN, TWIN_TIE_MARGIN, Degenerate, RegistrationResult, failed
+from .scoring import Observation, discriminate, distinct_placements, mask_edge, score_pose, twin_placements
+from .stages import cloud, icp, project_to_cloud, raycast_source
+
+DISAGREE_DEGREES = 3.0  # a view whose own ICP turns the pose further than this disagrees with the others
+DISAGREE_VOXELS = 3.0  # ... or moves it further than this many voxels
+DISAGREE_COVERAGE = 0.5  # ... or of whose target the pose explains less than this share
+
+
+@dataclass
+class View:
+    """One look at the placement: depth (metres), the base's mask, intrinsics and the camera's pose."""
+
+    depth: np.ndarray
+    mask: np.ndarray
+    cam: CameraIntrinsics
+    T_world_camera: np.ndarray
+    name: str = ""  # how errors name it (a file, "frame 3")
+
+
+def estimate_views(views: list[View], base: BaseObject, T_base_part: np.ndarray, params: Params,
+                   prior_T_world_base: np.ndarray | None = None) -> RegistrationResult:
+    """T_world_part from several views of one placement (see the module's docstring). Never raises on
+    bad data: disagreeing camera poses or a view without depth give ok=False and a reason."""
+    if len(views) == 1:
+        v = views[0]
+        return estimate(v.depth, v.mask, v.cam, v.T_world_camera, base, T_base_part, params, prior_T_world_base)
+    t0 = time.perf_counter()
+    counts = [int((v.mask & (v.depth > 0)).sum()) for v in views]
+    order = sorted(range(len(views)), key=lambda i: -counts[i])
+    first_view = views[order[0]]
+    first = estimate(first_view.depth, first_view.mask, first_view.cam, first_view.T_world_camera, base, T_base_part,
+                     params, prior_T_world_base)
+    if not first.ok:
+        first.reason = f"{_name(first_view, order[0])}: {first.reason}"
+        return first
+    t1 = time.perf_counter()
+    problems = {order[0]: _problem(first_view, base, T_base_part, params, first.voxel)}
+    for i in order[1:]:
+        try:
+            problems[i] = _problem(views[i], base, T_base_part, params, first.voxel)
+        except Degenerate as e:
+            return failed(f"{_name(views[i], i)}: {e}", preset=params.preset, timings=first.timings)
+    disagreement = _disagreement(problems, order, first.T_world_base, first.voxel, views)
+    if disagreement:
+        return failed(disagreement + "; the views are not fused", preset=params.preset, timings=first.timings,
+                      T_world_base=first.T_world_base, T_world_part=first.T_world_part)
+    result = _weigh(first, problems, order, base)
+    result.timings = {**first.timings, "fusion": time.perf_counter() - t1}
+    result.timings["total fused"] = time.perf_counter() - t0
+    result.views = len(views)
+    return result
+
+
+def _name(view: View, i: int) -> str:
+    return view.name or f"view {i + 1}"
+
+
+def _problem(view: View, base: BaseObject, T_base_part: np.ndarray, params: Params, voxel: float) -> Problem:
+    pts = project_to_cloud(view.depth, view.mask, view.cam, view.T_world_camera)
+    if len(pts) < MIN_POINTS:
+        raise Degenerate(f"only {len(pts)} valid depth points under its mask (need {MIN_POINTS})")
+    obs = Observation(view.mask, view.depth, mask_edge(view.mask), frame_noise(view.depth, view.mask))
+    return prepare_problem(pts, view.cam, view.T_world_camera, base, T_base_part, params, voxel, obs)
+
+
+def _disagreement(problems: dict[int, Problem], order: list[int], T_world_base: np.ndarray, voxel: float,
+                  views: list[View]) -> str:
+    """Why the views cannot be of one placement seen from the given camera poses ("" when they can)."""
+    from .refine import polish
+
+    for i in order[1:]:
+        pb = problems[i]
+        cand, _, _ = score_pose(pb, T_world_base)
+        if cand.coverage < DISAGREE_COVERAGE:
+            return (f"{_name(views[i], i)} disagrees with {_name(views[order[0]], order[0])}: at the pose that view "
+                    f"gives, the model explains only {cand.coverage:.0%} of its target; are both camera poses "
+                    "(cam_R_w2c, cam_t_w2c) in one world frame, and did the base stay put between the looks?")
+        # ICP on this view alone (a few voxels' reach): the pose it pulls to
+        T, _ = polish(replace(pb, params=replace(pb.params, polish_threshold_factor=3.0, polish_voxel_factor=1.0)),
+                      T_world_base, None)
+        D = se3.inv(T_world_base) @ T
+        moved, turned = float(np.linalg.norm(D[:3, 3])), se3.rotation_angle_deg(D[:3, :3])
+        if moved > DISAGREE_VOXELS * voxel or turned > DISAGREE_DEGREES:
+            return (f"{_name(views[i], i)} disagrees with {_name(views[order[0]], order[0])} by {moved * 1000:.1f} mm "
+                    f"and {turned:.1f} degrees at the base; are both camera poses in one world frame, and did the "
+                    "base stay put between the looks?")
+    return ""
+
+
+WEIGH_MARGIN = 0.15  # the first view's placements scoring within this of its best are weighed in every view
+WEIGH_MAX = 6
+
+
+def _weigh(first: RegistrationResult, problems: dict[int, Problem], order: list[int],
+           base: BaseObject) -> RegistrationResult:
+    """The first view's placements scored in every view; the chosen one polished on the fused cloud."""
+    voxel = first.voxel
+    poses = [first.T_world_base]
+    if not first.confident:  # a confident first view stands (one placement fits it); else weigh its rivals
+        top = max(c.score for c in first.candidates)
+        placements = [c for c in distinct_placements(first.candidates, voxel) if c.score >= top - WEIGH_MARGIN]
+        poses = [c.T_world_base for c in placements[:WEIGH_MAX]]
+        for S in list(base.symmetries[1:]) + list(base.close_twins):  # every twin of the best, scored or not
+            T = first.T_world_base @ S
+            if not any(_same(T, P, voxel) for P in poses):
+                poses.append(T)
+    weights = {i: len(problems[i].fine_pts) for i in order}
+    total = float(sum(weights.values()))
+    per_view = {i: [score_pose(problems[i], T) for T in poses] for i in order}  # (candidate, seen, normals)
+    cands = []
+    for k in range(len(poses)):
+        c = per_view[order[0]][k][0]
+        score = sum(weights[i] * per_view[i][k][0].score for i in order) / total
+        cov = min(per_view[i][k][0].coverage for i in order)
+        cands.append(replace(c, score=score, coverage=cov))
+    best = max(range(len(cands)), key=lambda k: cands[k].score)
+    close = [k for k, c in enumerate(cands) if c.score >= cands[best].score - TIE_MARGIN
+             or (c.score >= cands[best].score - TWIN_TIE_MARGIN and is_twin(base, poses[best], poses[k], voxel))]
+    lost: set[int] = set()
+    if len(close) > 1:
+        for i in order:  # each view looks where the placements differ
+            traces = [(None, None, per_view[i][k][1], per_view[i][k][2]) for k in range(len(poses))]
+            kept = discriminate(problems[i], close, [per_view[i][k][0] for k in range(len(poses))], traces)
+            lost |= set(close) - set(kept)
+    kept = [k for k in close if k not in lost] or close
+    chosen = max(kept, key=lambda k: cands[k].score)
+    seen = {i: per_view[i][chosen][1:] for i in order}
+    T = fused_polish(problems, order, poses[chosen], voxel, seen)
+    pb0 = problems[order[0]]
+    final = cands[chosen]
+    ranked = sorted(range(len(cands)), key=lambda k: -cands[k].score)
+    tied = distinct_placements([cands[chosen]] + [cands[k] for k in kept if k != chosen], voxel, base.symmetries)
+    ambiguous = bool(len(tied) > 1 and cands[chosen].coverage >= CONFIDENT_COVERAGE)
+    result = replace(first, T_world_base=T, T_world_part=T @ pb0.T_base_part, candidates=[cands[k] for k in ranked],
+                     ambiguous=ambiguous, alternatives=tied[1:] if ambiguous else [],
+                     coverage=float(min(cands[chosen].coverage, final.coverage)), fitness=final.fitness,
+                     inlier_rmse=final.inlier_rmse, second_look=None, model_mask=None)
+    obs = pb0.observation
+    result = judge(result, obs.depth, obs.mask, pb0.cam, pb0.T_world_camera, base)
+    result.equivalent = twin_placements(T, result.T_world_part, base.symmetries) if result.ok else []
+    return result
+
+
+def _same(A: np.ndarray, B: np.ndarray, voxel: float) -> bool:
+    return bool(np.linalg.norm(A[:3, 3] - B[:3, 3]) < voxel and se3.rotation_angle_deg(A[:3, :3].T @ B[:3, :3]) < 2.0)
+
+
+def fused_polish(problems: dict[int, Problem], order: list[int], T_world_base: np.ndarray, voxel: float,
+                 seen: dict | None = None) -> np.ndarray:
+    """The last refinement on every view at once: all targets (world), down-sampled at half the voxel,
+    registered onto what each camera sees of the model at T_world_base (point-to-plane, the model's
+    normals), as `refine.polish` does for one view. `seen`: view -> (world points, normals) already cast."""
+    T_base_world = se3.inv(T_world_base)
+    tgt, src, nrm = [], [], []
+    for i in order:
+        pb = problems[i]
+        w, n = seen[i] if seen is not None else raycast_source(pb.base, T_world_base, pb.T_world_camera, pb.cam)
+        if len(w) < MIN_POINTS:
+            continue
+        src.append(se3.transform_points(T_base_world, w))
+        nrm.append(n @ T_base_world[:3, :3].T)
+        tgt.append(np.asarray(pb.target_full.voxel_down_sample(0.5 * voxel).points))
+    if not src:
+        return T_world_base
+    model = cloud(np.concatenate(src), np.concatenate(nrm)).voxel_down_sample(0.5 * voxel)
+    p = problems[order[0]].params
+    T = icp(cloud(np.concatenate(tgt)), model, T_base_world, p.polish_threshold_factor * voxel, POLISH_ITERATIONS,
+            None, p.deterministic)
+    return se3.inv(T)

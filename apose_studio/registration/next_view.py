@@ -1,0 +1,130 @@
+"""Where to look next when one look cannot settle the placement (an `ambiguous` or not `confident`
+result): the camera pose from which the rival placements look most different.
+
+The rivals are the result's alternatives (ambiguous), else its other distinct candidates, else the
+chosen pose turned by the base's close twins. Candidate cameras are poses on the hemisphere around
+the base at the current distance (12 yaws x 3 elevations), or a list of reachable poses the user
+gives. For each, the model is ray-cast at every rival placement (at a quarter of the resolution) and
+the depth images compared: a pixel separates the rivals when one shows the base there and another
+does not, or their depths differ by more than the tolerance. The score is the number of such pixels
+(what the camera would see of the features that differ); `separation_mm` is the mean depth
+difference over them (a pixel where only one shows the base counts the distance to the other's
+surface behind, capped at one diameter). Clutter that may hide the feature from there is not
+modelled: the studio draws the advised camera so the user can judge.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from .. import se3
+from ..config import CameraIntrinsics
+from .base import BaseObject
+from .results import RegistrationResult
+from .scoring import distinct_placements
+
+ADVICE_YAWS = 12
+ADVICE_PITCHES_DEG = (30.0, 50.0, 70.0)
+ADVICE_SCALE = 0.25  # the rivals are compared at this fraction of the image's resolution
+
+
+@dataclass
+class NextView:
+    T_world_camera: np.ndarray
+    separation_mm: float  # mean depth difference where the rivals differ, seen from there
+    pixels: int  # how many full-resolution pixels show a difference from there
+    pixels_now: int  # ... and from the current camera
+    why: str
+
+    def to_json(self) -> dict:
+        return {"T_world_camera": self.T_world_camera.tolist(), "separation_mm": round(self.separation_mm, 2),
+                "pixels": self.pixels, "pixels_now": self.pixels_now, "why": self.why}
+
+
+def rivals(result: RegistrationResult, base: BaseObject, limit: int = 4) -> list[np.ndarray]:
+    """T_world_base of the chosen placement and its rivals (see the module's docstring)."""
+    if result.alternatives:
+        others = [c.T_world_base for c in result.alternatives]
+    else:
+        others = [c.T_world_base for c in distinct_placements(result.candidates, result.voxel, base.symmetries)[1:]]
+        if not others:
+            others = [result.T_world_base @ S for S in base.close_twins]
+    return [result.T_world_base] + others[: limit - 1]
+
+
+def hemisphere(centre: np.ndarray, distance: float) -> list[np.ndarray]:
+    """Cameras looking at `centre` from `distance`, ADVICE_YAWS yaws x ADVICE_PITCHES_DEG elevations."""
+    out = []
+    for pitch in np.radians(ADVICE_PITCHES_DEG):
+        for yaw in np.linspace(0, 2 * np.pi, ADVICE_YAWS, endpoint=False):
+            eye = centre + distance * np.array([np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), np.sin(pitch)])
+            out.append(se3.look_at(eye, centre))
+    return out
+
+
+def _depth_image(base: BaseObject, T_world_base: np.ndarray, T_world_camera: np.ndarray, cam: CameraIntrinsics) -> np.ndarray:
+    from ..raycast import raycast_points
+
+    pts, _ = raycast_points(base.mesh, T_world_base, T_world_camera, cam)
+    z = np.full((cam.height, cam.width), np.inf)
+    if len(pts):
+        p = se3.transform_points(se3.inv(T_world_camera), pts)
+        u, v = cam.project(p)
+        u, v = np.clip(np.round(u).astype(int), 0, cam.width - 1), np.clip(np.round(v).astype(int), 0, cam.height - 1)
+        np.minimum.at(z, (v, u), p[:, 2])
+    return z
+
+
+def separation(base: BaseObject, placements: list[np.ndarray], T_world_camera: np.ndarray, cam: CameraIntrinsics,
+               tol: float) -> tuple[int, float]:
+    """(pixels, mean depth difference in metres) where the placements look different from this camera,
+    at the resolution of `cam`."""
+    images = [_depth_image(base, T, T_world_camera, cam) for T in placements]
+    differ = np.zeros(images[0].shape, bool)
+    gap = np.zeros(images[0].shape)
+    for a in range(len(images)):
+        for b in range(a + 1, len(images)):
+            za, zb = images[a], images[b]
+            fa, fb = np.isfinite(za), np.isfinite(zb)
+            d = np.zeros(za.shape)
+            d[fa & fb] = np.abs(za[fa & fb] - zb[fa & fb])
+            d[fa ^ fb] = base.diameter  # one shows the base there, the other does not
+            d = np.minimum(d, base.diameter)
+            differ |= d > tol
+            gap = np.maximum(gap, d)
+    n = int(differ.sum())
+    return n, float(gap[differ].mean()) if n else 0.0
+
+
+def next_view(result: RegistrationResult, base: BaseObject, T_world_cameras: list[np.ndarray], cam: CameraIntrinsics,
+              reachable: list[np.ndarray] | None = None, tol: float | None = None) -> NextView | None:
+    """The camera pose that best separates the result's rival placements (see the module's docstring);
+    None when there is nothing to separate (a confident result, or no rival)."""
+    if not result.ok or (result.confident and not result.ambiguous):
+        return None
+    placements = rivals(result, base)
+    if len(placements) < 2:
+        return None
+    small = replace(cam, width=max(8, int(cam.width * ADVICE_SCALE)), height=max(8, int(cam.height * ADVICE_SCALE)),
+                    fx=cam.fx * ADVICE_SCALE, fy=cam.fy * ADVICE_SCALE, cx=cam.cx * ADVICE_SCALE, cy=cam.cy * ADVICE_SCALE)
+    tol = tol if tol is not None else max(2 * result.voxel, 0.002)
+    centre = se3.transform_points(result.T_world_base, base.centre[None])[0]
+    distance = float(np.median([np.linalg.norm(T[:3, 3] - centre) for T in T_world_cameras]))
+    options = list(reachable) if reachable else hemisphere(centre, distance)
+    scale = 1.0 / ADVICE_SCALE**2
+    now = max(separation(base, placements, T, small, tol)[0] for T in T_world_cameras)
+    scored = [(separation(base, placements, T, small, tol), T) for T in options]
+    (n, gap), best = max(scored, key=lambda s: (s[0][0], -_turn_from(s[1], T_world_cameras)))
+    if n == 0:
+        return None
+    where = "from the reachable poses given" if reachable else f"on the hemisphere at {distance * 1000:.0f} mm"
+    why = (f"{len(placements)} placements fit the data; {where}, this camera sees about {int(n * scale)} pixels where "
+           f"they differ (the feature that tells them apart), against {int(now * scale)} from the current view")
+    return NextView(best, gap * 1000.0, int(n * scale), int(now * scale), why)
+
+
+def _turn_from(T: np.ndarray, cameras: list[np.ndarray]) -> float:
+    """Degrees from T to the nearest of the current cameras (ties go to the smaller move)."""
+    return min(se3.rotation_angle_deg(T[:3, :3].T @ C[:3, :3]) for C in cameras)
