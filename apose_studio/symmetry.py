@@ -55,7 +55,7 @@ def detect_symmetries(points: np.ndarray, diameter: float, tolerance: float = 0.
                 R = se3.axis_angle_matrix(a, 2 * np.pi * k / n)
                 T = se3.make_T(R, c - R @ c)
                 res = max(0.0, float(np.mean(tree.query(se3.transform_points(T, pts))[0])) - baseline)
-                if res < SYMMETRY_TOLERANCE * diameter:  # a symmetry proper: exact enough to derive twin poses by
+                if res < 3 * SYMMETRY_TOLERANCE * diameter:  # a symmetry, or a close twin: exact enough to derive twin poses by
                     T = refine_self_map(T, pts, tree, 0.02 * diameter)
                     res = max(0.0, float(np.mean(tree.query(se3.transform_points(T, pts))[0])) - baseline)
                 if all(se3.rotation_angle_deg(T[:3, :3].T @ F[:3, :3]) > 1.0 for F, _ in found):

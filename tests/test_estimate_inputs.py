@@ -120,3 +120,59 @@ def test_every_bad_input_exits_2_with_one_line(capture, tmp_path):
         assert r.returncode == 2 and message in r.stderr, (folder.name, extra, r.returncode, r.stderr)
         assert len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr, r.stderr
         assert sorted(p.name for p in folder.iterdir()) == before  # nothing written
+
+
+@pytest.fixture(scope="module")
+def two_views(tmp_path_factory):
+    """Gearbox step 1, two placements of two RealSense-like views each (`--views-per-scene 2`)."""
+    from apose_studio.assembly import load_assembly
+    from apose_studio.render import RenderSettings, render_dataset
+
+    from .conftest import SAMPLES
+
+    out = tmp_path_factory.mktemp("views") / "ds"
+    render_dataset(load_assembly(SAMPLES / "helical_gearbox" / "assembly.yaml"), out,
+                   RenderSettings(frames=4, views_per_scene=2, noise="realsense", seed=4), steps=[1], progress=False)
+    return out
+
+
+def _bop_camera(frame, shift_mm=0.0) -> dict:
+    T_cw = np.linalg.inv(frame.T_world_camera)
+    return {"cam_K": frame.camera.K.reshape(-1).tolist(), "depth_scale": 1.0, "cam_R_w2c": T_cw[:3, :3].reshape(-1).tolist(),
+            "cam_t_w2c": (T_cw[:3, 3] * 1000 + [shift_mm, 0.0, 0.0]).tolist()}
+
+
+def test_eval_and_estimate_fuse_the_views_of_a_placement(two_views, tmp_path):
+    r = run("eval", two_views, "--views", 2, "--json", tmp_path / "e.json")
+    assert r.returncode == 0, r.stderr
+    doc = json.loads((tmp_path / "e.json").read_text())
+    frames = doc["steps"][0]["frames"]
+    assert [f["im_ids"] for f in frames] == [[0, 1], [2, 3]] and doc["steps"][0]["recall_mssd"] == 1.0
+    r = run("estimate", two_views, "--step", 1, "--frame", 3, "--views", 2, "--json")
+    assert r.returncode == 0, r.stderr
+    doc = json.loads(r.stdout)
+    assert doc["ok"] and doc["im_ids"] == [3, 2] and len(doc["views"]) == 2 and "next_view" in doc
+    assert doc["truth"]["mssd"] < 0.005
+
+
+def test_several_captures_are_fused_and_disagreeing_poses_refused(two_views, tmp_path):
+    ds = Dataset(two_views)
+    a, b = ds.frame(1, 0), ds.frame(1, 1)
+    asm = two_views / "assembly.yaml"
+    ca = write_capture(a, tmp_path / "a", _bop_camera(a))
+    cb = write_capture(b, tmp_path / "b", _bop_camera(b))
+    r = run("estimate", ca, cb, "--assembly", asm, "--step", 1, "--box", ",".join(map(str, truth_box(a.base_mask()))),
+            "--box", ",".join(map(str, truth_box(b.base_mask()))), "--json")
+    assert r.returncode == 0, r.stderr
+    doc = json.loads(r.stdout)
+    T = np.asarray(doc["T_world_part"])
+    assert doc["ok"] and np.linalg.norm(T[:3, 3] - a.T_world_part[:3, 3]) < 0.005
+    shifted = write_capture(b, tmp_path / "b_off", _bop_camera(b, shift_mm=20.0))  # the robot's pose 20 mm off
+    r = run("estimate", ca, shifted, "--assembly", asm, "--step", 1, "--box", ",".join(map(str, truth_box(a.base_mask()))),
+            "--box", ",".join(map(str, truth_box(b.base_mask()))))
+    assert r.returncode == 1 and "disagrees" in r.stdout and "not fused" in r.stdout, r.stdout
+    plain = write_capture(b, tmp_path / "b_plain")  # no extrinsics: cannot be fused
+    r = run("estimate", ca, plain, "--assembly", asm, "--step", 1)
+    assert r.returncode == 2 and "cam_R_w2c" in r.stderr and r.stderr.count("\n") == 1, r.stderr
+    r = run("estimate", ca, cb, "--assembly", asm, "--step", 1, "--box", "1,1,50,50")
+    assert r.returncode == 2 and "--box given 1 time(s) for 2 views" in r.stderr, r.stderr

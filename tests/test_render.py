@@ -137,6 +137,30 @@ def test_same_seed_same_data_fixed_vs_yaw(planetary, tmp_path):
     assert not np.allclose(yaw[0], yaw[1])
 
 
+def test_views_per_scene_share_a_placement(planetary, tmp_path):
+    """--views-per-scene 2 with 5 frames: placements 0, 0, 1, 1, 2; the frames of a placement show the
+    base at one pose (and the same scene: the loose part where it was), from cameras at least 30
+    degrees apart; different placements differ. The folder stays a BOP scene (read by the BOP reader)."""
+    from apose_studio.bop import BopScene
+
+    asm, models = planetary
+    s = RenderSettings(frames=5, seed=2, camera=SMALL_CAM, views_per_scene=2)
+    render_dataset(asm, tmp_path / "mv", s, steps=[1], progress=False, models=models)
+    ds = Dataset(tmp_path / "mv")
+    assert ds.placements(1) == {0: [0, 1], 1: [2, 3], 2: [4]}
+    f = [ds.frame(1, i) for i in range(5)]
+    assert [x.placement for x in f] == [0, 0, 1, 1, 2]
+    for a, b in ((0, 1), (2, 3)):
+        np.testing.assert_allclose(f[a].T_world_base, f[b].T_world_base, atol=1e-9)
+        np.testing.assert_allclose(f[a].poses[asm.step_view(1).part], f[b].poses[asm.step_view(1).part], atol=1e-9)
+        assert se3.rotation_angle_deg(f[a].T_world_camera[:3, :3].T @ f[b].T_world_camera[:3, :3]) >= 30.0
+    assert not np.allclose(f[0].T_world_base, f[2].T_world_base)
+    bop = BopScene(tmp_path / "mv" / "test" / "000001")
+    assert len(bop.image_ids()) == 5
+    with pytest.raises(RenderError, match="--views-per-scene 6: expected 1 to --frames"):
+        render_dataset(asm, tmp_path / "bad", replace(s, views_per_scene=6), steps=[1], progress=False, models=models)
+
+
 def test_depth_noise_models():
     rng = np.random.default_rng(0)
     flat = np.full((200, 200), 0.5, np.float32)

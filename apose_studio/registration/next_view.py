@@ -5,10 +5,11 @@ The rivals are the result's alternatives (ambiguous), else its other distinct ca
 chosen pose turned by the base's close twins. Candidate cameras are poses on the hemisphere around
 the base at the current distance (12 yaws x 3 elevations), or a list of reachable poses the user
 gives. For each, the model is ray-cast at every rival placement (at a quarter of the resolution) and
-the depth images compared: a pixel separates the rivals when one shows the base there and another
-does not, or their depths differ by more than the tolerance. The score is the number of such pixels
-(what the camera would see of the features that differ); `separation_mm` is the mean depth
-difference over them (a pixel where only one shows the base counts the distance to the other's
+the depth images compared: a pixel separates two rivals when one shows the base there and the other
+does not, or their depths differ by more than the tolerance. The camera chosen tells the most pairs
+of rivals apart (what it sees of the features that differ), then the most pairs with the chosen
+placement, then the most such pixels, then the smallest turn from a current camera; `separation_mm`
+is the mean depth difference over the pixels where any two differ (a pixel where only one shows the base counts the distance to the other's
 surface behind, capped at one diameter). Clutter that may hide the feature from there is not
 modelled: the studio draws the advised camera so the user can judge.
 """
@@ -77,13 +78,29 @@ def _depth_image(base: BaseObject, T_world_base: np.ndarray, T_world_camera: np.
     return z
 
 
+SEPARATED_PX = 12  # a pair of placements is told apart from a camera that sees them differ on this many
+# pixels (at ADVICE_SCALE: about 190 full-resolution pixels)
+
+
+@dataclass
+class Separation:
+    pairs: int  # pairs of placements this camera tells apart (differing on SEPARATED_PX or more)
+    pairs_with_chosen: int  # ... of them, pairs with the chosen placement (the first)
+    pixels: int  # pixels where any two placements differ (at the camera's resolution)
+    gap: float  # mean depth difference over those pixels, metres
+
+    def key(self) -> tuple:
+        return (self.pairs, self.pairs_with_chosen, self.pixels)
+
+
 def separation(base: BaseObject, placements: list[np.ndarray], T_world_camera: np.ndarray, cam: CameraIntrinsics,
-               tol: float) -> tuple[int, float]:
-    """(pixels, mean depth difference in metres) where the placements look different from this camera,
-    at the resolution of `cam`."""
+               tol: float) -> Separation:
+    """How well this camera tells the placements apart (at the resolution of `cam`): every pair's
+    differing pixels, where one shows the base and the other not or their depths differ by > tol."""
     images = [_depth_image(base, T, T_world_camera, cam) for T in placements]
     differ = np.zeros(images[0].shape, bool)
     gap = np.zeros(images[0].shape)
+    pairs = with_chosen = 0
     for a in range(len(images)):
         for b in range(a + 1, len(images)):
             za, zb = images[a], images[b]
@@ -92,10 +109,14 @@ def separation(base: BaseObject, placements: list[np.ndarray], T_world_camera: n
             d[fa & fb] = np.abs(za[fa & fb] - zb[fa & fb])
             d[fa ^ fb] = base.diameter  # one shows the base there, the other does not
             d = np.minimum(d, base.diameter)
-            differ |= d > tol
+            here = d > tol
+            if here.sum() >= SEPARATED_PX:
+                pairs += 1
+                with_chosen += a == 0
+            differ |= here
             gap = np.maximum(gap, d)
     n = int(differ.sum())
-    return n, float(gap[differ].mean()) if n else 0.0
+    return Separation(pairs, with_chosen, n, float(gap[differ].mean()) if n else 0.0)
 
 
 def next_view(result: RegistrationResult, base: BaseObject, T_world_cameras: list[np.ndarray], cam: CameraIntrinsics,
@@ -114,15 +135,16 @@ def next_view(result: RegistrationResult, base: BaseObject, T_world_cameras: lis
     distance = float(np.median([np.linalg.norm(T[:3, 3] - centre) for T in T_world_cameras]))
     options = list(reachable) if reachable else hemisphere(centre, distance)
     scale = 1.0 / ADVICE_SCALE**2
-    now = max(separation(base, placements, T, small, tol)[0] for T in T_world_cameras)
+    now = max((separation(base, placements, T, small, tol) for T in T_world_cameras), key=Separation.key)
     scored = [(separation(base, placements, T, small, tol), T) for T in options]
-    (n, gap), best = max(scored, key=lambda s: (s[0][0], -_turn_from(s[1], T_world_cameras)))
-    if n == 0:
+    sep, best = max(scored, key=lambda s: s[0].key() + (-_turn_from(s[1], T_world_cameras),))
+    if sep.pairs == 0:
         return None
     where = "from the reachable poses given" if reachable else f"on the hemisphere at {distance * 1000:.0f} mm"
-    why = (f"{len(placements)} placements fit the data; {where}, this camera sees about {int(n * scale)} pixels where "
-           f"they differ (the feature that tells them apart), against {int(now * scale)} from the current view")
-    return NextView(best, gap * 1000.0, int(n * scale), int(now * scale), why)
+    n_pairs = len(placements) * (len(placements) - 1) // 2
+    why = (f"{len(placements)} placements fit the data; {where}, this camera tells {sep.pairs} of their {n_pairs} pairs "
+           f"apart (the current view {now.pairs}), seeing about {int(sep.pixels * scale)} pixels where they differ")
+    return NextView(best, sep.gap * 1000.0, int(sep.pixels * scale), int(now.pixels * scale), why)
 
 
 def _turn_from(T: np.ndarray, cameras: list[np.ndarray]) -> float:

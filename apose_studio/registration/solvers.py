@@ -26,6 +26,16 @@ def _small_rotation(a: float, b: float, c: float) -> np.ndarray:
                      [-sb, cb * sa, cb * ca]])
 
 
+def _solve_constrained(A: np.ndarray, b: np.ndarray, rcond: float = 1e-7) -> np.ndarray:
+    """A x = b for the normal equations of ICP, moving only along directions the data constrains: a
+    view of a box that shows two faces says nothing about sliding along their common edge, and solving
+    exactly there sent a pose 4e11 m away. Directions with an eigenvalue under rcond x the largest
+    are left still (the same as np.linalg.solve where the data constrains every direction)."""
+    w, V = np.linalg.eigh(A)
+    keep = w > rcond * max(float(w.max()), 1e-300)
+    return V[:, keep] @ ((V[:, keep].T @ b) / w[keep])
+
+
 def icp_point_to_plane(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.ndarray, T_init: np.ndarray, threshold: float,
                        iterations: int, trace: list | None = None, tgt_tree: cKDTree | None = None) -> np.ndarray:
     """T_target_source minimising sum ((T s - t) . n_t)^2 over pairs closer than `threshold`; stops when
@@ -53,7 +63,7 @@ def icp_point_to_plane(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.ndarray
         r = np.einsum("ij,ij->i", p - q, n)
         JtJ, Jtr = J.T @ J, J.T @ r
         try:
-            x = np.linalg.solve(JtJ, -Jtr)
+            x = _solve_constrained(JtJ, -Jtr)
         except np.linalg.LinAlgError:
             break
         update = np.eye(4)
