@@ -68,17 +68,19 @@ def estimate_views(views: list[View], base: BaseObject, T_base_part: np.ndarray,
         first.reason = f"{_name(first_view, order[0])}: {first.reason}"
         return first
     t1 = time.perf_counter()
-    problems = {order[0]: _problem(first_view, base, T_base_part, params, first.voxel)}
+    problems = {order[0]: first.problem if first.problem is not None else
+                _problem(first_view, base, T_base_part, params, first.voxel)}
     for i in order[1:]:
         try:
             problems[i] = _problem(views[i], base, T_base_part, params, first.voxel)
         except Degenerate as e:
             return failed(f"{_name(views[i], i)}: {e}", preset=params.preset, timings=first.timings)
-    disagreement = _disagreement(problems, order, first.T_world_base, first.voxel, views)
+    at_first = {i: score_pose(problems[i], first.T_world_base) for i in order}  # each view at the first's pose
+    disagreement = _disagreement(problems, order, first.T_world_base, first.voxel, views, at_first)
     if disagreement:
         return failed(disagreement + "; the views are not fused", preset=params.preset, timings=first.timings,
                       T_world_base=first.T_world_base, T_world_part=first.T_world_part)
-    result = _weigh(first, problems, order, base)
+    result = _weigh(first, problems, order, base, at_first)
     result.timings = {**first.timings, "fusion": time.perf_counter() - t1}
     result.timings["total fused"] = time.perf_counter() - t0
     result.views = len(views)
@@ -98,20 +100,21 @@ def _problem(view: View, base: BaseObject, T_base_part: np.ndarray, params: Para
 
 
 def _disagreement(problems: dict[int, Problem], order: list[int], T_world_base: np.ndarray, voxel: float,
-                  views: list[View]) -> str:
-    """Why the views cannot be of one placement seen from the given camera poses ("" when they can)."""
+                  views: list[View], at_first: dict) -> str:
+    """Why the views cannot be of one placement seen from the given camera poses ("" when they can).
+    `at_first`: view -> score_pose of the first view's pose there."""
     from .refine import polish
 
     for i in order[1:]:
         pb = problems[i]
-        cand, _, _ = score_pose(pb, T_world_base)
+        cand, seen, normals = at_first[i]
         if cand.coverage < DISAGREE_COVERAGE:
             return (f"{_name(views[i], i)} disagrees with {_name(views[order[0]], order[0])}: at the pose that view "
                     f"gives, the model explains only {cand.coverage:.0%} of its target; are both camera poses "
                     "(cam_R_w2c, cam_t_w2c) in one world frame, and did the base stay put between the looks?")
         # ICP on this view alone (a few voxels' reach): the pose it pulls to
         T, _ = polish(replace(pb, params=replace(pb.params, polish_threshold_factor=3.0, polish_voxel_factor=1.0)),
-                      T_world_base, None)
+                      T_world_base, None, (seen, normals))
         D = se3.inv(T_world_base) @ T
         moved, turned = float(np.linalg.norm(D[:3, 3])), se3.rotation_angle_deg(D[:3, :3])
         if moved > DISAGREE_VOXELS * voxel or turned > DISAGREE_DEGREES:
@@ -126,21 +129,22 @@ WEIGH_MAX = 6
 
 
 def _weigh(first: RegistrationResult, problems: dict[int, Problem], order: list[int],
-           base: BaseObject) -> RegistrationResult:
+           base: BaseObject, at_first: dict) -> RegistrationResult:
     """The first view's placements scored in every view; the chosen one polished on the fused cloud."""
     voxel = first.voxel
     poses = [first.T_world_base]
     if not first.confident:  # a confident first view stands (one placement fits it); else weigh its rivals
         top = max(c.score for c in first.candidates)
         placements = [c for c in distinct_placements(first.candidates, voxel) if c.score >= top - WEIGH_MARGIN]
-        poses = [c.T_world_base for c in placements[:WEIGH_MAX]]
+        poses += [c.T_world_base for c in placements[:WEIGH_MAX] if not _same(c.T_world_base, poses[0], voxel)]
         for S in list(base.symmetries[1:]) + list(base.close_twins):  # every twin of the best, scored or not
             T = first.T_world_base @ S
             if not any(_same(T, P, voxel) for P in poses):
                 poses.append(T)
     weights = {i: len(problems[i].fine_pts) for i in order}
     total = float(sum(weights.values()))
-    per_view = {i: [score_pose(problems[i], T) for T in poses] for i in order}  # (candidate, seen, normals)
+    per_view = {i: [at_first[i] if k == 0 else score_pose(problems[i], T) for k, T in enumerate(poses)]
+                for i in order}  # (candidate, seen, normals); poses[0] is the first view's pose
     cands = []
     for k in range(len(poses)):
         c = per_view[order[0]][k][0]

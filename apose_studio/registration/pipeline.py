@@ -166,6 +166,7 @@ def estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Para
     if found.upright and not result.fits and not pb.out_of_time("the free search after the upright one"):
         return better_of_free_search(result, target_pts, pb, prior, trace_iterations, timings)  # not upright
     result.out_of_time = "; ".join(pb.notes)
+    result.problem = pb
     return result
 
 

@@ -70,6 +70,7 @@ class RegistrationResult:
     depth_noise: float = 0.0  # the frame's depth noise around the object (metres, one sigma), which widens tolerances
     out_of_time: str = ""  # what the time budget cut short (empty: nothing); such a result is never confident
     views: int = 1  # how many views the estimate fused (registration.fusion)
+    problem: object = field(default=None, repr=False)  # the prepared registration problem (ours), for fusion
 
     @property
     def seconds(self) -> float:
