@@ -96,7 +96,7 @@ def _problem(view: View, base: BaseObject, T_base_part: np.ndarray, params: Para
     if len(pts) < MIN_POINTS:
         raise Degenerate(f"only {len(pts)} valid depth points under its mask (need {MIN_POINTS})")
     obs = Observation(view.mask, view.depth, mask_edge(view.mask), frame_noise(view.depth, view.mask))
-    return prepare_problem(pts, view.cam, view.T_world_camera, base, T_base_part, params, voxel, obs)
+    return prepare_problem(pts, view.cam, view.T_world_camera, base, T_base_part, params, voxel, obs, light=True)
 
 
 def _disagreement(problems: dict[int, Problem], order: list[int], T_world_base: np.ndarray, voxel: float,
@@ -185,7 +185,8 @@ def _same(A: np.ndarray, B: np.ndarray, voxel: float) -> bool:
 
 def fused_polish(problems: dict[int, Problem], order: list[int], T_world_base: np.ndarray, voxel: float,
                  seen: dict | None = None) -> np.ndarray:
-    """The last refinement on every view at once: all targets (world), down-sampled at half the voxel,
+    """The last refinement on every view at once: all targets (world), down-sampled at the voxel (twice
+    the points of one view at half of it, as `refine.polish` uses),
     registered onto what each camera sees of the model at T_world_base (point-to-plane, the model's
     normals), as `refine.polish` does for one view. `seen`: view -> (world points, normals) already cast."""
     T_base_world = se3.inv(T_world_base)
@@ -197,7 +198,7 @@ def fused_polish(problems: dict[int, Problem], order: list[int], T_world_base: n
             continue
         src.append(se3.transform_points(T_base_world, w))
         nrm.append(n @ T_base_world[:3, :3].T)
-        tgt.append(np.asarray(pb.target_full.voxel_down_sample(0.5 * voxel).points))
+        tgt.append(np.asarray(pb.target_full.voxel_down_sample(voxel).points))
     if not src:
         return T_world_base
     model = cloud(np.concatenate(src), np.concatenate(nrm)).voxel_down_sample(0.5 * voxel)

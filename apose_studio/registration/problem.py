@@ -75,15 +75,16 @@ class Problem:
 
 def prepare_problem(target_pts: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray, base: BaseObject,
                     T_base_part: np.ndarray, p: Params, voxel: float, observation: Observation,
-                    deadline: float = float("inf")) -> Problem:
+                    deadline: float = float("inf"), light: bool = False) -> Problem:
     """The target down-sampled (coarse: flying pixels and speckle removed; fine: with normals). Raises
-    Degenerate when too little of it is left, or when it is a line."""
+    Degenerate when too little of it is left, or when it is a line. `light`: for scoring and polishing
+    only (registration.fusion's other views): no outlier removal, no target normals."""
     import open3d as o3d
 
     vg = voxel * p.global_voxel_factor
     target_full = cloud(target_pts)
     target = target_full.voxel_down_sample(vg)
-    if len(target.points) >= 40:  # flying pixels and speckle: drop points far from their neighbours
+    if len(target.points) >= 40 and not light:  # flying pixels and speckle: drop points far from their neighbours
         target, _ = target.remove_statistical_outlier(nb_neighbors=12, std_ratio=3.0)
     if len(target.points) < 10:
         raise Degenerate(f"the target is degenerate: {len(target.points)} points after down-sampling to "
@@ -92,8 +93,9 @@ def prepare_problem(target_pts: np.ndarray, cam: CameraIntrinsics, T_world_camer
     if np.linalg.svd(tp - tp.mean(axis=0), compute_uv=False)[1] < 0.05 * vg:
         raise Degenerate("the target is degenerate: its points lie on a line")
     fine = target_full.voxel_down_sample(voxel)
-    fine.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=p.normal_radius_factor * voxel, max_nn=30))
-    fine.orient_normals_towards_camera_location(T_world_camera[:3, 3])
+    if not light:
+        fine.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=p.normal_radius_factor * voxel, max_nn=30))
+        fine.orient_normals_towards_camera_location(T_world_camera[:3, 3])
     return Problem(base, T_base_part, p, cam, T_world_camera, observation, voxel, target_pts, target_full, target, fine,
                    cKDTree(np.asarray(fine.points)), deadline)  # balanced: queried by many ICP iterations
 

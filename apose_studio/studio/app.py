@@ -30,6 +30,7 @@ from .inspect_panel import InspectPanel
 from .results_view import ResultsView
 from .prompt_panel import PromptPanel
 from .steps_panel import StepsPanel
+from .views_panel import ViewsPanel
 from .viser_adapter import limit_uploads
 from .widgets import ACTIVE, MAX_UPLOAD_BYTES, VIEWS
 
@@ -65,6 +66,7 @@ class Studio:
         self.inspect = InspectPanel(self)
         self.results = ResultsView(self)
         self.prompt = PromptPanel(self)
+        self.views = ViewsPanel(self)
         with self.lock:  # a page that connects while the start-up files load waits for them
             self.build_gui()
             server.on_client_connect(self.on_connect)
@@ -124,6 +126,7 @@ class Studio:
         with tabs.add_tab("Inspect"):
             self.inspect.build()
             self.prompt.build()
+            self.views.build()
             self.results.build()
         self.server.scene.add_grid("/grid", width=1.0, height=1.0, cell_size=0.01, section_size=0.1,
                                    plane="xy", position=(0.0, 0.0, -0.0005))

@@ -227,6 +227,7 @@ class InspectPanel:
         self.frame = self.load_frame(step, im_id)
         cached = self.app.cache.get(self.cache_key(step, im_id))
         self.result, self.score = cached if cached is not None else (None, None)
+        self.app.views.refresh()
         self.app.results.draw_frame()
 
     def inspect_models(self) -> dict:

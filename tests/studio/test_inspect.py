@@ -185,3 +185,33 @@ def test_prompted_mask_on_a_cluttered_capture(studio, clutter_dataset, tmp_path)
     u, v = map(int, st.prompt.i_prompt.value.split(","))
     assert fr.base_mask()[v, u] and abs(u - us[k]) <= 8 and abs(v - vs[k]) <= 8  # the first scene point near the ray
     assert iou(st.prompt.mask(st.inspect.frame), fr.base_mask()) > 0.5
+
+
+def test_views_of_one_placement_are_ticked_and_fused(studio, tmp_path):
+    """A dataset rendered with --views-per-scene 2: the Views folder lists the shown frame's placement
+    (frames 0 and 1), both ticked; Estimate views together gives one fused result (2 views) that lands
+    on the renderer's pose. Advice is drawn as a frustum labelled "look from here" and removed when
+    the frame changes."""
+    from apose_studio import se3
+    from apose_studio.assembly import load_assembly
+    from apose_studio.registration.next_view import NextView
+    from apose_studio.render import RenderSettings, render_dataset
+
+    asm_path = SAMPLES / "helical_gearbox" / "assembly.yaml"
+    render_dataset(load_assembly(asm_path), tmp_path / "mv", RenderSettings(frames=4, views_per_scene=2, seed=3),
+                   steps=[1], progress=False)
+    st = studio(asm_path, tmp_path / "mv")
+    assert sorted(st.views.ticks) == [0, 1] and st.views.ticked() == [0, 1]
+    act(st, st.views.on_estimate)
+    r = st.inspect.result
+    assert r is not None and r.ok and r.views == 2, st.notes
+    fr = st.inspect.frame
+    assert np.linalg.norm(r.T_world_part[:3, 3] - fr.T_world_part[:3, 3]) < 0.003
+    st.views.ticks[1].value = False
+    act(st, st.views.on_estimate)
+    assert st.inspect.result.views == 1
+    st.views.advice = NextView(se3.look_at(np.array([0.3, 0.0, 0.3]), np.zeros(3)), 12.0, 500, 10, "test")
+    st.views.draw_advice()
+    assert "/inspect/next_view" in st.nodes and "/inspect/next_view_label" in st.nodes
+    st.inspect.i_frame.value = 2  # another placement: its own frames, no advice
+    assert sorted(st.views.ticks) == [2, 3] and "/inspect/next_view" not in st.nodes

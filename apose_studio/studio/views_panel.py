@@ -1,0 +1,107 @@
+"""Inspect tab, *Views (one placement)*: tick frames that show the base at one placement (a dataset
+rendered with `--views-per-scene`, or an eye-in-hand camera's looks) and estimate them together
+(registration.fusion). Where the result is ambiguous or not confident, the camera to look from next
+(registration.next_view) is drawn as an orange frustum labelled "look from here"."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .. import se3
+from ..errors import AposeError
+
+ORANGE = (255, 140, 0)
+
+
+class ViewsPanel:
+    def __init__(self, app):
+        self.app = app
+        self.ticks: dict[int, object] = {}  # im_id -> checkbox
+        self.advice = None
+
+    def build(self) -> None:
+        gui = self.app.server.gui
+        with gui.add_folder("Views (one placement)", expand_by_default=False):
+            self.i_info = gui.add_markdown("Open a dataset rendered with `--views-per-scene`: the frames of the shown "
+                                           "frame's placement appear here to tick.")
+            self.box = gui.add_folder("Frames to fuse")
+            b = gui.add_button("Estimate views together", hint="one estimate from the ticked frames (known camera poses)")
+            b.on_click(self.app.guarded("Estimate views")(self.on_estimate))
+
+    def refresh(self) -> None:
+        """The checkboxes for the shown frame's placement (called when the frame changes)."""
+        from ..dataset import Dataset
+
+        for h in self.ticks.values():
+            h.remove()
+        self.ticks = {}
+        self.advice = None
+        self.draw_advice()
+        ins = self.app.inspect
+        if not isinstance(ins.frames, Dataset) or ins.frame is None:
+            self.i_info.content = "Open a dataset rendered with `--views-per-scene` to fuse its views."
+            return
+        step = ins.current_step()
+        group = next((ids for ids in ins.frames.placements(step).values() if ins.frame.im_id in ids), [ins.frame.im_id])
+        with self.box:
+            for im_id in group:
+                self.ticks[im_id] = self.app.server.gui.add_checkbox(f"frame {im_id}", True)
+        self.i_info.content = (f"placement of frame {ins.frame.im_id}: {len(group)} frame(s)" if len(group) > 1 else
+                               "this frame's placement has no other view in the dataset")
+
+    def ticked(self) -> list[int]:
+        return [i for i, h in self.ticks.items() if h.value]
+
+    def on_estimate(self, client) -> None:
+        from ..evaluate import frame_mask, score_frame
+        from ..registration import resolve_params
+        from ..registration.fusion import View, estimate_views
+        from ..registration.next_view import next_view
+
+        ins = self.app.inspect
+        ids = self.ticked()
+        if ins.frames is None or not ids:
+            raise AposeError("open a dataset and tick at least one frame of the placement")
+        step = ins.current_step()
+        job = ins.job(step, ids)
+        if job.crop is not None or job.prompt is not None:
+            raise AposeError("fusing views uses the Mask setting per frame; choose gt, depth or box (not a crop or prompt)")
+        ctx = ins.context(step)
+        params = resolve_params(job.preset, job.assembly.registration,
+                                **({"upright": job.upright} if job.preset == "default" else {}))
+        frames = [ins.load_frame(step, i) for i in ids]
+        views = [View(f.depth, frame_mask(f, job.mask), f.camera, f.T_world_camera, f"frame {f.im_id}") for f in frames]
+        ctx.base.warm_up(params)
+        r = estimate_views(views, ctx.base, ctx.view.T_base_part, params, np.eye(4) if job.prior else None)
+        ins.frame = frames[0]
+        ins.result = r
+        ins.score = score_frame(frames[0], r, ctx.part, None, ctx.base.symmetries) if frames[0].T_world_part is not None else None
+        self.advice = next_view(r, ctx.base, [v.T_world_camera for v in views], views[0].cam) if r.ok else None
+        self.app.results.draw_frame()
+        self.draw_advice()
+        if not r.ok:
+            self.app.notify(client, "Views not fused" if "not fused" in r.reason else "Estimation failed", r.reason,
+                            error=True)
+        elif self.advice is not None:
+            self.app.notify(client, "Estimated, look again", f"{len(ids)} view(s): {self.advice.why}; the orange "
+                            "frustum shows where from", error=True)
+        else:
+            self.app.notify(client, "Estimated", f"{len(ids)} view(s) fused, confident")
+
+    def draw_advice(self) -> None:
+        """The advised camera as a frustum labelled "look from here" (removed when there is no advice)."""
+        for name in ("/inspect/next_view", "/inspect/next_view_label"):
+            if name in self.app.nodes:
+                self.app.nodes.pop(name).remove()
+        if self.advice is None or self.app.inspect.frame is None:
+            return
+        T, cam = self.advice.T_world_camera, self.app.inspect.frame.camera
+        scene = self.app.server.scene
+        wxyz = tuple(float(v) for v in se3.matrix_to_quat_wxyz(T[:3, :3]))
+        pos = tuple(float(v) for v in T[:3, 3])
+        fov = 2 * np.arctan(cam.height / (2 * cam.fy))
+        self.app.node("/inspect/next_view", scene.add_camera_frustum(
+            "/inspect/next_view", fov=float(fov), aspect=cam.width / cam.height, scale=0.06, wxyz=wxyz, position=pos,
+            color=ORANGE))
+        self.app.node("/inspect/next_view_label", scene.add_label("/inspect/next_view_label", "look from here",
+                                                                  position=pos, font_screen_scale=0.9))
