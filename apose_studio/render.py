@@ -335,39 +335,6 @@ def view_of(scene: Scene, T_world_camera: np.ndarray, grid: RayGrid, rng: np.ran
     return frame
 
 
-MIN_VIEW_SEPARATION_DEG = 30.0
-
-
-def sample_cameras(rng: np.random.Generator, target: np.ndarray, settings: RenderSettings, base_diameter: float,
-                   k: int) -> list[np.ndarray]:
-    """k camera poses of one placement, their viewing directions at least MIN_VIEW_SEPARATION_DEG apart
-    (drawn like `sample_camera`, a draw too close to an earlier one drawn again; after 500 tries the
-    best-separated draw is taken)."""
-    poses: list[np.ndarray] = []
-    for _ in range(k):
-        best, best_sep = None, -1.0
-        for _ in range(500):
-            T = sample_camera(rng, target, settings, base_diameter)
-            sep = min((se3.rotation_angle_deg(T[:3, :3].T @ P[:3, :3]) for P in poses), default=180.0)
-            if sep > best_sep:
-                best, best_sep = T, sep
-            if sep >= MIN_VIEW_SEPARATION_DEG:
-                break
-        poses.append(best)
-    return poses
-
-
-def render_placement(models: dict[str, PartModel], view: StepView, settings: RenderSettings, grid: RayGrid,
-                     seed: list[int], base: trimesh.Trimesh | None = None, noise: bool = True) -> list[RenderedFrame]:
-    """`settings.views_per_scene` views of one placement of the base (one scene, cameras >= 30 deg apart).
-    The scene and cameras come from default_rng(seed), each view's shading from seed + [its index]."""
-    rng = np.random.default_rng(seed)
-    scene = sample_scene(models, view, settings, rng, base)
-    cams = sample_cameras(rng, scene.base_centre, settings, scene.base_diameter, settings.views_per_scene)
-    return [view_of(scene, T, grid, np.random.default_rng(seed + [j]), settings if noise else None)
-            for j, T in enumerate(cams)]
-
-
 def noisy_depth(frame: RenderedFrame, settings: RenderSettings) -> np.ndarray:
     return add_depth_noise(frame.hits.depth, settings.noise, settings.noise_sigma_at_05m,
                            np.random.default_rng(frame.noise_seed), settings.camera.fx, rgb=frame.rgb)
@@ -424,7 +391,9 @@ def _render_into(asm: Assembly, out, settings: RenderSettings, numbers: list[int
     bar = tqdm(total=len(numbers) * settings.frames, unit="frame", desc=f"render {asm.name}", disable=not progress,
                leave=False)
     t0, done = time.perf_counter(), 0
-    queue = _FrameQueue(out, info, settings)
+    from .frame_queue import FrameQueue
+
+    queue = FrameQueue(out, info, settings)
     try:
         for number in numbers:
             view = asm.step_view(number)
@@ -441,6 +410,8 @@ def _render_into(asm: Assembly, out, settings: RenderSettings, numbers: list[int
                     fr = render_frame(models, view, settings, grid, rng, base, noise=False)
                 else:
                     if j == 0:
+                        from .placement import render_placement
+
                         group = render_placement(models, view, settings, grid, [settings.seed, number, placement, k], base,
                                                  noise=False)
                     fr = group[j]
@@ -481,60 +452,3 @@ def _start_dataset(asm: Assembly, out, settings: RenderSettings, numbers: list[i
                          "distractors": settings.distractors, "views_per_scene": settings.views_per_scene}}
     write_manifest(out, info)
     return obj_ids, info
-
-
-class _FrameQueue:
-    """Rendered frames on their way to disk: PNG encoding in two threads (it releases the GIL, so it
-    overlaps the next frame's casting), frames recorded in the scene's JSON in order, once their images
-    are on disk. An interrupt keeps every frame whose images made it."""
-
-    def __init__(self, out, info: dict, settings: RenderSettings):
-        from concurrent.futures import ThreadPoolExecutor
-
-        self.out, self.info, self.settings = out, info, settings
-        self.pool = ThreadPoolExecutor(2)
-        self.pending: list = []  # (writer, future of the images, what to record once they are on disk)
-        self.writer = None
-
-    def submit(self, writer, im_id: int, fr: RenderedFrame, view: StepView, obj_ids: dict[str, int],
-               placement: int) -> None:
-        from .dataset import AnnotatedObject
-
-        self.writer = writer
-        annotated = [i for i, o in enumerate(fr.scene.objects) if o.part is not None]
-        objects = [AnnotatedObject(obj_ids[fr.scene.objects[i].part], fr.scene.objects[i].T_world_obj,
-                                   *fr.hits.object_stats(i)) for i in annotated]
-        extra = {"T_world_base": fr.scene.T_world_base, "T_world_part": fr.scene.T_world_base @ view.T_base_part,
-                 "T_world_camera": fr.T_world_camera, "placement": placement}
-        fut = self.pool.submit(lambda: writer.write_images(im_id, fr.rgb, noisy_depth(fr, self.settings), objects))
-        self.pending.append((writer, fut, (im_id, self.settings.camera, fr.T_world_camera, objects, extra)))
-        self._settle(keep=4)
-
-    def _settle(self, keep: int) -> None:
-        """Record finished frames in order, keeping at most `keep` in flight."""
-        while len(self.pending) > keep:
-            w, fut, args = self.pending.pop(0)
-            w.record(args[0], args[1], args[2], fut.result(), *args[3:])
-
-    def checkpoint(self, writer) -> None:
-        """Every frame so far on disk and listed (scene JSON files and the manifest)."""
-        from .outdir import write_manifest
-
-        self._settle(keep=0)
-        writer.flush()
-        write_manifest(self.out, self.info)
-
-    def close(self) -> None:
-        from .outdir import write_manifest
-
-        try:
-            for w, fut, args in self.pending:  # an interrupt: keep every frame whose images made it to disk
-                try:
-                    w.record(args[0], args[1], args[2], fut.result(), *args[3:])
-                except Exception:
-                    pass
-            if self.writer is not None:
-                self.writer.flush()
-            write_manifest(self.out, self.info)
-        finally:
-            self.pool.shutdown(wait=True)
