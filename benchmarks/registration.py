@@ -7,7 +7,7 @@
 For every assembly (the two samples, and ../shared/data/fidget_helical when present), noise model
 and base-pose protocol, renders the frames once, then runs both presets on them in this process and
 prints per step: median time of each and their ratio, mean ADI and MSSD (mm), and recall (MSSD below
-10 % of the part's diameter), strict and modulo the base object's symmetries. `fixed` renders give
+10 % of the part's diameter), strict and modulo the base object's exact symmetries. `fixed` renders give
 both presets the CAD's orientation as a prior (the paper's protocol); `yaw` renders give none.
 """
 
@@ -83,7 +83,7 @@ def main() -> int:
         Path(args.json).write_text(json.dumps(docs))
     print("\ncolumns: median seconds per frame (paper, ours) and paper/ours; mean ADI and MSSD in mm over frames "
           "that returned a pose; recall = share of frames with MSSD < 0.1 x part diameter, failures count as misses; "
-          "~sym = recall modulo the base object's symmetries. base: fixed = CAD orientation given to both; yaw = no "
+          "~sym = recall modulo the base object's exact symmetries. base: fixed = CAD orientation given to both; yaw = no "
           "prior (ours as shipped: where it sees a table, it searches first the yaw of the base standing on it); "
           "yaw- = the same yaw frames, ours searching freely (--no-upright), the paper's columns repeated")
     print_goals(summary)

@@ -133,7 +133,8 @@ def _weigh(first: RegistrationResult, problems: dict[int, Problem], order: list[
     """The first view's placements scored in every view; the chosen one polished on the fused cloud."""
     voxel = first.voxel
     poses = [first.T_world_base]
-    if not first.confident:  # a confident first view stands (one placement fits it); else weigh its rivals
+    if not first.confident and first.candidates:  # a confident first view stands (one placement fits it); else
+        # weigh its rivals (the paper's pipeline keeps no candidates: its one pose is weighed)
         top = max(c.score for c in first.candidates)
         placements = [c for c in distinct_placements(first.candidates, voxel) if c.score >= top - WEIGH_MARGIN]
         poses += [c.T_world_base for c in placements[:WEIGH_MAX] if not _same(c.T_world_base, poses[0], voxel)]
