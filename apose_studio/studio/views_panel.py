@@ -21,12 +21,12 @@ class ViewsPanel:
 
     def build(self) -> None:
         gui = self.app.server.gui
-        with gui.add_folder("Views (one placement)", expand_by_default=False):
+        with gui.add_folder("Views (one placement)", expand_by_default=False) as self.folder:
             self.i_info = gui.add_markdown("Open a dataset rendered with `--views-per-scene`: the frames of the shown "
                                            "frame's placement appear here to tick.")
-            self.box = gui.add_folder("Frames to fuse")
-            b = gui.add_button("Estimate views together", hint="one estimate from the ticked frames (known camera poses)")
-            b.on_click(self.app.guarded("Estimate views")(self.on_estimate))
+            self.b_estimate = gui.add_button("Estimate views together",
+                                             hint="one estimate from the ticked frames (known camera poses)")
+            self.b_estimate.on_click(self.app.guarded("Estimate views")(self.on_estimate))
 
     def refresh(self) -> None:
         """The checkboxes for the shown frame's placement (called when the frame changes)."""
@@ -43,9 +43,11 @@ class ViewsPanel:
             return
         step = ins.current_step()
         group = next((ids for ids in ins.frames.placements(step).values() if ins.frame.im_id in ids), [ins.frame.im_id])
-        with self.box:
-            for im_id in group:
-                self.ticks[im_id] = self.app.server.gui.add_checkbox(f"frame {im_id}", True)
+        lo, hi = self.i_info.order, self.b_estimate.order  # the checkboxes go between the two
+        with self.folder:
+            for k, im_id in enumerate(group):
+                self.ticks[im_id] = self.app.server.gui.add_checkbox(f"frame {im_id}", True,
+                                                                     order=lo + (k + 1) * (hi - lo) / (len(group) + 1))
         self.i_info.content = (f"placement of frame {ins.frame.im_id}: {len(group)} frame(s)" if len(group) > 1 else
                                "this frame's placement has no other view in the dataset")
 

@@ -445,3 +445,35 @@ def test_drag_a_box_prompt_in_the_3d_view_then_estimate(browser, studio, clutter
     assert studio.inspect.result.ok and studio.inspect.score.mssd < 0.1 * studio.inspect.part_model().diameter
     shot(page, "prompt_box.png")
     page.close()
+
+
+def test_tick_the_views_of_a_placement_and_fuse_them(browser, studio, tmp_path_factory):
+    """A dataset with two cameras per placement: in the page, open the Views folder, see both frames of
+    the shown placement ticked, press 'Estimate views together' (one fused estimate of 2 views); untick
+    frame 1 with the mouse and estimate again (1 view)."""
+    from apose_studio.assembly import load_assembly
+    from apose_studio.render import RenderSettings, render_dataset
+
+    root = tmp_path_factory.mktemp("views") / "mv"
+    render_dataset(load_assembly(REPO / "sample_assemblies" / "helical_gearbox" / "assembly.yaml"), root,
+                   RenderSettings(frames=4, views_per_scene=2, seed=3), steps=[1], progress=False)
+    page = open_page(browser, studio)
+    page.get_by_role("tab", name="Inspect").click()
+    type_into(page, "Dataset or capture", str(root))
+    page.get_by_role("button", name="Open data").click()
+    wait_until(lambda: "/inspect/scene" in studio.nodes, "the frame to be shown")
+    page.get_by_text("Views (one placement)", exact=True).click()
+    expect(page.get_by_text("frame 1", exact=True)).to_be_visible()
+    assert sorted(studio.views.ticks) == [0, 1] and studio.views.ticked() == [0, 1]
+    page.get_by_role("button", name="Estimate views together").click()
+    wait_until(lambda: studio.inspect.result is not None and studio.inspect.result.views == 2, "the fused estimate",
+               timeout=120)
+    r = studio.inspect.result
+    assert r.ok and np.linalg.norm(r.T_world_part[:3, 3] - studio.inspect.frame.T_world_part[:3, 3]) < 0.003
+    row = page.locator("div").filter(has=page.get_by_text("frame 1", exact=True)).filter(has=page.locator("input"))
+    row.last.locator("input").first.click()
+    wait_until(lambda: studio.views.ticked() == [0], "frame 1 unticked")
+    page.get_by_role("button", name="Estimate views together").click()
+    wait_until(lambda: studio.inspect.result.views == 1, "the one-view estimate", timeout=120)
+    shot(page, "views_fused.png")
+    page.close()
