@@ -75,6 +75,7 @@ def view_masks(args, frames, asm) -> list[tuple[np.ndarray, str]]:
 
 def cmd_estimate_views(args) -> int:
     from .api import PoseEstimate
+    from .cli_frames import _upright
     from .evaluate import score_frame
     from .registration import doubts, resolve_params
     from .registration.fusion import View, estimate_views
@@ -83,8 +84,7 @@ def cmd_estimate_views(args) -> int:
     frames, asm, ctx = open_views(args)
     params = resolve_params(args.preset, asm.registration, **_upright(args))
     masks = view_masks(args, frames, asm)
-    views = [View(f.depth, m, f.camera, f.T_world_camera, f.source or f"frame {f.im_id}")
-             for f, (m, _) in zip(frames, masks)]
+    views = [View.of(f, m) for f, (m, _) in zip(frames, masks)]
     ctx.base.warm_up(params)
     r = estimate_views(views, ctx.base, ctx.view.T_base_part, params, np.eye(4) if args.orientation_prior else None)
     T_wc = frames[0].T_world_camera
@@ -126,9 +126,3 @@ def cmd_estimate_views(args) -> int:
         print(f"against ground truth: MSSD {sc.mssd * 1000:.3f} mm (modulo exact symmetries "
               f"{sc.mssd_mod_base_sym * 1000:.3f} mm)")
     return 0
-
-
-def _upright(args) -> dict:
-    from .cli_frames import _upright as upright
-
-    return upright(args)

@@ -14,6 +14,7 @@ from .dataset import Dataset, Frame
 from .errors import AposeError
 from .mesh import PartModel, base_mesh, load_parts
 from .registration import TIE_MARGIN, BaseObject, Params, RegistrationResult, estimate, prepare_base
+from .registration.scoring import twin_placements
 
 MASK_SOURCES = ("gt", "depth", "box")  # or the path of a model from `apose train-seg`
 BOX_MARGIN = 0.04  # the box prompt of `--mask box`: the ground truth's visible box, this much wider on each side
@@ -139,8 +140,7 @@ def truth_twins(T_world_part_gt: np.ndarray, T_base_part: np.ndarray, base_symme
     the same assembly: the base turned onto itself, the part with it."""
     if base_symmetries is None:
         return []
-    T_world_base = T_world_part_gt @ se3.inv(T_base_part)
-    return [T_world_base @ S @ T_base_part for S in base_symmetries[1:]]
+    return twin_placements(T_world_part_gt @ se3.inv(T_base_part), T_world_part_gt, base_symmetries)
 
 
 def score_frame(frame: Frame, result: RegistrationResult, part: PartModel, mask: np.ndarray | None = None,
@@ -274,7 +274,7 @@ def _score_group_of(ds: Dataset, step: int, ids: list[int], ctx: "StepContext", 
     except DatasetError as e:
         return FrameScore(scene_id=step, im_id=ids[0], ok=False, reason=f"unreadable frame: {e}", im_ids=list(ids))
     ctx.base.warm_up(params)
-    views = [View(f.depth, frame_mask(f, mask_source), f.camera, f.T_world_camera, f"frame {f.im_id}") for f in frames]
+    views = [View.of(f, frame_mask(f, mask_source)) for f in frames]
     r = estimate_views(views, ctx.base, ctx.view.T_base_part, params, np.eye(4) if orientation_prior else None)
     s = score_frame(frames[0], r, ctx.part, None if mask_source == "gt" else views[0].mask, ctx.base.symmetries)
     s.time_s = float(r.timings.get("total fused", r.seconds))

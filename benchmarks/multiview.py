@@ -67,7 +67,7 @@ def run(root: Path, asm, models, settings: RenderSettings, params) -> list[dict]
             if len(ids) < 2:
                 continue
             frames = [ds.frame(step, i) for i in ids[:2]]
-            views = [View(f.depth, f.base_mask(), f.camera, f.T_world_camera, f"frame {f.im_id}") for f in frames]
+            views = [View.of(f, f.base_mask()) for f in frames]
             row = {"step": step, "single": [], "t_single": []}
             for f, v in zip(frames, views):
                 t = time.perf_counter()

@@ -27,12 +27,12 @@ import numpy as np
 from .. import se3
 from ..config import CameraIntrinsics
 from .base import BaseObject
-from .pipeline import estimate, frame_noise, judge
+from .pipeline import estimate, judge, observe
 from .presets import Params
 from .problem import Problem, prepare_problem
-from .refine import POLISH_ITERATIONS, is_twin
-from .results import CONFIDENT_COVERAGE, MIN_POINTS, TIE_MARGIN, TWIN_TIE_MARGIN, Degenerate, RegistrationResult, failed
-from .scoring import Observation, discriminate, distinct_placements, mask_edge, score_pose, twin_placements
+from .refine import POLISH_ITERATIONS, tied
+from .results import CONFIDENT_COVERAGE, MIN_POINTS, Degenerate, RegistrationResult, failed
+from .scoring import discriminate, distinct_placements, poses_within, score_pose, twin_placements
 from .stages import cloud, icp, project_to_cloud, raycast_source
 
 DISAGREE_DEGREES = 3.0  # a view whose own ICP turns the pose further than this disagrees with the others
@@ -49,6 +49,11 @@ class View:
     cam: CameraIntrinsics
     T_world_camera: np.ndarray
     name: str = ""  # how errors name it (a file, "frame 3")
+
+    @classmethod
+    def of(cls, frame, mask: np.ndarray) -> "View":
+        """A dataset.Frame (a render, a capture) with the base's mask."""
+        return cls(frame.depth, mask, frame.camera, frame.T_world_camera, frame.source or f"frame {frame.im_id}")
 
 
 def estimate_views(views: list[View], base: BaseObject, T_base_part: np.ndarray, params: Params,
@@ -95,8 +100,8 @@ def _problem(view: View, base: BaseObject, T_base_part: np.ndarray, params: Para
     pts = project_to_cloud(view.depth, view.mask, view.cam, view.T_world_camera)
     if len(pts) < MIN_POINTS:
         raise Degenerate(f"only {len(pts)} valid depth points under its mask (need {MIN_POINTS})")
-    obs = Observation(view.mask, view.depth, mask_edge(view.mask), frame_noise(view.depth, view.mask))
-    return prepare_problem(pts, view.cam, view.T_world_camera, base, T_base_part, params, voxel, obs, light=True)
+    return prepare_problem(pts, view.cam, view.T_world_camera, base, T_base_part, params, voxel,
+                           observe(view.depth, view.mask), light=True)
 
 
 def _disagreement(problems: dict[int, Problem], order: list[int], T_world_base: np.ndarray, voxel: float,
@@ -137,10 +142,9 @@ def _weigh(first: RegistrationResult, problems: dict[int, Problem], order: list[
         # weigh its rivals (the paper's pipeline keeps no candidates: its one pose is weighed)
         top = max(c.score for c in first.candidates)
         placements = [c for c in distinct_placements(first.candidates, voxel) if c.score >= top - WEIGH_MARGIN]
-        poses += [c.T_world_base for c in placements[:WEIGH_MAX] if not _same(c.T_world_base, poses[0], voxel)]
-        for S in list(base.symmetries[1:]) + list(base.close_twins):  # every twin of the best, scored or not
-            T = first.T_world_base @ S
-            if not any(_same(T, P, voxel) for P in poses):
+        for T in [c.T_world_base for c in placements[:WEIGH_MAX]] + [  # and every twin of the best
+                first.T_world_base @ S for S in list(base.symmetries[1:]) + list(base.close_twins)]:
+            if not any(poses_within(T, P, voxel, 2.0) for P in poses):
                 poses.append(T)
     weights = {i: len(problems[i].fine_pts) for i in order}
     total = float(sum(weights.values()))
@@ -152,9 +156,7 @@ def _weigh(first: RegistrationResult, problems: dict[int, Problem], order: list[
         score = sum(weights[i] * per_view[i][k][0].score for i in order) / total
         cov = min(per_view[i][k][0].coverage for i in order)
         cands.append(replace(c, score=score, coverage=cov))
-    best = max(range(len(cands)), key=lambda k: cands[k].score)
-    close = [k for k, c in enumerate(cands) if c.score >= cands[best].score - TIE_MARGIN
-             or (c.score >= cands[best].score - TWIN_TIE_MARGIN and is_twin(base, poses[best], poses[k], voxel))]
+    close = tied(base, cands, voxel)
     lost: set[int] = set()
     if len(close) > 1:
         for i in order:  # each view looks where the placements differ
@@ -166,22 +168,18 @@ def _weigh(first: RegistrationResult, problems: dict[int, Problem], order: list[
     seen = {i: per_view[i][chosen][1:] for i in order}
     T = fused_polish(problems, order, poses[chosen], voxel, seen)
     pb0 = problems[order[0]]
-    final = cands[chosen]
+    final = cands[chosen]  # scored before the fused polish, which moves the pose by a fraction of a voxel
     ranked = sorted(range(len(cands)), key=lambda k: -cands[k].score)
-    tied = distinct_placements([cands[chosen]] + [cands[k] for k in kept if k != chosen], voxel, base.symmetries)
-    ambiguous = bool(len(tied) > 1 and cands[chosen].coverage >= CONFIDENT_COVERAGE)
+    rivals = distinct_placements([cands[chosen]] + [cands[k] for k in kept if k != chosen], voxel, base.symmetries)
+    ambiguous = bool(len(rivals) > 1 and cands[chosen].coverage >= CONFIDENT_COVERAGE)
     result = replace(first, T_world_base=T, T_world_part=T @ pb0.T_base_part, candidates=[cands[k] for k in ranked],
-                     ambiguous=ambiguous, alternatives=tied[1:] if ambiguous else [],
-                     coverage=float(min(cands[chosen].coverage, final.coverage)), fitness=final.fitness,
+                     ambiguous=ambiguous, alternatives=rivals[1:] if ambiguous else [],
+                     coverage=float(final.coverage), fitness=final.fitness,
                      inlier_rmse=final.inlier_rmse, second_look=None, model_mask=None)
     obs = pb0.observation
     result = judge(result, obs.depth, obs.mask, pb0.cam, pb0.T_world_camera, base)
     result.equivalent = twin_placements(T, result.T_world_part, base.symmetries) if result.ok else []
     return result
-
-
-def _same(A: np.ndarray, B: np.ndarray, voxel: float) -> bool:
-    return bool(np.linalg.norm(A[:3, 3] - B[:3, 3]) < voxel and se3.rotation_angle_deg(A[:3, :3].T @ B[:3, :3]) < 2.0)
 
 
 def fused_polish(problems: dict[int, Problem], order: list[int], T_world_base: np.ndarray, voxel: float,

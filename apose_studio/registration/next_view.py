@@ -24,7 +24,7 @@ from .. import se3
 from ..config import CameraIntrinsics
 from .base import BaseObject
 from .results import RegistrationResult
-from .scoring import distinct_placements
+from .scoring import depth_buffer, distinct_placements
 
 ADVICE_YAWS = 12
 ADVICE_PITCHES_DEG = (30.0, 50.0, 70.0)
@@ -66,16 +66,9 @@ def hemisphere(centre: np.ndarray, distance: float) -> list[np.ndarray]:
 
 
 def _depth_image(base: BaseObject, T_world_base: np.ndarray, T_world_camera: np.ndarray, cam: CameraIntrinsics) -> np.ndarray:
-    from ..raycast import raycast_points
+    from .stages import raycast_source
 
-    pts, _ = raycast_points(base.mesh, T_world_base, T_world_camera, cam)
-    z = np.full((cam.height, cam.width), np.inf)
-    if len(pts):
-        p = se3.transform_points(se3.inv(T_world_camera), pts)
-        u, v = cam.project(p)
-        u, v = np.clip(np.round(u).astype(int), 0, cam.width - 1), np.clip(np.round(v).astype(int), 0, cam.height - 1)
-        np.minimum.at(z, (v, u), p[:, 2])
-    return z
+    return depth_buffer(raycast_source(base, T_world_base, T_world_camera, cam)[0], T_world_camera, cam)
 
 
 SEPARATED_PX = 12  # a pair of placements is told apart from a camera that sees them differ on this many

@@ -20,7 +20,7 @@ from .presets import Params
 from .problem import Problem, prepare_problem, scale_problem
 from .refine import add_symmetric_twins, choose, polish_chosen, refine_candidates, select_starts
 from .results import CONFIDENT_COVERAGE, MIN_POINTS, Degenerate, RegistrationResult, failed
-from .scoring import (Observation, agreement_tolerance, distinct_placements, evidence, mask_edge, pixels,
+from .scoring import (Observation, agreement_tolerance, depth_buffer, distinct_placements, evidence, mask_edge,
                       twin_placements)
 from .searches import ModelSearch, search_poses, try_prior
 from .stages import place_source, project_to_cloud, trace_stages
@@ -47,13 +47,13 @@ def estimate(depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics, T_world
         prior_T_world_base = np.eye(4)  # the CAD's orientation is the base's orientation in the world
     voxel = params.voxel(base.diameter)
     deadline = t0 + params.max_seconds if params.max_seconds > 0 else float("inf")
-    noise = frame_noise(depth, mask)
+    observation = observe(depth, mask)
+    noise = observation.noise
     try:
         if params.global_source == "raycast":  # the paper: TFORM + RCAST of the CAD as oriented, then PCDREG
             result = estimate_paper(target_pts, cam, T_world_camera, base, T_base_part, params, voxel,
                                     prior_T_world_base, trace_iterations, timings, preset=params.preset)
         else:
-            observation = Observation(mask, depth, mask_edge(mask), noise)
             result = estimate_default(target_pts, cam, T_world_camera, base, T_base_part, params, voxel,
                                       prior_T_world_base, trace_iterations, timings, observation, deadline)
     except Degenerate as e:
@@ -87,10 +87,7 @@ def model_cut_mask(result: RegistrationResult, depth: np.ndarray, mask: np.ndarr
     from .stages import raycast_source
 
     seen, _ = raycast_source(base, result.T_world_base, T_world_camera, cam)
-    v, u, z, inside = pixels(seen, T_world_camera, cam)
-    zbuf = np.full(mask.shape, np.inf, np.float32)
-    np.minimum.at(zbuf, (v[inside], u[inside]), z[inside].astype(np.float32))
-    zbuf = cv2.erode(zbuf, np.ones((5, 5), np.uint8))  # 2 px wider, the nearer surface winning
+    zbuf = cv2.erode(depth_buffer(seen, T_world_camera, cam).astype(np.float32), np.ones((5, 5), np.uint8))  # 2 px wider, the nearer surface winning
     tol = agreement_tolerance(result.voxel, result.depth_noise)
     in_front = (depth > 0) & (depth < zbuf - tol)
     return mask & np.isfinite(zbuf) & ~in_front
@@ -116,6 +113,11 @@ def second_look(result: RegistrationResult, depth, mask, cam, T_world_camera, ba
     again.second_look = cut
     again.timings = {**result.timings, "second look": seconds}
     return again
+
+
+def observe(depth: np.ndarray, mask: np.ndarray) -> Observation:
+    """What the camera saw around the base: the mask, the depth, the mask's edge and the frame's noise."""
+    return Observation(mask, depth, mask_edge(mask), frame_noise(depth, mask))
 
 
 def frame_noise(depth: np.ndarray, mask: np.ndarray) -> float:

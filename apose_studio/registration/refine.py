@@ -106,17 +106,21 @@ def is_twin(base, T_a: np.ndarray, T_b: np.ndarray, voxel: float) -> bool:
     return any(poses_within(D, S, 3 * voxel, 5.0) for S in list(base.symmetries[1:]) + list(base.near_symmetries))
 
 
+def tied(base, cands: list[Candidate], voxel: float) -> list[int]:
+    """The candidates tied with the best score: within TIE_MARGIN, or a twin of the best (turned by a
+    symmetry or near-symmetry) within TWIN_TIE_MARGIN: clutter in the mask where the wrong twin puts its
+    connector can lift that twin's score past the right one's."""
+    best = max(cands, key=lambda c: c.score)
+    return [i for i, c in enumerate(cands) if c.score >= best.score - TIE_MARGIN
+            or (c.score >= best.score - TWIN_TIE_MARGIN and is_twin(base, best.T_world_base, c.T_world_base, voxel))]
+
+
 def choose(pb, refined: list[Refined], R_prior: np.ndarray | None) -> tuple[int, list[int]]:
     """(the chosen candidate, the candidates tied with the best score). Near-ties are looked at where
     the placements differ (the evidence there decides); what stays tied goes to the prior's orientation
     when there is one, else to the best score."""
     cands = [r.candidate for r in refined]
-    best_score = max(c.score for c in cands)
-    # a twin (the best turned by a symmetry or a close twin) is looked at from further down: clutter in the
-    # mask where the wrong twin puts its connector can lift that twin's score past the right one's
-    T_best = max(cands, key=lambda c: c.score).T_world_base
-    close = [i for i, c in enumerate(cands) if c.score >= best_score - TIE_MARGIN
-             or (c.score >= best_score - TWIN_TIE_MARGIN and is_twin(pb.base, T_best, c.T_world_base, pb.voxel))]
+    close = tied(pb.base, cands, pb.voxel)
     if R_prior is None and len(close) > 1:
         traces = [(r.T_start, r.trace, r.seen, r.seen_normals) for r in refined]
         close = discriminate(pb, close, cands, traces)

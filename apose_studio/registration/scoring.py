@@ -105,6 +105,15 @@ def score_seen(pb: "Problem", T_world_base: np.ndarray, src_w: np.ndarray, symme
                      coverage), src_w
 
 
+def depth_buffer(points_world: np.ndarray, T_world_camera: np.ndarray, cam: CameraIntrinsics) -> np.ndarray:
+    """(H, W) the nearest depth of the points per pixel (inf where none): a model's depth image from the
+    points a ray cast gave."""
+    v, u, z, inside = pixels(points_world, T_world_camera, cam)
+    zbuf = np.full((cam.height, cam.width), np.inf)
+    np.minimum.at(zbuf, (v[inside], u[inside]), z[inside])
+    return zbuf
+
+
 def evidence(points_world: np.ndarray, T_world_camera, cam: CameraIntrinsics, depth_obs: np.ndarray,
               mask: np.ndarray, outside: np.ndarray, tol: float) -> tuple[int, int]:
     """(confirmed, contradicted) among model points a candidate pose shows: confirmed where the mask

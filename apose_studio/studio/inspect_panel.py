@@ -37,6 +37,13 @@ class EstimateJob:
     crop: tuple | None  # (T_world_box, size in metres) for depth masks, or None
     prompt: tuple | None = None  # (box, point) for mask "prompt"
 
+    def params(self):
+        """The estimator's parameters for this job (Upright applies to the default preset)."""
+        from ..registration import resolve_params
+
+        return resolve_params(self.preset, self.assembly.registration,
+                              **({"upright": self.upright} if self.preset == "default" else {}))
+
     def key(self, cache: inspection.ResultCache, im_id: int) -> tuple:
         mask = self.mask
         if self.crop is not None:
@@ -250,12 +257,10 @@ class InspectPanel:
     def estimate(self, job: "EstimateJob", im_id: int):
         """Estimate one frame of `job` and cache it under the job's key (runs without the studio lock)."""
         from ..evaluate import StepContext, estimate_and_score
-        from ..registration import resolve_params
 
         ctx = StepContext(job.assembly, job.models, job.step)
         frame = self.load_frame(job.step, im_id, job.frames, job.assembly)
-        extra = {"upright": job.upright} if job.preset == "default" else {}
-        params = resolve_params(job.preset, job.assembly.registration, **extra)
+        params = job.params()
         mask = None
         if job.crop is not None:
             from ..segment import depth_mask

@@ -56,7 +56,6 @@ class ViewsPanel:
 
     def on_estimate(self, client) -> None:
         from ..evaluate import frame_mask, score_frame
-        from ..registration import resolve_params
         from ..registration.fusion import View, estimate_views
         from ..registration.next_view import next_view
 
@@ -69,10 +68,9 @@ class ViewsPanel:
         if job.crop is not None or job.prompt is not None:
             raise AposeError("fusing views uses the Mask setting per frame; choose gt, depth or box (not a crop or prompt)")
         ctx = ins.context(step)
-        params = resolve_params(job.preset, job.assembly.registration,
-                                **({"upright": job.upright} if job.preset == "default" else {}))
+        params = job.params()
         frames = [ins.load_frame(step, i) for i in ids]
-        views = [View(f.depth, frame_mask(f, job.mask), f.camera, f.T_world_camera, f"frame {f.im_id}") for f in frames]
+        views = [View.of(f, frame_mask(f, job.mask)) for f in frames]
         ctx.base.warm_up(params)
         r = estimate_views(views, ctx.base, ctx.view.T_base_part, params, np.eye(4) if job.prior else None)
         ins.frame = frames[0]
