@@ -42,6 +42,7 @@ class PoseEstimate:
     doubts: str = ""
     equivalent: list[np.ndarray] = field(default_factory=list)  # T_world_part of the placements an exact symmetry of
     # the base makes the same assembly (the part may equally go there)
+    T_world_part_approach: np.ndarray | None = None  # where the step's `approach` starts (None: the step has none)
 
     def to_json(self) -> dict:
         def m(T):
@@ -49,7 +50,8 @@ class PoseEstimate:
 
         cov = self.coverage if np.isfinite(self.coverage) else None
         return {"ok": self.ok, "reason": self.reason, "T_world_base": m(self.T_world_base),
-                "T_world_part": m(self.T_world_part), "T_camera_part": m(self.T_camera_part),
+                "T_world_part": m(self.T_world_part), "T_world_part_approach": m(self.T_world_part_approach),
+                "T_camera_part": m(self.T_camera_part),
                 "T_world_camera": m(self.T_world_camera), "confident": self.confident, "coverage": cov,
                 "doubts": self.doubts, "ambiguous": self.ambiguous, "alternatives": [m(T) for T in self.alternatives],
                 "equivalent": [m(T) for T in self.equivalent],
@@ -142,7 +144,7 @@ def estimate_pose(rgb: np.ndarray, depth: np.ndarray, K, assembly, step: int, *,
 def run_registration(depth, mask, source, cam, T_world_camera, ctx, params, orientation_prior, t0, t_mask,
                      trace_iterations: bool = False) -> PoseEstimate:
     """The registration step of estimate_pose (and of `apose estimate`), on a mask already found."""
-    from .registration import doubts, estimate
+    from .registration import estimate
 
     ctx.base.warm_up(params)
     t1 = time.perf_counter()
@@ -151,9 +153,16 @@ def run_registration(depth, mask, source, cam, T_world_camera, ctx, params, orie
     t2 = time.perf_counter()
     if r.model_mask is not None:  # what the model shows at the pose: occluders in front and clutter beside it cut
         mask, source = r.model_mask, f"{source}, cut to the model's view"
-    T_camera_part = se3.inv(T_world_camera) @ r.T_world_part if r.ok else None
-    return PoseEstimate(r.ok, r.reason, T_world_camera, r.T_world_base if r.ok else None, r.T_world_part if r.ok else None,
-                        T_camera_part, bool(r.confident), float(r.coverage), bool(r.ambiguous),
-                        [c.T_world_part for c in r.alternatives], mask, source,
-                        {"mask": t_mask, "registration": t2 - t1, "total": t2 - t0}, r,
-                        "" if r.confident or not r.ok else doubts(r), r.equivalent if r.ok else [])
+    return pose_estimate(r, T_world_camera, ctx.view, mask, source, {"mask": t_mask, "registration": t2 - t1, "total": t2 - t0})
+
+
+def pose_estimate(r, T_world_camera, view, mask, source, timings) -> PoseEstimate:
+    """A registration result as the robot-facing record (T_camera_part, the approach pose, the doubts)."""
+    from .registration import doubts
+
+    ok = bool(r.ok)
+    approach = view.approach.start(r.T_world_part, r.T_world_base) if ok and view.approach is not None else None
+    return PoseEstimate(ok, r.reason, T_world_camera, r.T_world_base if ok else None, r.T_world_part if ok else None,
+                        se3.inv(T_world_camera) @ r.T_world_part if ok else None, bool(r.confident), float(r.coverage),
+                        bool(r.ambiguous), [c.T_world_part for c in r.alternatives], mask, source, dict(timings), r,
+                        "" if r.confident or not ok else doubts(r), r.equivalent if ok else [], approach)

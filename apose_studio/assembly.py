@@ -15,17 +15,19 @@ from pathlib import Path
 import numpy as np
 
 from . import se3
-from .config import (CameraIntrinsics, RegistrationConfig, camera_from_dict, camera_to_dict, is_number,
+from .config import (CameraIntrinsics, RegistrationConfig, camera_from_dict, camera_to_dict,
                      registration_from_dict, registration_to_dict)
 from .errors import AssemblyError, Problem
 from .fileio import atomic_write_text, parse_yaml, roundtrip_yaml
+from .mates import Approach, Mate, MateError, approach_to_dict, mate_to_dict, parse_approach, parse_mates
 from .units import UNIT_TO_M
+from .yamlcheck import Checker, kind, rotation
 
 FORMAT = "apose-assembly/1"
 _TOP_KEYS = ("format", "name", "units", "parts", "steps", "camera", "registration")
 _PART_KEYS = ("mesh", "color", "symmetry")
 _SYM_KEYS = ("axis", "origin", "order")
-_STEP_KEYS = ("part", "base", "pose_in_base")
+_STEP_KEYS = ("part", "base", "pose_in_base", "mates", "approach")
 _POSE_KEYS = ("translation", "rotation")
 PART_ID = re.compile(r"[A-Za-z0-9_.\-]{1,64}")  # shown in pages and file names: nothing that could be markup
 PART_ID_RULE = "1 to 64 letters, digits, '_', '-' or '.'"
@@ -59,10 +61,14 @@ class Step:
     part: str
     base: tuple[str, ...]
     T_base_part: np.ndarray
+    mates: tuple[Mate, ...] = ()  # when given, T_base_part is their solution (`mates.solve`)
+    approach: Approach | None = None
+    free: tuple[str, ...] = ()  # the degrees of freedom the mates leave free, in words (derived at load)
 
     def __eq__(self, other) -> bool:
         return (isinstance(other, Step) and self.part == other.part and self.base == other.base
-                and np.allclose(self.T_base_part, other.T_base_part, rtol=0, atol=1e-12))
+                and np.allclose(self.T_base_part, other.T_base_part, rtol=0, atol=1e-12)
+                and self.mates == other.mates and self.approach == other.approach)
 
 
 @dataclass(frozen=True)
@@ -75,6 +81,7 @@ class StepView:
     root: str  # the root part the base hangs off
     T_base_part: np.ndarray
     T_base_members: dict[str, np.ndarray]  # pose of each base part in the frame of base[0]
+    approach: Approach | None = None  # the part's last straight motion into place, in base[0]'s frame
 
 
 @dataclass(frozen=True)
@@ -132,7 +139,7 @@ class Assembly:
         T_root_base = self.T_root_part(step.base[0])
         T_base_root = se3.inv(T_root_base)
         members = {p: T_base_root @ self.T_root_part(p) for p in step.base}
-        return StepView(number, step.part, step.base, self.root_of(step.base[0]), step.T_base_part, members)
+        return StepView(number, step.part, step.base, self.root_of(step.base[0]), step.T_base_part, members, step.approach)
 
     def completed(self) -> dict[str, dict[str, np.ndarray]]:
         """The finished assembly: for each root, every part hanging off it with its T_root_part."""
@@ -148,103 +155,10 @@ class Assembly:
 # --------------------------------------------------------------------------------------------- load
 
 
-class _Checker:
-    """Collects problems while walking the YAML tree."""
-
-    def __init__(self, file: str):
-        self.file = file
-        self.problems: list[Problem] = []
-
-    def add(self, key: str, what: str) -> None:
-        self.problems.append(Problem(self.file, key, what))
-
-    def mapping(self, value, key: str, allowed: tuple[str, ...], what: str) -> dict | None:
-        if not isinstance(value, dict):
-            self.add(key, f"expected {what}, got {_kind(value)}")
-            return None
-        for k in value:
-            if k not in allowed:
-                self.add(f"{key}.{k}" if key else str(k), f"unknown key; expected one of {', '.join(allowed)}")
-        return value
-
-    def numbers(self, value, key: str, n: int, what: str = "numbers") -> list[float] | None:
-        if not isinstance(value, list):
-            self.add(key, f"expected a list of {n} {what}, got {_kind(value)}")
-            return None
-        if len(value) != n:
-            self.add(key, f"expected {n} {what}, got {len(value)}")
-            return None
-        bad = [i for i, v in enumerate(value) if not is_number(v)]
-        if bad:
-            self.add(f"{key}[{bad[0]}]", f"expected a finite number, got {value[bad[0]]!r}")
-            return None
-        return [float(v) for v in value]
-
-
-def _kind(value) -> str:
-    """What a value is, for a message; text is quoted only when short (an error never echoes a file)."""
-    if value is None:
-        return "nothing"
-    if isinstance(value, str):
-        return f"the text {value!r}" if len(value) <= 40 and "\n" not in value else f"a text of {len(value)} characters"
-    if isinstance(value, (dict, list)):
-        return {dict: "a mapping", list: "a list"}[type(value)]
-    if isinstance(value, bool) or isinstance(value, (int, float)):
-        return f"{value}"
-    return type(value).__name__
-
-
-def _rotation(c: _Checker, value, key: str) -> np.ndarray | None:
-    forms = "one of {quat_wxyz: [w, x, y, z]}, {euler_deg: [a, b, c], order: xyz}, {matrix: 3x3}"
-    if value is None:
-        return np.eye(3)
-    if not isinstance(value, dict):
-        c.add(key, f"expected {forms}, got {_kind(value)}")
-        return None
-    kinds = [k for k in ("quat_wxyz", "euler_deg", "matrix") if k in value]
-    extra = [k for k in value if k not in ("quat_wxyz", "euler_deg", "matrix", "order")]
-    if extra or len(kinds) != 1:
-        c.add(f"{key}.{extra[0]}" if extra else key, f"expected {forms}")
-        return None
-    kind = kinds[0]
-    if "order" in value and kind != "euler_deg":
-        c.add(f"{key}.order", "only euler_deg takes an order")
-        return None
-    if kind == "quat_wxyz":
-        q = c.numbers(value["quat_wxyz"], f"{key}.quat_wxyz", 4)
-        if q is None:
-            return None
-        n = float(np.linalg.norm(q))
-        if n < 1e-9:
-            c.add(f"{key}.quat_wxyz", "expected a non-zero quaternion [w, x, y, z], got all zeros")
-            return None
-        return se3.quat_wxyz_to_matrix(q)
-    if kind == "euler_deg":
-        a = c.numbers(value["euler_deg"], f"{key}.euler_deg", 3)
-        order = value.get("order", "xyz")
-        if not (isinstance(order, str) and len(order) == 3 and (set(order) <= set("xyz") or set(order) <= set("XYZ"))
-                and order[0] != order[1] and order[1] != order[2]):
-            c.add(f"{key}.order", f"expected a scipy axis order such as xyz (extrinsic) or XYZ (intrinsic), got {order!r}")
-            return None
-        return None if a is None else se3.euler_deg_to_matrix(a, order)
-    m = value["matrix"]
-    if not (isinstance(m, list) and len(m) == 3 and all(isinstance(r, list) and len(r) == 3 for r in m)):
-        c.add(f"{key}.matrix", "expected a 3x3 list of rows")
-        return None
-    rows = [c.numbers(r, f"{key}.matrix[{i}]", 3) for i, r in enumerate(m)]
-    if any(r is None for r in rows):
-        return None
-    R = np.array(rows)
-    if not (np.allclose(R @ R.T, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0):
-        c.add(f"{key}.matrix", "expected a rotation matrix (orthonormal, determinant +1)")
-        return None
-    return R
-
-
-def _parse_parts(c: _Checker, parts_raw, folder: Path, scale: float) -> dict[str, Part]:
+def _parse_parts(c: Checker, parts_raw, folder: Path, scale: float) -> dict[str, Part]:
     parts: dict[str, Part] = {}
     if not isinstance(parts_raw, dict) or not parts_raw:
-        got = "an empty mapping (no parts yet)" if isinstance(parts_raw, dict) else _kind(parts_raw)
+        got = "an empty mapping (no parts yet)" if isinstance(parts_raw, dict) else kind(parts_raw)
         c.add("parts", f"expected a mapping of part ids to {{mesh: path}}, got {got}")
         return parts
     if len(parts_raw) > MAX_PARTS:
@@ -253,7 +167,7 @@ def _parse_parts(c: _Checker, parts_raw, folder: Path, scale: float) -> dict[str
     for pid, spec in parts_raw.items():
         key = f"parts.{pid}"
         if not isinstance(pid, str) or not PART_ID.fullmatch(pid):
-            c.add(f"parts.{_kind(pid)}" if not isinstance(pid, str) or len(pid) > 40 else key,
+            c.add(f"parts.{kind(pid)}" if not isinstance(pid, str) or len(pid) > 40 else key,
                   f"a part id is {PART_ID_RULE}; rename it (and where steps use it)")
             continue
         spec = c.mapping(spec, key, _PART_KEYS, "a mapping with mesh (and optional color, symmetry)")
@@ -261,7 +175,7 @@ def _parse_parts(c: _Checker, parts_raw, folder: Path, scale: float) -> dict[str
             continue
         mesh = spec.get("mesh")
         if not isinstance(mesh, str) or not mesh:
-            c.add(f"{key}.mesh", f"expected a path to a mesh file, got {_kind(mesh)}")
+            c.add(f"{key}.mesh", f"expected a path to a mesh file, got {kind(mesh)}")
             continue
         mesh_path = (folder / mesh).resolve()
         if not mesh_path.is_file():
@@ -282,7 +196,7 @@ def _parse_parts(c: _Checker, parts_raw, folder: Path, scale: float) -> dict[str
     return parts
 
 
-def _parse_symmetry(c: _Checker, raw, key: str, scale: float) -> Symmetry | None:
+def _parse_symmetry(c: Checker, raw, key: str, scale: float) -> Symmetry | None:
     sym = c.mapping(raw, key, _SYM_KEYS, "{axis: [x, y, z], order: n, origin: [x, y, z]}")
     if sym is None:
         return None
@@ -292,7 +206,7 @@ def _parse_symmetry(c: _Checker, raw, key: str, scale: float) -> Symmetry | None
     if not (isinstance(order, int) and not isinstance(order, bool) and 0 <= order <= MAX_SYMMETRY_ORDER
             and order != 1):
         c.add(f"{key}.order", f"expected 0 (continuous) or a whole number n from 2 to {MAX_SYMMETRY_ORDER} (n-fold), "
-              f"got {_kind(order)}")
+              f"got {kind(order)}")
         return None
     if axis is None or origin is None:
         return None
@@ -303,56 +217,92 @@ def _parse_symmetry(c: _Checker, raw, key: str, scale: float) -> Symmetry | None
     return Symmetry(tuple(float(x) for x in a), tuple(float(x) * scale for x in origin), order)
 
 
-def _parse_steps(c: _Checker, steps_raw, parts: dict[str, Part], scale: float) -> list[Step]:
+def _parse_steps(c: Checker, steps_raw, parts: dict[str, Part], scale: float) -> tuple[list[Step], dict[int, bool]]:
     steps: list[Step] = []
     if not isinstance(steps_raw, list):
-        c.add("steps", f"expected a list of steps, got {_kind(steps_raw)}")
-        return steps
+        c.add("steps", f"expected a list of steps, got {kind(steps_raw)}")
+        return steps, {}
     if len(steps_raw) > MAX_STEPS:
         c.add("steps", f"{len(steps_raw)} steps; at most {MAX_STEPS} are supported")
-        return steps
+        return steps, {}
     placed_by: dict[str, int] = {}
+    given: dict[int, bool] = {}  # step index -> whether pose_in_base was written beside mates
     for i, raw in enumerate(steps_raw):
         key = f"steps[{i}]"
-        raw = c.mapping(raw, key, _STEP_KEYS, "a mapping with part, base, pose_in_base")
+        raw = c.mapping(raw, key, _STEP_KEYS, "a mapping with part, base, pose_in_base (or mates)")
         if raw is None:
             continue
         n_before = len(c.problems)
         part = raw.get("part")
         if not isinstance(part, str):
-            c.add(f"{key}.part", f"expected a part id, got {_kind(part)}")
+            c.add(f"{key}.part", f"expected a part id, got {kind(part)}")
         elif part not in parts:
             c.add(f"{key}.part", f"unknown part {part!r}; parts are {', '.join(parts)}")
         elif part in placed_by:
             c.add(f"{key}.part", f"{part!r} is already placed by steps[{placed_by[part]}]; a part is placed at most once")
-        base = raw.get("base")
-        if not (isinstance(base, list) and base and all(isinstance(b, str) for b in base)):
-            c.add(f"{key}.base", f"expected a non-empty list of part ids, got {_kind(base)}")
-            base = None
-        else:
-            for j, b in enumerate(base):
-                if b not in parts:
-                    c.add(f"{key}.base[{j}]", f"unknown part {b!r}; parts are {', '.join(parts)}")
-                elif b == part:
-                    c.add(f"{key}.base[{j}]", f"{b!r} cannot be part of its own base")
-                elif base.index(b) != j:
-                    c.add(f"{key}.base[{j}]", f"{b!r} is listed twice")
+        base = _parse_base(c, raw.get("base"), f"{key}.base", part, parts)
+        mates = parse_mates(c, raw["mates"], f"{key}.mates", base, scale) if "mates" in raw else ()
+        approach = parse_approach(c, raw["approach"], f"{key}.approach", scale) if "approach" in raw else None
         pose = raw.get("pose_in_base")
         T = None
-        if c.mapping(pose, f"{key}.pose_in_base", _POSE_KEYS, "a mapping with translation (and optional rotation)") is not None:
+        if pose is None and "mates" in raw:
+            T = np.eye(4)
+        elif c.mapping(pose, f"{key}.pose_in_base", _POSE_KEYS, "a mapping with translation (and optional rotation)") is not None:
             t = c.numbers(pose.get("translation"), f"{key}.pose_in_base.translation", 3)
-            R = _rotation(c, pose.get("rotation"), f"{key}.pose_in_base.rotation")
+            R = rotation(c, pose.get("rotation"), f"{key}.pose_in_base.rotation")
             if t is not None and R is not None:
                 T = se3.make_T(R, np.asarray(t) * scale)
         if len(c.problems) == n_before and T is not None:
-            steps.append(Step(part, tuple(base), T))
+            steps.append(Step(part, tuple(base), T, mates or (), approach))
+            given[len(steps) - 1] = pose is not None
             placed_by[part] = i
         elif isinstance(part, str):
             placed_by.setdefault(part, i)
-    return steps
+    return steps, given
 
 
-def _check_order(c: _Checker, steps: list[Step], parts: dict[str, Part]) -> None:
+def _parse_base(c: Checker, base, key: str, part, parts: dict[str, Part]) -> list[str] | None:
+    if not (isinstance(base, list) and base and all(isinstance(b, str) for b in base)):
+        c.add(key, f"expected a non-empty list of part ids, got {kind(base)}")
+        return None
+    for j, b in enumerate(base):
+        if b not in parts:
+            c.add(f"{key}[{j}]", f"unknown part {b!r}; parts are {', '.join(parts)}")
+        elif b == part:
+            c.add(f"{key}[{j}]", f"{b!r} cannot be part of its own base")
+        elif base.index(b) != j:
+            c.add(f"{key}[{j}]", f"{b!r} is listed twice")
+    return base
+
+
+def _solve_mates(c: Checker, steps: list[Step], parts: dict[str, Part], given: dict[int, bool]) -> None:
+    """Solve every step's mates in order (a base part's pose comes from the steps before), in place.
+    Step indices in key paths count the steps as written; these are the parsed ones, which match
+    when nothing was rejected (this runs only then)."""
+    from . import mates as mt
+
+    T_root: dict[str, np.ndarray] = {}
+    for i, s in enumerate(steps):
+        T_root_base0 = T_root.get(s.base[0], np.eye(4))
+        if s.mates:
+            T_base_root = se3.inv(T_root_base0)
+            members = {b: T_base_root @ T_root.get(b, np.eye(4)) for b in s.base}
+            sym = parts[s.part].symmetry
+            axis = np.asarray(sym.axis) if sym is not None and sym.order == 0 else None
+            try:
+                sol = mt.solve(mt.in_base_frame(s.mates, s.base[0], members), s.T_base_part, axis)
+            except MateError as e:
+                c.add(f"steps[{i}].mates" + (f"[{e.index}]" if e.index is not None else ""), e.what)
+                continue
+            off = mt.disagreement(s.T_base_part, sol.T_base_part) if given.get(i) and sol.n_free == 0 else None
+            if off is not None:
+                c.add(f"steps[{i}].pose_in_base", f"disagrees with the mates, which fix the pose, by {off[0] * 1000:.4g} mm "
+                      f"and {np.degrees(off[1]):.4g} deg; delete pose_in_base (the mates give it) or correct it")
+            steps[i] = s = replace(s, T_base_part=sol.T_base_part, free=sol.free)
+        T_root[s.part] = T_root_base0 @ s.T_base_part
+
+
+def _check_order(c: Checker, steps: list[Step], parts: dict[str, Part]) -> None:
     """Base parts must be roots or placed earlier, and all of one step's base must share a root."""
     placed_later = {s.part: i for i, s in enumerate(steps)}
     placed_so_far: dict[str, str] = {}  # part -> base[0] it was placed on
@@ -377,24 +327,26 @@ def assembly_from_dict(data, file: str | Path, folder: Path | None = None) -> As
     """Validate a parsed YAML mapping; raises AssemblyError with every problem found."""
     file = str(file)
     folder = Path(folder) if folder is not None else Path(file).resolve().parent
-    c = _Checker(file)
+    c = Checker(file)
     data = c.mapping(data, "", _TOP_KEYS, "a mapping with format, name, units, parts, steps")
     if data is None:
         raise AssemblyError(c.problems)
     if data.get("format") != FORMAT:
-        c.add("format", f"expected {FORMAT!r}, got {_kind(data.get('format'))}")
+        c.add("format", f"expected {FORMAT!r}, got {kind(data.get('format'))}")
     name = data.get("name")
     if not isinstance(name, str) or not name.strip():
-        c.add("name", f"expected a name, got {_kind(name)}")
+        c.add("name", f"expected a name, got {kind(name)}")
     units = data.get("units")
     if units not in UNIT_TO_M:
-        c.add("units", f"expected one of {', '.join(UNIT_TO_M)}, got {_kind(units)}")
+        c.add("units", f"expected one of {', '.join(UNIT_TO_M)}, got {kind(units)}")
         units = "m"
     scale = UNIT_TO_M[units]
     parts = _parse_parts(c, data.get("parts"), folder, scale)
-    steps = _parse_steps(c, data.get("steps"), parts, scale)
+    steps, given = _parse_steps(c, data.get("steps"), parts, scale)
     if not c.problems:
         _check_order(c, steps, parts)
+    if not c.problems:
+        _solve_mates(c, steps, parts, given)
     camera, cam_problems = camera_from_dict(data.get("camera"), file)
     registration, reg_problems = registration_from_dict(data.get("registration"), file)
     c.problems += cam_problems + reg_problems
@@ -450,9 +402,14 @@ def assembly_to_dict(asm: Assembly, folder: Path) -> dict:
     steps = []
     for st in asm.steps:
         q = se3.matrix_to_quat_wxyz(st.T_base_part[:3, :3])
-        steps.append({"part": st.part, "base": list(st.base), "pose_in_base": {
-            "translation": [_num(v / s) for v in st.T_base_part[:3, 3]],
-            "rotation": {"quat_wxyz": [float(v) for v in q]}}})
+        step = {"part": st.part, "base": list(st.base)}
+        if st.mates:
+            step["mates"] = [mate_to_dict(m, s) for m in st.mates]
+        step["pose_in_base"] = {"translation": [_num(v / s) for v in st.T_base_part[:3, 3]],
+                                "rotation": {"quat_wxyz": [float(v) for v in q]}}
+        if st.approach is not None:
+            step["approach"] = approach_to_dict(st.approach, s)
+        steps.append(step)
     out = {"format": FORMAT, "name": asm.name, "units": asm.units, "parts": parts, "steps": steps}
     if asm.camera is not None:
         out["camera"] = camera_to_dict(asm.camera)
@@ -472,9 +429,9 @@ def _same_pose(path: tuple, old, new) -> bool:
     to what would be written now: keep the user's way of writing it."""
     if len(path) != 3 or path[0] != "steps" or path[2] != "pose_in_base" or not isinstance(old, dict):
         return False
-    c = _Checker("")
+    c = Checker("")
     t_old = c.numbers(old.get("translation"), "", 3)
-    R_old = _rotation(c, old.get("rotation"), "")
+    R_old = rotation(c, old.get("rotation"), "")
     if c.problems or t_old is None or R_old is None:
         return False
     R_new = se3.quat_wxyz_to_matrix(new["rotation"]["quat_wxyz"])

@@ -133,6 +133,9 @@ def cmd_estimate(args) -> int:
         return 1
     print("T_world_part (estimated assembly pose):")
     print("\n".join(_pose_lines(r.T_world_part)))
+    if est.T_world_part_approach is not None:
+        print(f"T_world_part_approach (where the step's {ctx.view.approach.distance * 1000:.0f} mm approach starts):")
+        print("\n".join(_pose_lines(est.T_world_part_approach)))
     print("T_camera_part:")
     print("\n".join(_pose_lines(est.T_camera_part)))
     print(f"registration: fitness {r.fitness:.4f}, inlier RMSE {r.inlier_rmse * 1000:.3f} mm, voxel {r.voxel * 1000:.2f} mm, "

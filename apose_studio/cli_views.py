@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 
-from . import se3
 from .errors import AposeError
 
 
@@ -74,10 +73,10 @@ def view_masks(args, frames, asm) -> list[tuple[np.ndarray, str]]:
 
 
 def cmd_estimate_views(args) -> int:
-    from .api import PoseEstimate
+    from .api import pose_estimate
     from .cli_frames import _upright
     from .evaluate import score_frame
-    from .registration import doubts, resolve_params
+    from .registration import resolve_params
     from .registration.fusion import View, estimate_views
     from .registration.next_view import next_view
 
@@ -88,10 +87,7 @@ def cmd_estimate_views(args) -> int:
     ctx.base.warm_up(params)
     r = estimate_views(views, ctx.base, ctx.view.T_base_part, params, np.eye(4) if args.orientation_prior else None)
     T_wc = frames[0].T_world_camera
-    est = PoseEstimate(r.ok, r.reason, T_wc, r.T_world_base if r.ok else None, r.T_world_part if r.ok else None,
-                       se3.inv(T_wc) @ r.T_world_part if r.ok else None, bool(r.confident), float(r.coverage),
-                       bool(r.ambiguous), [c.T_world_part for c in r.alternatives], masks[0][0], masks[0][1],
-                       dict(r.timings), r, "" if r.confident or not r.ok else doubts(r), r.equivalent if r.ok else [])
+    est = pose_estimate(r, T_wc, ctx.view, masks[0][0], masks[0][1], r.timings)
     advice = next_view(r, ctx.base, [f.T_world_camera for f in frames], frames[0].camera) if r.ok else None
     sc = (score_frame(frames[0], r, ctx.part, None, ctx.base.symmetries) if frames[0].T_world_part is not None else None)
     if args.json:

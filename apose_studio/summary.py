@@ -21,9 +21,18 @@ def show_json(asm, models) -> dict:
         "name": asm.name,
         "parts": {pid: {"mesh": str(p.mesh), "diameter": models[pid].diameter, "root": asm.root_of(pid),
                         "T_root_part": asm.T_root_part(pid).tolist()} for pid, p in asm.parts.items()},
-        "steps": [{"step": i + 1, "part": s.part, "base": list(s.base), "T_base_part": s.T_base_part.tolist()}
-                  for i, s in enumerate(asm.steps)],
+        "steps": [_step_json(i, s) for i, s in enumerate(asm.steps)],
     }
+
+
+def _step_json(i: int, s) -> dict:
+    out = {"step": i + 1, "part": s.part, "base": list(s.base), "T_base_part": s.T_base_part.tolist()}
+    if s.mates:  # T_base_part is then the mates' solution
+        out["mates"] = [m.type for m in s.mates]
+        out["free"] = list(s.free)
+    if s.approach is not None:
+        out["approach"] = {"direction": s.approach.direction.tolist(), "distance": s.approach.distance}
+    return out
 
 
 def show_text(asm, models) -> str:
@@ -43,6 +52,12 @@ def show_text(asm, models) -> str:
     for i, s in enumerate(asm.steps):
         lines.append(f"  {i + 1}. place {s.part} on [{', '.join(s.base)}]")
         lines.append(f"     pose in {s.base[0]}: {_fmt_pose(s.T_base_part)}")
+        if s.mates:
+            lines.append(f"     from mates: {', '.join(m.type for m in s.mates)}; "
+                         + ("all six degrees of freedom fixed" if not s.free else "free: " + "; ".join(s.free)))
+        if s.approach is not None:
+            d = s.approach.direction
+            lines.append(f"     approach: {s.approach.distance * 1000:.1f} mm along ({d[0]:+.3f}, {d[1]:+.3f}, {d[2]:+.3f})")
     lines += ["", "completed assembly (pose of each part in its root's frame):"]
     for root, members in asm.completed().items():
         for pid, T in members.items():

@@ -293,21 +293,37 @@ parts:
 steps:
   - part: sun_gear
     base: [motor]
+    mates:                 # the pose as a CAD engineer gives it; the loader solves it (and checks pose_in_base)
+      - type: coaxial      # the D-bore on the 5 mm shaft
+        base: {point: [0, 0, 42], direction: [0, 0, 1]}
+        part: {point: [0, 0, 0], direction: [0, 0, 1]}
+      - type: contact      # the hub's underside 3 mm above the motor's boss
+        base: {point: [0, 0, 42], normal: [0, 0, 1]}
+        part: {point: [0, 0, -7], normal: [0, 0, -1]}
+        offset: 3
+      - type: contact      # the bore's flat facing the shaft's flat, 0.05 mm clearance: sets the turn
+        base: {point: [0, 2.0, 52], normal: [0, 1, 0]}
+        part: {point: [0, 2.05, 0], normal: [0, -1, 0]}
+        offset: 0.05
     pose_in_base:
       translation: [0.0, 0.0, 52.0]
+    approach: {direction: [0, 0, -1], distance: 30}   # slid down the shaft from 30 mm above
   - part: housing
     base: [motor, sun_gear]
     pose_in_base:
       translation: [0.0, 0.0, 40.0]
+    approach: {direction: [0, 0, -1], distance: 40}
   - part: carrier          # placed in the housing's frame; planets mesh inside the ring
     base: [housing, motor, sun_gear]
     pose_in_base:
       translation: [0.0, 0.0, 12.0]
       rotation: {euler_deg: [0, 0, 0], order: xyz}
+    approach: {direction: [0, 0, -1], distance: 30}
   - part: cover
     base: [motor, sun_gear, housing, carrier]
     pose_in_base:
       translation: [0.0, 0.0, 62.0]
+    approach: {direction: [0, 0, -1], distance: 25}
 """
 
 

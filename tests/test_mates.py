@@ -1,0 +1,202 @@
+"""Mates (ASSEMBLY_FORMAT.md, "Optional step keys"): hand-solved poses, free degrees of freedom,
+contradictions with their key paths, and the file round trip. Expected poses are worked out by hand
+in the comments, not by the solver."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from apose_studio.assembly import assembly_from_dict, load_assembly, save_assembly
+from apose_studio.errors import AssemblyError
+
+
+@pytest.fixture()
+def folder(tmp_path):
+    for name in ("base", "part", "third"):
+        trimesh.creation.box((10, 10, 10)).export(tmp_path / f"{name}.stl")
+    return tmp_path
+
+
+def _asm(folder, mates, pose=None, units="mm", symmetry=None, extra_steps=(), approach=None):
+    step = {"part": "part", "base": ["base"], "mates": mates}
+    if pose is not None:
+        step["pose_in_base"] = pose
+    if approach is not None:
+        step["approach"] = approach
+    part = {"mesh": "part.stl"} | ({"symmetry": symmetry} if symmetry else {})
+    data = {"format": "apose-assembly/1", "name": "t", "units": units,
+            "parts": {"base": {"mesh": "base.stl"}, "part": part, "third": {"mesh": "third.stl"}},
+            "steps": [step, *extra_steps]}
+    return assembly_from_dict(data, folder / "a.yaml")
+
+
+def _problem(folder, *args, **kw):
+    with pytest.raises(AssemblyError) as e:
+        _asm(folder, *args, **kw)
+    return e.value.problems
+
+
+def coax(bp, bd, pp, pd, **kw):
+    return {"type": "coaxial", "base": {"point": bp, "direction": bd}, "part": {"point": pp, "direction": pd}, **kw}
+
+
+def contact(bp, bn, pp, pn, kind="contact", **kw):
+    return {"type": kind, "base": {"point": bp, "normal": bn}, "part": {"point": pp, "normal": pn}, **kw}
+
+
+def angle(bd, pd, deg):
+    return {"type": "angle", "base": {"direction": bd}, "part": {"direction": pd}, "degrees": deg}
+
+
+def Rz(deg):
+    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+
+
+def test_coaxial_contact_angle_hand_solved(folder):
+    # The part's axis (through (1, 0, 0), +z) on the base's axis through (10, 5, 0), +z; its face at
+    # z = -7 (normal -z) on the base's face z = 58.5 (normal +z); turned +30 deg about z.
+    # By hand: R = Rz(30); R (1, 0, 0) + t on the line x = 10, y = 5; -7 + t_z = 58.5.
+    asm = _asm(folder, [coax([10, 5, 0], [0, 0, 1], [1, 0, 0], [0, 0, 1]),
+                        contact([0, 0, 58.5], [0, 0, 1], [0, 0, -7], [0, 0, -1]),
+                        angle([1, 0, 0], [1, 0, 0], 30)])
+    T = asm.steps[0].T_base_part
+    c, s = np.cos(np.radians(30)), np.sin(np.radians(30))
+    np.testing.assert_allclose(T[:3, :3], Rz(30), atol=1e-12)
+    np.testing.assert_allclose(T[:3, 3], np.array([10 - c, 5 - s, 65.5]) / 1000, atol=1e-12)
+    assert asm.steps[0].free == ()
+
+
+def test_three_faces_of_a_corner(folder):
+    # The part's faces with normals -y, -z, -x meet at its origin; they go on the base's faces +x, +y, +z
+    # through (2, 3, 4), the first 1 mm apart. By hand R takes y -> x, z -> y, x -> z; t = (3, 3, 4).
+    asm = _asm(folder, [contact([2, 3, 4], [1, 0, 0], [0, 0, 0], [0, -1, 0], offset=1),
+                        contact([2, 3, 4], [0, 1, 0], [0, 0, 0], [0, 0, -1]),
+                        contact([2, 3, 4], [0, 0, 1], [0, 0, 0], [-1, 0, 0])])
+    T = asm.steps[0].T_base_part
+    np.testing.assert_allclose(T[:3, :3], [[0, 1, 0], [0, 0, 1], [1, 0, 0]], atol=1e-12)
+    np.testing.assert_allclose(T[:3, 3], [0.003, 0.003, 0.004], atol=1e-12)
+    assert asm.steps[0].free == ()
+
+
+def test_flipped_coaxial(folder):
+    # Axes opposed; the part's top face (z = 5, +z) then faces down onto the base face z = 10; the angle
+    # mate brings the part's x back onto the base's x. By hand: R = diag(1, -1, -1), t = (0, 0, 15).
+    asm = _asm(folder, [coax([0, 0, 0], [0, 0, 1], [0, 0, 0], [0, 0, 1], flip=True),
+                        contact([0, 0, 10], [0, 0, 1], [0, 0, 5], [0, 0, 1]),
+                        angle([1, 0, 0], [1, 0, 0], 0)])
+    T = asm.steps[0].T_base_part
+    np.testing.assert_allclose(T[:3, :3], np.diag([1.0, -1.0, -1.0]), atol=1e-12)
+    np.testing.assert_allclose(T[:3, 3], [0, 0, 0.015], atol=1e-12)
+
+
+def test_under_constrained_keeps_the_given_pose_and_says_what_is_free(folder):
+    pose = {"translation": [7, 8, 9], "rotation": {"euler_deg": [0, 0, 40], "order": "xyz"}}
+    asm = _asm(folder, [coax([1, 2, 0], [0, 0, 1], [0, 0, 0], [0, 0, 1])], pose=pose)
+    s = asm.steps[0]
+    # on the axis: x, y from the axis, z (sliding) and the 40 deg turn (rotation about it) from the pose
+    np.testing.assert_allclose(s.T_base_part[:3, 3], [0.001, 0.002, 0.009], atol=1e-12)
+    np.testing.assert_allclose(s.T_base_part[:3, :3], Rz(40), atol=1e-12)
+    assert len(s.free) == 2
+    assert "rotation about the coaxial axis" in s.free[0] and "sliding along" in s.free[1]
+    # a part that is round about that axis: the free turn is not worth a word
+    sym = _asm(folder, [coax([1, 2, 0], [0, 0, 1], [0, 0, 0], [0, 0, 1])], pose=pose,
+               symmetry={"axis": [0, 0, 1], "order": 0})
+    assert len(sym.steps[0].free) == 1 and "sliding" in sym.steps[0].free[0]
+    # a contact alone: the plane is free to slide in, and the turn about its normal
+    one = _asm(folder, [contact([0, 0, 3], [0, 0, 1], [0, 0, 0], [0, 0, -1])])
+    assert any("plane across [0, 0, 1]" in w for w in one.steps[0].free)
+
+
+def test_two_contacts_at_different_heights_contradict(folder):
+    (p,) = _problem(folder, [contact([0, 0, 10], [0, 0, 1], [0, 0, 0], [0, 0, -1]),
+                             contact([0, 0, 12], [0, 0, 1], [0, 0, 0], [0, 0, -1])])
+    assert p.key == "steps[0].mates[1]" and "contradicts" in p.what and "2 mm" in p.what
+
+
+def test_parallel_axes_apart_contradict(folder):
+    (p,) = _problem(folder, [coax([0, 0, 0], [0, 0, 1], [0, 0, 0], [0, 0, 1]),
+                             coax([5, 0, 0], [0, 0, 1], [0, 0, 0], [0, 0, 1])])
+    assert p.key == "steps[0].mates[1]" and "5 mm" in p.what
+
+
+def test_normals_at_the_wrong_angle_contradict(folder):
+    # the part's two normals are 90 deg apart, the base's 45 deg: no rotation takes one pair onto the other
+    (p,) = _problem(folder, [contact([0, 0, 0], [0, 0, 1], [0, 0, 0], [0, 0, -1]),
+                             contact([0, 0, 0], [0, 1, 1], [0, 0, 0], [0, -1, 0])])
+    assert p.key == "steps[0].mates[1]" and "deg" in p.what
+
+
+def test_angle_without_an_axis_and_angle_against_fixed_rotation(folder):
+    (p,) = _problem(folder, [angle([1, 0, 0], [1, 0, 0], 10)])
+    assert p.key == "steps[0].mates[0]" and "coaxial" in p.what
+    corner = [contact([0, 0, 0], [1, 0, 0], [0, 0, 0], [-1, 0, 0]), contact([0, 0, 0], [0, 0, 1], [0, 0, 0], [0, 0, -1])]
+    (p,) = _problem(folder, [angle([0, 1, 0], [0, 1, 0], 10), *corner])  # about the first normal, x
+    assert p.key == "steps[0].mates[0]" and "10 deg" in p.what  # the angle is checked after the others
+
+
+def test_fixed_mate_and_its_contradiction(folder):
+    fixed = {"type": "fixed", "base": {"translation": [1, 2, 3], "rotation": {"euler_deg": [0, 0, 90], "order": "xyz"}},
+             "part": {"translation": [0, 0, 1]}}
+    T = _asm(folder, [fixed]).steps[0].T_base_part
+    # base frame at (1, 2, 3) turned 90 deg about z; the part's frame 1 mm up its own z sits on it:
+    # T = T_ref_base * inv(T_ref_part) -> R = Rz(90), t = (1, 2, 3) - (0, 0, 1) = (1, 2, 2)
+    np.testing.assert_allclose(T[:3, :3], Rz(90), atol=1e-12)
+    np.testing.assert_allclose(T[:3, 3], [0.001, 0.002, 0.002], atol=1e-12)
+    (p,) = _problem(folder, [fixed, contact([0, 0, 5], [0, 0, 1], [0, 0, 0], [0, 0, -1])])
+    assert p.key == "steps[0].mates[1]" and "3 mm" in p.what
+
+
+def test_pose_in_base_against_fixing_mates(folder):
+    corner = [contact([0, 0, 0], [1, 0, 0], [0, 0, 0], [-1, 0, 0]), contact([0, 0, 0], [0, 1, 0], [0, 0, 0], [0, -1, 0]),
+              contact([0, 0, 0], [0, 0, 1], [0, 0, 0], [0, 0, -1])]
+    assert _asm(folder, corner, pose={"translation": [0, 0, 0]}).steps[0].free == ()
+    (p,) = _problem(folder, corner, pose={"translation": [0, 0, 0.01]})
+    assert p.key == "steps[0].pose_in_base" and "0.01 mm" in p.what
+    # beside mates that leave freedom, the pose only supplies what is free: no error
+    _asm(folder, corner[:1], pose={"translation": [0, 4, 4]})
+
+
+def test_bad_mates_name_their_keys(folder):
+    keys = {p.key for p in _problem(folder, [{"type": "glue"}, coax([0, 0], [0, 0, 1], [0, 0, 0], [0, 0, 0]),
+                                             {"type": "coaxial", "base": {"part": "third", "point": [0, 0, 0],
+                                                                          "direction": [0, 0, 1]},
+                                              "part": {"point": [0, 0, 0], "direction": [0, 0, 1]}}])}
+    assert keys == {"steps[0].mates[0].type", "steps[0].mates[1].base.point", "steps[0].mates[1].part.direction",
+                    "steps[0].mates[2].base.part"}
+    (p,) = _problem(folder, [coax([0, 0, 0], [0, 0, 1], [0, 0, 0], [0, 0, 1])], approach={"direction": [0, 0, 1],
+                                                                                         "distance": -3})
+    assert p.key == "steps[0].approach.distance"
+
+
+def test_base_references_in_another_base_part(folder):
+    # step 2 places `third` with a mate on `part` (placed by step 1 at z = 10 mm, turned 90 deg about z);
+    # the reference (x = 1 on part) is then at (0, 1, 10) in base's frame.
+    step2 = {"part": "third", "base": ["base", "part"],
+             "mates": [{"type": "fixed", "base": {"part": "part", "translation": [1, 0, 0]}, "part": {"translation": [0, 0, 0]}}]}
+    asm = _asm(folder, [{"type": "fixed", "base": {"translation": [0, 0, 10], "rotation": {"euler_deg": [0, 0, 90],
+                                                                                             "order": "xyz"}},
+                         "part": {"translation": [0, 0, 0]}}], extra_steps=[step2])
+    np.testing.assert_allclose(asm.steps[1].T_base_part[:3, 3], [0, 0.001, 0.01], atol=1e-12)
+    np.testing.assert_allclose(asm.steps[1].T_base_part[:3, :3], Rz(90), atol=1e-12)
+
+
+def test_save_writes_mates_and_solved_pose_and_round_trips(folder):
+    asm = _asm(folder, [coax([10, 5, 0], [0, 0, 2], [1, 0, 0], [0, 0, 1]),
+                        contact([0, 0, 58.5], [0, 0, 1], [0, 0, -7], [0, 0, -1], offset=0.5),
+                        angle([1, 0, 0], [1, 0, 0], 30)], approach={"direction": [0, 0, -2], "distance": 30})
+    path = save_assembly(asm, folder / "saved.yaml")
+    text = path.read_text()
+    assert "mates:" in text and "pose_in_base:" in text and "approach:" in text and "offset: 0.5" in text
+    again = load_assembly(path)
+    assert again == asm
+    a = again.steps[0].approach
+    np.testing.assert_allclose(a.direction, [0, 0, -1])  # normalised at load
+    assert a.distance == pytest.approx(0.030)
+    # the approach pose: the assembly pose moved back by 30 mm along the motion (in base[0]'s frame)
+    T_world_base = np.eye(4)
+    T_world_base[:3, :3] = Rz(90)
+    start = a.start(T_world_base @ again.steps[0].T_base_part, T_world_base)
+    np.testing.assert_allclose(start[:3, 3] - (T_world_base @ again.steps[0].T_base_part)[:3, 3], [0, 0, 0.03], atol=1e-12)
