@@ -25,7 +25,7 @@ from .yamlcheck import Checker, kind, rotation
 
 FORMAT = "apose-assembly/1"
 _TOP_KEYS = ("format", "name", "units", "parts", "steps", "camera", "registration")
-_PART_KEYS = ("mesh", "color", "symmetry")
+_PART_KEYS = ("mesh", "solid", "color", "symmetry")
 _SYM_KEYS = ("axis", "origin", "order")
 _STEP_KEYS = ("part", "base", "pose_in_base", "mates", "approach")
 _POSE_KEYS = ("translation", "rotation")
@@ -52,6 +52,7 @@ class Part:
     mesh: Path  # absolute, resolved against the assembly file's folder
     color: tuple[float, float, float] | None = None
     symmetry: Symmetry | None = None
+    solid: str | None = None  # the named solid of a STEP file with several (None: the whole file)
 
 
 @dataclass(frozen=True, eq=False)
@@ -192,7 +193,11 @@ def _parse_parts(c: Checker, parts_raw, folder: Path, scale: float) -> dict[str,
         symmetry = None
         if spec.get("symmetry") is not None:
             symmetry = _parse_symmetry(c, spec["symmetry"], f"{key}.symmetry", scale)
-        parts[pid] = Part(pid, mesh_path, color, symmetry)
+        solid = spec.get("solid")
+        if solid is not None and not (isinstance(solid, str) and solid):
+            c.add(f"{key}.solid", f"expected the name of a solid in the STEP file, got {kind(solid)}")
+            solid = None
+        parts[pid] = Part(pid, mesh_path, color, symmetry, solid)
     return parts
 
 
@@ -391,6 +396,8 @@ def assembly_to_dict(asm: Assembly, folder: Path) -> dict:
         # relative when the mesh sits under the file's folder (the pair can move together), else absolute
         mesh = os.path.relpath(p.mesh, folder) if p.mesh.is_relative_to(folder) else str(p.mesh)
         spec: dict = {"mesh": Path(mesh).as_posix()}
+        if p.solid is not None:
+            spec["solid"] = p.solid
         if p.color is not None:
             spec["color"] = [_num(v) for v in p.color]
         if p.symmetry is not None:

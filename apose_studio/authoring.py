@@ -39,13 +39,34 @@ def unique_part_id(asm: Assembly, wanted: str) -> str:
     return pid
 
 
-def add_part(asm: Assembly, mesh_path: str | Path, part_id: str | None = None) -> tuple[Assembly, str]:
+def add_part(asm: Assembly, mesh_path: str | Path, part_id: str | None = None,
+             solid: str | None = None) -> tuple[Assembly, str]:
     """Add a part by mesh path (the caller loads the mesh to check it). Returns the new assembly and id."""
     path = Path(mesh_path).expanduser().resolve()
-    pid = unique_part_id(asm, part_id or path.stem)
+    pid = unique_part_id(asm, part_id or solid or path.stem)
     parts = dict(asm.parts)
-    parts[pid] = Part(pid, path)
+    parts[pid] = Part(pid, path, solid=solid)
     return replace(asm, parts=parts), pid
+
+
+def add_mesh_parts(asm: Assembly, mesh_path: str | Path) -> tuple[Assembly, list[str]]:
+    """Add a mesh file as a part, or a STEP file with several solids as one part per solid (named after
+    them). Reads STEP files (to list their solids); raises MeshError on a bad one."""
+    from .mesh import STEP_EXTENSIONS, step_solids
+
+    path = Path(mesh_path).expanduser().resolve()
+    if path.suffix.lower() not in STEP_EXTENSIONS or not path.is_file():
+        asm, pid = add_part(asm, path)
+        return asm, [pid]
+    solids = list(step_solids(path))
+    if len(solids) == 1:
+        asm, pid = add_part(asm, path)
+        return asm, [pid]
+    ids = []
+    for name in solids:
+        asm, pid = add_part(asm, path, solid=name)
+        ids.append(pid)
+    return asm, ids
 
 
 def remove_part(asm: Assembly, part_id: str) -> Assembly:

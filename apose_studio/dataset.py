@@ -449,7 +449,7 @@ def write_models(asm: Assembly, models: dict[str, PartModel], out) -> tuple[dict
         mm.apply_scale(1000.0)
         path.write_bytes(mm.export(file_type="ply"))
         infos[str(i)] = {**_models_info(models[pid]), **_symmetry_info(part, models[pid])}
-        parts[pid] = replace(part, mesh=path.resolve())
+        parts[pid] = replace(part, mesh=path.resolve(), solid=None)  # one PLY per part, whatever it was read from
     write_json(mdir / "models_info.json", infos)
     ds_asm = replace(asm, units="mm", parts=parts)
     save_assembly(ds_asm, Path(out) / "assembly.yaml")

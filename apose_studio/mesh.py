@@ -30,7 +30,7 @@ def supported_extensions() -> tuple[str, ...]:
 
 
 def step_supported() -> bool:
-    """STEP goes through trimesh's cascadio (OpenCASCADE) loader when that package is installed."""
+    """STEP goes through trimesh's cascadio (OpenCASCADE) loader (a dependency; checked for old installs)."""
     try:
         import cascadio  # noqa: F401
     except ImportError:
@@ -60,8 +60,11 @@ def merge_vertices(vertices: np.ndarray, faces: np.ndarray, bits: int = 21) -> t
     return vertices[first[keep]], f[good]
 
 
-def load_mesh(path: str | Path, unit: str = "m") -> trimesh.Trimesh:
-    """Read a surface mesh and scale it to metres. Raises MeshError naming the file and the fix."""
+def load_mesh(path: str | Path, unit: str = "m", solid: str | None = None) -> trimesh.Trimesh:
+    """Read a surface mesh and scale it to metres. Raises MeshError naming the file and the fix.
+
+    STEP files carry their own length unit and are read in metres whatever `unit` says; `solid` picks
+    one named solid of a STEP file (None: all of them as one part)."""
     from .fileio import describe_path
 
     path = Path(path)
@@ -69,7 +72,7 @@ def load_mesh(path: str | Path, unit: str = "m") -> trimesh.Trimesh:
     if not path.is_file():
         raise MeshError(f"{path}: {describe_path(path, 'a mesh file')}")
     if ext in STEP_EXTENSIONS and not step_supported():
-        raise MeshError(f"{path}: STEP needs the optional package cascadio (pip install cascadio), "
+        raise MeshError(f"{path}: STEP needs the package cascadio (pip install cascadio), "
                         "or export the part as STL/PLY/OBJ/GLB")
     if ext not in supported_extensions():
         raise MeshError(f"{path}: unsupported file type {ext or '(none)'}; "
@@ -79,13 +82,19 @@ def load_mesh(path: str | Path, unit: str = "m") -> trimesh.Trimesh:
     wrong = _not_a(path, ext)
     if wrong:
         raise MeshError(f"{path}: {wrong}, not a {ext[1:].upper()} mesh; export the part's surface as a mesh file")
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            loaded = trimesh.load(str(path), force="mesh", process=False)
-    except Exception as e:  # trimesh raises many types on corrupt input
-        raise MeshError(f"{path}: could not be read as a {ext[1:].upper()} mesh (corrupt or truncated?): "
-                        f"{type(e).__name__}: {e}") from None
+    if solid is not None and ext not in STEP_EXTENSIONS:
+        raise MeshError(f"{path}: `solid: {solid}` names a solid of a STEP file, but this is a {ext[1:].upper()} mesh; "
+                        "remove `solid`")
+    if ext in STEP_EXTENSIONS:
+        loaded, unit = _step_solid(path, solid), "m"
+    else:
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                loaded = trimesh.load(str(path), force="mesh", process=False)
+        except Exception as e:  # trimesh raises many types on corrupt input
+            raise MeshError(f"{path}: could not be read as a {ext[1:].upper()} mesh (corrupt or truncated?): "
+                            f"{type(e).__name__}: {e}") from None
     if not isinstance(loaded, trimesh.Trimesh):
         kind = type(loaded).__name__
         raise MeshError(f"{path}: holds a {kind} with no triangles, not a surface mesh; export the part's surface")
@@ -100,6 +109,50 @@ def load_mesh(path: str | Path, unit: str = "m") -> trimesh.Trimesh:
     if np.linalg.matrix_rank(mesh.vertices - mesh.vertices.mean(axis=0), tol=1e-9 * float(np.max(mesh.extents))) < 3:
         raise MeshError(f"{path}: the mesh is flat (all vertices in one plane); a part needs a 3D surface")
     return mesh
+
+
+_STEP_CACHE: dict = {}
+
+
+def step_solids(path: str | Path) -> dict[str, trimesh.Trimesh]:
+    """The named solids of a STEP file, each a triangle mesh in metres (OpenCASCADE through cascadio).
+    Cached per file and modification time: several parts of one file read it once."""
+    path = Path(path)
+    key = (str(path.resolve()), path.stat().st_mtime_ns, path.stat().st_size)
+    if key not in _STEP_CACHE:
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                scene = trimesh.load(str(path), file_type="step")
+        except Exception as e:
+            raise MeshError(f"{path}: could not be read as STEP (corrupt, truncated, or not a solid model?): "
+                            f"{type(e).__name__}: {e}") from None
+        geoms = scene.geometry if isinstance(scene, trimesh.Scene) else {path.stem: scene}
+        solids = {}
+        if isinstance(scene, trimesh.Scene):
+            for node in scene.graph.nodes_geometry:
+                T, name = scene.graph[node]
+                g = geoms[name]
+                if isinstance(g, trimesh.Trimesh) and len(g.faces):
+                    solids[node] = g.copy().apply_transform(T)
+        else:
+            solids = {k: v for k, v in geoms.items() if isinstance(v, trimesh.Trimesh)}
+        if not solids:
+            raise MeshError(f"{path}: the STEP file holds no solid with faces; export the parts as solids")
+        if len(_STEP_CACHE) > 16:
+            _STEP_CACHE.clear()
+        _STEP_CACHE[key] = solids
+    return _STEP_CACHE[key]
+
+
+def _step_solid(path: Path, solid: str | None) -> trimesh.Trimesh:
+    solids = step_solids(path)
+    if solid is None:
+        return next(iter(solids.values())) if len(solids) == 1 else trimesh.util.concatenate(list(solids.values()))
+    if solid not in solids:
+        raise MeshError(f"{path}: has no solid named {solid!r}; its solids are {', '.join(solids)} "
+                        "(set the part's `solid` to one of them)")
+    return solids[solid]
 
 
 def _not_a(path: Path, ext: str) -> str | None:
@@ -118,7 +171,8 @@ def _not_a(path: Path, ext: str) -> str | None:
     if text is None:
         return None if ext in (".stl", ".glb", ".ply") else "a binary file"
     start = text.lstrip().lower()
-    expected = {".stl": ("solid",), ".ply": ("ply",), ".off": ("off", "coff", "noff", "#"), ".gltf": ("{",)}
+    expected = {".stl": ("solid",), ".ply": ("ply",), ".off": ("off", "coff", "noff", "#"), ".gltf": ("{",),
+                ".step": ("iso-10303-21",), ".stp": ("iso-10303-21",)}
     if ext == ".stl" and not start.startswith("solid") and len(head) >= 84:  # a binary STL's header may be text
         n = int.from_bytes(head[80:84], "little")
         return None if path.stat().st_size == 84 + 50 * n else "a text file"
@@ -294,9 +348,10 @@ def build_part_model(part_id: str, mesh: trimesh.Trimesh, symmetry: Symmetry | N
 
 def load_part(part: Part, unit: str, index: int = 0) -> PartModel:
     """Load one part of an assembly: mesh in metres plus derived geometry and a unit sanity check."""
-    mesh = load_mesh(part.mesh, unit)
+    mesh = load_mesh(part.mesh, unit, part.solid)
     d = diameter(mesh.vertices)
-    guess = suspicious_unit(d / UNIT_TO_M[unit], unit)
+    is_step = part.mesh.suffix.lower() in STEP_EXTENSIONS  # carries its own unit: nothing to guess
+    guess = None if is_step else suspicious_unit(d / UNIT_TO_M[unit], unit)
     warning = None
     if guess is not None:
         warning = (f"part {part.id!r} ({part.mesh.name}) is {d:.4g} m across when read as {unit}; "

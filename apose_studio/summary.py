@@ -54,7 +54,7 @@ def show_text(asm, models) -> str:
         lines.append(f"     pose in {s.base[0]}: {_fmt_pose(s.T_base_part)}")
         if s.mates:
             lines.append(f"     from mates: {', '.join(m.type for m in s.mates)}; "
-                         + ("all six degrees of freedom fixed" if not s.free else "free: " + "; ".join(s.free)))
+                         + ("the pose is fixed" if not s.free else "free: " + "; ".join(s.free)))
         if s.approach is not None:
             d = s.approach.direction
             lines.append(f"     approach: {s.approach.distance * 1000:.1f} mm along ({d[0]:+.3f}, {d[1]:+.3f}, {d[2]:+.3f})")

@@ -180,12 +180,14 @@ class AssemblyPanel:
         self.warn_units(client)
 
     def add_mesh_file(self, path: Path, client) -> str:
-        asm, pid = authoring.add_part(self.app.asm, path)
-        model = self.app.model(pid, asm)  # raises MeshError before anything changes
+        """Add a mesh as a part (a STEP file with several solids as a part per solid); returns the ids."""
+        asm, pids = authoring.add_mesh_parts(self.app.asm, path)
+        models = [self.app.model(pid, asm) for pid in pids]  # raises MeshError before anything changes
         self.app.set_assembly(asm, client, quiet=True)
-        if model.unit_warning:
-            self.app.notify(client, "Units look wrong", model.unit_warning, error=True)
-        return pid
+        for model in models:
+            if model.unit_warning:
+                self.app.notify(client, "Units look wrong", model.unit_warning, error=True)
+        return ", ".join(pids)
 
     def on_add_parts(self, client) -> None:
         text = self.f_mesh.value.strip()
