@@ -280,6 +280,16 @@ def _parse_base(c: Checker, base, key: str, part, parts: dict[str, Part]) -> lis
     return base
 
 
+def solve_step_mates(step: Step, T_base_members: dict[str, np.ndarray], part: Part):
+    """The mates' solution (`mates.Solution`) for a step whose base parts sit at `T_base_members` (in
+    base[0]'s frame); what the mates leave free comes from the step's current pose. Raises MateError."""
+    from . import mates as mt
+
+    sym = part.symmetry
+    axis = np.asarray(sym.axis) if sym is not None and sym.order == 0 else None
+    return mt.solve(mt.in_base_frame(step.mates, step.base[0], T_base_members), step.T_base_part, axis)
+
+
 def _solve_mates(c: Checker, steps: list[Step], parts: dict[str, Part], given: dict[int, bool]) -> None:
     """Solve every step's mates in order (a base part's pose comes from the steps before), in place.
     Step indices in key paths count the steps as written; these are the parsed ones, which match
@@ -292,10 +302,8 @@ def _solve_mates(c: Checker, steps: list[Step], parts: dict[str, Part], given: d
         if s.mates:
             T_base_root = se3.inv(T_root_base0)
             members = {b: T_base_root @ T_root.get(b, np.eye(4)) for b in s.base}
-            sym = parts[s.part].symmetry
-            axis = np.asarray(sym.axis) if sym is not None and sym.order == 0 else None
             try:
-                sol = mt.solve(mt.in_base_frame(s.mates, s.base[0], members), s.T_base_part, axis)
+                sol = solve_step_mates(s, members, parts[s.part])
             except MateError as e:
                 c.add(f"steps[{i}].mates" + (f"[{e.index}]" if e.index is not None else ""), e.what)
                 continue

@@ -127,10 +127,12 @@ def move_step(asm: Assembly, index: int, delta: int) -> Assembly:
 
 
 def edit_step(asm: Assembly, index: int, part: str | None = None, base=None, T_base_part=None) -> Assembly:
+    """A step with another part, base or pose; its mates and approach stay (a pose that breaks the
+    mates is the caller's to settle: `broken_mates`)."""
     s = asm.steps[index]
     steps = list(asm.steps)
-    steps[index] = Step(part if part is not None else s.part, tuple(base) if base is not None else s.base,
-                        np.array(T_base_part, dtype=float) if T_base_part is not None else s.T_base_part)
+    steps[index] = replace(s, part=part if part is not None else s.part, base=tuple(base) if base is not None else s.base,
+                           T_base_part=np.array(T_base_part, dtype=float) if T_base_part is not None else s.T_base_part)
     return asm.with_steps(steps)
 
 
@@ -237,3 +239,124 @@ def preview_poses(asm: Assembly, upto: int, diameters: dict[str, float], explode
                 explode * diameters.get(root, 0.1) * (i + 1) / n)
         out[s.part] = T
     return out
+
+
+# ----------------------------------------------------------------------------------- mates
+
+
+def set_mates(asm: Assembly, index: int, mates) -> Assembly:
+    """Step `index` (0-based) with these mates (metres; base references in their base part's frame), its
+    pose solved from them. Raises AposeError naming the mate that cannot hold."""
+    from .assembly import solve_step_mates
+    from .mates import MateError
+
+    s = replace(asm.steps[index], mates=tuple(mates))
+    if not s.mates:
+        return asm.with_steps([*asm.steps[:index], replace(s, free=()), *asm.steps[index + 1:]])
+    view = asm.step_view(index + 1)
+    try:
+        sol = solve_step_mates(s, view.T_base_members, asm.parts[s.part])
+    except MateError as e:
+        which = f"mate {e.index + 1}" if e.index is not None else "the mates"
+        raise AposeError(f"step {index + 1}, {which}: {e.what}") from None
+    return asm.with_steps([*asm.steps[:index], replace(s, T_base_part=sol.T_base_part, free=sol.free), *asm.steps[index + 1:]])
+
+
+def mate_from_picks(asm: Assembly, index: int, kind: str, base_part: str, base_feature, part_feature,
+                    offset_m: float = 0.0):
+    """A mate of `kind` between a picked feature of a base part and one of the step's part (each a
+    `picking.Feature` in its own part's frame). A coaxial mate is flipped when that turns the part less
+    (a fitted axis has no sign)."""
+    from .mates import Mate, Ref
+
+    s = asm.steps[index]
+    bp = None if base_part == s.base[0] else base_part
+    b = Ref(point=base_feature.point.copy(), direction=base_feature.direction.copy())
+    p = Ref(point=part_feature.point.copy(), direction=part_feature.direction.copy())
+    if kind == "coaxial":
+        T_b = asm.step_view(index + 1).T_base_members[base_part]
+        flip = float((s.T_base_part[:3, :3] @ p.direction) @ (T_b[:3, :3] @ b.direction)) < 0
+        return Mate("coaxial", b, p, bp, flip=flip)
+    if kind not in ("contact", "aligned"):
+        raise AposeError(f"no mate of kind {kind!r} between two picked faces")
+    return Mate(kind, b, p, bp, offset=float(offset_m))
+
+
+def lock_turn(asm: Assembly, index: int) -> Assembly:
+    """Add an angle mate that holds the part's present turn about its coaxial axis (or contact normal)."""
+    from .mates import Mate, Ref, angle_axis, in_base_frame
+
+    s = asm.steps[index]
+    moved = in_base_frame(s.mates, s.base[0], asm.step_view(index + 1).T_base_members)
+    axis = angle_axis(moved)
+    if axis is None:
+        raise AposeError("an angle needs a coaxial or contact mate first: pick two round or two flat faces")
+    ref = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
+    ref /= np.linalg.norm(ref)
+    mate = Mate("angle", Ref(direction=ref), Ref(direction=s.T_base_part[:3, :3].T @ ref), None, degrees=0.0)
+    return set_mates(asm, index, [*s.mates, mate])
+
+
+def edit_mate(asm: Assembly, index: int, k: int, **changes) -> Assembly:
+    """Mate k of step `index` with `offset` (m), `degrees` or `flip` changed, solved again."""
+    s = asm.steps[index]
+    mates = list(s.mates)
+    mates[k] = replace(mates[k], **changes)
+    return set_mates(asm, index, mates)
+
+
+def broken_mates(asm: Assembly, index: int, T_base_part: np.ndarray) -> bool:
+    """Whether a pose for step `index` breaks its mates (the pose the mates would solve to differs)."""
+    from .mates import disagreement
+
+    s = asm.steps[index]
+    if not s.mates:
+        return False
+    try:
+        solved = set_mates(edit_step(asm, index, T_base_part=T_base_part), index, s.mates).steps[index].T_base_part
+    except AposeError:
+        return True
+    return disagreement(np.asarray(T_base_part, float), solved) is not None
+
+
+def set_approach(asm: Assembly, index: int, direction, distance_m: float) -> Assembly:
+    """Step `index` with an approach (a direction in base[0]'s frame and a length in metres), or none."""
+    from .mates import Approach
+
+    s = asm.steps[index]
+    approach = None
+    if direction is not None:
+        d = np.asarray(direction, dtype=float)
+        if not (np.isfinite(d).all() and np.linalg.norm(d) > 1e-9 and np.isfinite(distance_m) and distance_m > 0):
+            raise AposeError("an approach needs a direction and a length above 0 mm")
+        approach = Approach(d / np.linalg.norm(d), float(distance_m))
+    return asm.with_steps([*asm.steps[:index], replace(s, approach=approach), *asm.steps[index + 1:]])
+
+
+class History:
+    """Undo and redo over whole drafts (Assemblies are immutable, so a snapshot is a reference)."""
+
+    def __init__(self, limit: int = 200):
+        self.undo_stack: list[Assembly] = []
+        self.redo_stack: list[Assembly] = []
+        self.limit = limit
+
+    def record(self, before: Assembly) -> None:
+        """Call before an edit replaces `before`; a new edit forgets what was undone."""
+        if self.undo_stack and self.undo_stack[-1] is before:
+            return
+        self.undo_stack.append(before)
+        del self.undo_stack[:-self.limit]
+        self.redo_stack.clear()
+
+    def undo(self, current: Assembly) -> Assembly:
+        if not self.undo_stack:
+            raise AposeError("nothing to undo")
+        self.redo_stack.append(current)
+        return self.undo_stack.pop()
+
+    def redo(self, current: Assembly) -> Assembly:
+        if not self.redo_stack:
+            raise AposeError("nothing to redo")
+        self.undo_stack.append(current)
+        return self.redo_stack.pop()

@@ -127,7 +127,7 @@ def _pair(m: Mate) -> tuple[np.ndarray, np.ndarray] | None:
     return None
 
 
-def _angle_axis(mates: list[Mate]) -> np.ndarray | None:
+def angle_axis(mates: list[Mate]) -> np.ndarray | None:
     for types in (("coaxial",), ("contact", "aligned")):
         for m in mates:
             if m.type in types:
@@ -166,7 +166,7 @@ def _rotation(mates: list[Mate], R_guess: np.ndarray, w: list[float]) -> tuple[n
         free_axis = v
     angles = [m for m in mates if m.type == "angle"]
     if angles:
-        axis = _angle_axis(mates)
+        axis = angle_axis(mates)
         if axis is None:
             raise MateError(None, "an angle mate turns about a coaxial axis or a contact normal; add one of those first")
         if free_axis is not None:
@@ -232,7 +232,7 @@ def _solve_once(mates: list[Mate], T_guess: np.ndarray):
     t, N = _translation(mates, R, T_guess[:3, 3], w)
     T = se3.make_T(R, t)
     worst = (0.0, 0.0)
-    axis = _angle_axis(mates)
+    axis = angle_axis(mates)
     for m in mates[-1:]:
         if m.type == "angle":
             d = np.radians(m.degrees) - _turn(m, axis, R)

@@ -27,6 +27,7 @@ from ..mesh import PartModel, load_part
 from ..webguard import Workspace
 from .assembly_panel import AssemblyPanel
 from .inspect_panel import InspectPanel
+from .mates_panel import MatesPanel
 from .results_view import ResultsView
 from .prompt_panel import PromptPanel
 from .steps_panel import StepsPanel
@@ -63,6 +64,8 @@ class Studio:
         self._last_notice = ""
         self.files = AssemblyPanel(self)
         self.steps = StepsPanel(self)
+        self.mates = MatesPanel(self)
+        self.history = authoring.History()
         self.inspect = InspectPanel(self)
         self.results = ResultsView(self)
         self.prompt = PromptPanel(self)
@@ -121,8 +124,14 @@ class Studio:
         self.view.on_click(lambda e: self.guarded("3D view")(lambda c: self.on_view_button(e.target.value))(e))
         tabs = gui.add_tab_group()
         with tabs.add_tab("Assembly"):
+            self.edit_row = gui.add_button_group("Edit", ("Undo", "Redo"))
+            self.edit_row.on_click(lambda e: self.guarded(e.target.value)(lambda c: self.undo_redo(e.target.value, c))(e))
+            for label, modifier in (("Undo", "cmd/ctrl"), ("Redo", "cmd/ctrl+shift")):
+                cmd = gui.add_command(label, description=f"{label} the last authoring edit", hotkey="Z", modifier=modifier)
+                cmd.on_trigger(lambda e, label=label: self.guarded(label)(lambda c: self.undo_redo(label, c))(e))
             self.files.build()
             self.steps.build()
+            self.mates.build()
         with tabs.add_tab("Inspect"):
             self.inspect.build()
             self.prompt.build()
@@ -176,8 +185,18 @@ class Studio:
             self.models[key] = load_part(part, asm.units, key[4])
         return self.models[key]
 
-    def set_assembly(self, asm: Assembly, client=None, quiet: bool = False) -> None:
-        """Adopt a new draft: validate, remember the last valid one, refresh every view of it."""
+    def undo_redo(self, which: str, client) -> None:
+        asm = self.history.undo(self.asm) if which == "Undo" else self.history.redo(self.asm)
+        self.steps.drop_meshes()  # a part may come back with another mesh
+        self.mates.clear_picks()
+        self.set_assembly(asm, client, record=False)
+        self.steps.sync_typed_pose()
+
+    def set_assembly(self, asm: Assembly, client=None, quiet: bool = False, record: bool = True) -> None:
+        """Adopt a new draft: validate, remember the last valid one, refresh every view of it. With
+        `record`, the draft it replaces goes on the undo history."""
+        if record and asm is not self.asm:
+            self.history.record(self.asm)
         self.asm = asm
         self.problems = authoring.problems(asm)
         hard = [p for p in self.problems if p.key != "steps"]  # "no steps yet" is not an error

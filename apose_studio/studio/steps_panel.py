@@ -24,6 +24,7 @@ class StepsPanel:
         self.step_index: int | None = None  # selected step, 0-based
         self.mesh_handles: dict[str, object] = {}
         self._preview: dict = {}
+        self._drag_before = None  # the draft when a gizmo drag started
 
     def drop_meshes(self, pid: str | None = None) -> None:
         """Remove a part's mesh from the 3D view (every part's with None); the next refresh adds it anew."""
@@ -65,7 +66,7 @@ class StepsPanel:
     def step_action(self, action: str, client) -> None:
         i = self.step_index
         if action == "Add":
-            asm = authoring.add_step(self.app.asm)
+            asm = authoring.add_step(self.app.asm, self.new_step_beside())
             self.step_index = len(asm.steps) - 1
         else:
             if i is None:
@@ -79,6 +80,26 @@ class StepsPanel:
         self.app.set_assembly(asm, client)
         if self.step_index is not None:
             self.f_upto.value = self.step_index + 1
+
+    def new_step_beside(self):
+        """The default next step with its part set down beside its base (not inside it), facing the same
+        way, so its faces can be clicked for mates."""
+        step = authoring.default_new_step(self.app.asm)
+        try:
+            r_base, r_part = (self.app.model(p).diameter / 2 for p in (step.base[0], step.part))
+        except AposeError:
+            return step
+        from dataclasses import replace
+
+        return replace(step, T_base_part=se3.make_T(t=np.array([1.3 * (r_base + r_part), 0.0, 0.0])))
+
+    def T_world_shown(self, pid: str):
+        """Where a part is drawn now: the selected step's part at the draft's pose, the others at the preview's."""
+        i = self.step_index
+        asm = self.app.asm
+        if i is not None and i < len(asm.steps) and asm.steps[i].part == pid and asm.steps[i].base[0] in self._preview:
+            return self._preview[asm.steps[i].base[0]] @ asm.steps[i].T_base_part
+        return self._preview.get(pid)
 
     def on_select_step(self, client) -> None:
         if self._syncing or not self.app.asm.steps:
@@ -104,7 +125,40 @@ class StepsPanel:
         if self._syncing or self.step_index is None:
             return
         T = authoring.pose_from_typed(self.f_t.value, self.f_r.value)
+        before = self.app.asm
+        self.app.history.record(before)
         self.set_pose(T, client, sync_fields=False)
+        self.settle_mates(before, client)
+
+    def settle_mates(self, before, client) -> None:
+        """After a typed pose or a drag: a pose that breaks the step's mates asks whether to drop them or
+        to snap back to what they give."""
+        i = self.step_index
+        if i is None or not authoring.broken_mates(self.app.asm, i, self.app.asm.steps[i].T_base_part):
+            return
+        clients = [client] if client is not None else list(self.app.server.get_clients().values())
+        for c in clients:
+            with c.gui.add_modal("This move breaks the step's mates") as modal:
+                c.gui.add_markdown(f"Step {i + 1} is placed by {len(self.app.asm.steps[i].mates)} mate(s); the new pose "
+                                   "does not keep them.")
+                drop = c.gui.add_button("Drop the mates (keep the new pose)")
+                back = c.gui.add_button("Snap back")
+
+            def on_drop(e, modal=modal):
+                def act(cl):
+                    modal.close()
+                    self.app.set_assembly(authoring.set_mates(self.app.asm, i, []), cl, record=False)
+                self.app.guarded("Drop mates")(act)(e)
+
+            def on_back(e, modal=modal):
+                def act(cl):
+                    modal.close()
+                    self.app.set_assembly(before, cl, record=False)
+                    self.sync_typed_pose()
+                self.app.guarded("Snap back")(act)(e)
+
+            drop.on_click(on_drop)
+            back.on_click(on_back)
 
     def set_pose(self, T: np.ndarray, client, sync_fields: bool = True) -> None:
         self.app.asm = authoring.edit_step(self.app.asm, self.step_index, T_base_part=T)
@@ -126,7 +180,13 @@ class StepsPanel:
         T_world_base = self._preview[step.base[0]]
         T = se3.inv(T_world_base) @ se3.make_T(se3.quat_wxyz_to_matrix(np.asarray(g.wxyz)), np.asarray(g.position))
         T = authoring.snap_pose(T, float(self.f_snap_mm.value or 0), float(self.f_snap_deg.value or 0))
+        if event.phase == "start" or self._drag_before is None:
+            self._drag_before = self.app.asm
+            self.app.history.record(self._drag_before)
         self.set_pose(T, None, sync_fields=event.phase == "end")
+        if event.phase == "end":
+            before, self._drag_before = self._drag_before, None
+            self.settle_mates(before, event.client)
 
     def make_pose_fields(self, t, e) -> None:
         """(Re)create the typed pose inputs holding `t` (mm) and `e` (°).
@@ -156,14 +216,25 @@ class StepsPanel:
         self.make_pose_fields(*authoring.typed_pose(self.app.asm.steps[self.step_index].T_base_part))
 
     def on_play_sequence(self, client) -> None:
-        n = len(self.app.valid_asm.steps)
+        """Play the assembly for a demo: each step's part comes in along its approach (when it has one)."""
+        asm = self.app.valid_asm
+        n = len(asm.steps)
         if n == 0:
             raise AposeError("nothing to play: add steps first")
 
         def play():
-            for k in range(n + 1):
+            self.f_upto.value = 0
+            time.sleep(0.6)
+            for k, s in enumerate(asm.steps, start=1):
                 self.f_upto.value = k
-                time.sleep(0.8)
+                h = self.mesh_handles.get(s.part)
+                with self.app.lock:
+                    T_end, T_base = self._preview.get(s.part), self._preview.get(s.base[0])
+                if s.approach is not None and h is not None and T_end is not None and T_base is not None:
+                    for a in np.linspace(1.0, 0.0, 16):
+                        h.position = pos(s.approach.start(T_end, T_base) * a + T_end * (1 - a))
+                        time.sleep(0.04)
+                time.sleep(0.5)
 
         threading.Thread(target=play, daemon=True).start()
 
@@ -184,6 +255,10 @@ class StepsPanel:
         finally:
             self._syncing = False
         self.refresh_status()
+        self.app.mates.refresh()
+        if self.step_index is not None and self.step_index < len(asm.steps):
+            s = asm.steps[self.step_index]
+            self.app.mates.warm_up([p for p in (s.part, *s.base) if p in asm.parts])
 
     def refresh_status(self) -> None:
         bad = authoring.problem_steps(self.app.problems)
@@ -237,6 +312,7 @@ class StepsPanel:
                 color = tuple(int(255 * c) for c in m.color)
                 h = self.app.server.scene.add_mesh_simple(f"/parts/{pid}", m.mesh.vertices.astype(np.float32),
                                                       m.mesh.faces.astype(np.uint32), color=color, flat_shading=False)
+                h.on_click(lambda e, pid=pid: self.app.guarded("Pick a face")(lambda c: self.app.mates.on_pick(pid, e))(e))
                 self.mesh_handles[pid] = h
             T = self._preview.get(pid)
             h._apose_visible = T is not None

@@ -1,0 +1,279 @@
+"""The Assembly tab's Mates and Approach folders: faces picked with a click in the 3D view become
+mates (two round faces snap coaxial at once; two flat faces offer Contact / Aligned with a gap), the
+step's mates listed and edited (offset, angle, flip, delete, lock the turn), and the step's approach
+drawn as an arrow on the part. Picking geometry is `picking` (pure), editing is `authoring` (pure)."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+
+from .. import authoring, se3
+from ..errors import AposeError
+from ..picking import FacePicker, Feature
+from .widgets import esc, pos, wxyz
+
+PICK_COLOURS = {"part": (120, 255, 0), "base": (255, 0, 255)}  # lime and magenta: in no part palette
+APPROACH_COLOUR = (255, 110, 0)
+HIGHLIGHT_TRIANGLES = 60000  # at most this many triangles of a picked face are sent to the page
+DIRECTIONS = {"none": None, "along the mate axis": "mate", "-z": (0, 0, -1), "+z": (0, 0, 1), "-x": (-1, 0, 0),
+              "+x": (1, 0, 0), "-y": (0, -1, 0), "+y": (0, 1, 0)}
+HELP = ("Click a face of the step's **part** and one of its **base** (picked faces light up: part "
+        "<span style='color:#78ff00'>■</span>, base <span style='color:#ff00ff'>■</span>). Two round faces "
+        "make a coaxial mate at once; two flat faces offer Contact or Aligned, with the gap below.")
+
+
+class MatesPanel:
+    def __init__(self, app):
+        self.app = app
+        self.picks: dict[str, tuple[str, Feature]] = {}  # "part" / "base" -> (part id, feature in its frame)
+        self.pickers: dict[tuple, FacePicker] = {}
+        self._warming: set = set()
+
+    def build(self) -> None:
+        gui = self.app.server.gui
+        with gui.add_folder("Mates") as self.folder:
+            gui.add_markdown(HELP)
+            self.picked_md = gui.add_markdown("*nothing picked*")
+            self.f_gap = gui.add_number("Gap (mm)", 0.0, step=0.1, hint="contact/aligned: distance along the base's normal")
+            self.b_planes = gui.add_button_group("Mate flat faces", ("Contact", "Aligned"))
+            self.b_planes.on_click(lambda e: self.app.guarded("Mate")(lambda c: self.on_plane_mate(e.target.value, c))(e))
+            b = gui.add_button("Clear picks")
+            b.on_click(self.app.guarded("Clear picks")(lambda c: self.clear_picks()))
+            self.list_html = gui.add_html("")
+            self.f_mate = gui.add_dropdown("Mate", ("—",))
+            self.f_value = gui.add_number("Offset (mm) / angle (°)", 0.0, step=0.1)
+            self.b_value = gui.add_button("Set offset / angle")
+            self.b_value.on_click(self.app.guarded("Set")(self.on_set_value))
+            row = gui.add_button_group("Mate actions", ("Flip", "Delete", "Lock turn"))
+            row.on_click(lambda e: self.app.guarded(e.target.value)(lambda c: self.on_mate_action(e.target.value, c))(e))
+        with gui.add_folder("Approach"):
+            self.f_app_dir = gui.add_dropdown("Direction", tuple(DIRECTIONS), initial_value="none")
+            self.f_app_len = gui.add_number("Length (mm)", 30.0, min=0.0, step=1.0)
+            b = gui.add_button("Set approach")
+            b.on_click(self.app.guarded("Approach")(self.on_set_approach))
+
+    # ------------------------------------------------------------------------------------ picking
+
+    def picker(self, pid: str) -> FacePicker:
+        m = self.app.model(pid)
+        key = (id(m.mesh), len(m.mesh.faces))
+        if key not in self.pickers:
+            self.pickers[key] = FacePicker(m.mesh)
+        return self.pickers[key]
+
+    def warm_up(self, pids) -> None:
+        """Build the pickers of these parts in the background, so the first click answers at once."""
+        todo = [p for p in pids if p not in self._warming]
+        self._warming.update(todo)
+
+        def run():
+            for p in todo:
+                try:
+                    with self.app.lock:
+                        m = self.app.model(p)
+                    key = (id(m.mesh), len(m.mesh.faces))
+                    if key not in self.pickers:
+                        self.pickers[key] = FacePicker(m.mesh)
+                except Exception:  # a part that fails to load says so when it is clicked
+                    pass
+
+        threading.Thread(target=run, daemon=True).start()
+
+    def on_pick(self, pid: str, event) -> None:
+        steps = self.app.steps
+        i = steps.step_index
+        if self.app.current_view != "Assembly" or i is None or i >= len(self.app.asm.steps):
+            return
+        step = self.app.asm.steps[i]
+        side = "part" if pid == step.part else "base" if pid in step.base else None
+        if side is None:
+            raise AposeError(f"{pid} is not in step {i + 1}; pick a face of {step.part} or of its base "
+                             f"({', '.join(step.base)})")
+        T_world = steps.T_world_shown(pid)
+        if T_world is None:
+            return
+        T_part_world = se3.inv(T_world)
+        origin = se3.transform_points(T_part_world, np.asarray(event.ray_origin, float)[None])[0]
+        direction = T_part_world[:3, :3] @ np.asarray(event.ray_direction, float)
+        feature = self.picker(pid).pick(origin, direction)
+        if feature is None:
+            raise AposeError("the click did not meet the part's surface; click squarely on a face")
+        if feature.kind == "other":
+            raise AposeError(f"that face of {pid} is neither flat nor round (a fillet, a thread or a freeform "
+                             "surface); pick a flat face or a round one (a bore, a shaft)")
+        self.picks[side] = (pid, feature)
+        self.show_picks()
+        if len(self.picks) == 2:
+            self.maybe_mate(event.client)
+
+    def maybe_mate(self, client) -> None:
+        fp, fb = self.picks["part"][1], self.picks["base"][1]
+        if fp.is_axis and fb.is_axis:
+            self.make_mate("coaxial", client)
+        elif fp.is_axis != fb.is_axis:
+            self.picks.pop("base")
+            self.show_picks()
+            raise AposeError("a round face and a flat face make no mate; pick a face of the same kind on the base")
+
+    def on_plane_mate(self, kind: str, client) -> None:
+        if len(self.picks) < 2:
+            raise AposeError("pick a flat face of the part and one of its base first (click them in the 3D view)")
+        if self.picks["part"][1].is_axis or self.picks["base"][1].is_axis:
+            raise AposeError(f"{kind} joins two flat faces; the picks are round (they make a coaxial mate)")
+        self.make_mate(kind.lower(), client)
+
+    def make_mate(self, kind: str, client) -> None:
+        i = self.app.steps.step_index
+        (_, fp), (bp, fb) = self.picks["part"], self.picks["base"]
+        mate = authoring.mate_from_picks(self.app.asm, i, kind, bp, fb, fp, float(self.f_gap.value or 0.0) / 1000.0)
+        asm = authoring.set_mates(self.app.asm, i, [*self.app.asm.steps[i].mates, mate])
+        self.clear_picks()
+        self.app.set_assembly(asm, client)
+        self.app.steps.sync_typed_pose()
+
+    def clear_picks(self) -> None:
+        self.picks.clear()
+        self.show_picks()
+
+    def show_picks(self) -> None:
+        for side in ("part", "base"):
+            for name in (f"/mates/pick_{side}", f"/mates/axis_{side}"):
+                if name in self.app.nodes:
+                    self.app.nodes.pop(name).remove()
+        lines = []
+        for side, (pid, f) in self.picks.items():
+            T = self.app.steps.T_world_shown(pid)
+            if T is None:
+                continue
+            lines.append(f"- {side}: **{esc(pid)}**, {esc(f.describe())}")
+            m = self.app.model(pid)
+            shown = f.faces[::-(-len(f.faces) // HIGHLIGHT_TRIANGLES)]  # a huge face lights up in a fine spread
+            tris = m.mesh.faces[shown]
+            n = m.mesh.face_normals[shown]
+            v = (m.mesh.vertices[tris] + 0.002 * m.diameter * n[:, None, :]).reshape(-1, 3)  # just above the face
+            name = f"/mates/pick_{side}"
+            h = self.app.server.scene.add_mesh_simple(name, v.astype(np.float32), np.arange(len(v)).reshape(-1, 3).astype(np.uint32),
+                                                      color=PICK_COLOURS[side], position=pos(T), wxyz=wxyz(T))
+            self.app.node(name, h)
+            if f.is_axis:
+                seg = np.array([[f.point - 0.6 * m.diameter * f.direction, f.point + 0.6 * m.diameter * f.direction]])
+                name = f"/mates/axis_{side}"
+                self.app.node(name, self.app.server.scene.add_line_segments(
+                    name, seg.astype(np.float32), PICK_COLOURS[side], thickness=0.004 * m.diameter,
+                    position=pos(T), wxyz=wxyz(T)))
+        self.picked_md.content = "\n".join(lines) if lines else "*nothing picked*"
+
+    # ------------------------------------------------------------------------------------ the list
+
+    def refresh(self) -> None:
+        """The selected step's mates, free degrees of freedom and approach arrow."""
+        i = self.app.steps.step_index
+        asm = self.app.asm
+        if i is None or i >= len(asm.steps):
+            self.list_html.content = "<i>select a step</i>"
+            self.f_mate.options = ("—",)
+            self.draw_approach()
+            return
+        s = asm.steps[i]
+        rows = []
+        for k, m in enumerate(s.mates):
+            on = esc(m.base_part or s.base[0])
+            what = {"coaxial": "flipped" if m.flip else "", "contact": f"gap {m.offset * 1000:.2f} mm",
+                    "aligned": f"gap {m.offset * 1000:.2f} mm", "angle": f"{m.degrees:.1f}°", "fixed": ""}[m.type]
+            rows.append(f"<tr><td>{k + 1}</td><td>{m.type}</td><td>{on}</td><td>{what}</td></tr>")
+        if rows:
+            free = "; ".join(s.free) if s.free else "the pose is fixed"
+            self.list_html.content = ("<table style='font-size:0.8em;width:100%'><tr style='text-align:left'><th>#</th>"
+                                      "<th>mate</th><th>on</th><th></th></tr>" + "".join(rows) + "</table>"
+                                      f"<div style='font-size:0.8em'>{esc(free)}</div>")
+        else:
+            self.list_html.content = f"<i style='font-size:0.8em'>step {i + 1} has no mates: its pose is typed</i>"
+        options = tuple(f"{k + 1}. {m.type}" for k, m in enumerate(s.mates)) or ("—",)
+        if tuple(self.f_mate.options) != options:
+            self.f_mate.options = options
+        self.draw_approach()
+
+    def selected_mate(self) -> int:
+        i = self.app.steps.step_index
+        if i is None or not self.app.asm.steps[i].mates:
+            raise AposeError("the selected step has no mates: pick faces to make one")
+        return min(int(str(self.f_mate.value).split(".")[0]) - 1, len(self.app.asm.steps[i].mates) - 1)
+
+    def on_set_value(self, client) -> None:
+        i, k = self.app.steps.step_index, self.selected_mate()
+        m = self.app.asm.steps[i].mates[k]
+        v = float(self.f_value.value or 0.0)
+        if m.type in ("contact", "aligned"):
+            asm = authoring.edit_mate(self.app.asm, i, k, offset=v / 1000.0)
+        elif m.type == "angle":
+            asm = authoring.edit_mate(self.app.asm, i, k, degrees=v)
+        else:
+            raise AposeError(f"a {m.type} mate has no offset or angle to set")
+        self.app.set_assembly(asm, client)
+        self.app.steps.sync_typed_pose()
+
+    def on_mate_action(self, action: str, client) -> None:
+        i = self.app.steps.step_index
+        if action == "Lock turn":
+            if i is None:
+                raise AposeError("select a step first")
+            asm = authoring.lock_turn(self.app.asm, i)
+        else:
+            k = self.selected_mate()
+            m = self.app.asm.steps[i].mates[k]
+            if action == "Flip":
+                if m.type != "coaxial":
+                    raise AposeError("only a coaxial mate flips (its axes opposed); a contact is always face to face")
+                asm = authoring.edit_mate(self.app.asm, i, k, flip=not m.flip)
+            else:
+                mates = list(self.app.asm.steps[i].mates)
+                del mates[k]
+                asm = authoring.set_mates(self.app.asm, i, mates)
+        self.app.set_assembly(asm, client)
+        self.app.steps.sync_typed_pose()
+
+    # ------------------------------------------------------------------------------------ approach
+
+    def on_set_approach(self, client) -> None:
+        i = self.app.steps.step_index
+        if i is None:
+            raise AposeError("select a step first")
+        choice = DIRECTIONS[self.f_app_dir.value]
+        s = self.app.asm.steps[i]
+        if choice == "mate":
+            from ..mates import angle_axis, in_base_frame
+
+            axis = angle_axis(in_base_frame(s.mates, s.base[0], self.app.asm.step_view(i + 1).T_base_members))
+            if axis is None:
+                raise AposeError("no coaxial or contact mate to take the direction from; choose an axis")
+            centre = s.T_base_part[:3, 3]  # come in from the side the part is on, towards the base
+            choice = -axis if float(axis @ centre) > 0 else axis
+        length = float(self.f_app_len.value or 0.0) / 1000.0
+        asm = authoring.set_approach(self.app.asm, i, choice, length)
+        self.app.set_assembly(asm, client)
+
+    def draw_approach(self) -> None:
+        name = "/assembly/approach"
+        if name in self.app.nodes:
+            self.app.nodes.pop(name).remove()
+        i = self.app.steps.step_index
+        asm = self.app.asm
+        if i is None or i >= len(asm.steps) or asm.steps[i].approach is None or self.app.current_view != "Assembly":
+            return
+        s = asm.steps[i]
+        T_world_part = self.app.steps.T_world_shown(s.part)
+        T_world_base = self.app.steps.T_world_shown(s.base[0])
+        if T_world_part is None or T_world_base is None:
+            return
+        m = self.app.model(s.part)
+        end = se3.transform_points(T_world_part, m.box_corners().mean(axis=0)[None])[0]
+        d = T_world_base[:3, :3] @ s.approach.direction
+        start = end - s.approach.distance * d
+        side = np.cross(d, [0.0, 0.0, 1.0] if abs(d[2]) < 0.9 else [1.0, 0.0, 0.0])
+        side /= np.linalg.norm(side)
+        head = 0.2 * s.approach.distance
+        segs = np.array([[start, end], [end, end - head * d + 0.5 * head * side], [end, end - head * d - 0.5 * head * side]])
+        self.app.node(name, self.app.server.scene.add_line_segments(
+            name, segs.astype(np.float32), APPROACH_COLOUR, thickness=0.01 * m.diameter))
