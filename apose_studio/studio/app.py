@@ -114,6 +114,7 @@ class Studio:
 
     def on_connect(self, client) -> None:
         client.camera.up_direction = (0.0, 0.0, 1.0)
+        self.mates.listen(client)
 
     def build_gui(self) -> None:
         gui = self.server.gui

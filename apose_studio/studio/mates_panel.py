@@ -6,6 +6,7 @@ drawn as an arrow on the part. Picking geometry is `picking` (pure), editing is 
 from __future__ import annotations
 
 import threading
+import time
 
 import numpy as np
 
@@ -21,7 +22,8 @@ DIRECTIONS = {"none": None, "along the mate axis": "mate", "-z": (0, 0, -1), "+z
               "+x": (1, 0, 0), "-y": (0, -1, 0), "+y": (0, 1, 0)}
 HELP = ("Click a face of the step's **part** and one of its **base** (picked faces light up: part "
         "<span style='color:#78ff00'>■</span>, base <span style='color:#ff00ff'>■</span>). Two round faces "
-        "make a coaxial mate at once; two flat faces offer Contact or Aligned, with the gap below.")
+        "make a coaxial mate at once; two flat faces offer Contact or Aligned, with the gap below. While a "
+        "pick waits for its partner the gizmo steps aside; pick the base first if it is in the way.")
 
 
 class MatesPanel:
@@ -80,6 +82,48 @@ class MatesPanel:
                     pass
 
         threading.Thread(target=run, daemon=True).start()
+
+    def listen(self, client) -> None:
+        """Clicks anywhere in this tab's 3D view go to `on_click` (not clicks per mesh: a clickable mesh
+        in front of the gizmo would take its drags). viser 1.1 keeps the "send me scene clicks" switch
+        in the page's 3D view, which starts up seconds after the tab connects (WebGL in software) and
+        forgets a switch sent before; so the switch is sent again with the view's camera reports (the
+        view is up, or the user is turning it) until the first click comes back."""
+        state = {"heard": False, "last": 0.0}
+
+        def on_click(event):
+            state["heard"] = True
+            self.app.guarded("Pick a face")(lambda c: self.on_click(event))(event)
+
+        def on_camera(_):
+            now = time.monotonic()
+            if now - state["last"] < 0.5:
+                return
+            if state["last"]:
+                client.scene.remove_click_callback(on_click)
+            state["last"] = now
+            client.scene.on_click()(on_click)
+
+        client.camera.on_update(on_camera)
+
+    def on_click(self, event) -> None:
+        """A click in the 3D view: the nearest shown part its ray meets is the one picked."""
+        if self.app.current_view != "Assembly" or self.app.steps.step_index is None:
+            return
+        o, d = np.asarray(event.ray_origin, float), np.asarray(event.ray_direction, float)
+        best = None
+        for pid in self.app.steps.mesh_handles:
+            T = self.app.steps.T_world_shown(pid)
+            if T is None or pid not in self.app.asm.parts:
+                continue
+            T_part_world = se3.inv(T)
+            hit = self.picker(pid).hit(se3.transform_points(T_part_world, o[None])[0], T_part_world[:3, :3] @ d)
+            if hit is not None:
+                dist = float(np.linalg.norm(se3.transform_points(T, hit[1][None])[0] - o))
+                if best is None or dist < best[0]:
+                    best = (dist, pid)
+        if best is not None:
+            self.on_pick(best[1], event)
 
     def on_pick(self, pid: str, event) -> None:
         steps = self.app.steps
@@ -164,6 +208,7 @@ class MatesPanel:
                     name, seg.astype(np.float32), PICK_COLOURS[side], thickness=0.004 * m.diameter,
                     position=pos(T), wxyz=wxyz(T)))
         self.picked_md.content = "\n".join(lines) if lines else "*nothing picked*"
+        self.app.steps.place_gizmo()  # hidden while a pick waits, so the faces under it can be clicked
 
     # ------------------------------------------------------------------------------------ the list
 

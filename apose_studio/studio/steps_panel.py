@@ -312,7 +312,6 @@ class StepsPanel:
                 color = tuple(int(255 * c) for c in m.color)
                 h = self.app.server.scene.add_mesh_simple(f"/parts/{pid}", m.mesh.vertices.astype(np.float32),
                                                       m.mesh.faces.astype(np.uint32), color=color, flat_shading=False)
-                h.on_click(lambda e, pid=pid: self.app.guarded("Pick a face")(lambda c: self.app.mates.on_pick(pid, e))(e))
                 self.mesh_handles[pid] = h
             T = self._preview.get(pid)
             h._apose_visible = T is not None
@@ -341,7 +340,8 @@ class StepsPanel:
         asm = self.app.valid_asm
         i = self.step_index
         editable = (i is not None and i < len(asm.steps) and asm.steps[i].part == self.app.asm.steps[i].part
-                    and float(self.f_explode.value) == 0.0 and asm.steps[i].base[0] in self._preview)
+                    and float(self.f_explode.value) == 0.0 and asm.steps[i].base[0] in self._preview
+                    and not self.app.mates.picks)  # a picked face waits for its partner: the gizmo steps aside
         if not editable:
             for name in ("/assembly/gizmo", "/assembly/base_frame"):
                 if name in self.app.nodes:
