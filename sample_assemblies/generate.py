@@ -3,17 +3,19 @@
 
     python sample_assemblies/generate.py [--out sample_assemblies]
 
-Two assemblies with real-looking geometry, meshes in millimetres (to exercise unit handling):
+Three assemblies with real-looking geometry, in millimetres (to exercise unit handling):
   helical_gearbox/    casing, helical pinion, helical wheel, lid          (4 parts, 3 steps)
   planetary_reducer/  motor block, sun gear, ring-gear housing,
                       planet carrier with planets, cover                   (5 parts, 4 steps)
-The solids are built with manifold3d (exact CSG, always watertight); gear teeth are extruded from a
-2D involute-like profile, with a twist for the helical gears.
+  step_bracket/       plate, pin, bushing: one STEP file (make_step.py)    (3 parts, 2 steps)
+The meshes are built with manifold3d (exact CSG, always watertight); gear teeth are extruded from a
+2D involute-like profile, with a twist for the helical gears. The STEP file's B-rep is written by hand.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import math
 import sys
 from pathlib import Path
@@ -341,7 +343,15 @@ def generate(out: Path) -> list[Path]:
     write_mesh(planet_carrier(), pr / "carrier.ply")
     write_mesh(reducer_cover(), pr / "cover.stl")
     (pr / "assembly.yaml").write_text(PLANETARY_YAML)
-    return [hg / "assembly.yaml", pr / "assembly.yaml"]
+    step_files = _make_step().generate(out)  # the STEP sample: its B-rep written by hand
+    return [hg / "assembly.yaml", pr / "assembly.yaml", step_files[-1]]
+
+
+def _make_step():
+    spec = importlib.util.spec_from_file_location("make_step", HERE / "make_step.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
 
 
 def main(argv=None) -> int:

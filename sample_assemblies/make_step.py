@@ -7,16 +7,14 @@ out here, and OpenCASCADE (through cascadio) reads them back. Millimetres, as CA
   pin      10 mm across, 30 mm long, goes through the hole, flush with the plate's underside
   bushing  20 mm across, 10 mm bore, 12 mm high, on the pin, resting on the plate
 
-Run:  python sample_assemblies/make_step.py [--out FOLDER]
+Run by `python sample_assemblies/generate.py`, which writes every sample.
 """
 
 from __future__ import annotations
 
-import argparse
 import math
 from pathlib import Path
 
-HERE = Path(__file__).resolve().parent
 HOLE = (15.0, 0.0, 5.0)  # x, y, radius of the plate's through hole (and the pin)
 BOSS = (-20.0, 10.0, 5.0, 4.0)  # x, y, radius, height above the plate's top
 
@@ -218,16 +216,3 @@ def generate(out: Path) -> list[Path]:
     (folder / "bracket.step").write_text(step_text(solids, w))
     (folder / "assembly.yaml").write_text(ASSEMBLY_YAML)
     return [folder / "bracket.step", folder / "assembly.yaml"]
-
-
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", type=Path, default=HERE, help="folder to write into (default: this folder)")
-    args = ap.parse_args(argv)
-    for f in generate(args.out):
-        print(f"wrote {f}")
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

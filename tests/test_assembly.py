@@ -104,7 +104,7 @@ CASES = [
     (_set(["steps", 0, "base"], []), "steps[0].base: expected a non-empty list of part ids, got a list"),
     (_set(["steps", 0, "base"], ["peg"]), "steps[0].base[0]: 'peg' cannot be part of its own base"),
     (_set(["parts", "plate", "mesh"], "missing.stl"), "missing.stl: file not found"),
-    (_set(["parts", "plate", "size"], 3), "parts.plate.size: unknown key; expected one of mesh, color, symmetry"),
+    (_set(["parts", "plate", "size"], 3), "parts.plate.size: unknown key; expected one of mesh, solid, color, symmetry"),
     (_set(["parts", "peg", "color"], [2, 0, 0]), "parts.peg.color: expected 3 numbers in 0..1"),
     (_set(["parts", "peg", "symmetry"], {"axis": [0, 0, 1], "order": 1}),
      "parts.peg.symmetry.order: expected 0 (continuous) or a whole number n from 2 to 360"),

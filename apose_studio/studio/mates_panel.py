@@ -183,7 +183,7 @@ class MatesPanel:
 
     def show_picks(self) -> None:
         for side in ("part", "base"):
-            for name in (f"/mates/pick_{side}", f"/mates/axis_{side}"):
+            for name in (f"/assembly/pick_{side}", f"/assembly/axis_{side}"):
                 if name in self.app.nodes:
                     self.app.nodes.pop(name).remove()
         lines = []
@@ -197,13 +197,13 @@ class MatesPanel:
             tris = m.mesh.faces[shown]
             n = m.mesh.face_normals[shown]
             v = (m.mesh.vertices[tris] + 0.002 * m.diameter * n[:, None, :]).reshape(-1, 3)  # just above the face
-            name = f"/mates/pick_{side}"
+            name = f"/assembly/pick_{side}"
             h = self.app.server.scene.add_mesh_simple(name, v.astype(np.float32), np.arange(len(v)).reshape(-1, 3).astype(np.uint32),
                                                       color=PICK_COLOURS[side], position=pos(T), wxyz=wxyz(T))
             self.app.node(name, h)
             if f.is_axis:
                 seg = np.array([[f.point - 0.6 * m.diameter * f.direction, f.point + 0.6 * m.diameter * f.direction]])
-                name = f"/mates/axis_{side}"
+                name = f"/assembly/axis_{side}"
                 self.app.node(name, self.app.server.scene.add_line_segments(
                     name, seg.astype(np.float32), PICK_COLOURS[side], thickness=0.004 * m.diameter,
                     position=pos(T), wxyz=wxyz(T)))

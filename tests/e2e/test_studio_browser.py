@@ -507,8 +507,7 @@ def test_place_the_sun_gear_by_picking_faces(browser, studio, tmp_path):
         T = studio.steps.T_world_shown(pid)
         p = T[:3, :3] @ (np.asarray(point_mm) / 1000) + T[:3, 3]
         d = np.asarray(towards, float) / np.linalg.norm(towards)
-        cam.position, cam.look_at = tuple(p + 0.09 * d), tuple(p)
-        wait_until(lambda: np.linalg.norm(np.asarray(cam.look_at) - p) < 1e-5, "the view to turn")
+        turn_view(cam, p + 0.09 * d, p)
         time.sleep(0.8)
         shot(page, f"mates_view_{len(clicks)}.png")  # also makes the headless page draw the turned view
         n_mates = len(studio.asm.steps[0].mates)
@@ -556,4 +555,49 @@ def test_place_the_sun_gear_by_picking_faces(browser, studio, tmp_path):
     wait_until(lambda: len(studio.asm.steps[0].mates) == 1, "Ctrl+Z")
     page.keyboard.press("Control+Shift+z")
     wait_until(lambda: len(studio.asm.steps[0].mates) == 2, "Ctrl+Shift+Z")
+    # a gizmo drag that breaks the mates asks: Snap back, then (dragging again) Drop the mates
+    wait_until(lambda: "/assembly/gizmo" in studio.nodes, "the gizmo")
+    for answer in ("Snap back", "Drop the mates (keep the new pose)"):
+        drag_gizmo_x(page, studio, cam)
+        page.get_by_role("button", name=answer).click()
+        if answer == "Snap back":
+            wait_until(lambda: np.abs(studio.asm.steps[0].T_base_part - want).max() < 1e-9, "the snap back")
+            assert len(studio.asm.steps[0].mates) == 2
+        else:
+            wait_until(lambda: not studio.asm.steps[0].mates, "the mates to be dropped")
+            assert studio.asm.steps[0].T_base_part[0, 3] > 0.002  # the dragged pose is kept
     page.close()
+
+
+def turn_view(cam, eye, target) -> None:
+    """Point the page's camera from `eye` at `target` (world, m) and wait until the page reports it
+    (asked again once: a request can cross the page's own report of an earlier move)."""
+    for attempt in range(2):
+        cam.position, cam.look_at = tuple(eye), tuple(target)
+        try:
+            wait_until(lambda: np.linalg.norm(np.asarray(cam.look_at) - target) < 1e-5,
+                       lambda: f"the view to turn (looks at {np.asarray(cam.look_at)}, not {target})", timeout=15)
+            return
+        except AssertionError:
+            if attempt:
+                raise
+
+
+def drag_gizmo_x(page, st, cam) -> None:
+    """Drag the gizmo's x arrow by 1.5 scale lengths with the mouse, the view turned to see it."""
+    from apose_studio import se3
+
+    g = st.nodes["/assembly/gizmo"]
+    R, o = se3.quat_wxyz_to_matrix(np.asarray(g.wxyz)), np.asarray(g.position)
+    scale = g._impl.props.scale
+    d = np.array([0.4, -1.0, 0.6]) / np.linalg.norm([0.4, -1.0, 0.6])
+    turn_view(cam, o + 8 * scale * d, o)
+    time.sleep(0.8)
+    shot(page, "mates_gizmo_drag.png")
+    a, b = to_screen(page, cam, np.array([o + R[:, 0] * 0.75 * scale, o + R[:, 0] * 1.5 * scale]))
+    page.mouse.move(*a)
+    page.mouse.down()
+    for k in range(1, 11):
+        page.mouse.move(*(a + (b - a) * k / 10))
+        time.sleep(0.05)
+    page.mouse.up()
