@@ -101,7 +101,7 @@ def time_picks(st, stl: Path, n: int = 20) -> tuple[float, list[float], int]:
         p = se3.transform_points(T, mesh.triangles_center[f][None])[0]
         d = T[:3, :3] @ mesh.face_normals[f]
         t0 = time.perf_counter()
-        st.mates.on_click(Ray(p + 0.05 * d, -d))
+        st.guarded("pick")(lambda c: st.mates.on_click(Ray(p + 0.05 * d, -d)))(Click())
         picks.append(time.perf_counter() - t0)
         found += "part" in st.mates.picks  # the torus is refused: neither flat nor round
         st.mates.clear_picks()
