@@ -200,3 +200,23 @@ def test_save_writes_mates_and_solved_pose_and_round_trips(folder):
     T_world_base[:3, :3] = Rz(90)
     start = a.start(T_world_base @ again.steps[0].T_base_part, T_world_base)
     np.testing.assert_allclose(start[:3, 3] - (T_world_base @ again.steps[0].T_base_part)[:3, 3], [0, 0, 0.03], atol=1e-12)
+
+
+def test_apose_show_lists_mates_and_free_degrees(folder):
+    import json
+
+    from .conftest import SAMPLES
+    from .test_cli import run
+
+    doc = json.loads(run("show", SAMPLES / "planetary_reducer" / "assembly.yaml", "--json").stdout)
+    s = doc["steps"][0]
+    assert s["mates"] == ["coaxial", "contact", "contact"] and s["free"] == []
+    assert s["T_base_part"][2][3] == pytest.approx(0.052, abs=1e-12)  # 42 (boss) + 3 (gap) + 7 (hub below the centre)
+    assert s["approach"] == {"direction": [0, 0, -1], "distance": pytest.approx(0.03)}
+    path = folder / "free.yaml"
+    path.write_text("format: apose-assembly/1\nname: t\nunits: mm\nparts:\n  base: {mesh: base.stl}\n  part: {mesh: part.stl}\n"
+                    "steps:\n  - part: part\n    base: [base]\n    mates:\n      - type: coaxial\n"
+                    "        base: {point: [0, 0, 0], direction: [0, 0, 1]}\n        part: {point: [0, 0, 0], direction: [0, 0, 1]}\n")
+    text = run("show", path).stdout
+    assert "from mates: coaxial; free: rotation about the coaxial axis [0, 0, 1] is free (add an angle mate); " \
+           "sliding along [0, 0, 1] is free" in text
