@@ -19,6 +19,7 @@ from .config import (CameraIntrinsics, RegistrationConfig, camera_from_dict, cam
                      registration_from_dict, registration_to_dict)
 from .errors import AssemblyError, Problem
 from .fileio import atomic_write_text, parse_yaml, roundtrip_yaml
+from .fileio import yaml_number as _num
 from .mates import Approach, Mate, MateError, approach_to_dict, mate_to_dict, parse_approach, parse_mates
 from .units import UNIT_TO_M
 from .yamlcheck import Checker, kind, rotation
@@ -388,12 +389,6 @@ def load_assembly(path: str | Path) -> Assembly:
 
 
 # --------------------------------------------------------------------------------------------- save
-
-
-def _num(x: float) -> float | int:
-    """Round-off noise away (1e-12 of a unit) so saved files stay readable; ints stay ints."""
-    r = round(float(x), 12)
-    return int(r) if r == int(r) and abs(r) < 1e15 else r
 
 
 def assembly_to_dict(asm: Assembly, folder: Path) -> dict:

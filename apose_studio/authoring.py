@@ -55,11 +55,8 @@ def add_mesh_parts(asm: Assembly, mesh_path: str | Path) -> tuple[Assembly, list
     from .mesh import STEP_EXTENSIONS, step_solids
 
     path = Path(mesh_path).expanduser().resolve()
-    if path.suffix.lower() not in STEP_EXTENSIONS or not path.is_file():
-        asm, pid = add_part(asm, path)
-        return asm, [pid]
-    solids = list(step_solids(path))
-    if len(solids) == 1:
+    solids = list(step_solids(path)) if path.suffix.lower() in STEP_EXTENSIONS and path.is_file() else []
+    if len(solids) <= 1:
         asm, pid = add_part(asm, path)
         return asm, [pid]
     ids = []
@@ -130,10 +127,13 @@ def edit_step(asm: Assembly, index: int, part: str | None = None, base=None, T_b
     """A step with another part, base or pose; its mates and approach stay (a pose that breaks the
     mates is the caller's to settle: `broken_mates`)."""
     s = asm.steps[index]
-    steps = list(asm.steps)
-    steps[index] = replace(s, part=part if part is not None else s.part, base=tuple(base) if base is not None else s.base,
-                           T_base_part=np.array(T_base_part, dtype=float) if T_base_part is not None else s.T_base_part)
-    return asm.with_steps(steps)
+    return _with_step(asm, index, replace(
+        s, part=part if part is not None else s.part, base=tuple(base) if base is not None else s.base,
+        T_base_part=np.array(T_base_part, dtype=float) if T_base_part is not None else s.T_base_part))
+
+
+def _with_step(asm: Assembly, index: int, step: Step) -> Assembly:
+    return asm.with_steps([*asm.steps[:index], step, *asm.steps[index + 1:]])
 
 
 def problems(asm: Assembly) -> list[Problem]:
@@ -252,14 +252,14 @@ def set_mates(asm: Assembly, index: int, mates) -> Assembly:
 
     s = replace(asm.steps[index], mates=tuple(mates))
     if not s.mates:
-        return asm.with_steps([*asm.steps[:index], replace(s, free=()), *asm.steps[index + 1:]])
+        return _with_step(asm, index, replace(s, free=()))
     view = asm.step_view(index + 1)
     try:
         sol = solve_step_mates(s, view.T_base_members, asm.parts[s.part])
     except MateError as e:
         which = f"mate {e.index + 1}" if e.index is not None else "the mates"
         raise AposeError(f"step {index + 1}, {which}: {e.what}") from None
-    return asm.with_steps([*asm.steps[:index], replace(s, T_base_part=sol.T_base_part, free=sol.free), *asm.steps[index + 1:]])
+    return _with_step(asm, index, replace(s, T_base_part=sol.T_base_part, free=sol.free))
 
 
 def mate_from_picks(asm: Assembly, index: int, kind: str, base_part: str, base_feature, part_feature,
@@ -291,8 +291,7 @@ def lock_turn(asm: Assembly, index: int) -> Assembly:
     axis = angle_axis(moved)
     if axis is None:
         raise AposeError("an angle needs a coaxial or contact mate first: pick two round or two flat faces")
-    ref = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
-    ref /= np.linalg.norm(ref)
+    ref = se3.perpendicular(axis)
     mate = Mate("angle", Ref(direction=ref), Ref(direction=s.T_base_part[:3, :3].T @ ref), None, degrees=0.0)
     return set_mates(asm, index, [*s.mates, mate])
 
@@ -330,7 +329,7 @@ def set_approach(asm: Assembly, index: int, direction, distance_m: float) -> Ass
         if not (np.isfinite(d).all() and np.linalg.norm(d) > 1e-9 and np.isfinite(distance_m) and distance_m > 0):
             raise AposeError("an approach needs a direction and a length above 0 mm")
         approach = Approach(d / np.linalg.norm(d), float(distance_m))
-    return asm.with_steps([*asm.steps[:index], replace(s, approach=approach), *asm.steps[index + 1:]])
+    return _with_step(asm, index, replace(s, approach=approach))
 
 
 class History:

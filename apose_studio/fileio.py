@@ -107,6 +107,12 @@ class _StrictLoader(yaml.SafeLoader):
 _StrictLoader.add_constructor("tag:yaml.org,2002:map", _StrictLoader.construct_yaml_map)
 
 
+def yaml_number(x: float) -> float | int:
+    """A number as a saved file writes it: round-off noise away (1e-12 of a unit), whole numbers as ints."""
+    r = round(float(x), 12)
+    return int(r) if r == int(r) and abs(r) < 1e15 else r
+
+
 def parse_yaml(text: str, file: str):
     """YAML text to plain data, with errors naming the line; no aliases, no duplicate keys, bounded nesting."""
     try:

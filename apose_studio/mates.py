@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import se3
+from .fileio import yaml_number as _num
 from .yamlcheck import Checker, kind, rotation
 
 MATE_TYPES = ("coaxial", "contact", "aligned", "angle", "fixed")
@@ -111,8 +112,7 @@ def _turn_onto(w: np.ndarray, v: np.ndarray) -> np.ndarray:
     if s < 1e-12:
         if c > 0:
             return np.eye(3)
-        perp = np.cross(w, [1.0, 0.0, 0.0] if abs(w[0]) < 0.9 else [0.0, 1.0, 0.0])
-        return se3.axis_angle_matrix(perp, np.pi)
+        return se3.axis_angle_matrix(se3.perpendicular(w), np.pi)
     return se3.axis_angle_matrix(axis, np.arctan2(s, c))
 
 
@@ -189,7 +189,7 @@ def _translation(mates: list[Mate], R: np.ndarray, t_guess: np.ndarray, w: list[
         elif m.type == "coaxial":
             gap = m.base.point - R @ m.part.point
             d = m.base.direction
-            e1 = _unit(np.cross(d, [1.0, 0.0, 0.0] if abs(d[0]) < 0.9 else [0.0, 1.0, 0.0]))
+            e1 = se3.perpendicular(d)
             for e in (e1, np.cross(d, e1)):
                 rows.append(e)
                 rhs.append(float(e @ gap))
@@ -207,14 +207,16 @@ def _translation(mates: list[Mate], R: np.ndarray, t_guess: np.ndarray, w: list[
     return t0 + N @ (N.T @ (t_guess - t0)), N
 
 
-def residual(m: Mate, T: np.ndarray) -> tuple[float, float]:
-    """(metres, radians) by which pose T_base_part misses mate m (references in base[0]'s frame)."""
+def residual(m: Mate, T: np.ndarray, axis: np.ndarray | None = None) -> tuple[float, float]:
+    """(metres, radians) by which pose T_base_part misses mate m (references in base[0]'s frame); an
+    angle mate is measured about `axis` (`angle_axis` of its step's mates)."""
     R, t = T[:3, :3], T[:3, 3]
     if m.type == "fixed":
         D = se3.inv(m.base.T @ se3.inv(m.part.T)) @ T
         return float(np.linalg.norm(D[:3, 3])), np.radians(se3.rotation_angle_deg(D[:3, :3]))
     if m.type == "angle":
-        return 0.0, 0.0  # measured by the caller, which knows the axis
+        d = np.radians(m.degrees) - _turn(m, axis, R)
+        return 0.0, abs(float(np.arctan2(np.sin(d), np.cos(d))))
     u, v = _pair(m)
     ang = float(np.arccos(np.clip(np.dot(R @ u, v), -1.0, 1.0)))
     off = R @ m.part.point + t - m.base.point
@@ -231,16 +233,7 @@ def _solve_once(mates: list[Mate], T_guess: np.ndarray):
     R, free_axis, all_free = _rotation(mates, T_guess[:3, :3], w)
     t, N = _translation(mates, R, T_guess[:3, 3], w)
     T = se3.make_T(R, t)
-    worst = (0.0, 0.0)
-    axis = angle_axis(mates)
-    for m in mates[-1:]:
-        if m.type == "angle":
-            d = np.radians(m.degrees) - _turn(m, axis, R)
-            r = (0.0, abs(float(np.arctan2(np.sin(d), np.cos(d)))))
-        else:
-            r = residual(m, T)
-        worst = (max(worst[0], r[0]), max(worst[1], r[1]))
-    return T, free_axis, all_free, N, worst
+    return T, free_axis, all_free, N, residual(mates[-1], T, angle_axis(mates))
 
 
 def _fmt(v: np.ndarray) -> str:
@@ -248,15 +241,18 @@ def _fmt(v: np.ndarray) -> str:
 
 
 def _free_words(mates: list[Mate], T: np.ndarray, free_axis, all_free: bool, N: np.ndarray,
-                symmetry_axis: np.ndarray | None) -> list[str]:
-    out = []
+                symmetry_axis: np.ndarray | None) -> tuple[list[str], int]:
+    """(the free degrees of freedom in words, how many)."""
+    out, n_rot = [], 0
     if all_free:
         out.append("rotation is free (no mate sets it: add a coaxial, contact, aligned or fixed mate)")
+        n_rot = 3
     elif free_axis is not None:
         sym = symmetry_axis is not None and np.linalg.norm(np.cross(T[:3, :3] @ symmetry_axis, free_axis)) < 1e-6
         if not sym:  # a part symmetric about the axis looks the same at every turn: nothing to say
             about = "the coaxial axis" if any(m.type == "coaxial" for m in mates) else "the contact normal"
             out.append(f"rotation about {about} {_fmt(free_axis)} is free (add an angle mate)")
+            n_rot = 1
     k = N.shape[1]
     if k == 1:
         out.append(f"sliding along {_fmt(N[:, 0])} is free")
@@ -264,7 +260,7 @@ def _free_words(mates: list[Mate], T: np.ndarray, free_axis, all_free: bool, N: 
         out.append(f"sliding in the plane across {_fmt(np.cross(N[:, 0], N[:, 1]))} is free")
     elif k == 3:
         out.append("translation is free")
-    return out
+    return out, n_rot + k
 
 
 def solve(mates: list[Mate], T_guess: np.ndarray | None = None, symmetry_axis=None) -> Solution:
@@ -274,6 +270,8 @@ def solve(mates: list[Mate], T_guess: np.ndarray | None = None, symmetry_axis=No
     continuous symmetry axis, part frame) silences a free turn about it. Raises MateError with the
     index of the first mate that contradicts those before it."""
     T_guess = np.eye(4) if T_guess is None else np.asarray(T_guess, dtype=float)
+    if not mates:
+        return Solution(T_guess, ("every degree of freedom is free (no mates)",), 6)
     order = [i for i, m in enumerate(mates) if m.type != "angle"] + [i for i, m in enumerate(mates) if m.type == "angle"]
     for k in range(1, len(order) + 1):
         subset = [mates[i] for i in order[:k]]
@@ -285,12 +283,9 @@ def solve(mates: list[Mate], T_guess: np.ndarray | None = None, symmetry_axis=No
             others = "the mates before it" if k > 1 else "itself"
             raise MateError(order[k - 1], f"contradicts {others}: a residual of {res_m * 1000:.4g} mm and "
                             f"{np.degrees(res_rad):.4g} deg remains; change its references or offset, or delete it")
-    if not mates:
-        return Solution(T_guess, ("every degree of freedom is free (no mates)",), 6)
     sym = None if symmetry_axis is None else _unit(symmetry_axis)
-    words = _free_words(mates, T, free_axis, all_free, N, sym)
-    n_rot = 3 if all_free else (1 if free_axis is not None and any("rotation about" in w for w in words) else 0)
-    return Solution(T, tuple(words), n_rot + N.shape[1])
+    words, n_free = _free_words(mates, T, free_axis, all_free, N, sym)
+    return Solution(T, tuple(words), n_free)
 
 
 def in_base_frame(mates, base0: str, T_base_members: dict[str, np.ndarray]) -> list[Mate]:
@@ -390,11 +385,6 @@ def parse_approach(c: Checker, raw, key: str, scale: float) -> Approach | None:
         c.add(f"{key}.distance", f"expected a length > 0 in the file's units, got {kind(dist)}")
         return None
     return None if d is None else Approach(d, float(dist) * scale)
-
-
-def _num(x: float) -> float | int:
-    r = round(float(x), 12)
-    return int(r) if r == int(r) and abs(r) < 1e15 else r
 
 
 def _nums(v, scale: float = 1.0) -> list:

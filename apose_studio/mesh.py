@@ -127,16 +127,13 @@ def step_solids(path: str | Path) -> dict[str, trimesh.Trimesh]:
         except Exception as e:
             raise MeshError(f"{path}: could not be read as STEP (corrupt, truncated, or not a solid model?): "
                             f"{type(e).__name__}: {e}") from None
-        geoms = scene.geometry if isinstance(scene, trimesh.Scene) else {path.stem: scene}
-        solids = {}
-        if isinstance(scene, trimesh.Scene):
+        solids = {path.stem: scene} if isinstance(scene, trimesh.Trimesh) else {}
+        if isinstance(scene, trimesh.Scene):  # a node per solid, named as in the STEP file
             for node in scene.graph.nodes_geometry:
                 T, name = scene.graph[node]
-                g = geoms[name]
+                g = scene.geometry[name]
                 if isinstance(g, trimesh.Trimesh) and len(g.faces):
                     solids[node] = g.copy().apply_transform(T)
-        else:
-            solids = {k: v for k, v in geoms.items() if isinstance(v, trimesh.Trimesh)}
         if not solids:
             raise MeshError(f"{path}: the STEP file holds no solid with faces; export the parts as solids")
         if len(_STEP_CACHE) > 16:

@@ -15,6 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import se3
+
 SMOOTH_DEG = 25.0  # facets meeting at less than this belong to the same face
 FIT_TRIANGLES = 20000  # a bigger face is fitted on an even spread of this many of its triangles
 FLAT_DEG = 1.0  # a face whose normals all lie within this of their mean is a plane
@@ -135,8 +137,7 @@ def fit_face(vertices: np.ndarray, tris: np.ndarray, normals: np.ndarray, face_i
         kind = "other"  # the normals do not keep one angle to any axis: a torus, a fillet's blend, a freeform
     # the axis position: the circle through the vertices projected across the axis (algebraic fit, exact
     # for vertices on a circle); on a cone, the rings are concentric, so the same fit holds
-    e1 = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
-    e1 /= np.linalg.norm(e1)
+    e1 = se3.perpendicular(axis)
     e2 = np.cross(axis, e1)
     pts = v if kind == "cylinder" else centres
     x, y = pts @ e1, pts @ e2

@@ -63,6 +63,13 @@ def axis_angle_matrix(axis, angle_rad) -> np.ndarray:
     return np.cos(th) * np.eye(3) + np.sin(th) * K + (1.0 - np.cos(th)) * np.outer(a, a)
 
 
+def perpendicular(v) -> np.ndarray:
+    """A unit vector perpendicular to v (any one; stable for every direction)."""
+    v = np.asarray(v, dtype=float)
+    p = np.cross(v, [1.0, 0.0, 0.0] if abs(v[0]) < 0.9 * np.linalg.norm(v) else [0.0, 1.0, 0.0])
+    return p / np.linalg.norm(p)
+
+
 def fit_rigid(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """The T (4x4) minimising sum ||T src_i - dst_i||^2 over matched point pairs (Kabsch)."""
     cs, cd = src.mean(axis=0), dst.mean(axis=0)

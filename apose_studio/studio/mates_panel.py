@@ -30,7 +30,7 @@ class MatesPanel:
     def __init__(self, app):
         self.app = app
         self.picks: dict[str, tuple[str, Feature]] = {}  # "part" / "base" -> (part id, feature in its frame)
-        self.pickers: dict[tuple, FacePicker] = {}
+        self.pickers: dict[int, tuple] = {}  # id(mesh) -> (mesh, FacePicker)
         self._warming: set = set()
 
     def build(self) -> None:
@@ -59,25 +59,28 @@ class MatesPanel:
     # ------------------------------------------------------------------------------------ picking
 
     def picker(self, pid: str) -> FacePicker:
-        m = self.app.model(pid)
-        key = (id(m.mesh), len(m.mesh.faces))
-        if key not in self.pickers:
-            self.pickers[key] = FacePicker(m.mesh)
-        return self.pickers[key]
+        return self._picker_of(self.app.model(pid).mesh)
+
+    def _picker_of(self, mesh) -> FacePicker:
+        """The picker of a loaded mesh (models are cached, so a mesh object stands for its part)."""
+        held = self.pickers.get(id(mesh))
+        if held is None or held[0] is not mesh:  # (the mesh is held too, so its id is not reused)
+            held = self.pickers[id(mesh)] = (mesh, FacePicker(mesh))
+        return held[1]
 
     def warm_up(self, pids) -> None:
         """Build the pickers of these parts in the background, so the first click answers at once."""
         todo = [p for p in pids if p not in self._warming]
+        if not todo:
+            return
         self._warming.update(todo)
 
         def run():
             for p in todo:
                 try:
                     with self.app.lock:
-                        m = self.app.model(p)
-                    key = (id(m.mesh), len(m.mesh.faces))
-                    if key not in self.pickers:
-                        self.pickers[key] = FacePicker(m.mesh)
+                        mesh = self.app.model(p).mesh
+                    self._picker_of(mesh)
                 except Exception:  # a part that fails to load says so when it is clicked
                     pass
 

@@ -202,8 +202,6 @@ def _sample_copy(tmp_path) -> Path:
 def test_drag_the_gizmo_with_the_mouse_and_save(browser, studio, tmp_path):
     """Drag the translation arrow of the gizmo: the part moves, the typed fields follow, Save writes it
     (keeping the file's comment and mode)."""
-    from apose_studio import se3
-
     asm_path = _sample_copy(tmp_path)
     page = open_page(browser, studio)
     type_into(page, "Assembly file", str(asm_path))
@@ -213,16 +211,7 @@ def test_drag_the_gizmo_with_the_mouse_and_save(browser, studio, tmp_path):
     before = studio.asm.steps[0].T_base_part[:3, 3].copy()
     cam = client_of(studio, page).camera
     time.sleep(1.5)  # the page settles its camera on the assembly
-    g = studio.nodes["/assembly/gizmo"]
-    R, o = se3.quat_wxyz_to_matrix(np.asarray(g.wxyz)), np.asarray(g.position)
-    scale = g._impl.props.scale
-    a, b = to_screen(page, cam, np.array([o + R[:, 0] * 0.75 * scale, o + R[:, 0] * 1.5 * scale]))
-    page.mouse.move(*a)
-    page.mouse.down()
-    for k in range(1, 11):
-        page.mouse.move(*(a + (b - a) * k / 10))
-        time.sleep(0.05)
-    page.mouse.up()
+    drag_gizmo_x(page, studio, cam, turn=False)
     wait_until(lambda: studio.asm.steps[0].T_base_part[0, 3] > before[0] + 0.004,
                lambda: f"the drag to move the pinion along x (at {studio.asm.steps[0].T_base_part[:3, 3] * 1000} mm)")
     moved = studio.asm.steps[0].T_base_part[:3, 3] * 1000
@@ -583,17 +572,19 @@ def turn_view(cam, eye, target) -> None:
                 raise
 
 
-def drag_gizmo_x(page, st, cam) -> None:
-    """Drag the gizmo's x arrow by 1.5 scale lengths with the mouse, the view turned to see it."""
+def drag_gizmo_x(page, st, cam, turn: bool = True) -> None:
+    """Drag the gizmo's x arrow with the mouse from 0.75 to 1.5 of its length, with the view first
+    turned to see it (`turn`)."""
     from apose_studio import se3
 
     g = st.nodes["/assembly/gizmo"]
     R, o = se3.quat_wxyz_to_matrix(np.asarray(g.wxyz)), np.asarray(g.position)
     scale = g._impl.props.scale
-    d = np.array([0.4, -1.0, 0.6]) / np.linalg.norm([0.4, -1.0, 0.6])
-    turn_view(cam, o + 8 * scale * d, o)
-    time.sleep(0.8)
-    shot(page, "mates_gizmo_drag.png")
+    if turn:
+        d = np.array([0.4, -1.0, 0.6]) / np.linalg.norm([0.4, -1.0, 0.6])
+        turn_view(cam, o + 8 * scale * d, o)
+        time.sleep(0.8)
+        shot(page, "mates_gizmo_drag.png")
     a, b = to_screen(page, cam, np.array([o + R[:, 0] * 0.75 * scale, o + R[:, 0] * 1.5 * scale]))
     page.mouse.move(*a)
     page.mouse.down()
