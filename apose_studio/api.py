@@ -149,7 +149,8 @@ def run_registration(depth, mask, source, cam, T_world_camera, ctx, params, orie
     ctx.base.warm_up(params)
     t1 = time.perf_counter()
     r = estimate(depth, mask, cam, T_world_camera, ctx.base, ctx.view.T_base_part, params,
-                 prior_T_world_base=np.eye(4) if orientation_prior else None, trace_iterations=trace_iterations)
+                 prior_T_world_base=np.eye(4) if orientation_prior else None, trace_iterations=trace_iterations,
+                 part_symmetries=ctx.part.symmetries)
     t2 = time.perf_counter()
     if r.model_mask is not None:  # what the model shows at the pose: occluders in front and clutter beside it cut
         mask, source = r.model_mask, f"{source}, cut to the model's view"

@@ -85,7 +85,8 @@ def cmd_estimate_views(args) -> int:
     masks = view_masks(args, frames, asm)
     views = [View.of(f, m) for f, (m, _) in zip(frames, masks)]
     ctx.base.warm_up(params)
-    r = estimate_views(views, ctx.base, ctx.view.T_base_part, params, np.eye(4) if args.orientation_prior else None)
+    r = estimate_views(views, ctx.base, ctx.view.T_base_part, params, np.eye(4) if args.orientation_prior else None,
+                       ctx.part.symmetries)
     T_wc = frames[0].T_world_camera
     est = pose_estimate(r, T_wc, ctx.view, masks[0][0], masks[0][1], r.timings)
     advice = next_view(r, ctx.base, [f.T_world_camera for f in frames], frames[0].camera) if r.ok else None

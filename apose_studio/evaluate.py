@@ -216,7 +216,8 @@ def estimate_frame(frame: Frame, ctx: StepContext, params: Params, mask_source: 
     if mask is None:
         mask = frame_mask(frame, mask_source)
     return estimate(frame.depth, mask, frame.camera, frame.T_world_camera, ctx.base,
-                    ctx.view.T_base_part, params, prior_T_world_base=prior, trace_iterations=trace_iterations)
+                    ctx.view.T_base_part, params, prior_T_world_base=prior, trace_iterations=trace_iterations,
+                    part_symmetries=ctx.part.symmetries)
 
 
 def estimate_and_score(frame: Frame, ctx: StepContext, params: Params, mask_source: str = "gt",
@@ -275,7 +276,8 @@ def _score_group_of(ds: Dataset, step: int, ids: list[int], ctx: "StepContext", 
         return FrameScore(scene_id=step, im_id=ids[0], ok=False, reason=f"unreadable frame: {e}", im_ids=list(ids))
     ctx.base.warm_up(params)
     views = [View.of(f, frame_mask(f, mask_source)) for f in frames]
-    r = estimate_views(views, ctx.base, ctx.view.T_base_part, params, np.eye(4) if orientation_prior else None)
+    r = estimate_views(views, ctx.base, ctx.view.T_base_part, params, np.eye(4) if orientation_prior else None,
+                       ctx.part.symmetries)
     s = score_frame(frames[0], r, ctx.part, None if mask_source == "gt" else views[0].mask, ctx.base.symmetries)
     s.time_s = float(r.timings.get("total fused", r.seconds))
     s.im_ids = list(ids)

@@ -24,6 +24,7 @@ box prompt (the ground truth's visible box, 4 % wider per side, as a user or det
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -46,6 +47,8 @@ from apose_studio.segment import iou  # noqa: E402
 
 
 def run(ds: Dataset, asm, models, params, compare_depth: bool = False) -> list[dict]:
+    from apose_studio.registration.results import doubts
+
     rows = []
     for step in ds.steps:
         ctx = StepContext(asm, models, step)
@@ -65,7 +68,9 @@ def run(ds: Dataset, asm, models, params, compare_depth: bool = False) -> list[d
 
                 rows.append({"depth_iou": iou(depth_mask(frame.depth, frame.camera, box=truth_box(truth)), truth)})
             final = r.model_mask if r.model_mask is not None else mask  # cut to the model's view at the pose
-            rows.append({"iou": iou(mask, truth), "final_iou": iou(final, truth), "right": right,
+            rows.append({"step": step, "im_id": im_id, "ambiguous": bool(r.ambiguous), "coverage": float(r.coverage),
+                         "doubts": doubts(r) or r.reason,
+                         "iou": iou(mask, truth), "final_iou": iou(final, truth), "right": right,
                          "strict": bool(r.ok and sc.mssd < 0.1 * d), "near_twin": sc.near_twin(d),
                          "confident": bool(r.ok and r.confident), "seconds": seconds, "noise_mm": r.depth_noise * 1000})
     return rows
@@ -79,6 +84,7 @@ def main() -> int:
     ap.add_argument("--data", default=str(REPO / "artifacts" / "captures"), help="where the renders are kept")
     ap.add_argument("--preset", default="default", choices=["default", "paper"])
     ap.add_argument("--compare-depth", action="store_true", help="also score the DBSCAN depth mask with the same box")
+    ap.add_argument("--json", help="write every frame's row here (assembly, noise, step, im_id, right, confident, doubts, ...)")
     args = ap.parse_args()
     params = resolve_params(args.preset)
     table: dict[str, list[dict]] = {}
@@ -93,6 +99,8 @@ def main() -> int:
                 depth_ious = [r["depth_iou"] for r in rows if "depth_iou" in r]
                 rows = [r for r in rows if "depth_iou" not in r]
                 print(f"{name:18s} {noise:9s} DBSCAN depth mask with the same box: IoU {np.mean(depth_ious):.3f}")
+            for r in rows:
+                r.update(assembly=name, noise=noise)
             table.setdefault(noise, []).extend(rows)
             print(f"{name:18s} {noise:9s} {len(rows):3d} frames  IoU {np.mean([r['iou'] for r in rows]):.3f}  "
                   f"recall {np.mean([r['right'] for r in rows]):.2f}", flush=True)
@@ -122,6 +130,8 @@ def main() -> int:
               f"{np.mean([r['final_iou'] for r in k]):.3f}) (>= 0.90), recall "
               f"{np.mean([r['right'] for r in k]):.3f} (>= 0.95), {np.median([r['seconds'] for r in k]):.3f} s/frame "
               "median (<= 0.3)")
+    if args.json:
+        Path(args.json).write_text(json.dumps([r for rows in table.values() for r in rows], indent=1))
     _ = metrics
     return 0
 

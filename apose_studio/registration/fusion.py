@@ -57,18 +57,21 @@ class View:
 
 
 def estimate_views(views: list[View], base: BaseObject, T_base_part: np.ndarray, params: Params,
-                   prior_T_world_base: np.ndarray | None = None) -> RegistrationResult:
+                   prior_T_world_base: np.ndarray | None = None,
+                   part_symmetries: np.ndarray | None = None) -> RegistrationResult:
     """T_world_part from several views of one placement (see the module's docstring). Never raises on
-    bad data: disagreeing camera poses or a view without depth give ok=False and a reason."""
+    bad data: disagreeing camera poses or a view without depth give ok=False and a reason.
+    `part_symmetries`: as for `pipeline.estimate`."""
     if len(views) == 1:
         v = views[0]
-        return estimate(v.depth, v.mask, v.cam, v.T_world_camera, base, T_base_part, params, prior_T_world_base)
+        return estimate(v.depth, v.mask, v.cam, v.T_world_camera, base, T_base_part, params, prior_T_world_base,
+                        part_symmetries=part_symmetries)
     t0 = time.perf_counter()
     counts = [int((v.mask & (v.depth > 0)).sum()) for v in views]
     order = sorted(range(len(views)), key=lambda i: -counts[i])
     first_view = views[order[0]]
     first = estimate(first_view.depth, first_view.mask, first_view.cam, first_view.T_world_camera, base, T_base_part,
-                     params, prior_T_world_base)
+                     params, prior_T_world_base, part_symmetries=part_symmetries)
     if not first.ok:
         first.reason = f"{_name(first_view, order[0])}: {first.reason}"
         return first
@@ -85,7 +88,7 @@ def estimate_views(views: list[View], base: BaseObject, T_base_part: np.ndarray,
     if disagreement:
         return failed(disagreement + "; the views are not fused", preset=params.preset, timings=first.timings,
                       T_world_base=first.T_world_base, T_world_part=first.T_world_part)
-    result = _weigh(first, problems, order, base, at_first)
+    result = _weigh(first, problems, order, base, at_first, part_symmetries)
     result.timings = {**first.timings, "fusion": time.perf_counter() - t1}
     result.timings["total fused"] = time.perf_counter() - t0
     result.views = len(views)
@@ -134,7 +137,7 @@ WEIGH_MAX = 6
 
 
 def _weigh(first: RegistrationResult, problems: dict[int, Problem], order: list[int],
-           base: BaseObject, at_first: dict) -> RegistrationResult:
+           base: BaseObject, at_first: dict, part_symmetries: np.ndarray | None = None) -> RegistrationResult:
     """The first view's placements scored in every view; the chosen one polished on the fused cloud."""
     voxel = first.voxel
     poses = [first.T_world_base]
@@ -170,7 +173,8 @@ def _weigh(first: RegistrationResult, problems: dict[int, Problem], order: list[
     pb0 = problems[order[0]]
     final = cands[chosen]  # scored before the fused polish, which moves the pose by a fraction of a voxel
     ranked = sorted(range(len(cands)), key=lambda k: -cands[k].score)
-    rivals = distinct_placements([cands[chosen]] + [cands[k] for k in kept if k != chosen], voxel, base.symmetries)
+    rivals = distinct_placements([cands[chosen]] + [cands[k] for k in kept if k != chosen], voxel, base.symmetries,
+                                 part_symmetries)
     ambiguous = bool(len(rivals) > 1 and cands[chosen].coverage >= CONFIDENT_COVERAGE)
     result = replace(first, T_world_base=T, T_world_part=T @ pb0.T_base_part, candidates=[cands[k] for k in ranked],
                      ambiguous=ambiguous, alternatives=rivals[1:] if ambiguous else [],

@@ -28,8 +28,11 @@ from .stages import place_source, project_to_cloud, trace_stages
 
 def estimate(depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray,
              base: BaseObject, T_base_part: np.ndarray, params: Params,
-             prior_T_world_base: np.ndarray | None = None, trace_iterations: bool = True) -> RegistrationResult:
-    """T_world_part for one frame. Never raises on bad data: a degenerate input gives ok=False and a reason."""
+             prior_T_world_base: np.ndarray | None = None, trace_iterations: bool = True,
+             part_symmetries: np.ndarray | None = None) -> RegistrationResult:
+    """T_world_part for one frame. Never raises on bad data: a degenerate input gives ok=False and a reason.
+    `part_symmetries`: the part's own (T_part_part, identity first; PartModel.symmetries): placements of the
+    part that differ by one of them are the same placement, so they make no ambiguity."""
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     if mask is None or not np.any(mask):
@@ -55,7 +58,8 @@ def estimate(depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics, T_world
                                     prior_T_world_base, trace_iterations, timings, preset=params.preset)
         else:
             result = estimate_default(target_pts, cam, T_world_camera, base, T_base_part, params, voxel,
-                                      prior_T_world_base, trace_iterations, timings, observation, deadline)
+                                      prior_T_world_base, trace_iterations, timings, observation, deadline,
+                                      part_symmetries)
     except Degenerate as e:
         return failed(str(e), target_cloud=target_pts, timings=timings, preset=params.preset, voxel=voxel)
     result.depth_noise = noise
@@ -64,7 +68,7 @@ def estimate(depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics, T_world
         result.equivalent = twin_placements(result.T_world_base, result.T_world_part, base.symmetries)
     if params.second_look and result.ok and not result.confident:
         result = second_look(result, depth, mask, cam, T_world_camera, base, T_base_part, params, prior_T_world_base,
-                             trace_iterations)
+                             trace_iterations, part_symmetries)
     if result.ok:
         t = time.perf_counter()
         cut = model_cut_mask(result, depth, mask if result.second_look is None else result.second_look, cam,
@@ -94,7 +98,7 @@ def model_cut_mask(result: RegistrationResult, depth: np.ndarray, mask: np.ndarr
 
 
 def second_look(result: RegistrationResult, depth, mask, cam, T_world_camera, base, T_base_part, params: Params,
-                prior, trace_iterations) -> RegistrationResult:
+                prior, trace_iterations, part_symmetries=None) -> RegistrationResult:
     """A result that is not confident, often from a mask that took in clutter beside the base or an
     object in front of it: estimate again on the mask cut to the model's view at that pose, and keep
     that result only if it is confident (and so, like any result, one placement that the data
@@ -105,7 +109,7 @@ def second_look(result: RegistrationResult, depth, mask, cam, T_world_camera, ba
     if cut.sum() < MIN_POINTS or cut.sum() >= mask.sum():
         return result
     again = estimate(depth, cut, cam, T_world_camera, base, T_base_part, replace(params, second_look=False), prior,
-                     trace_iterations)
+                     trace_iterations, part_symmetries)
     seconds = time.perf_counter() - t
     if not again.confident:
         result.timings["second look"] = seconds
@@ -135,10 +139,12 @@ def frame_noise(depth: np.ndarray, mask: np.ndarray) -> float:
 
 
 def estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Params, voxel, prior, trace_iterations,
-                     timings: dict, observation: Observation, deadline: float = float("inf")) -> RegistrationResult:
+                     timings: dict, observation: Observation, deadline: float = float("inf"),
+                     part_symmetries: np.ndarray | None = None) -> RegistrationResult:
     """Ours after PROJ3D: the prior fast path, else search -> refine -> choose -> polish -> compose."""
     t = time.perf_counter()
-    pb = prepare_problem(target_pts, cam, T_world_camera, base, T_base_part, p, voxel, observation, deadline)
+    pb = prepare_problem(target_pts, cam, T_world_camera, base, T_base_part, p, voxel, observation, deadline,
+                         part_symmetries=part_symmetries)
     if prior is not None and p.prior_fast_path:  # the caller knows the orientation: ICP from it, kept if it fits
         timings["features"] = time.perf_counter() - t
         quick = try_prior(pb, prior, trace_iterations, timings, preset=p.preset)
@@ -182,7 +188,8 @@ def compose(pb: Problem, refined: list, chosen: int, close: list[int], T_world_s
     stages = trace_stages(T_world_source, "global", r.T_start, r.trace, c, src_b, pb.fine_pts, pb.thr)
     order = sorted(range(len(cands)), key=lambda i: -cands[i].score)
     symmetries = pb.base.symmetries
-    placements = distinct_placements([c] + [cands[i] for i in close if i != chosen], pb.voxel, symmetries)
+    placements = distinct_placements([c] + [cands[i] for i in close if i != chosen], pb.voxel, symmetries,
+                                     pb.part_symmetries)
     ambiguous = bool(len(placements) > 1 and c.coverage >= CONFIDENT_COVERAGE)  # exact twins are not ambiguity
     return RegistrationResult(True, "", c.T_world_base, c.T_world_part, T_world_source, pb.fine_pts, src_b, stages,
                               c.fitness, c.inlier_rmse, timings, [cands[i] for i in order], ambiguous,
@@ -197,7 +204,7 @@ def better_of_free_search(result: RegistrationResult, target_pts, pb: Problem, p
     free_timings: dict[str, float] = {}
     free = estimate_default(target_pts, pb.cam, pb.T_world_camera, pb.base, pb.T_base_part,
                             replace(pb.params, upright=False), pb.voxel, prior, trace_iterations, free_timings,
-                            pb.observation, pb.deadline)
+                            pb.observation, pb.deadline, pb.part_symmetries)
     for k, v in timings.items():
         free_timings[k] = free_timings.get(k, 0.0) + v
     if free.coverage > result.coverage:

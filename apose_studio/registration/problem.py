@@ -35,6 +35,8 @@ class Problem:
     fine_tree: object  # k-d tree of fine's points
     deadline: float = float("inf")  # time.perf_counter() by which the searches stop (params.max_seconds)
     notes: list = field(default_factory=list)  # what the time budget cut short
+    part_symmetries: np.ndarray | None = None  # (n, 4, 4) T_part_part of the part to place, identity first: twins of
+    # the base that place the part alike (modulo these) are one placement, not an ambiguity
 
     def out_of_time(self, what: str) -> bool:
         """Past the deadline: note that `what` was cut short, and say so."""
@@ -75,7 +77,8 @@ class Problem:
 
 def prepare_problem(target_pts: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray, base: BaseObject,
                     T_base_part: np.ndarray, p: Params, voxel: float, observation: Observation,
-                    deadline: float = float("inf"), light: bool = False) -> Problem:
+                    deadline: float = float("inf"), light: bool = False,
+                    part_symmetries: np.ndarray | None = None) -> Problem:
     """The target down-sampled (coarse: flying pixels and speckle removed; fine: with normals). Raises
     Degenerate when too little of it is left, or when it is a line. `light`: for scoring and polishing
     only (registration.fusion's other views): no outlier removal, no target normals."""
@@ -97,7 +100,8 @@ def prepare_problem(target_pts: np.ndarray, cam: CameraIntrinsics, T_world_camer
         fine.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=p.normal_radius_factor * voxel, max_nn=30))
         fine.orient_normals_towards_camera_location(T_world_camera[:3, 3])
     return Problem(base, T_base_part, p, cam, T_world_camera, observation, voxel, target_pts, target_full, target, fine,
-                   cKDTree(np.asarray(fine.points)), deadline)  # balanced: queried by many ICP iterations
+                   cKDTree(np.asarray(fine.points)), deadline,  # balanced: queried by many ICP iterations
+                   part_symmetries=part_symmetries)
 
 
 def scale_problem(target_pts: np.ndarray, diameter: float) -> str | None:

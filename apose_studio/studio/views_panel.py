@@ -72,7 +72,8 @@ class ViewsPanel:
         frames = [ins.load_frame(step, i) for i in ids]
         views = [View.of(f, frame_mask(f, job.mask)) for f in frames]
         ctx.base.warm_up(params)
-        r = estimate_views(views, ctx.base, ctx.view.T_base_part, params, np.eye(4) if job.prior else None)
+        r = estimate_views(views, ctx.base, ctx.view.T_base_part, params, np.eye(4) if job.prior else None,
+                           ctx.part.symmetries)
         ins.frame = frames[0]
         ins.result = r
         ins.score = score_frame(frames[0], r, ctx.part, None, ctx.base.symmetries) if frames[0].T_world_part is not None else None
