@@ -106,3 +106,20 @@ def raycast_points(mesh: trimesh.Trimesh, T_world_mesh: np.ndarray, T_world_came
     n = b.normals[hit["primitive_ids"].numpy().view(np.int32)[ok]]
     n = n * np.where(np.einsum("ij,ij->i", n, rays[ok, 3:]) > 0, -1.0, 1.0)[:, None]
     return se3.transform_points(T_world_mesh, pts), n @ T_world_mesh[:3, :3].T
+
+
+def raycast_depth(mesh: trimesh.Trimesh, T_world_mesh: np.ndarray, T_world_camera: np.ndarray,
+                  cam: CameraIntrinsics) -> np.ndarray:
+    """(H, W) depth (metres along the camera's axis) of a mesh alone, inf where a pixel's ray misses it:
+    the renderer's ray cast, one ray per pixel centre (a ray's t is its depth: RayGrid's z = 1)."""
+    import open3d as o3d
+
+    z = np.full((cam.height, cam.width), np.inf)
+    b = body(mesh)
+    w = pixel_window(b.corners, se3.inv(T_world_camera) @ T_world_mesh, cam)
+    if w is None:
+        return z
+    rays = ray_grid(cam).rays(se3.inv(T_world_mesh) @ T_world_camera, w)
+    t = b.scene.cast_rays(o3d.core.Tensor(rays.reshape(-1, 6)), nthreads=0)["t_hit"].numpy()
+    z[w[0]:w[1], w[2]:w[3]] = t.reshape(rays.shape[:2])
+    return z

@@ -71,13 +71,14 @@ def run(root: Path, asm, models, settings: RenderSettings, params) -> list[dict]
             row = {"step": step, "single": [], "t_single": []}
             for f, v in zip(frames, views):
                 t = time.perf_counter()
-                r = estimate(v.depth, v.mask, v.cam, v.T_world_camera, ctx.base, ctx.view.T_base_part, params)
+                r = estimate(v.depth, v.mask, v.cam, v.T_world_camera, ctx.base, ctx.view.T_base_part, params,
+                             part_symmetries=ctx.part.symmetries)
                 row["t_single"].append(time.perf_counter() - t)
                 row["single"].append((right(f, r, ctx), bool(r.ok and r.confident), bool(r.ambiguous)))
                 if f is frames[0]:
                     first = r
             t = time.perf_counter()
-            fused = estimate_views(views, ctx.base, ctx.view.T_base_part, params)
+            fused = estimate_views(views, ctx.base, ctx.view.T_base_part, params, part_symmetries=ctx.part.symmetries)
             row["t_fused"] = time.perf_counter() - t
             row["fused"] = (right(frames[0], fused, ctx), bool(fused.ok and fused.confident))
             if first.ok and not (first.confident and not first.ambiguous):
@@ -85,7 +86,8 @@ def run(root: Path, asm, models, settings: RenderSettings, params) -> list[dict]
                 row["doubt"] = True
                 if advice is not None:
                     adv = advised_view(asm, models, ctx, settings, step, placement, advice.T_world_camera, grid)
-                    a = estimate_views([views[0], adv], ctx.base, ctx.view.T_base_part, params)
+                    a = estimate_views([views[0], adv], ctx.base, ctx.view.T_base_part, params,
+                                       part_symmetries=ctx.part.symmetries)
                     row["advised"] = right(frames[0], a, ctx) and a.confident
                 row["random"] = row["fused"][0] and row["fused"][1]
             rows.append(row)

@@ -109,20 +109,6 @@ def _box_prompted(fr):
     return prompted_mask(fr.rgb, fr.depth, fr.camera, box=truth_box(fr.base_mask())).mask
 
 
-def _depth_image(mesh, T_world_obj, fr):
-    """Depth (metres, inf where none) of a mesh at a pose in the frame's camera, from the ray caster alone."""
-    from apose_studio import se3
-    from apose_studio.raycast import raycast_points
-
-    pts, _ = raycast_points(mesh, T_world_obj, fr.T_world_camera, fr.camera)
-    pc = se3.transform_points(se3.inv(fr.T_world_camera), pts)
-    u = np.round(fr.camera.fx * pc[:, 0] / pc[:, 2] + fr.camera.cx).astype(int)
-    v = np.round(fr.camera.fy * pc[:, 1] / pc[:, 2] + fr.camera.cy).astype(int)
-    z = np.full((fr.camera.height, fr.camera.width), np.inf)
-    np.minimum.at(z, (v, u), pc[:, 2])
-    return z
-
-
 def test_twins_are_told_apart_along_the_ray(tmp_path_factory):
     """Gearbox step 1 on a Kinect-like cluttered bench (the benchmark's frame 3): the housing's half turn
     moves a boss a few millimetres proud of a face. Independently of the estimator (the renderer's ray
@@ -131,13 +117,14 @@ def test_twins_are_told_apart_along_the_ray(tmp_path_factory):
     when the other had none within the tolerance) left the result tied with the twin (ambiguous); along
     the ray it is confident and right."""
     from apose_studio.evaluate import StepContext, estimate_frame
+    from apose_studio.raycast import raycast_depth
 
     ds = _kinect_clutter(tmp_path_factory, "helical_gearbox", 1)
     ctx = StepContext(ds.assembly, load_parts(ds.assembly), 1)
     fr = ds.frame(1, 3)
     assert len(ctx.base.close_twins) == 1
-    z_truth = _depth_image(ctx.base.mesh, fr.T_world_base, fr)
-    z_twin = _depth_image(ctx.base.mesh, fr.T_world_base @ ctx.base.close_twins[0], fr)
+    z_truth = raycast_depth(ctx.base.mesh, fr.T_world_base, fr.T_world_camera, fr.camera)
+    z_twin = raycast_depth(ctx.base.mesh, fr.T_world_base @ ctx.base.close_twins[0], fr.T_world_camera, fr.camera)
     d = fr.depth
     with np.errstate(invalid="ignore"):
         telling = (np.abs(d - z_truth) < 0.003) & ~(np.abs(z_twin - z_truth) < 0.005)
