@@ -18,7 +18,8 @@ SCORE_POINTS = 1000  # hypotheses are scored on this many points; the winner is 
 
 
 def fit_plane(points: np.ndarray, tol: float, seed: int = 0, iterations: int = PLANE_ITERATIONS,
-              towards: np.ndarray | None = None, above: np.ndarray | None = None) -> tuple[np.ndarray, float, np.ndarray] | None:
+              towards: np.ndarray | None = None, above: np.ndarray | None = None,
+              reach: float = 0.0) -> tuple[np.ndarray, float, np.ndarray] | None:
     """(unit normal n, offset d, inlier mask) of the plane n . x + d = 0 with the most points within `tol`.
 
     `towards`: orient n so that this point (the camera) is on its positive side. `above`: the points of
@@ -26,8 +27,10 @@ def fit_plane(points: np.ndarray, tol: float, seed: int = 0, iterations: int = P
     and its lowest seen points within half its extent of the plane), so a bigger wall behind the
     object, a shelf above it or the floor far below its table is not taken for its table. Half: in
     clutter, things in front hide the object's foot, and a Kinect sees little of a dark object's sides
-    (the lowest seen points of the planetary motor were 22 mm up on a 98 mm extent). None when no plane is found (fewer than 3 points, every draw
-    degenerate, or no plane that the object stands on)."""
+    (the lowest seen points of the planetary motor were 22 mm up on a 98 mm extent). `reach`: how far
+    above the plane the lowest seen points may be whatever the seen extent (the object's own size, when
+    known: a motor seen only from above, behind clutter, shows nothing but its top). None when no plane
+    is found (fewer than 3 points, every draw degenerate, or no plane that the object stands on)."""
     points = np.asarray(points, float)
     n_pts = len(points)
     if n_pts < 3:
@@ -50,7 +53,7 @@ def fit_plane(points: np.ndarray, tol: float, seed: int = 0, iterations: int = P
         above = above[:: max(1, len(above) // 500)]
         signed = above @ normals.T + offsets  # (points, planes): height of the object's points over each plane
         extent = float(np.linalg.norm(above.max(axis=0) - above.min(axis=0)))
-        supports = (np.median(signed, axis=0) > tol) & (np.percentile(signed, 5, axis=0) < max(10 * tol, 0.5 * extent))
+        supports = (np.median(signed, axis=0) > tol) & (np.percentile(signed, 5, axis=0) < max(10 * tol, 0.5 * extent, reach))
         counts = np.where(supports, counts, -1)  # a plane the object stands on: on its side, and touching it
     best = int(np.argmax(counts))
     if counts[best] < 3:

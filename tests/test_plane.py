@@ -49,3 +49,21 @@ def test_an_object_whose_foot_is_hidden_still_stands_on_its_table_not_on_the_flo
     n, d, _ = fit_plane(pts, 0.003, seed=0, towards=camera, above=obj)
     np.testing.assert_allclose(n, [0, 0, 1.0], atol=1e-3)
     assert abs(d) < 1e-3
+
+
+def test_an_object_seen_only_on_its_top_stands_on_the_table_within_its_own_size():
+    """Only the top of a 100 mm object has depth (clutter in front, a dark side without Kinect depth):
+    its seen points lie 90-100 mm up, a 10 mm seen extent. Half that extent cannot reach down to the
+    table, so the table is refused (some stray plane of a few points may win); allowed the object's own size (`reach`, its diameter), it stands on
+    the table, and still not on the floor 0.7 m below."""
+    rng = np.random.default_rng(2)
+    table = np.c_[rng.uniform(-0.3, 0.3, (3000, 2)), np.zeros(3000)]  # z = 0
+    floor = np.c_[rng.uniform(-1.0, 1.0, (8000, 2)), np.full(8000, -0.7)]
+    top = np.c_[rng.uniform(-0.05, 0.05, (300, 2)), rng.uniform(0.09, 0.1, 300)]
+    camera = np.array([0.0, -1.0, 0.8])
+    pts = np.concatenate([table, floor])
+    blind = fit_plane(pts, 0.003, seed=0, towards=camera, above=top)
+    assert blind is None or abs(blind[0] @ [0, 0, 1.0]) < 0.99  # not the table
+    n, d, inliers = fit_plane(pts, 0.003, seed=0, towards=camera, above=top, reach=0.12)
+    np.testing.assert_allclose(n, [0, 0, 1.0], atol=1e-3)
+    assert abs(d) < 1e-3 and inliers[:3000].all() and not inliers[3000:].any()
