@@ -91,15 +91,11 @@ def raycast_points(mesh: trimesh.Trimesh, T_world_mesh: np.ndarray, T_world_came
 
     One ray per pixel of `cam`, cast only over the mesh's image box, against its cached BVH.
     """
-    import open3d as o3d
-
-    b = body(mesh)
-    w = pixel_window(b.corners, se3.inv(T_world_camera) @ T_world_mesh, cam)
-    if w is None:
+    cast = _cast(mesh, T_world_mesh, T_world_camera, cam)
+    if cast is None:
         return np.zeros((0, 3)), np.zeros((0, 3))
-    T_mesh_camera = se3.inv(T_world_mesh) @ T_world_camera
-    rays = ray_grid(cam).rays(T_mesh_camera, w).reshape(-1, 6)
-    hit = b.scene.cast_rays(o3d.core.Tensor(rays), nthreads=0)
+    b, _, rays, hit = cast
+    rays = rays.reshape(-1, 6)
     t = hit["t_hit"].numpy()
     ok = np.isfinite(t)
     pts = rays[ok, :3] + t[ok, None] * rays[ok, 3:]
@@ -112,14 +108,22 @@ def raycast_depth(mesh: trimesh.Trimesh, T_world_mesh: np.ndarray, T_world_camer
                   cam: CameraIntrinsics) -> np.ndarray:
     """(H, W) depth (metres along the camera's axis) of a mesh alone, inf where a pixel's ray misses it:
     the renderer's ray cast, one ray per pixel centre (a ray's t is its depth: RayGrid's z = 1)."""
+    z = np.full((cam.height, cam.width), np.inf)
+    cast = _cast(mesh, T_world_mesh, T_world_camera, cam)
+    if cast is not None:
+        _, w, rays, hit = cast
+        z[w[0]:w[1], w[2]:w[3]] = hit["t_hit"].numpy().reshape(rays.shape[:2])
+    return z
+
+
+def _cast(mesh: trimesh.Trimesh, T_world_mesh: np.ndarray, T_world_camera: np.ndarray, cam: CameraIntrinsics):
+    """(body, pixel window, (h, w, 6) rays in the mesh frame, Open3D hits) of one ray per pixel over the
+    mesh's image box; None when the mesh is outside the image."""
     import open3d as o3d
 
-    z = np.full((cam.height, cam.width), np.inf)
     b = body(mesh)
     w = pixel_window(b.corners, se3.inv(T_world_camera) @ T_world_mesh, cam)
     if w is None:
-        return z
+        return None
     rays = ray_grid(cam).rays(se3.inv(T_world_mesh) @ T_world_camera, w)
-    t = b.scene.cast_rays(o3d.core.Tensor(rays.reshape(-1, 6)), nthreads=0)["t_hit"].numpy()
-    z[w[0]:w[1], w[2]:w[3]] = t.reshape(rays.shape[:2])
-    return z
+    return b, w, rays, b.scene.cast_rays(o3d.core.Tensor(rays.reshape(-1, 6)), nthreads=0)

@@ -61,17 +61,14 @@ def telling_pixels(frame, ctx: StepContext) -> int:
     the part elsewhere (MSSD >= 10 % of its diameter, modulo its own symmetries). A telling pixel has depth
     within TELL_M of the truth's ray-cast surface, where the twin's surface is not, at least 2 px from
     either's outline. -1 when the base has no such twin."""
-    import cv2
-
     from apose_studio.raycast import raycast_depth
+    from apose_studio.registration import mask_edge
 
     part, d = ctx.part, frame.depth
     z_truth = raycast_depth(ctx.base.mesh, frame.T_world_base, frame.T_world_camera, frame.camera)
-    k = np.ones((5, 5), np.uint8)
 
-    def outline(z):
-        s = np.isfinite(z).astype(np.uint8)
-        return (cv2.dilate(s, k) > 0) & ~(cv2.erode(s, k) > 0)
+    def outline(z):  # within 2 px of the silhouette's outline, either side
+        return mask_edge(np.isfinite(z), 2)
 
     fewest = -1
     for S in ctx.base.close_twins:
