@@ -78,17 +78,17 @@ def cmd_demo(args) -> int:
     if args.no_studio:
         return 0
     print("\nopening the studio on this assembly and dataset (the estimates above are cached in its Inspect tab)")
-    return _serve_studio(path, out, args.host, args.port, cache, root=args.root)
+    return _serve_studio(path, out, args.host, args.port, cache, root=args.root, token=args.token)
 
 
-def _serve_studio(assembly, dataset, host: str, port: int, cache=None, root=None) -> int:
+def _serve_studio(assembly, dataset, host: str, port: int, cache=None, root=None, token=None) -> int:
     from .studio import serve
     from .webguard import is_loopback_bind
 
     if root is not None and not Path(root).is_dir():
         raise AposeError(f"--root {root}: no such folder")
-    server, studio = serve(assembly, dataset, host=host, port=port, cache=cache, root=root)
-    print(f"studio: {studio.url}  (Ctrl-C to stop)")
+    server, studio = serve(assembly, dataset, host=host, port=port, cache=cache, root=root, token=token)
+    print(f"studio: {studio.url}  (Ctrl-C to stop; open this address: the page needs the token in it)")
     print(f"workspace: the page may open and save files only under {', '.join(str(r) for r in studio.workspace.roots)}")
     if not is_loopback_bind(host):
         print(f"note: listening on {host}; the page and its websocket need the token in the address above. Anyone "
@@ -105,7 +105,7 @@ def _serve_studio(assembly, dataset, host: str, port: int, cache=None, root=None
 def cmd_studio(args) -> int:
     if args.assembly and not Path(args.assembly).is_file():
         raise AposeError(f"{args.assembly}: no such assembly file")
-    return _serve_studio(args.assembly, args.dataset, args.host, args.port, root=args.root)
+    return _serve_studio(args.assembly, args.dataset, args.host, args.port, root=args.root, token=args.token)
 
 
 def _pair(text: str, what: str) -> tuple[float, float]:
@@ -213,6 +213,8 @@ def _server_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--port", type=_port, default=8080, help="port (default 8080; the next free one if taken)")
     p.add_argument("--root", default=None, help="the folder whose files the page may open and save (default: the "
                    "current directory, or the assembly file's folder when it lies outside)")
+    p.add_argument("--token", default=None, help="the secret in the studio's address (/t/TOKEN/; at least 16 "
+                   "characters of A-Z a-z 0-9 - _); default: a new random one each start, printed with the address")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -5,10 +5,14 @@ machine) that the user happens to visit could open `ws://127.0.0.1:8080` and pre
 module closes that hole the way Jupyter does:
 
 - **Origin check**: the websocket is accepted only from the studio's own page (same host and port;
-  `localhost`, `127.0.0.1` and `[::1]` count as one host). Bound to loopback, the Host header must
-  also name loopback, so a DNS-rebinding page (evil.example resolving to 127.0.0.1) is refused too.
-- **Token**: bound beyond loopback, the page and its websocket live under `/t/<token>/`, a secret the
-  command prints; without it, nothing but a "needs the token" page is served.
+  loopback names count as one host). Bound to loopback, the Host header must also name loopback, so a
+  DNS-rebinding page (evil.example resolving to 127.0.0.1) is refused too. A *loopback name* is an IP
+  literal in 127.0.0.0/8, `::1`, or exactly `localhost` (`is_loopback_name`): never a DNS name that
+  merely starts with `127.` (`127.attacker.example`, `127.0.0.1.nip.io` can point anywhere).
+- **Token**: the page and its websocket live under `/t/<token>/`, a secret made per start and printed
+  by the command; without it, nothing but a "needs the token" page is served. On loopback too, as
+  Jupyter does: any local process (another user's, a sandboxed app's) can forge an Origin header,
+  but cannot guess 192 random bits. `--token` picks a fixed one (a bookmark, a scripted demo).
 - **Workspace**: file paths typed into the page resolve inside a few root folders (`--root`).
 
 viser offers no hook for the first two, so `start_viser` wraps the request hook of the websockets
@@ -17,7 +21,9 @@ server while viser starts it (the one place that touches viser's internals for t
 
 from __future__ import annotations
 
+import hmac
 import http
+import ipaddress
 import secrets
 import threading
 from dataclasses import dataclass
@@ -26,12 +32,27 @@ from urllib.parse import urlsplit
 
 from .errors import AposeError
 
-LOOPBACK_HOSTS = frozenset({"localhost", "127.0.0.1", "::1"})
 _START_LOCK = threading.Lock()
 
 
+def is_loopback_name(name: str) -> bool:
+    """True for an IP literal in 127.0.0.0/8 or ::1 (brackets allowed) and for exactly `localhost`
+    (any case). Everything else is a name some DNS server answers for: `127.evil.example`,
+    `127.0.0.1.nip.io`, `localhost.`, `localhost.evil.example`, `0x7f.1` and `2130706433` are not loopback."""
+    name = (name or "").lower()
+    if name == "localhost":
+        return True
+    if name.startswith("[") and name.endswith("]"):
+        name = name[1:-1]
+    try:
+        address = ipaddress.ip_address(name)
+    except ValueError:
+        return False
+    return address.is_loopback and (address.version == 4 or address == ipaddress.IPv6Address("::1"))
+
+
 def is_loopback_bind(host: str) -> bool:
-    return host in LOOPBACK_HOSTS or host.startswith("127.")
+    return is_loopback_name(host)
 
 
 def _host_port(netloc: str, default_port: int | None) -> tuple[str, int | None]:
@@ -44,18 +65,22 @@ def _host_port(netloc: str, default_port: int | None) -> tuple[str, int | None]:
     return (parts.hostname or "").lower(), port if port is not None else default_port
 
 
-def _loopback(name: str) -> bool:
-    return name in LOOPBACK_HOSTS or name.startswith("127.")
+def _has_token(path: str, token: str) -> bool:
+    """`path` is /t/<token>, /t/<token>/… or /t/<token>?…; compared in constant time."""
+    if not path.startswith("/t/"):
+        return False
+    rest = path[3:]
+    end = min((i for i in (rest.find("/"), rest.find("?")) if i >= 0), default=len(rest))
+    return hmac.compare_digest(rest[:end].encode("utf-8", "surrogateescape"), token.encode())
 
 
 def refusal(*, path: str, host_header: str | None, origin: str | None, port: int, bound_loopback: bool,
             token: str | None, websocket: bool) -> str | None:
     """Why a request must be refused, or None to let it through (pure; the rules of the module doc)."""
-    if token is not None and not (path == f"/t/{token}" or path.startswith(f"/t/{token}/")
-                                  or path.startswith(f"/t/{token}?")):
+    if token is not None and not _has_token(path, token):
         return "this studio needs its token: open the address that `apose studio` printed (it ends in /t/<token>/)"
     host, host_port = _host_port(host_header or "", 80)
-    if bound_loopback and not _loopback(host):
+    if bound_loopback and not is_loopback_name(host):
         return f"refused: the studio listens on this machine only, and Host {host_header!r} is not a loopback name"
     if not websocket:
         return None
@@ -63,7 +88,7 @@ def refusal(*, path: str, host_header: str | None, origin: str | None, port: int
         return "refused: a websocket without an Origin header (only the studio's own page may connect)"
     o = urlsplit(origin)
     o_host, o_port = _host_port(o.netloc, {"http": 80, "https": 443}.get(o.scheme))
-    same_host = o_host == host or (_loopback(o_host) and _loopback(host))
+    same_host = o_host == host or (is_loopback_name(o_host) and is_loopback_name(host))
     if o.scheme not in ("http", "https") or not same_host or o_port != port:
         return f"refused: Origin {origin!r} is not the studio's own page"
     return None
@@ -71,6 +96,15 @@ def refusal(*, path: str, host_header: str | None, origin: str | None, port: int
 
 def new_token() -> str:
     return secrets.token_urlsafe(24)
+
+
+def check_token(token: str) -> str:
+    """A chosen token, refused when it is guessable or does not fit in a URL path segment."""
+    token = str(token)
+    if len(token) < 16 or not all(c.isascii() and (c.isalnum() or c in "-_") for c in token):
+        raise AposeError(f"--token: {len(token)} characters; use at least 16 of A-Z, a-z, 0-9, '-' and '_' "
+                         "(or leave it out: each start then makes a new random one)")
+    return token
 
 
 def start_viser(host: str, port: int, token: str | None, label: str = "apose studio"):

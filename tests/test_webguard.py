@@ -3,7 +3,7 @@
 import pytest
 
 from apose_studio.errors import AposeError
-from apose_studio.webguard import Workspace, refusal
+from apose_studio.webguard import Workspace, check_token, is_loopback_bind, is_loopback_name, refusal
 
 
 def ws(origin, host="127.0.0.1:8080", token=None, path="/", bound_loopback=True):
@@ -21,6 +21,53 @@ def test_origin_must_be_the_studios_own_page():
         assert ws(bad) is not None, bad
     # DNS rebinding: a foreign name resolving to 127.0.0.1 is same-origin to the browser, but not loopback
     assert "not a loopback name" in ws("http://evil.example.com:8080", host="evil.example.com:8080")
+
+
+LOOPBACK = ("127.0.0.1", "127.0.0.2", "127.255.255.254", "::1", "[::1]", "localhost", "LOCALHOST", "LocalHost")
+NOT_LOOPBACK = ("127.attacker.example", "127.0.0.1.nip.io", "127.0.0.1.rebind.attacker.example", "127", "127.",
+                "1270.0.0.1", "127.0.0.1.", "127.1", "0x7f.0.0.1", "0177.0.0.1", "2130706433", "localhost.",
+                "localhost.attacker.example", "attacker.localhost", "localhost:80", "::ffff:127.0.0.1",
+                "[::ffff:127.0.0.1]", "::2", "0.0.0.0", "::", "", "10.0.0.1", "128.0.0.1", "evil.example")
+
+
+def test_loopback_names_are_ip_literals_or_exactly_localhost():
+    for name in LOOPBACK:
+        assert is_loopback_name(name), name
+    for name in NOT_LOOPBACK:
+        assert not is_loopback_name(name), name
+        assert not is_loopback_bind(name), name
+
+
+def test_names_that_only_look_like_loopback_are_foreign():
+    """The probe of round 2: a page from http://127.attacker.example:PORT, and the rebinding forms."""
+    for name in NOT_LOOPBACK:
+        if not name or ":" in name:
+            continue
+        assert "not the studio's own page" in ws(f"http://{name}:8080"), name  # Origin only
+        assert "not a loopback name" in ws(f"http://{name}:8080", host=f"{name}:8080"), name  # Host too
+    for origin in ("http://127.0.0.1:8080@evil.example:8080", "http://evil.example:8080#@127.0.0.1:8080",
+                   "http://127.0.0.1%2eevil.example:8080", "http://[::ffff:127.0.0.1]:8080",
+                   "ws://127.0.0.1:8080", "chrome-extension://127.0.0.1:8080"):
+        assert ws(origin) is not None, origin
+    assert ws("http://127.0.0.2:8080") is None  # another loopback address of this machine is this machine
+    assert ws("http://[::1]:8080") is None
+
+
+def test_token_is_compared_whole():
+    tok = "a" * 24
+    kw = dict(host="127.0.0.1:8080", token=tok)
+    for path in (f"/t/{tok}", f"/t/{tok}/", f"/t/{tok}/assets/x.js", f"/t/{tok}?v=1"):
+        assert ws("http://127.0.0.1:8080", path=path, **kw) is None, path
+    for path in ("/", f"/t/{tok}x", f"/t/{tok[:-1]}", f"/t/{tok[:-1]}/", "/t/", "/t//", f"/x/{tok}/", f"/t/%61{tok[1:]}",
+                 f"//t/{tok}/", f"/T/{tok}/", f"/t/{tok.upper()}/"):
+        assert "needs its token" in ws("http://127.0.0.1:8080", path=path, **kw), path
+
+
+def test_chosen_tokens_must_be_unguessable():
+    assert check_token("s3cret-token-0123456789") == "s3cret-token-0123456789"
+    for bad in ("short", "x" * 15, "has space in it 0123", "slash/in/the/token/0123", "ümlaut-token-0123456789"):
+        with pytest.raises(AposeError, match="--token"):
+            check_token(bad)
 
 
 def test_beyond_loopback_the_token_is_needed_and_origin_still_checked():

@@ -252,14 +252,13 @@ def serve(assembly=None, dataset=None, host: str = "127.0.0.1", port: int = 8080
           token: str | None = None):
     """Start the studio in the background; returns (server, studio). `server.stop()` ends it.
 
-    Only the studio's own page may connect (Origin check). Bound beyond loopback, the page and its
-    websocket need `token` (made up when None); `studio.url` is the address to open."""
-    from ..webguard import is_loopback_bind, new_token, start_viser, studio_url
+    Only the studio's own page may connect (Origin check), and the page and its websocket need
+    `token` (a new random one when None, on loopback too); `studio.url` is the address to open."""
+    from ..webguard import check_token, new_token, start_viser, studio_url
 
     if not 0 < int(port) < 65536:
         raise AposeError(f"--port {port}: expected a port number from 1 to 65535")
-    if token is None and not is_loopback_bind(host):
-        token = new_token()
+    token = new_token() if token is None else check_token(token)
     server = start_viser(host, port, token)
     try:
         studio = Studio(server, assembly, dataset, cache, default_workspace(assembly, dataset, root))

@@ -301,16 +301,21 @@ def test_only_the_studios_own_page_may_connect(browser, studio):
     port = studio.server.get_port()
     proto = [f"viser-v{viser.__version__}"]
 
+    token_path = studio.url.split(f":{port}", 1)[1]  # /t/<token>/: the Origin is checked even with the token
+
     def connect(host: str = "127.0.0.1", **kw):
         import socket
 
         sock = socket.create_connection(("127.0.0.1", port))  # whatever name the URL uses, this machine answers
-        with websockets.sync.client.connect(f"ws://{host}:{port}", sock=sock, subprotocols=proto, open_timeout=10,
-                                            **kw) as ws:
+        with websockets.sync.client.connect(f"ws://{host}:{port}{token_path}", sock=sock, subprotocols=proto,
+                                            open_timeout=10, **kw) as ws:
             return len(ws.recv(timeout=10))
 
     for host, origin in (("127.0.0.1", "http://evil.example.com"), ("127.0.0.1", f"http://127.0.0.1:{port + 1}"),
-                         ("evil.example.com", f"http://evil.example.com:{port}"), ("127.0.0.1", None)):
+                         ("evil.example.com", f"http://evil.example.com:{port}"), ("127.0.0.1", None),
+                         ("127.0.0.1", f"http://127.attacker.example:{port}"),  # names that merely start with 127.
+                         ("127.0.0.1.rebind.attacker.example", f"http://127.0.0.1.rebind.attacker.example:{port}"),
+                         ("127.0.0.1.nip.io", f"http://127.0.0.1.nip.io:{port}")):
         with pytest.raises(websockets.exceptions.InvalidStatus, match="403"):
             connect(host, origin=origin)
     assert connect(origin=f"http://localhost:{port}") > 0  # the studio's own page, as localhost or 127.0.0.1
@@ -327,10 +332,10 @@ def test_token_guards_page_and_websocket(browser, tmp_path):
 
     from apose_studio.studio import serve
 
-    server, st = serve(host="127.0.0.1", port=free_port(), root=tmp_path, token="s3cret-token")
+    server, st = serve(host="127.0.0.1", port=free_port(), root=tmp_path, token="s3cret-token-0123456789")
     try:
         port = server.get_port()
-        assert st.url == f"http://127.0.0.1:{port}/t/s3cret-token/"
+        assert st.url == f"http://127.0.0.1:{port}/t/s3cret-token-0123456789/"
         with pytest.raises(urllib.error.HTTPError, match="403"):
             urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=10)
         with pytest.raises(websockets.exceptions.InvalidStatus, match="403"):
