@@ -371,20 +371,19 @@ def assembly_from_dict(data, file: str | Path, folder: Path | None = None) -> As
 
 def load_assembly(path: str | Path) -> Assembly:
     """Read and validate an assembly file; raises AssemblyError naming file, key path and expectation."""
-    from .fileio import describe_path
+    from . import safeio
+    from .errors import AposeError
 
     path = Path(path)
-    if not path.is_file():
-        raise AssemblyError([Problem(str(path), "", describe_path(path, "an assembly file (.yaml)"))])
-    if path.stat().st_size > MAX_FILE_BYTES:
-        raise AssemblyError([Problem(str(path), "", f"{path.stat().st_size / 2**20:.0f} MB is far too large for an "
-                                     f"assembly file (at most {MAX_FILE_BYTES // 2**20} MB); is this the right file?")])
     try:
-        text = path.read_text(encoding="utf-8")
+        data = safeio.read_bytes(path, "an assembly file (.yaml)", MAX_FILE_BYTES)
+    except AposeError as e:
+        message = str(e).split(": ", 1)[-1] if str(e).startswith(str(path)) else str(e)
+        raise AssemblyError([Problem(str(path), "", message)]) from None
+    try:
+        text = data.decode("utf-8-sig")
     except UnicodeDecodeError:
         raise AssemblyError([Problem(str(path), "", "not a text file (an assembly file is YAML text)")]) from None
-    except OSError as e:
-        raise AssemblyError([Problem(str(path), "", f"cannot be read ({e.strerror})")]) from None
     return assembly_from_dict(parse_yaml(text, str(path)), path)
 
 
@@ -457,10 +456,13 @@ def save_assembly(asm: Assembly, path: str | Path, backup: bool = False) -> Path
     path = Path(path).resolve()
     previous = None
     if path.is_file():
+        from . import safeio
+        from .errors import AposeError
+
         try:
-            previous = path.read_text(encoding="utf-8")
-        except (OSError, UnicodeDecodeError):
+            previous = safeio.read_text(path, "an assembly file", MAX_FILE_BYTES)
+        except AposeError:  # unreadable or not ours to merge into: written afresh (the old one kept as .bak)
             previous = None
     text = roundtrip_yaml(previous, assembly_to_dict(asm, path.parent), keep=_same_pose)
-    atomic_write_text(path, text, backup=backup and previous is not None)
+    atomic_write_text(path, text, backup=backup and path.is_file())
     return path

@@ -16,7 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from . import se3
-from .dataset import DatasetError, Frame, _read_image, _T_from_Rt, check_camera_entry, read_depth, read_json, read_rgb
+from .dataset import (DatasetError, Frame, _read_image, check_camera_entry, check_scene_images, gt_entries, read_depth,
+                      read_json, read_rgb)
 
 CSV_HEADER = ["scene_id", "im_id", "obj_id", "score", "R", "t", "time"]
 
@@ -55,9 +56,10 @@ class BopScene:
         self.dir = Path(folder)
         if not is_bop_scene(self.dir):
             raise DatasetError(f"{self.dir}: not a BOP scene folder (scene_camera.json and depth/ expected)")
-        self.camera = read_json(self.dir / "scene_camera.json")
+        self.camera = check_scene_images(read_json(self.dir / "scene_camera.json"), str(self.dir / "scene_camera.json"),
+                                         "{cam_K, depth_scale}")
         gt = self.dir / "scene_gt.json"
-        self.gt = read_json(gt) if gt.is_file() else {}
+        self.gt = check_scene_images(read_json(gt), str(gt), "[{obj_id, cam_R_m2c, cam_t_m2c}]") if gt.exists() else {}
         self.obj_of_part = dict(obj_of_part or {})
         self.scene_id = int(self.dir.name) if self.dir.name.isdigit() else 0
 
@@ -96,11 +98,11 @@ class BopScene:
         frame = Frame(rgb=rgb, depth=depth, camera=cam, T_world_camera=T_world_camera, im_id=im_id,
                       source=str(rgb_path), step=self.scene_id)
         part_of = {v: k for k, v in self.obj_of_part.items()}
-        for i, g in enumerate(self.gt.get(key, [])):
-            pid = part_of.get(int(g["obj_id"]))
+        for i, (obj_id, T_camera_obj) in enumerate(gt_entries(self.gt, key, str(self.dir / "scene_gt.json"))):
+            pid = part_of.get(obj_id)
             if pid is None or pid in frame.poses:
                 continue
-            frame.poses[pid] = T_world_camera @ _T_from_Rt(g["cam_R_m2c"], g["cam_t_m2c"])
+            frame.poses[pid] = T_world_camera @ T_camera_obj
             mpath = self.dir / "mask_visib" / f"{im_id:06d}_{i:06d}.png"
             if mpath.exists():
                 import cv2

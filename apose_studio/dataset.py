@@ -41,16 +41,23 @@ DEPTH_SCALE = 0.1  # BOP: depth in mm = PNG value * depth_scale; 0.1 mm steps up
 
 
 def write_json(path: Path, data) -> None:
-    atomic_write_text(Path(path), json.dumps(data, indent=1))
+    from .outdir import claim
+
+    atomic_write_text(claim(path), json.dumps(data, indent=1))
 
 
-def read_json(path: Path):
+def read_json(path: Path, what: str = "a JSON file"):
+    """A dataset's JSON file: regular, size-capped, strict (safeio); DatasetError naming the file."""
+    from . import safeio
+
+    if not Path(path).exists() and not Path(path).is_symlink():
+        raise DatasetError(f"{path}: missing")
     try:
-        return json.loads(Path(path).read_text())
-    except FileNotFoundError:
-        raise DatasetError(f"{path}: missing") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise DatasetError(f"{path}: not valid JSON ({e})") from None
+        return safeio.read_json(path, what)
+    except DatasetError:
+        raise
+    except AposeError as e:
+        raise DatasetError(str(e)) from None
 
 
 def scene_dir(root: Path, step: int) -> Path:
@@ -93,27 +100,30 @@ class Frame:
         return out
 
 
-def _read_image(path: Path, flags: int) -> np.ndarray:
-    if not path.is_file():
-        from .fileio import describe_path
+def _read_image(path: Path, flags: int, what: str = "an image", header: bool = False):
+    """An image through safeio (regular file, size and pixel caps checked before decoding)."""
+    from . import safeio
 
-        raise DatasetError(f"{path}: missing" if not path.exists() else f"{path}: {describe_path(path, 'an image')}")
-    img = cv2.imread(str(path), flags)
-    if img is None:
-        raise DatasetError(f"{path}: not a readable image (corrupt?)")
-    return img
+    if not path.exists() and not path.is_symlink():
+        raise DatasetError(f"{path}: missing")
+    try:
+        img, head = safeio.read_image(path, flags, what)
+    except AposeError as e:
+        raise DatasetError(str(e)) from None
+    return (img, head) if header else img
 
 
 def read_rgb(path: Path) -> np.ndarray:
-    img = _read_image(path, cv2.IMREAD_COLOR)
+    img = _read_image(path, cv2.IMREAD_COLOR, "the colour image")
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
 def read_depth(path: Path, depth_scale_mm: float) -> np.ndarray:
     """uint16 depth PNG -> metres (float32); NaN, negative and missing become 0."""
-    raw = _read_image(path, cv2.IMREAD_ANYDEPTH)
-    if raw.ndim != 2:
-        raise DatasetError(f"{path}: expected a single-channel 16-bit depth image, got {raw.ndim} channels")
+    raw, (fmt, _, _, channels, bits) = _read_image(path, cv2.IMREAD_UNCHANGED, "the depth image", header=True)
+    if channels != 1 or raw.ndim != 2:
+        raise DatasetError(f"{path}: a {bits}-bit {fmt} with {channels} channels; depth is one channel of 16-bit "
+                           "integers (depth in mm = value x depth_scale), as RealSense, Kinect and BOP write it")
     if raw.dtype != np.uint16:
         raise DatasetError(f"{path}: a {raw.dtype} depth image; expected 16-bit integers (depth in mm = value x "
                            "depth_scale), as RealSense, Kinect and BOP write them")
@@ -173,8 +183,13 @@ class Dataset:
             if not d.is_dir():
                 raise DatasetError(f"{self.root}: step {step} was not rendered; rendered steps: "
                                    f"{', '.join(map(str, self.steps)) or 'none'}")
-            self._scenes[step] = {name: read_json(d / f"{name}.json") for name in
-                                  ("scene_camera", "scene_gt", "scene_gt_info", "scene_assembly")}
+            sc = {name: read_json(d / f"{name}.json") for name in
+                  ("scene_camera", "scene_gt", "scene_gt_info", "scene_assembly")}
+            for name in ("scene_camera", "scene_gt", "scene_gt_info"):
+                check_scene_images(sc[name], str(d / f"{name}.json"), "...")
+            if not isinstance(sc["scene_assembly"], dict) or not isinstance(sc["scene_assembly"].get("frames"), dict):
+                raise DatasetError(f"{d / 'scene_assembly.json'}: expected an object with frames; re-render the step")
+            self._scenes[step] = sc
         return self._scenes[step]
 
     def image_ids(self, step: int) -> list[int]:
@@ -200,20 +215,23 @@ class Dataset:
             raise DatasetError(f"{self.root}: step {step} has no frame {im_id}; frames are "
                                f"{ids[0]}..{ids[-1]}" if ids else f"{self.root}: step {step} has no frames")
         d = scene_dir(self.root, step)
-        cam = sc["scene_camera"][key]
-        K = np.asarray(cam["cam_K"], float).reshape(3, 3)
-        T_cam_world = _T_from_Rt(cam["cam_R_w2c"], cam["cam_t_w2c"])
-        T_world_camera = se3.inv(T_cam_world)
         rgb_path = d / "rgb" / f"{im_id:06d}.jpg"
         rgb = read_rgb(rgb_path if rgb_path.exists() else rgb_path.with_suffix(".png"))
-        depth = read_depth(d / "depth" / f"{im_id:06d}.png", cam["depth_scale"])
+        camera, depth_scale, T_world_camera = check_camera_entry(
+            sc["scene_camera"][key], f"{d / 'scene_camera.json'}: {key}", rgb.shape[1], rgb.shape[0])
+        if T_world_camera is None:
+            raise DatasetError(f"{d / 'scene_camera.json'}: {key}: missing cam_R_w2c / cam_t_w2c; re-render the step")
+        depth = read_depth(d / "depth" / f"{im_id:06d}.png", depth_scale)
         if depth.shape != rgb.shape[:2]:
             raise DatasetError(f"{d}: frame {im_id}: depth is {depth.shape[1]}x{depth.shape[0]} but RGB is "
                                f"{rgb.shape[1]}x{rgb.shape[0]}")
         masks, poses = {}, {}
-        for i, gt in enumerate(sc["scene_gt"][key]):
-            pid = self.part_of_obj[gt["obj_id"]]
-            poses[pid] = T_world_camera @ _T_from_Rt(gt["cam_R_m2c"], gt["cam_t_m2c"])
+        for i, (obj_id, T_camera_obj) in enumerate(gt_entries(sc["scene_gt"], key, str(d / "scene_gt.json"))):
+            if obj_id not in self.part_of_obj:
+                raise DatasetError(f"{d / 'scene_gt.json'}: {key}[{i}]: obj_id {obj_id} is no part of this dataset "
+                                   f"(dataset_info.json maps {sorted(self.part_of_obj)})")
+            pid = self.part_of_obj[obj_id]
+            poses[pid] = T_world_camera @ T_camera_obj
             mpath = d / "mask_visib" / f"{im_id:06d}_{i:06d}.png"
             masks[pid] = _read_image(mpath, cv2.IMREAD_GRAYSCALE) > 127
             if masks[pid].shape != depth.shape:
@@ -221,11 +239,43 @@ class Dataset:
                                    f"{depth.shape[1]}x{depth.shape[0]}")
         asm = sc["scene_assembly"]
         fr = asm["frames"][key]
-        return Frame(rgb=rgb, depth=depth, camera=CameraIntrinsics.from_K(K, rgb.shape[1], rgb.shape[0]),
+        return Frame(rgb=rgb, depth=depth, camera=camera,
                      T_world_camera=T_world_camera, masks=masks, poses=poses, step=step, part=asm["part"],
                      base=tuple(asm["base"]), T_base_part=np.asarray(asm["T_base_part"]),
                      T_world_base=np.asarray(fr["T_world_base"]), T_world_part=np.asarray(fr["T_world_part"]),
                      im_id=im_id, source=str(rgb_path), placement=int(fr.get("placement", im_id)))
+
+
+def check_scene_images(doc, where: str, entry: str) -> dict:
+    """A BOP scene file keyed by image id (scene_camera.json, scene_gt.json, ...): a JSON object whose keys
+    are image numbers; DatasetError naming the file and the key otherwise. `entry` says what each value is."""
+    if not isinstance(doc, dict):
+        raise DatasetError(f"{where}: expected a JSON object keyed by image id ({{\"0\": {entry}, ...}}), "
+                           f"got a {type(doc).__name__}")
+    for k in doc:
+        if not (k.isascii() and k.isdigit()) or len(k) > 9:
+            raise DatasetError(f"{where}: key {k!r}: image ids are whole numbers (\"0\", \"1\", ...)"[:240])
+    return doc
+
+
+def gt_entries(doc: dict, key: str, where: str) -> list[tuple[int, np.ndarray]]:
+    """(obj_id, T_camera_object in metres) per entry of scene_gt.json's image `key`, checked."""
+    items = doc.get(key, [])
+    if not isinstance(items, list):
+        raise DatasetError(f"{where}: {key}: expected a list of objects ({{obj_id, cam_R_m2c, cam_t_m2c}})")
+    out = []
+    for i, g in enumerate(items):
+        at = f"{key}[{i}]"
+        if not isinstance(g, dict):
+            raise DatasetError(f"{where}: {at}: expected an object with obj_id, cam_R_m2c, cam_t_m2c")
+        missing = [k for k in ("obj_id", "cam_R_m2c", "cam_t_m2c") if k not in g]
+        if missing:
+            raise DatasetError(f"{where}: {at}: missing {', '.join(missing)}")
+        obj = g["obj_id"]
+        if isinstance(obj, bool) or not isinstance(obj, int) or obj < 0:
+            raise DatasetError(f"{where}: {at}.obj_id must be a whole number >= 0, got {obj!r}"[:240])
+        out.append((obj, pose_entry(g["cam_R_m2c"], g["cam_t_m2c"], where, f"{at}.cam_R_m2c", f"{at}.cam_t_m2c")))
+    return out
 
 
 def read_capture_camera(path: Path, width: int, height: int) -> tuple[CameraIntrinsics, float, np.ndarray | None]:
@@ -253,7 +303,14 @@ def check_camera_entry(cam, where: str, width: int, height: int) -> tuple[Camera
         K = cam["cam_K"]
         if not (isinstance(K, list) and len(K) == 9):
             raise DatasetError(f"{where}: cam_K must be 9 numbers (a row-major 3x3 matrix, BOP's form)")
-        fx, _, cx, _, fy, cy = (number(f"cam_K[{i}]", K[i]) for i in (0, 1, 2, 3, 4, 5))
+        k = [number(f"cam_K[{i}]", K[i]) for i in range(9)]
+        fx, skew, cx, _, fy, cy = k[:6]
+        if k[3] != 0 or k[6] != 0 or k[7] != 0 or abs(k[8] - 1.0) > 1e-9:
+            raise DatasetError(f"{where}: cam_K's last row must be 0 0 1 and K[3] 0 (a pinhole camera matrix), got "
+                               f"{k[3]:g}, {k[6]:g} {k[7]:g} {k[8]:g}; is it the row-major 3x3 matrix?")
+        if abs(skew) > 1e-6 * max(abs(fx), 1.0):
+            raise DatasetError(f"{where}: cam_K[1] (skew) is {skew:g}; apose's pinhole model has no skew. Rectify the "
+                               "images, or set it to 0 if the calibration's skew is negligible")
     else:
         missing = [k for k in ("fx", "fy", "cx", "cy") if k not in cam]
         if missing:
@@ -266,20 +323,54 @@ def check_camera_entry(cam, where: str, width: int, height: int) -> tuple[Camera
     depth_scale = number("depth_scale")
     if fx <= 0 or fy <= 0:
         raise DatasetError(f"{where}: fx and fy must be positive focal lengths in pixels, got fx={fx:g}, fy={fy:g}")
+    if not (FOCAL_PX[0] <= fx <= FOCAL_PX[1] and FOCAL_PX[0] <= fy <= FOCAL_PX[1]):
+        raise DatasetError(f"{where}: fx={fx:g}, fy={fy:g} pixels; a camera's focal length in pixels lies between "
+                           f"{FOCAL_PX[0]:g} and {FOCAL_PX[1]:g} (Kinect: ~525, RealSense D435: ~615). Are they in "
+                           "pixels, for this image size?")
     if not (0 <= cx <= width and 0 <= cy <= height):
         raise DatasetError(f"{where}: the principal point ({cx:g}, {cy:g}) lies outside the {width}x{height} image; "
                            "are the intrinsics for another resolution?")
-    if depth_scale <= 0:
-        raise DatasetError(f"{where}: depth_scale must be positive (millimetres per depth unit), got {depth_scale:g}")
+    if not DEPTH_SCALE_MM[0] <= depth_scale <= DEPTH_SCALE_MM[1]:
+        raise DatasetError(f"{where}: depth_scale is {depth_scale:g}; it is millimetres per depth unit, between "
+                           f"{DEPTH_SCALE_MM[0]:g} and {DEPTH_SCALE_MM[1]:g} (1.0 for RealSense and Kinect PNGs in mm, "
+                           "0.1 for apose renders)")
     T_world_camera = None  # none given: the caller puts the world on the table
     if "cam_R_w2c" in cam or "cam_t_w2c" in cam:
-        try:
-            T_world_camera = se3.inv(_T_from_Rt(cam["cam_R_w2c"], cam["cam_t_w2c"]))
-        except (KeyError, ValueError, TypeError):
-            raise DatasetError(f"{where}: cam_R_w2c (9 numbers) and cam_t_w2c (3 numbers, mm) go together") from None
-        if not np.isfinite(T_world_camera).all():
-            raise DatasetError(f"{where}: cam_R_w2c / cam_t_w2c hold non-finite numbers")
+        if "cam_R_w2c" not in cam or "cam_t_w2c" not in cam:
+            raise DatasetError(f"{where}: cam_R_w2c (9 numbers) and cam_t_w2c (3 numbers, mm) go together")
+        T_world_camera = se3.inv(pose_entry(cam["cam_R_w2c"], cam["cam_t_w2c"], where, "cam_R_w2c", "cam_t_w2c"))
     return CameraIntrinsics(width, height, fx, fy, cx, cy), depth_scale, T_world_camera
+
+
+FOCAL_PX = (10.0, 1e5)  # focal lengths in pixels a camera can have
+DEPTH_SCALE_MM = (1e-3, 100.0)  # mm per depth unit: 0.001 (um) .. 100
+MAX_TRANSLATION_MM = 1e7  # 10 km: anything further is a unit or format mistake
+
+
+def pose_entry(R_flat, t_mm, where: str, r_key: str, t_key: str) -> np.ndarray:
+    """A BOP pose (row-major R of 9 numbers, t of 3 numbers in mm) as T in metres; DatasetError naming the
+    keys for anything else: wrong counts, text, non-finite, not a rotation (det -1 is a mirror)."""
+    def numbers(v, n: int, key: str) -> np.ndarray:
+        if not isinstance(v, list) or len(v) != n or not all(
+                isinstance(x, (int, float)) and not isinstance(x, bool) for x in v):
+            raise DatasetError(f"{where}: {key} must be a list of {n} numbers, got {v!r}"[:240])
+        a = np.asarray(v, float)
+        if not np.isfinite(a).all():
+            raise DatasetError(f"{where}: {key} holds non-finite numbers")
+        return a
+
+    R = numbers(R_flat, 9, r_key).reshape(3, 3)
+    t = numbers(t_mm, 3, t_key)
+    err = float(np.abs(R @ R.T - np.eye(3)).max())
+    if err > 1e-3:
+        raise DatasetError(f"{where}: {r_key} is not a rotation (R R^T differs from I by {err:.3g}); write the "
+                           "row-major 3x3 rotation matrix")
+    if np.linalg.det(R) < 0:
+        raise DatasetError(f"{where}: {r_key} is a reflection (determinant -1), not a rotation; a camera or object "
+                           "pose has determinant +1 (was one axis flipped?)")
+    if np.abs(t).max() > MAX_TRANSLATION_MM:
+        raise DatasetError(f"{where}: {t_key} is {np.abs(t).max():g} mm away; translations are in millimetres")
+    return se3.make_T(R, t / 1000.0)
 
 
 def load_capture(folder: str | Path) -> Frame:
@@ -403,7 +494,9 @@ class SceneWriter:
 
 def _imwrite(path: Path, img: np.ndarray, params=(cv2.IMWRITE_PNG_COMPRESSION, 1)) -> None:
     # fast PNG compression by default: renders are written far more often than they are read
-    if not cv2.imwrite(str(path), img, list(params)):
+    from .outdir import claim
+
+    if not cv2.imwrite(str(claim(path)), img, list(params)):
         raise AposeError(f"{path}: could not write the image (disk full or no permission?)")
 
 
@@ -438,6 +531,8 @@ def write_models(asm: Assembly, models: dict[str, PartModel], out) -> tuple[dict
     from pathlib import Path
 
     from .assembly import save_assembly
+    from .fileio import atomic_write_bytes
+    from .outdir import claim
 
     mdir = Path(out) / "models"
     mdir.mkdir(parents=True, exist_ok=True)
@@ -447,10 +542,10 @@ def write_models(asm: Assembly, models: dict[str, PartModel], out) -> tuple[dict
         path = mdir / f"obj_{i:06d}.ply"
         mm = models[pid].mesh.copy()
         mm.apply_scale(1000.0)
-        path.write_bytes(mm.export(file_type="ply"))
+        atomic_write_bytes(claim(path), mm.export(file_type="ply"))
         infos[str(i)] = {**_models_info(models[pid]), **_symmetry_info(part, models[pid])}
         parts[pid] = replace(part, mesh=path.resolve(), solid=None)  # one PLY per part, whatever it was read from
     write_json(mdir / "models_info.json", infos)
     ds_asm = replace(asm, units="mm", parts=parts)
-    save_assembly(ds_asm, Path(out) / "assembly.yaml")
+    save_assembly(ds_asm, claim(Path(out) / "assembly.yaml"))
     return obj_ids, ds_asm

@@ -5,7 +5,9 @@ Meshes are read with trimesh and scaled to metres here; nothing past this module
 
 from __future__ import annotations
 
+import io
 import logging
+import os
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -65,19 +67,27 @@ def load_mesh(path: str | Path, unit: str = "m", solid: str | None = None) -> tr
 
     STEP files carry their own length unit and are read in metres whatever `unit` says; `solid` picks
     one named solid of a STEP file (None: all of them as one part)."""
-    from .fileio import describe_path
+    from . import safeio
+    from .errors import AposeError
 
     path = Path(path)
     ext = path.suffix.lower()
-    if not path.is_file():
-        raise MeshError(f"{path}: {describe_path(path, 'a mesh file')}")
+    try:
+        fd, st = safeio.open_regular(path, "a mesh file")
+        os.close(fd)
+    except AposeError as e:
+        raise MeshError(str(e)) from None
+    cap = safeio.LIMITS.mesh_bytes
+    if st.st_size > cap:
+        raise MeshError(f"{path}: {st.st_size / 2**20:.0f} MB, over the {cap // 2**20} MB a mesh file may have; "
+                        "decimate the part (a few hundred thousand triangles are plenty) or export it as binary STL/GLB")
     if ext in STEP_EXTENSIONS and not step_supported():
         raise MeshError(f"{path}: STEP needs the package cascadio (pip install cascadio), "
                         "or export the part as STL/PLY/OBJ/GLB")
     if ext not in supported_extensions():
         raise MeshError(f"{path}: unsupported file type {ext or '(none)'}; "
                         f"use one of {', '.join(supported_extensions())}")
-    if path.stat().st_size == 0:
+    if st.st_size == 0:
         raise MeshError(f"{path}: the file is empty")
     wrong = _not_a(path, ext)
     if wrong:
@@ -89,19 +99,40 @@ def load_mesh(path: str | Path, unit: str = "m", solid: str | None = None) -> tr
         loaded, unit = _step_solid(path, solid), "m"
     else:
         try:
+            data = safeio.read_bytes(path, "a mesh file", cap)  # the bytes read are what is parsed
+        except AposeError as e:
+            raise MeshError(str(e)) from None
+        _check_declared_size(path, ext, data)
+        try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                loaded = trimesh.load(str(path), force="mesh", process=False)
-        except Exception as e:  # trimesh raises many types on corrupt input
+                loaded = trimesh.load(io.BytesIO(data), file_type=ext[1:], force="mesh", process=False,
+                                      resolver=_ConfinedResolver(str(path)))
+        except AposeError as e:  # from the resolver: a buffer or material file that may not be read
+            raise MeshError(f"{path}: {e}") from None
+        except (Exception, RecursionError) as e:  # trimesh raises many types on corrupt input
             raise MeshError(f"{path}: could not be read as a {ext[1:].upper()} mesh (corrupt or truncated?): "
-                            f"{type(e).__name__}: {e}") from None
+                            f"{type(e).__name__}: {str(e)[:200]}") from None
+        finally:
+            data = None
     if not isinstance(loaded, trimesh.Trimesh):
         kind = type(loaded).__name__
         raise MeshError(f"{path}: holds a {kind} with no triangles, not a surface mesh; export the part's surface")
     if len(loaded.faces) == 0:
         raise MeshError(f"{path}: has no triangles (a point cloud or empty mesh); export the part's surface")
+    if len(loaded.faces) > safeio.LIMITS.mesh_triangles:
+        raise MeshError(f"{path}: {len(loaded.faces)} triangles, over the {safeio.LIMITS.mesh_triangles} a part may have; "
+                        "decimate it (a few hundred thousand triangles are plenty for registration)")
+    faces_raw = np.asarray(loaded.faces)
+    if faces_raw.min() < 0 or faces_raw.max() >= len(loaded.vertices):
+        raise MeshError(f"{path}: a triangle names vertex {int(faces_raw.max()) if faces_raw.max() >= len(loaded.vertices) else int(faces_raw.min())}"
+                        f" but the file has {len(loaded.vertices)} vertices (corrupt or truncated); re-export the mesh")
     if not np.all(np.isfinite(loaded.vertices)):
         raise MeshError(f"{path}: has NaN or infinite vertex coordinates; re-export the mesh")
+    far = float(np.abs(np.asarray(loaded.vertices, float)).max()) * UNIT_TO_M[unit]
+    if far > MAX_COORDINATE_M:
+        raise MeshError(f"{path}: a vertex lies {far:.3g} m from the part's origin when read as {unit} (at most "
+                        f"{MAX_COORDINATE_M:g} m); check the units, or re-export the part near its origin")
     vertices, faces = merge_vertices(np.asarray(loaded.vertices, dtype=float) * UNIT_TO_M[unit], np.asarray(loaded.faces))
     mesh = trimesh.Trimesh(vertices, faces, process=False)
     if len(mesh.faces) == 0 or float(np.max(mesh.extents)) <= 0 or float(mesh.area) <= 1e-18:
@@ -109,6 +140,41 @@ def load_mesh(path: str | Path, unit: str = "m", solid: str | None = None) -> tr
     if np.linalg.matrix_rank(mesh.vertices - mesh.vertices.mean(axis=0), tol=1e-9 * float(np.max(mesh.extents))) < 3:
         raise MeshError(f"{path}: the mesh is flat (all vertices in one plane); a part needs a 3D surface")
     return mesh
+
+
+MAX_COORDINATE_M = 1e4  # 10 km: a vertex further out is a unit or export mistake (and overflows the geometry)
+
+
+class _ConfinedResolver(trimesh.resolvers.FilePathResolver):
+    """The files a glTF or OBJ names (buffers, textures, .mtl), read as every input file is: inside the
+    mesh's folder, regular files only, size-capped (a FIFO there would otherwise hang the load)."""
+
+    def get(self, name: str):
+        from . import safeio
+
+        return safeio.read_bytes(self.absolute(name), "a file the mesh refers to", safeio.LIMITS.mesh_bytes)
+
+    def namespaced(self, namespace: str):
+        return _ConfinedResolver(os.path.join(self.parent, namespace))
+
+
+def _check_declared_size(path: Path, ext: str, data: bytes) -> None:
+    """Refuse a PLY or binary STL whose header declares more triangles than a part may have, before
+    the parser allocates for them."""
+    from . import safeio
+
+    cap = safeio.LIMITS.mesh_triangles
+    n = None
+    if ext == ".stl" and len(data) >= 84 and not data[:5].lower() == b"solid":
+        n = int.from_bytes(data[80:84], "little")
+    elif ext == ".ply":
+        head = data[:4096].split(b"end_header", 1)[0]
+        for line in head.splitlines():
+            words = line.split()
+            if len(words) == 3 and words[0] == b"element" and words[1] in (b"face", b"vertex") and words[2].isdigit():
+                n = max(n or 0, int(words[2]) // (1 if words[1] == b"face" else 3))
+    if n is not None and n > cap:
+        raise MeshError(f"{path}: its header declares {n} triangles, over the {cap} a part may have; decimate it")
 
 
 _STEP_CACHE: dict = {}
@@ -154,8 +220,13 @@ def _step_solid(path: Path, solid: str | None) -> trimesh.Trimesh:
 
 def _not_a(path: Path, ext: str) -> str | None:
     """What a file really is when its first bytes contradict its extension ("a text file", "a PNG image")."""
-    with open(path, "rb") as f:
-        head = f.read(512)
+    from . import safeio
+
+    fd, _ = safeio.open_regular(path, "a mesh file")
+    try:
+        head = os.read(fd, 512)
+    finally:
+        os.close(fd)
     magic = {b"\x89PNG": "a PNG image", b"\xff\xd8\xff": "a JPEG image", b"%PDF": "a PDF document",
              b"PK\x03\x04": "a ZIP archive", b"\x7fELF": "a program"}
     for m, what in magic.items():
@@ -343,10 +414,37 @@ def build_part_model(part_id: str, mesh: trimesh.Trimesh, symmetry: Symmetry | N
         color=tuple(color) if color is not None else PALETTE[index % len(PALETTE)], unit_warning=unit_warning)
 
 
+_MESH_CACHE: dict = {}  # (file identity, unit, solid) -> (mesh, diameter): each file is read once
+_MESH_CACHE_TRIANGLES = 20_000_000  # what the cache may hold; the oldest entries go first
+
+
+def _file_key(path: Path, unit: str, solid: str | None):
+    try:
+        st = Path(path).stat()
+    except (OSError, ValueError):
+        return None
+    return (str(Path(path).resolve()), st.st_ino, st.st_mtime_ns, st.st_size, unit, solid)
+
+
+def cached_mesh(path: Path, unit: str, solid: str | None = None) -> tuple[trimesh.Trimesh, float]:
+    """(mesh in metres, diameter) of a file, read once while the file is unchanged: forty parts that share
+    a 16 MB STL hold one copy. The mesh is shared: never change it in place (copy first)."""
+    key = _file_key(path, unit, solid)
+    if key is not None and key in _MESH_CACHE:
+        _MESH_CACHE[key] = _MESH_CACHE.pop(key)  # most recently used last
+        return _MESH_CACHE[key]
+    mesh = load_mesh(path, unit, solid)
+    entry = (mesh, diameter(mesh.vertices))
+    if key is not None:
+        _MESH_CACHE[key] = entry
+        while len(_MESH_CACHE) > 1 and sum(len(m.faces) for m, _ in _MESH_CACHE.values()) > _MESH_CACHE_TRIANGLES:
+            _MESH_CACHE.pop(next(iter(_MESH_CACHE)))
+    return entry
+
+
 def load_part(part: Part, unit: str, index: int = 0) -> PartModel:
     """Load one part of an assembly: mesh in metres plus derived geometry and a unit sanity check."""
-    mesh = load_mesh(part.mesh, unit, part.solid)
-    d = diameter(mesh.vertices)
+    mesh, d = cached_mesh(part.mesh, unit, part.solid)
     is_step = part.mesh.suffix.lower() in STEP_EXTENSIONS  # carries its own unit: nothing to guess
     guess = None if is_step else suspicious_unit(d / UNIT_TO_M[unit], unit)
     warning = None
@@ -359,12 +457,20 @@ def load_part(part: Part, unit: str, index: int = 0) -> PartModel:
 
 def load_parts(asm: Assembly) -> dict[str, PartModel]:
     """Every part of an assembly, in file order. Raises MeshError naming the part on the first bad mesh."""
-    out = {}
+    from . import safeio
+
+    out, triangles, seen = {}, 0, set()
     for i, (pid, part) in enumerate(asm.parts.items()):
         try:
             out[pid] = load_part(part, asm.units, i)
         except MeshError as e:
             raise MeshError(f"part {pid!r}: {e}") from None
+        if id(out[pid].mesh) not in seen:  # a mesh shared by several parts counts once
+            seen.add(id(out[pid].mesh))
+            triangles += len(out[pid].mesh.faces)
+        if triangles > safeio.LIMITS.assembly_triangles:
+            raise MeshError(f"part {pid!r}: the assembly's meshes hold {triangles} triangles by this part, over the "
+                            f"{safeio.LIMITS.assembly_triangles} an assembly may have; decimate the largest parts")
     return out
 
 

@@ -162,9 +162,21 @@ class Workspace:
     def of(cls, *folders) -> "Workspace":
         return cls(tuple(dict.fromkeys(Path(f).expanduser().resolve() for f in folders if f is not None)))
 
+    def check_assembly(self, asm) -> None:
+        """Every mesh an assembly file names lies in the workspace (a file in it may name
+        `../outside/secret.stl` or `/etc/...`); AposeError naming the file, the part and the mesh."""
+        for pid, part in asm.parts.items():
+            try:
+                self.resolve(part.mesh, "mesh")
+            except AposeError as e:
+                where = f"{asm.path}: " if getattr(asm, "path", None) else ""
+                raise AposeError(f"{where}parts.{pid}.mesh: {e}") from None
+
     def resolve(self, text: str | Path, what: str = "file") -> Path:
         """The absolute path, or an AposeError naming the workspace when it lies outside."""
-        p = Path(text).expanduser()
+        from .safeio import check_path_text
+
+        p = check_path_text(text, what).expanduser()
         if not p.is_absolute():
             p = self.roots[0] / p
         p = p.resolve()

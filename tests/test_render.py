@@ -265,20 +265,30 @@ def test_overwrite_deletes_only_the_datasets_own_files(planetary, tmp_path):
 
 def test_a_second_render_into_the_same_folder_is_refused(planetary, tmp_path):
     import os
+    import signal
+    import subprocess
+    import sys
 
     from apose_studio.outdir import OutputLock
 
     asm, models = planetary
     out = tmp_path / "race"
     out.mkdir()
-    (out / ".apose-render.lock").write_text(str(os.getppid()))  # a live process holds it
-    with pytest.raises(AposeError, match=f"in use by PID {os.getppid()}"):
-        render_dataset(asm, out, RenderSettings(frames=1, noise="none"), steps=[1], progress=False, models=models)
-    (out / ".apose-render.lock").write_text("999999999")  # a process that is gone: the lock is taken over
+    holder = subprocess.Popen([sys.executable, "-c", "import sys; from apose_studio.outdir import OutputLock; "
+                               f"l = OutputLock({str(out)!r}).__enter__(); print('held', flush=True); sys.stdin.read()"],
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(AposeError, match=f"in use by PID {holder.pid}"):
+            render_dataset(asm, out, RenderSettings(frames=1, noise="none"), steps=[1], progress=False, models=models)
+    finally:
+        holder.send_signal(signal.SIGKILL)  # dies holding it: the kernel releases the lock, the file stays
+        holder.wait()
+    assert (out / ".apose-render.lock").read_text() == str(holder.pid)
     render_dataset(asm, out, RenderSettings(frames=1, noise="none"), steps=[1], progress=False, models=models)
     assert not (out / ".apose-render.lock").exists()
     with OutputLock(out):
-        with pytest.raises(AposeError, match="in use by PID"):  # while this process renders there
+        with pytest.raises(AposeError, match=f"in use by PID {os.getpid()}"):  # while this process renders there
             with OutputLock(out):
                 pass
 

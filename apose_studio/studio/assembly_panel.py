@@ -11,11 +11,21 @@ from pathlib import Path
 from .. import authoring
 from ..assembly import dump_assembly, load_assembly, save_assembly
 from ..errors import AposeError
-from ..fileio import describe_path
+from ..fileio import atomic_write_bytes, describe_path
 from ..mesh import supported_extensions
 from .widgets import MAX_UPLOAD_BYTES, UNITS, esc, hex_colour
 
 log = logging.getLogger(__name__)
+
+
+def _same_bytes(path: Path, content: bytes) -> bool:
+    """The regular file at `path` holds exactly `content` (a pipe or device there is never the same)."""
+    from ..safeio import read_bytes
+
+    try:
+        return path.is_file() and path.stat().st_size == len(content) and read_bytes(path, "a mesh", len(content)) == content
+    except AposeError:
+        return False
 
 
 class AssemblyPanel:
@@ -52,6 +62,7 @@ class AssemblyPanel:
 
     def open_assembly(self, path: Path, client=None) -> None:
         asm = load_assembly(path)
+        self.app.workspace.check_assembly(asm)  # the meshes a file names obey the workspace as typed paths do
         for pid in asm.parts:  # load every mesh now: a bad one is reported before anything changes
             self.app.model(pid, asm)
         self.app.steps.drop_meshes()
@@ -225,19 +236,23 @@ class AssemblyPanel:
             raise AposeError(f"{name}: not a mesh format the studio reads ({', '.join(supported_extensions())})")
         folder = self.app.workspace.resolve(authoring.folder_of(self.app.asm) / "meshes", "assembly file")
         folder.mkdir(parents=True, exist_ok=True)
+        if name in ("", ".", "..") or name.startswith(".") or "\x00" in name or len(name) > 200:
+            raise AposeError(f"{name[:60]!r}: not a file name to save an upload under; rename the file")
         target = folder / name
         k = 2
-        while target.exists() and target.read_bytes() != f.content:
+        while (target.exists() or target.is_symlink()) and not _same_bytes(target, f.content):
             target = folder / f"{Path(name).stem}_{k}{Path(name).suffix}"
             k += 1
-        if not target.exists():
-            tmp = target.with_name(f".{target.name}.part")
-            tmp.write_bytes(f.content)
-            tmp.replace(target)
+            if k > 1000:
+                raise AposeError(f"{folder}: holds 1000 other files named like {name}; tidy the folder")
+        wrote = not target.exists()
+        if wrote:
+            atomic_write_bytes(target, f.content)
         try:
             pid = self.add_mesh_file(target, client)
         except AposeError:
-            target.unlink(missing_ok=True)  # a corrupt upload leaves nothing behind
+            if wrote:
+                target.unlink(missing_ok=True)  # a corrupt upload leaves nothing behind (a file already there stays)
             raise
         self.app.notify(client, "Part uploaded", f"{pid} ← {name} (saved as {target})")
 

@@ -127,6 +127,7 @@ class InspectPanel:
             raise AposeError(f"{text}: a BOP scene folder; the studio opens apose datasets and single captures "
                              "(run `apose estimate` on BOP scenes)")
         if isinstance(frames, Dataset):
+            self.app.workspace.check_assembly(frames.assembly)
             steps = [f"{s}. {frames.assembly.steps[s - 1].part}" for s in frames.steps]
         else:
             if not self.app.valid_asm.steps:

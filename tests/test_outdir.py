@@ -1,0 +1,126 @@
+"""Output folders (outdir.py): the lock is atomic under many concurrent starters, and --overwrite deletes
+only what a render wrote, also after a render was killed (its journal)."""
+
+import json
+import multiprocessing as mp
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from apose_studio.errors import AposeError
+from apose_studio.outdir import (JOURNAL, LOCK, MANIFEST, OutputLock, check_output_dir, claim,
+                                 remove_previous_dataset, write_manifest)
+
+from .conftest import REPO, SAMPLES
+
+
+def _starter(out, barrier, log):
+    barrier.wait()
+    try:
+        with OutputLock(out):
+            t0 = time.monotonic()
+            time.sleep(0.05)
+            log.put(("held", t0, time.monotonic()))
+    except AposeError as e:
+        log.put(("refused", str(e), 0.0))
+
+
+def test_many_starters_on_a_stale_lock_never_hold_it_together(tmp_path):
+    """A stale lock file (its writer died) and 16 processes started at once, ten times over: at no moment
+    do two of them hold the folder (the old read-then-unlink takeover let two win in 21 of 200 trials)."""
+    ctx = mp.get_context("fork")
+    overlaps, held_total = 0, 0
+    for trial in range(10):
+        out = tmp_path / f"t{trial}"
+        out.mkdir()
+        (out / LOCK).write_text("999999999")  # left by a process that is gone
+        barrier, log = ctx.Barrier(16), ctx.Queue()
+        procs = [ctx.Process(target=_starter, args=(out, barrier, log)) for _ in range(16)]
+        for p in procs:
+            p.start()
+        results = [log.get(timeout=60) for _ in procs]
+        for p in procs:
+            p.join(timeout=60)
+        spans = sorted((a, b) for kind, a, b in results if kind == "held")
+        held_total += len(spans)
+        overlaps += sum(1 for (a0, a1), (b0, b1) in zip(spans, spans[1:]) if b0 < a1)
+        assert all("in use by" in a for kind, a, _ in results if kind == "refused")
+    assert held_total >= 10  # each trial someone got it
+    assert overlaps == 0
+
+
+def test_read_only_output_folder_is_refused_before_the_lock(tmp_path):
+    if os.geteuid() == 0:
+        out = tmp_path / "ro"
+        out.mkdir()
+        subprocess.run(["chattr", "+i", str(out)], check=False, capture_output=True)
+        immutable = subprocess.run(["lsattr", "-d", str(out)], capture_output=True, text=True).stdout.split()[:1]
+        if not immutable or "i" not in immutable[0]:
+            pytest.skip("running as root without chattr: a read-only folder cannot be made")
+    else:
+        out = tmp_path / "ro"
+        out.mkdir()
+        out.chmod(0o500)
+    try:
+        with pytest.raises(AposeError, match="cannot write here"):
+            with OutputLock(out):
+                pass
+    finally:
+        subprocess.run(["chattr", "-i", str(out)], check=False, capture_output=True)
+        out.chmod(0o700)
+
+
+def test_a_file_put_in_during_a_render_is_never_listed_nor_deleted(tmp_path):
+    out = tmp_path / "ds"
+    out.mkdir()
+    with OutputLock(out):
+        (claim(out / "test" / "000001" / "a.png")).parent.mkdir(parents=True)
+        (out / "test" / "000001" / "a.png").write_bytes(b"ours")
+        (out / "test" / "000001" / "mine.txt").write_text("the user's, put here meanwhile")
+        (out / "notes.md").write_text("the user's too")
+        write_manifest(out, {"format": "x"})
+    files = json.loads((out / MANIFEST).read_text())["files"]
+    assert files == ["test/000001/a.png"]
+    assert not (out / JOURNAL).exists() and not (out / LOCK).exists()
+    with pytest.raises(AposeError, match="no apose render wrote .*mine.txt"):
+        check_output_dir(out, overwrite=True)
+    (out / "test" / "000001" / "mine.txt").unlink()
+    (out / "notes.md").unlink()
+    check_output_dir(out, overwrite=True)
+    remove_previous_dataset(out)
+    assert list(out.iterdir()) == []
+
+
+def test_overwrite_after_kill_9_recovers_the_render_s_own_files(tmp_path):
+    """A render killed with SIGKILL mid-way leaves frames, a journal and perhaps a temporary file: the next
+    --overwrite recognises all of them as apose's (it refused them before) and replaces the dataset."""
+    out = tmp_path / "ds"
+    asm = SAMPLES / "planetary_reducer" / "assembly.yaml"
+    cmd = [sys.executable, "-m", "apose_studio.cli", "render", str(asm), "--out", str(out), "--frames", "400",
+           "--steps", "1"]
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        t0 = time.time()
+        while time.time() - t0 < 120 and len(list(out.glob("test/000001/depth/*.png"))) < 3:
+            time.sleep(0.05)
+        assert len(list(out.glob("test/000001/depth/*.png"))) >= 3, "the render did not start"
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    assert (out / JOURNAL).is_file()
+    (out / "models" / ".models_info.json.abc123.tmp").write_text("{}")  # what a kill during an atomic write leaves
+    check_output_dir(out, overwrite=True)  # apose's files, every one of them
+    (out / "mine.txt").write_text("precious")
+    with pytest.raises(AposeError, match="mine.txt"):
+        check_output_dir(out, overwrite=True)
+    (out / "mine.txt").unlink()
+    done = subprocess.run(cmd[:-4] + ["--frames", "1", "--steps", "1", "--overwrite"], cwd=REPO, capture_output=True,
+                          text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    files = json.loads((out / MANIFEST).read_text())["files"]
+    assert not (out / JOURNAL).exists()
+    assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file()) == sorted(files + [MANIFEST])
