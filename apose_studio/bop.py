@@ -143,16 +143,26 @@ def write_results_csv(path: Path, rows: list[BopResult]) -> None:
 
 def read_results_csv(path: Path) -> list[BopResult]:
     """A BOP19 results CSV from any method; DatasetError naming the line for a malformed one."""
+    import io
+
+    from . import safeio
+    from .errors import AposeError
+
     path = Path(path)
-    if not path.is_file():
+    if not path.exists() and not path.is_symlink():
         raise DatasetError(f"{path}: no such results file")
+    try:
+        text = safeio.read_text(path, "a BOP19 results file", safeio.LIMITS.csv_bytes)  # a BOM is dropped
+    except AposeError as e:
+        raise DatasetError(str(e)) from None
     rows = []
-    with path.open(newline="") as fh:
-        reader = csv.reader(fh)
+    reader = csv.reader(io.StringIO(text, newline=""))
+    try:
         header = next(reader, None)
         if header is None or [h.strip() for h in header] != CSV_HEADER:
             raise DatasetError(f"{path}: line 1: expected the BOP19 header {','.join(CSV_HEADER)}")
-        for n, rec in enumerate(reader, start=2):
+        for rec in reader:
+            n = reader.line_num
             if not rec:
                 continue
             try:
@@ -161,11 +171,21 @@ def read_results_csv(path: Path) -> list[BopResult]:
                 t3 = np.array([float(v) for v in t.split()], float)
                 if R9.shape != (9,) or t3.shape != (3,) or not (np.isfinite(R9).all() and np.isfinite(t3).all()):
                     raise ValueError
-                rows.append(BopResult(int(scene), int(im), int(obj), float(score),
-                                      se3.make_T(R9.reshape(3, 3), t3 / 1000.0), float(tm)))
+                ids = int(scene), int(im), int(obj)
+                score_v, time_v = float(score), float(tm)
             except ValueError:
                 raise DatasetError(f"{path}: line {n}: expected scene_id,im_id,obj_id,score,R (9 numbers),t (3 numbers, "
                                    "mm),time") from None
+            if min(ids) < 0:
+                raise DatasetError(f"{path}: line {n}: scene_id, im_id and obj_id are whole numbers >= 0, got "
+                                   f"{','.join(map(str, ids))}")
+            if not math.isfinite(score_v):
+                raise DatasetError(f"{path}: line {n}: score is {score}; write a finite number (the highest score "
+                                   "per image is the estimate that counts)")
+            rows.append(BopResult(*ids, score_v, se3.make_T(R9.reshape(3, 3), t3 / 1000.0), time_v))
+    except csv.Error as e:
+        raise DatasetError(f"{path}: line {reader.line_num}: not a readable CSV row ({e}); is it a BOP19 results "
+                           "file?") from None
     return rows
 
 
@@ -176,7 +196,7 @@ def best_per_image(rows: list[BopResult], obj_id: int) -> dict[tuple[int, int], 
         if r.obj_id != obj_id:
             continue
         k = (r.scene_id, r.im_id)
-        if k not in out or (r.score > out[k].score and not math.isnan(r.score)):
+        if k not in out or r.score > out[k].score:  # scores are finite (read_results_csv refuses others)
             out[k] = r
     return out
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import json
 import logging
 import sys
@@ -126,6 +127,45 @@ def _positive_int(text: str) -> int:
     return n
 
 
+def _os_error(e: OSError) -> str:
+    """One line for an OSError: the file, what the system said, and what to do."""
+    import errno
+
+    where = f"{e.filename}: " if getattr(e, "filename", None) else ""
+    fix = {errno.ENOSPC: "free some disk space or choose another folder (nothing half-written was kept)",
+           errno.EDQUOT: "free some space under your quota or choose another folder",
+           errno.EROFS: "the file system is read-only; choose another folder",
+           errno.EACCES: "permission denied; choose a folder you may write to",
+           errno.EPERM: "not permitted; choose a folder you may write to",
+           errno.ENAMETOOLONG: "use a shorter path",
+           errno.EMFILE: "too many open files; raise `ulimit -n`"}.get(e.errno, "check the path and try again")
+    return f"{where}{e.strerror or e}; {fix}"
+
+
+def _check_argument_text(args) -> None:
+    """Every text argument without NUL bytes and within the system's path length (a path named on the
+    command line reaches open() only after this)."""
+    from .safeio import check_path_text
+
+    for name, value in vars(args).items():
+        for v in value if isinstance(value, list) else [value]:
+            if isinstance(v, str):
+                check_path_text(v, f"--{name.replace('_', '-')}")
+
+
+def _count(lo: int, hi: int):
+    """An argparse type: a whole number from lo to hi."""
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            v = None
+        if v is None or not lo <= v <= hi:
+            raise argparse.ArgumentTypeError(f"expected a whole number from {lo} to {hi}, got {text!r}")
+        return v
+    return parse
+
+
 def _port(text: str) -> int:
     try:
         port = int(text)
@@ -245,7 +285,7 @@ def _add_render(sub) -> None:
     p.add_argument("--views-per-scene", type=int, default=1, metavar="K",
                    help="camera poses per placement of the base, at least 30 degrees apart, as an eye-in-hand camera "
                    "takes them (default 1); --frames stays the number of images per step")
-    p.add_argument("--seed", type=int, default=0, help="random seed; the same seed gives the same dataset")
+    p.add_argument("--seed", type=_count(0, 2 ** 32 - 1), default=0, help="random seed; the same seed gives the same dataset")
     p.add_argument("--steps", type=_steps, help="only these steps, e.g. 1,3 (default: all)")
     p.add_argument("--noise", default="none", choices=["none", "gaussian", "realsense", "kinect"],
                    help="depth noise: none; gaussian (axial, grows with z^2); realsense (gaussian + edge "
@@ -261,7 +301,7 @@ def _add_render(sub) -> None:
                    help="camera elevation above the table, degrees (default 25,75)")
     p.add_argument("--distance-range", type=lambda t: _pair(t, "--distance-range"), metavar="MIN,MAX",
                    help="camera distance to the base centre, metres (default: the base fills 25-50%% of the image)")
-    p.add_argument("--distractors", type=int, default=2, help="random boxes, cylinders and balls on the table (default 2)")
+    p.add_argument("--distractors", type=_count(0, 50), default=2, help="random boxes, cylinders and balls on the table (default 2)")
     p.add_argument("--clutter", action="store_true",
                    help="a cluttered bench: objects of the base's height standing against it and around it, the base "
                    "off-centre in the image (tests prompted masks: --box / --point)")
@@ -279,7 +319,7 @@ def _add_estimate(sub) -> None:
     p.add_argument("--assembly", help="assembly YAML (needed for a capture or BOP scene; a dataset has its own)")
     p.add_argument("--step", type=int, required=True, help="assembly step (1-based)")
     p.add_argument("--frame", type=int, default=0, help="image id within the step or BOP scene (default 0)")
-    p.add_argument("--views", type=int, default=1, metavar="K",
+    p.add_argument("--views", type=_count(1, 64), default=1, metavar="K",
                    help="a dataset: fuse up to K frames of --frame's placement (default 1); several capture folders are "
                    "fused whatever this says")
     p.add_argument("--box", metavar="X0,Y0,X1,Y1", action="append",
@@ -302,7 +342,7 @@ def _add_eval(sub) -> None:
     p.add_argument("--steps", type=_steps, help="only these steps, e.g. 1,3")
     p.add_argument("--frames", type=int, help="at most this many frames per step (default: all)")
     p.add_argument("--workers", type=int, default=1, help="processes in parallel (default 1; --views runs in one)")
-    p.add_argument("--views", type=int, default=1, metavar="K",
+    p.add_argument("--views", type=_count(1, 64), default=1, metavar="K",
                    help="group the frames by placement (apose render --views-per-scene) and fuse up to K per estimate "
                    "(default 1: every frame alone); the JSON records list the frames in im_ids")
     p.add_argument("--json", metavar="OUT", help="also write the full results (per frame) as JSON")
@@ -326,7 +366,7 @@ def _add_train_seg(sub) -> None:
     p.add_argument("--epochs", type=_positive_int, default=60, help="passes over the training frames (default 60)")
     p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="default: cuda when torch sees a GPU")
     p.add_argument("--batch", type=_positive_int, default=8, help="frames per step (default 8)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the split, the initial weights and the augmentation")
+    p.add_argument("--seed", type=_count(0, 2 ** 32 - 1), default=0, help="seed of the split, the initial weights and the augmentation")
     p.add_argument("--max-minutes", type=float, help="stop after the epoch that passes this wall time")
     p.set_defaults(func=cmd_train_seg)
 
@@ -349,7 +389,32 @@ def _add_studio(sub) -> None:
     p.set_defaults(func=cmd_studio)
 
 
+class _Printable:
+    """stdout/stderr with control characters shown as escapes (\\x1b): a part or file name holding ESC
+    sequences cannot retitle or clear the user's terminal. Newlines, tabs and the progress bars' \\r pass."""
+
+    _TABLE = {c: f"\\x{c:02x}" for c in [*range(0x20), 0x7f, *range(0x80, 0xa0)] if c not in (9, 10, 13)}
+
+    def __init__(self, stream):
+        self._stream = stream
+
+    def write(self, text: str) -> int:
+        return self._stream.write(text.translate(self._TABLE))
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
 def main(argv=None) -> int:
+    out, err = sys.stdout, sys.stderr
+    sys.stdout, sys.stderr = _Printable(out), _Printable(err)
+    try:
+        return _main(argv)
+    finally:
+        sys.stdout, sys.stderr = out, err
+
+
+def _main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
@@ -358,6 +423,7 @@ def main(argv=None) -> int:
         parser.print_help()
         return 2
     try:
+        _check_argument_text(args)
         return args.func(args)
     except AposeError as e:  # bad input: the message names the thing and the fix
         for line in str(e).splitlines():
@@ -366,6 +432,15 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # `apose show ... | head`: the reader left; say nothing more
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
+    except OSError as e:  # the system refused: a full disk, a read-only folder, a name too long
+        print(f"error: {_os_error(e)}", file=sys.stderr)
+        return 2
+    except MemoryError:
+        print("error: out of memory; use smaller inputs (fewer frames, a decimated mesh, a smaller image)", file=sys.stderr)
+        return 2
     except Exception as e:  # a bug: one line, plus the traceback with --verbose
         if args.verbose:
             raise

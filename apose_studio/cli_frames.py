@@ -19,8 +19,15 @@ def _finite(x: float) -> float | None:
     return float(x) if np.isfinite(x) else None
 
 
-def _check_output_file(path: Path, flag: str) -> None:
-    """Refuse an output path that cannot take a file, before any long work."""
+def _check_output_file(path: Path, flag: str, inputs=()) -> None:
+    """Refuse an output path that cannot take a file, or that would replace a file of an input folder
+    (`apose eval --json DS/dataset_info.json` would leave the dataset unreadable), before any long work."""
+    for folder in inputs:
+        folder = Path(folder).resolve()
+        target = path.resolve()
+        if target.exists() and (target == folder or target.is_relative_to(folder)):
+            raise AposeError(f"{flag} {path}: a file of the input {folder}, which this would replace; write the "
+                             "output elsewhere (or under a new name)")
     if path.is_dir():
         raise AposeError(f"{flag} {path}: a folder; give a file name (e.g. {path / 'out.json'})")
     if not path.parent.is_dir():
@@ -175,6 +182,7 @@ def cmd_eval(args) -> int:
     from .evaluate import evaluate, format_table
     from .registration import resolve_params
 
+    _check_outputs(args)  # first: nothing is read or computed for an output that cannot (or must not) be written
     if not (Path(args.dataset) / "dataset_info.json").is_file():
         from .bop import scene_folders
 
@@ -184,7 +192,6 @@ def cmd_eval(args) -> int:
     if args.score_results:
         from .bop import read_results_csv, score_results
 
-        _check_outputs(args)
         doc = score_results(ds, read_results_csv(Path(args.score_results)), args.steps)
         print(format_table(doc))
         return _write_outputs(args, doc, None)
@@ -193,7 +200,6 @@ def cmd_eval(args) -> int:
         raise AposeError(f"--frames {args.frames}: expected at least 1")
     if args.workers < 1:
         raise AposeError(f"--workers {args.workers}: expected at least 1")
-    _check_outputs(args)
     for step in ds.missing_steps:
         print(f"warning: step {step} is listed in {ds.root / 'dataset_info.json'} but its folder "
               f"test/{step:06d} is missing; it is left out", file=sys.stderr)
@@ -222,10 +228,11 @@ def cmd_eval(args) -> int:
 
 
 def _check_outputs(args) -> None:
-    """--json and --bop-results must be writable file paths, checked before any long work."""
+    """--json and --bop-results must be writable file paths outside the data read, checked before any long work."""
+    inputs = [getattr(args, "dataset", None), getattr(args, "score_results", None)]
     for flag in ("json", "bop_results"):
         if getattr(args, flag):
-            _check_output_file(Path(getattr(args, flag)), "--" + flag.replace("_", "-"))
+            _check_output_file(Path(getattr(args, flag)), "--" + flag.replace("_", "-"), [i for i in inputs if i])
 
 
 def _write_outputs(args, doc: dict, rows) -> int:
@@ -254,7 +261,6 @@ def _eval_bop_split(args) -> int:
     if args.score_results:
         raise AposeError("--score-results scores a results file on an apose dataset; on BOP data use bop_toolkit")
     asm = load_assembly(args.assembly)
-    _check_outputs(args)
     params = resolve_params(args.preset, asm.registration, **_upright(args))
     doc, rows = evaluate_split(Path(args.dataset), asm, args.step, parse_obj_map(args.obj_map, asm.parts), params,
                                args.mask, args.frames, progress=sys.stderr.isatty())

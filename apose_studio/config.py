@@ -77,20 +77,20 @@ PRESETS = ("paper", "default")
 # name -> (kind, check, what the check expects)
 _REG_RULES: dict[str, tuple[str, object, str]] = {
     "preset": ("str", lambda v: v in PRESETS, f"one of {', '.join(PRESETS)}"),
-    "voxel_size_m": ("float", lambda v: 0 < v < 1, "a length in metres between 0 and 1"),
-    "normal_radius_factor": ("float", lambda v: v > 0, "a positive number"),
-    "feature_radius_factor": ("float", lambda v: v > 0, "a positive number"),
-    "ransac_max_iterations": ("int", lambda v: v > 0, "a positive integer"),
+    "voxel_size_m": ("float", lambda v: 1e-4 <= v <= 0.5, "a length in metres from 0.0001 to 0.5"),
+    "normal_radius_factor": ("float", lambda v: 0.5 <= v <= 20, "a number from 0.5 to 20 (x voxel)"),
+    "feature_radius_factor": ("float", lambda v: 0.5 <= v <= 50, "a number from 0.5 to 50 (x voxel)"),
+    "ransac_max_iterations": ("int", lambda v: 1 <= v <= 1_000_000, "a whole number from 1 to 1000000"),
     "ransac_confidence": ("float", lambda v: 0 < v <= 1, "a number in (0, 1]"),
     "ransac_edge_length": ("float", lambda v: 0 < v < 1, "a number in (0, 1)"),
-    "ransac_distance_factor": ("float", lambda v: v > 0, "a positive number"),
-    "icp_threshold_factor": ("float", lambda v: v > 0, "a positive number"),
-    "icp_max_iterations": ("int", lambda v: v > 0, "a positive integer"),
-    "seed": ("int", lambda v: v >= 0, "a non-negative integer"),
+    "ransac_distance_factor": ("float", lambda v: 0.1 <= v <= 20, "a number from 0.1 to 20 (x voxel)"),
+    "icp_threshold_factor": ("float", lambda v: 0.05 <= v <= 20, "a number from 0.05 to 20 (x voxel)"),
+    "icp_max_iterations": ("int", lambda v: 1 <= v <= 1000, "a whole number from 1 to 1000"),
+    "seed": ("int", lambda v: 0 <= v < 2 ** 32, "a whole number from 0 to 4294967295"),
     "use_orientation_prior": ("bool", lambda v: True, "true or false"),
     "upright": ("bool", lambda v: True, "true or false"),
     "deterministic": ("bool", lambda v: True, "true or false"),
-    "max_seconds": ("float", lambda v: v >= 0, "seconds, 0 for no limit"),
+    "max_seconds": ("float", lambda v: 0 <= v <= 3600, "seconds from 0 (no limit) to 3600"),
 }
 
 

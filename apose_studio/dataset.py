@@ -155,8 +155,15 @@ class Dataset:
             raise DatasetError(f"{self.root}: not an apose dataset, dataset_info.json is missing{hint}; "
                                "make one with `apose render`")
         self.info = read_json(info_path)
-        if self.info.get("format") != FORMAT:
-            raise DatasetError(f"{info_path}: format {self.info.get('format')!r}, expected {FORMAT!r}")
+        if not isinstance(self.info, dict) or self.info.get("format") != FORMAT:
+            got = self.info.get("format") if isinstance(self.info, dict) else type(self.info).__name__
+            raise DatasetError(f"{info_path}: format {got!r}, expected {FORMAT!r}")
+        ids, steps = self.info.get("obj_ids"), self.info.get("steps_rendered")
+        if not (isinstance(ids, dict) and all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in ids.values())
+                and isinstance(steps, list) and all(isinstance(v, int) and not isinstance(v, bool) and 0 < v < 10 ** 6
+                                                    for v in steps)):
+            raise DatasetError(f"{info_path}: obj_ids (part -> number) or steps_rendered (step numbers) missing or "
+                               "malformed; the manifest was edited or damaged: re-render the dataset")
         self.obj_ids: dict[str, int] = self.info["obj_ids"]
         self.part_of_obj = {v: k for k, v in self.obj_ids.items()}
         self._scenes: dict[int, dict] = {}

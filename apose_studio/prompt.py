@@ -57,14 +57,20 @@ def parse_point(text: str) -> tuple[int, int]:
     return u, v
 
 
+MIN_BOX_PX = 4  # a box narrower than this holds no object to segment
+
+
 def check_box(box, shape: tuple[int, int]) -> tuple[int, int, int, int]:
     """The box clipped to the image; PromptError when it is empty, inverted or (mostly) off the image."""
     h, w = shape
     x0, y0, x1, y1 = (int(v) for v in box)
     if x1 <= x0 or y1 <= y0:
         raise PromptError(f"box {x0},{y0},{x1},{y1}: expected x0 < x1 and y0 < y1 (left, top, right, bottom in pixels)")
+    if (x1 - x0 < MIN_BOX_PX or y1 - y0 < MIN_BOX_PX) and 0 <= x0 and x1 <= w and 0 <= y0 and y1 <= h:
+        raise PromptError(f"box {x0},{y0},{x1},{y1} is {x1 - x0}x{y1 - y0} pixels; draw it around the whole object "
+                          f"(at least {MIN_BOX_PX}x{MIN_BOX_PX} pixels), or click on the object instead")
     cx0, cy0, cx1, cy1 = max(x0, 0), max(y0, 0), min(x1, w), min(y1, h)
-    if cx1 - cx0 < 4 or cy1 - cy0 < 4 or (cx1 - cx0) * (cy1 - cy0) < 0.5 * (x1 - x0) * (y1 - y0):
+    if cx1 - cx0 < MIN_BOX_PX or cy1 - cy0 < MIN_BOX_PX or (cx1 - cx0) * (cy1 - cy0) < 0.5 * (x1 - x0) * (y1 - y0):
         raise PromptError(f"box {x0},{y0},{x1},{y1} lies outside the {w}x{h} image (or mostly so); give it in this "
                           "image's pixels")
     return cx0, cy0, cx1, cy1
@@ -106,9 +112,10 @@ def surfaces(depth: np.ndarray, cam: CameraIntrinsics) -> Surfaces:
     return Surfaces(labels.astype(np.int32), table, above, valid, small[labels])
 
 
-def _seed_patches(s: Surfaces, box, point) -> tuple[np.ndarray, np.ndarray]:
+def _seed_patches(s: Surfaces, box, point, shown=None) -> tuple[np.ndarray, np.ndarray]:
     """(H, W) bool twice: the patches the prompt picks (clipped to the box), and those of them that
-    lie wholly in the box (a clicked patch counts as whole)."""
+    lie wholly in the box (a clicked patch counts as whole). `shown`: the box in the full image's pixels,
+    for messages (`box` is in the window's)."""
     h, w = s.labels.shape
     if point is not None:
         u, v = point
@@ -136,7 +143,8 @@ def _seed_patches(s: Surfaces, box, point) -> tuple[np.ndarray, np.ndarray]:
     pick = (within >= MIN_PATCH_PX) & ((within >= 0.5 * total) | (within >= 0.1 * inside.sum()))
     pick[0] = False
     if not pick.any():
-        raise PromptError(f"box {x0},{y0},{x1},{y1} holds nothing standing on the table (only table, or no depth); "
+        raise PromptError(f"box {','.join(map(str, shown or box))} holds nothing standing on the table (only table, or "
+                          "no depth); "
                           "draw it around the object")
     whole = pick & (within >= 0.9 * total)
     return pick[s.labels] & inside, whole[s.labels]
@@ -251,7 +259,7 @@ def prompted_mask(rgb: np.ndarray, depth: np.ndarray, cam: CameraIntrinsics, box
         wx0, wy0, wx1, wy1 = max(x0 - m, 0), max(y0 - m, 0), min(x1 + m, w), min(y1 + m, h)
         sub_cam = replace(cam, width=wx1 - wx0, height=wy1 - wy0, cx=cam.cx - wx0, cy=cam.cy - wy0)
         out = _prompted(rgb[wy0:wy1, wx0:wx1], depth[wy0:wy1, wx0:wx1], sub_cam,
-                        (x0 - wx0, y0 - wy0, x1 - wx0, y1 - wy0), None, colour)
+                        (x0 - wx0, y0 - wy0, x1 - wx0, y1 - wy0), None, colour, shown=(x0, y0, x1, y1))
         full = np.zeros((h, w), bool)
         full[wy0:wy1, wx0:wx1] = out.mask
         out.mask = full
@@ -259,7 +267,7 @@ def prompted_mask(rgb: np.ndarray, depth: np.ndarray, cam: CameraIntrinsics, box
     return out
 
 
-def _prompted(rgb, depth, cam, box, point, colour: bool) -> PromptedMask:
+def _prompted(rgb, depth, cam, box, point, colour: bool, shown=None) -> PromptedMask:
     """prompted_mask on an image (or a window of it); its caller times it."""
     h, w = depth.shape
     s = surfaces(depth, cam)
@@ -268,10 +276,10 @@ def _prompted(rgb, depth, cam, box, point, colour: bool) -> PromptedMask:
         ys, xs = np.nonzero(clicked)
         mx, my = int(0.15 * (np.ptp(xs) + 1)) + 4, int(0.15 * (np.ptp(ys) + 1)) + 4
         box = (max(xs.min() - mx, 0), max(ys.min() - my, 0), min(xs.max() + 1 + mx, w), min(ys.max() + 1 + my, h))
-        seed, whole = _seed_patches(s, box, None)
+        seed, whole = _seed_patches(s, box, None, shown)
         seed, whole = seed | clicked, whole | clicked
     else:
-        seed, whole = _seed_patches(s, box, None)
+        seed, whole = _seed_patches(s, box, None, shown)
     x0, y0, x1, y1 = box
     in_box = np.zeros((h, w), bool)
     in_box[y0:y1, x0:x1] = True

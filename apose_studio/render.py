@@ -50,8 +50,10 @@ class RenderSettings:
             if not (lo <= a <= b <= hi) or (a == b and name != "distance"):
                 raise RenderError(f"--{name}-range {a:g},{b:g}: expected min,max with {lo:g} <= min "
                                   f"{'<=' if name == 'distance' else '<'} max <= {hi:g} {unit}")
-        if self.frames < 1:
-            raise RenderError(f"--frames {self.frames}: expected at least 1 frame per step")
+        if not 1 <= self.frames <= MAX_FRAMES:
+            raise RenderError(f"--frames {self.frames}: expected 1 to {MAX_FRAMES} frames per step")
+        if not 0 <= self.seed < 2 ** 32:
+            raise RenderError(f"--seed {self.seed}: expected a whole number from 0 to {2 ** 32 - 1}")
         if self.noise not in NOISE_MODELS:
             raise RenderError(f"--noise {self.noise}: expected one of {', '.join(NOISE_MODELS)}")
         if self.base_pose not in BASE_POSES:
@@ -60,13 +62,18 @@ class RenderSettings:
             raise RenderError(f"--noise-sigma {self.noise_sigma_at_05m}: expected metres at 0.5 m, in [0, 0.05)")
         if not 1 <= self.views_per_scene <= self.frames:
             raise RenderError(f"--views-per-scene {self.views_per_scene}: expected 1 to --frames ({self.frames})")
-        if self.distractors < 0:
-            raise RenderError("--distractors: expected 0 or more")
+        if not 0 <= self.distractors <= MAX_DISTRACTORS:
+            raise RenderError(f"--distractors {self.distractors}: expected 0 to {MAX_DISTRACTORS} (more would not fit "
+                              "on the table around the base)")
         rng_ok(self.yaw_range_deg, -360, 720, "yaw", "degrees")
         rng_ok(self.pitch_range_deg, 1, 90, "pitch", "degrees")
         if self.distance_range_m is not None and self.distance_range_m[0] <= 0:
             raise RenderError("--distance-range: expected positive distances in metres")
         rng_ok(self.distance_range_m, 1e-3, 100, "distance", "m")
+
+
+MAX_FRAMES = 100_000  # per step
+MAX_DISTRACTORS = 50
 
 
 @dataclass

@@ -133,7 +133,10 @@ def parse_json(text: str, where: str):
     def real(s: str):
         if len(s) > 300:
             raise ValueError(f"a number of {len(s)} characters")
-        return float(s)
+        v = float(s)
+        if v in (float("inf"), float("-inf")):
+            raise ValueError(f"{s} is too large for a number")
+        return v
 
     try:
         return json.loads(text, parse_constant=constant, parse_int=number, parse_float=real)

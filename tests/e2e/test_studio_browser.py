@@ -597,3 +597,32 @@ def drag_gizmo_x(page, st, cam, turn: bool = True) -> None:
         page.mouse.move(*(a + (b - a) * k / 10))
         time.sleep(0.05)
     page.mouse.up()
+
+
+def test_upload_a_mesh_from_the_browser(browser, tmp_path_factory):
+    """The page's own upload (512 KiB parts) passes the byte-counting limits and becomes a part."""
+    from apose_studio.studio import serve
+
+    root = tmp_path_factory.mktemp("upload")
+    server, st = serve(host="127.0.0.1", port=free_port(), root=root)
+    try:
+        asm_path = root / "up.yaml"
+        page = open_page(browser, st)
+        type_into(page, "Assembly file", str(asm_path))
+        page.get_by_role("button", name="New").click()
+        wait_until(lambda: st.files.f_path.value == str(asm_path), "the new draft")
+        mesh = root / "incoming" / "bracket.stl"
+        mesh.parent.mkdir()
+        trimesh.creation.annulus(r_min=10, r_max=30, height=8, sections=1600).export(mesh)  # > 512 KiB: several parts
+        assert mesh.stat().st_size > 600 * 1024
+        with page.expect_file_chooser() as chooser:
+            page.get_by_role("button", name="Upload mesh").click()
+        chooser.value.set_files(str(mesh))
+        wait_until(lambda: "bracket" in st.asm.parts, "the uploaded part", 60)
+        saved = root / "meshes" / "bracket.stl"
+        assert saved.read_bytes() == mesh.read_bytes()
+        assert not st.server.gui._current_file_upload_states
+        page.screenshot(path=str(ARTIFACTS / "upload.png"))
+        page.close()
+    finally:
+        server.stop()

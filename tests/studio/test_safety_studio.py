@@ -1,0 +1,96 @@
+"""Safety round 2 (#24) in the studio: uploads are counted by the bytes that arrive (M1), and the meshes an
+assembly file names obey the workspace like typed paths (M7)."""
+
+import shutil
+import time
+import uuid
+
+import msgspec
+import pytest
+
+from ..conftest import SAMPLES, TINY_YAML
+from .conftest import act, errors
+
+
+def _page_socket(st):
+    import viser
+    import websockets.sync.client
+
+    host_port = st.url.split("//", 1)[1].split("/", 1)[0]
+    path = "/" + st.url.split("//", 1)[1].split("/", 1)[1]
+    return websockets.sync.client.connect(f"ws://{host_port}{path}", origin=f"http://{host_port}",
+                                          subprotocols=[f"viser-v{viser.__version__}"], open_timeout=10, max_size=None)
+
+
+def _send(ws, **message):
+    ws.send(msgspec.msgpack.encode(message))
+
+
+def _states(st):
+    return st.server.gui._current_file_upload_states
+
+
+def _wait(cond, timeout=10.0):
+    t0 = time.time()
+    while time.time() - t0 < timeout and not cond():
+        time.sleep(0.02)
+    return cond()
+
+
+def test_an_upload_that_sends_more_than_it_declared_is_dropped(studio, tmp_path):
+    st = studio()
+    button = st.files.upload._impl.uuid
+    with _page_socket(st) as ws:
+        _wait(lambda: st.server.get_clients())
+        tid = str(uuid.uuid4())
+        _send(ws, type="FileTransferStartUpload", source_component_uuid=button, transfer_uuid=tid, filename="x.stl",
+              mime_type="model/stl", part_count=2, size_bytes=1024)  # declares 1 KB in two parts
+        assert _wait(lambda: tid in _states(st))
+        _send(ws, type="FileTransferPart", source_component_uuid=button, transfer_uuid=tid, part_index=0,
+              content=b"\0" * (4 * 2 ** 20))  # then sends 4 MB
+        assert _wait(lambda: tid not in _states(st)), "the transfer (and its 4 MB) is still buffered"
+        assert any("sent 4194304 bytes but declared 1024" in body for _, body, _ in st.notes)
+        # a declared size over the limit, and a part count that does not fit the size, are refused at the start
+        for size, parts in ((10 * 2 ** 30, 20480), (1024, 100000)):
+            t2 = str(uuid.uuid4())
+            _send(ws, type="FileTransferStartUpload", source_component_uuid=button, transfer_uuid=t2, filename="y.stl",
+                  mime_type="model/stl", part_count=parts, size_bytes=size)
+            assert _wait(lambda: any(t2 in b or "y.stl" in b for _, b, _ in st.notes))
+            assert t2 not in _states(st)
+        # more than two uploads at once from one tab
+        ids = [str(uuid.uuid4()) for _ in range(4)]
+        for t in ids:
+            _send(ws, type="FileTransferStartUpload", source_component_uuid=button, transfer_uuid=t, filename="z.stl",
+                  mime_type="model/stl", part_count=2, size_bytes=2 ** 20)
+        assert _wait(lambda: sum(t in _states(st) for t in ids) == 2)
+        # an honest small upload still goes through (the browser's own upload is in tests/e2e)
+        data = b"solid x\nendsolid x\n" * 100
+        for t in ids:
+            _states(st).pop(t, None)
+        t3 = str(uuid.uuid4())
+        _send(ws, type="FileTransferStartUpload", source_component_uuid=button, transfer_uuid=t3, filename="cube.stl",
+              mime_type="model/stl", part_count=1, size_bytes=len(data))
+        _send(ws, type="FileTransferPart", source_component_uuid=button, transfer_uuid=t3, part_index=0, content=data)
+        assert _wait(lambda: st.files.upload.value is not None and st.files.upload.value.content == data)
+        assert t3 not in _states(st)
+
+
+def test_an_assembly_naming_a_mesh_outside_the_workspace_is_refused(studio, tmp_path):
+    inside, outside = tmp_path / "ws", tmp_path / "outside"
+    inside.mkdir()
+    outside.mkdir()
+    shutil.copy(SAMPLES / "helical_gearbox" / "housing.stl" if (SAMPLES / "helical_gearbox" / "housing.stl").exists()
+                else next((SAMPLES / "helical_gearbox").glob("*.stl")), outside / "secret.stl")
+    import trimesh
+
+    for name in ("peg.stl", "cap.stl"):
+        trimesh.creation.box((10, 10, 10)).export(inside / name)
+    st = studio(root=inside)
+    for mesh in ("../outside/secret.stl", str(outside / "secret.stl")):
+        (inside / "a.yaml").write_text(TINY_YAML.replace("mesh: plate.stl", f"mesh: {mesh}"))
+        st.files.f_path.value = str(inside / "a.yaml")
+        before = len(st.notes)
+        act(st, st.files.on_open)
+        assert errors(st)[-1:] and "parts.plate.mesh" in errors(st)[-1][1] and "outside the studio's workspace" in errors(st)[-1][1]
+        assert len(st.notes) > before and "plate" not in st.asm.parts
+        assert not any(str(outside) in str(k[0]) for k in st.models)  # the outside mesh was never loaded
