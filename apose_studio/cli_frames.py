@@ -68,6 +68,10 @@ def _open_estimate_input(args):
 
         src.obj_of_part = parse_obj_map(args.obj_map, asm.parts)
         return src.frame(args.frame, ctx.view), asm, ctx
+    ignored = [flag for flag, given in (("--frame", args.frame not in (None, 0)), ("--obj-map", bool(args.obj_map))) if given]
+    if ignored:
+        raise AposeError(f"{args.input}: a capture folder holds one frame and no BOP object ids; remove "
+                         f"{' and '.join(ignored)} (they apply to datasets and BOP scene folders)")
     src.base, src.part, src.step = tuple(ctx.view.base), ctx.view.part, args.step
     return src, asm, ctx
 

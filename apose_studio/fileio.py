@@ -58,6 +58,29 @@ def atomic_write_bytes(path: str | Path, data: bytes, backup: bool = False) -> N
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+    _sweep_stale_tmp(path)
+
+
+STALE_TMP_SECONDS = 600  # a temporary file of ours this old was left by a killed writer, not one in flight
+
+
+def _sweep_stale_tmp(path: Path) -> None:
+    """Remove `.NAME.*.tmp` (and `.NAME.bak.*.tmp`) files beside `path` that a writer killed mid-save
+    left behind; only ours (that exact prefix) and only old ones, so a save in flight is never touched."""
+    import time
+
+    now, prefix = time.time(), f".{path.name}."  # also matches .NAME.bak.*.tmp
+    try:
+        names = [n for n in os.listdir(path.parent) if n.startswith(prefix) and n.endswith(".tmp")]
+    except OSError:
+        return
+    for n in names:
+        p = path.parent / n
+        try:
+            if p.is_file() and not p.is_symlink() and now - p.stat().st_mtime > STALE_TMP_SECONDS:
+                p.unlink()
+        except OSError:
+            pass
 
 
 def atomic_write_text(path: str | Path, text: str, backup: bool = False) -> None:

@@ -107,7 +107,7 @@ def load_mesh(path: str | Path, unit: str = "m", solid: str | None = None) -> tr
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 loaded = trimesh.load(io.BytesIO(data), file_type=ext[1:], force="mesh", process=False,
-                                      resolver=_ConfinedResolver(str(path)))
+                                      resolver=_ConfinedResolver(str(path), [cap - len(data)]))
         except AposeError as e:  # from the resolver: a buffer or material file that may not be read
             raise MeshError(f"{path}: {e}") from None
         except (Exception, RecursionError) as e:  # trimesh raises many types on corrupt input
@@ -147,15 +147,35 @@ MAX_COORDINATE_M = 1e4  # 10 km: a vertex further out is a unit or export mistak
 
 class _ConfinedResolver(trimesh.resolvers.FilePathResolver):
     """The files a glTF or OBJ names (buffers, textures, .mtl), read as every input file is: inside the
-    mesh's folder, regular files only, size-capped (a FIFO there would otherwise hang the load)."""
+    mesh's folder, regular files only (a FIFO there would otherwise hang the load), and all of them
+    together within one mesh file's byte cap: a glTF that names one big buffer a hundred times is
+    refused after the cap, not read a hundred times."""
+
+    def __init__(self, source: str, budget: list | None = None):
+        super().__init__(source)
+        from . import safeio
+
+        self.budget = budget if budget is not None else [safeio.LIMITS.mesh_bytes]  # shared with namespaced copies
 
     def get(self, name: str):
         from . import safeio
+        from .errors import AposeError
 
-        return safeio.read_bytes(self.absolute(name), "a file the mesh refers to", safeio.LIMITS.mesh_bytes)
+        too_much = AposeError(f"the files it refers to add up to more than the {safeio.LIMITS.mesh_bytes // 2**20} MB "
+                              f"a mesh may have (at {name[:80]!r}); is a buffer named many times?")
+        try:
+            data = safeio.read_bytes(self.absolute(name), "a file the mesh refers to", max(self.budget[0], 0))
+        except AposeError as e:
+            if "over the" in str(e) and self.budget[0] < safeio.LIMITS.mesh_bytes:
+                raise too_much from None
+            raise
+        self.budget[0] -= len(data)
+        if self.budget[0] < 0:
+            raise too_much
+        return data
 
     def namespaced(self, namespace: str):
-        return _ConfinedResolver(os.path.join(self.parent, namespace))
+        return _ConfinedResolver(os.path.join(self.parent, namespace), self.budget)
 
 
 def _check_declared_size(path: Path, ext: str, data: bytes) -> None:

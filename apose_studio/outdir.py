@@ -6,9 +6,12 @@ is in the folder"."""
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import json
 import os
+import stat
+import tempfile
 import threading
 from pathlib import Path
 
@@ -62,10 +65,17 @@ class OutputLock:
 
     def __enter__(self) -> "OutputLock":
         for _ in range(50):
-            try:
-                fd = os.open(self.path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o644)
+            try:  # never through a link: a planted `.apose-render.lock -> ~/notes.txt` must not be truncated
+                fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | getattr(os, "O_CLOEXEC", 0), 0o644)
             except OSError as e:
+                if e.errno == errno.ELOOP:
+                    raise AposeError(f"{self.path}: a symbolic link where the render's lock file goes; remove it, or "
+                                     "choose another --out") from None
                 raise AposeError(f"{self.out}: cannot write here ({e.strerror}); choose another --out") from None
+            if not stat.S_ISREG(os.fstat(fd).st_mode):
+                os.close(fd)
+                raise AposeError(f"{self.path}: not a regular file where the render's lock file goes; remove it, or "
+                                 "choose another --out")
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
@@ -93,8 +103,9 @@ class OutputLock:
         with self._notes:
             if rel in self.files or rel in OWN:
                 return
-            if self._journal is None:
-                self._journal = open(self.out / JOURNAL, "a", encoding="utf-8")
+            if self._journal is None:  # O_NOFOLLOW: a link planted as the journal is refused, never appended to
+                fd = os.open(self.out / JOURNAL, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+                self._journal = os.fdopen(fd, "a", encoding="utf-8")
             self._journal.write(rel + "\n")
             self._journal.flush()
             self.files.add(rel)
@@ -176,9 +187,9 @@ def check_writable(out: Path) -> None:
     """A probe file written and removed: a read-only or full folder is refused before any work."""
     try:
         out.mkdir(parents=True, exist_ok=True)
-        probe = out / ".apose-write-test"
-        probe.write_text("")
-        probe.unlink()
+        fd, probe = tempfile.mkstemp(prefix=".apose-write-test.", dir=out)  # O_EXCL: never through a link
+        os.close(fd)
+        os.unlink(probe)
     except OSError as e:
         raise AposeError(f"{out}: cannot write here ({e.strerror}); choose another --out") from None
 

@@ -165,20 +165,36 @@ def image_header(data: bytes) -> tuple[str, int, int, int, int] | None:
     if data[:4] in (b"II*\x00", b"MM\x00*") and len(data) >= 8:
         return _tiff_header(data)
     if data[:2] == b"\xff\xd8":
-        i = 2
-        while i + 9 < len(data):
-            if data[i] != 0xFF:
+        return _jpeg_header(data)
+    return None
+
+
+def _jpeg_header(data: bytes):
+    """The first frame header (SOFn) of a JPEG, walked as libjpeg walks it: markers start with one or
+    more 0xFF fill bytes; a scan (SOS) or the end before any frame header means no size (refused)."""
+    i = 2
+    while i < len(data):
+        if data[i] != 0xFF:
+            return None
+        while i < len(data) and data[i] == 0xFF:  # fill bytes before the marker code
+            i += 1
+        if i >= len(data):
+            return None
+        marker = data[i]
+        i += 1
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+            continue
+        if marker in (0xD9, 0xDA) or i + 2 > len(data):  # end of image, or a scan before any frame header
+            return None
+        (seg,) = struct.unpack(">H", data[i:i + 2])
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+            if i + 8 > len(data):
                 return None
-            marker = data[i + 1]
-            if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
-                i += 2
-                continue
-            seg = struct.unpack(">H", data[i + 2:i + 4])[0]
-            if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
-                bits, h, w, channels = struct.unpack(">BHHB", data[i + 4:i + 10])
-                return "JPEG", w, h, channels, bits
-            i += 2 + seg
-        return None
+            bits, h, w, channels = struct.unpack(">BHHB", data[i + 2:i + 8])
+            return "JPEG", w, h, channels, bits
+        if seg < 2:
+            return None
+        i += seg
     return None
 
 
@@ -218,7 +234,10 @@ def read_image(path: str | os.PathLike, flags: int, what: str = "an image"):
     if w > side or h > side:
         raise AposeError(f"{path}: its {fmt} header says {w} x {h} pixels, over the {side} x {side} an image may "
                          "have; is it the right file? (depth cameras give at most a few thousand pixels a side)")
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)  # OpenCV's own pixel cap: set in __init__.py
     if img is None:
-        raise AposeError(f"{path}: not a readable {fmt} image (corrupt or truncated?)")
+        raise AposeError(f"{path}: not a readable {fmt} image (corrupt, truncated, or over {side} x {side} pixels)")
+    if img.shape[0] != h or img.shape[1] != w:  # the header read here and the decoder's disagree: refuse
+        raise AposeError(f"{path}: its {fmt} header says {w} x {h} pixels but it decodes to {img.shape[1]} x "
+                         f"{img.shape[0]}; the file is damaged or crafted: save {what} again")
     return img, head

@@ -247,3 +247,60 @@ def test_system_errors_are_one_line_exit_2(tiny_dir, monkeypatch, capsys):
         assert cli.main(["show", str(tiny_dir / "assembly.yaml")]) == 2
         err = capsys.readouterr().err
         assert err.startswith("error: /data/out.json: ") and fix in err and len(err.strip().splitlines()) == 1, err
+
+
+# ------------------------------------------------- found by the outside attack on this round's fixes
+
+
+def test_a_jpeg_size_hidden_behind_fill_bytes_is_still_seen(tmp_path):
+    """libjpeg skips 0xFF fill bytes before a marker; a walk that does not lands on a decoy 16x16 frame
+    header while the real one says 12000 x 12000 (a 50 KB file that decodes to 144 M pixels)."""
+    import struct
+
+    import cv2
+
+    ok, enc = cv2.imencode(".jpg", np.full((16, 16), 128, np.uint8))
+    b = bytearray(enc.tobytes())
+    i = b.find(b"\xff\xc0")
+    b[i + 5:i + 9] = struct.pack(">HH", 12000, 12000)
+    b[i:i] = b"\xff"  # one fill byte
+    target = i + 2 + 0xC000
+    b += b"\x00" * (target - len(b)) + b"\xff\xc0\x00\x0b\x08\x00\x10\x00\x10\x01\x01\x11\x00"
+    assert safeio.image_header(bytes(b))[1:3] == (12000, 12000)
+    (tmp_path / "rgb.jpg").write_bytes(bytes(b))
+    with pytest.raises(AposeError, match="12000 x 12000 pixels, over the 8192"):
+        safeio.read_image(tmp_path / "rgb.jpg", cv2.IMREAD_UNCHANGED)
+    assert int(os.environ["OPENCV_IO_MAX_IMAGE_PIXELS"]) == 8192 * 8192  # OpenCV's own cap behind it
+
+
+def test_a_gltf_naming_one_big_buffer_many_times_is_refused_early(tmp_path):
+    with open(tmp_path / "big.bin", "wb") as f:
+        f.truncate(300 * 2 ** 20)  # sparse
+    (tmp_path / "model.gltf").write_text(json.dumps({"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": []}],
+                                                     "buffers": [{"uri": "big.bin", "byteLength": 300 * 2 ** 20}] * 6}))
+    with pytest.raises(MeshError, match="add up to more than the 512 MB"):
+        load_mesh(tmp_path / "model.gltf")
+
+
+def test_a_link_planted_as_the_lock_or_journal_is_never_written_through(tmp_path):
+    from apose_studio.outdir import JOURNAL, LOCK, OutputLock, check_output_dir
+
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / LOCK).symlink_to(victim)
+    with pytest.raises(AposeError, match="a symbolic link where the render's lock file goes"):
+        with OutputLock(out):
+            pass
+    (out / LOCK).unlink()
+    (out / JOURNAL).symlink_to(victim)
+    with pytest.raises(AposeError, match="not empty"):
+        check_output_dir(out, overwrite=False)
+    with OutputLock(out) as lock:
+        with pytest.raises(OSError):
+            lock.note("test/a.png")
+    (out / ".apose-write-test").symlink_to(victim)  # a link named like the write probe is someone else's file
+    with pytest.raises(AposeError, match="no apose render wrote"):
+        check_output_dir(out, overwrite=True)
+    assert victim.read_text() == "precious"

@@ -44,6 +44,9 @@ def estimate(depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics, T_world
                       "the base object is too small, occluded or without depth here", preset=params.preset,
                       target_cloud=target_pts, timings=timings)
     unit_error = scale_problem(target_pts, base.diameter)  # depth_scale or CAD units off by 10x, 1000x
+    if unit_error is not None and mask.mean() > 0.5:  # not a unit error: the mask holds the whole scene
+        unit_error = (f"the mask covers {100 * mask.mean():.0f}% of the image and spans far more than the base object "
+                      f"({base.diameter * 1000:.3g} mm across); prompt a box around the object, or check the mask file")
     if unit_error is not None:
         return failed(unit_error, preset=params.preset, target_cloud=target_pts, timings=timings)
     if prior_T_world_base is None and params.use_orientation_prior:
