@@ -69,6 +69,14 @@ def test_bad_prompts_say_what_is_wrong(clutter_dataset):
         check_box((w + 10, 0, w + 100, 50), (h, w))
     with pytest.raises(PromptError, match="x0 < x1"):
         check_box((50, 50, 10, 60), (h, w))
+    cx, cy = w // 2, h // 2  # a 1-pixel box in the middle of the image is too small, not "outside"
+    with pytest.raises(PromptError, match=f"box {cx},{cy},{cx + 1},{cy + 1} is 1x1 pixels; draw it around"):
+        check_box((cx, cy, cx + 1, cy + 1), (h, w))
+    # a box over bare table: the message gives the box as typed, in the image's pixels, not the work window's
+    box = (w - 60, h - 40, w - 10, h - 5)
+    assert not f.base_mask()[box[1]:box[3], box[0]:box[2]].any()
+    with pytest.raises(PromptError, match=f"box {box[0]},{box[1]},{box[2]},{box[3]} holds nothing"):
+        prompted_mask(f.rgb, f.depth, f.camera, box=box)
     labels_table = (f.depth > 0) & ~f.base_mask()
     # a pixel of the table far from every object: the frame's bottom corners are table in these renders
     v, u = h - 3, 3

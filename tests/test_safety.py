@@ -2,6 +2,7 @@
 pins; each was written to fail on the code before the fix (say so when changing one)."""
 
 import json
+import re
 import os
 import subprocess
 import sys
@@ -304,3 +305,28 @@ def test_a_link_planted_as_the_lock_or_journal_is_never_written_through(tmp_path
     with pytest.raises(AposeError, match="no apose render wrote"):
         check_output_dir(out, overwrite=True)
     assert victim.read_text() == "precious"
+
+
+def test_every_registration_parameter_has_a_range(tiny_dir):
+    for key, value, expected in (("ransac_max_iterations", "1000000000", "from 1 to 1000000"),
+                                 ("ransac_max_iterations", "1e12", "from 1 to 1000000"),
+                                 ("icp_max_iterations", "100000", "from 1 to 1000"),
+                                 ("voxel_size_m", "1e-9", "from 0.0001 to 0.5"),
+                                 ("max_seconds", "1e9", "from 0 (no limit) to 3600"),
+                                 ("seed", "-1", "from 0 to 4294967295")):
+        (tiny_dir / "assembly.yaml").write_text(TINY_YAML + f"registration:\n  {key}: {value}\n")
+        with pytest.raises(AssemblyError, match=f"registration.{key}: expected .*{re.escape(expected)}"):
+            load_assembly(tiny_dir / "assembly.yaml")
+
+
+def test_a_mask_over_the_whole_image_is_named_as_such():
+    from apose_studio.config import CameraIntrinsics
+    from apose_studio.registration import estimate, resolve_params
+    from apose_studio.registration.base import prepare_base
+
+    cam = CameraIntrinsics(64, 48, 60.0, 60.0, 32.0, 24.0)
+    depth = np.full((48, 64), 0.5, np.float32)
+    depth[:, :32] = 2.0  # a wide scene: far larger than a 2 cm cube
+    base = prepare_base(trimesh.creation.box((0.02, 0.02, 0.02)), n_samples=2000)
+    r = estimate(depth, np.ones((48, 64), bool), cam, np.eye(4), base, np.eye(4), resolve_params("default"))
+    assert not r.ok and "the mask covers 100% of the image" in r.reason and "depth_scale" not in r.reason
