@@ -6,7 +6,6 @@ import time
 import uuid
 
 import msgspec
-import pytest
 
 from ..conftest import SAMPLES, TINY_YAML
 from .conftest import act, errors
