@@ -167,15 +167,26 @@ def save_model(seg: Segmenter, path: str | Path) -> Path:
     return path
 
 
+MAX_MODEL_BYTES = 512 * 2 ** 20  # our U-Nets are a few MB
+
+
 def load_model(path: str | Path, asm=None, device: str = "cpu") -> Segmenter:
     """Load a model; with `asm`, refuse one trained for other parts (names the difference and the fix)."""
     torch = _torch()
 
+    import io
+
+    from . import safeio
+
     path = Path(path)
-    if not path.is_file():
+    if not path.exists() and not path.is_symlink():
         raise SegmentationError(f"{path}: no such model file (train one with `apose train-seg DATASET --out {path.name}`)")
     try:
-        blob = torch.load(path, map_location="cpu", weights_only=True)
+        data = safeio.read_bytes(path, "a segmentation model", MAX_MODEL_BYTES)
+    except AposeError as e:
+        raise SegmentationError(str(e)) from None
+    try:
+        blob = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
     except Exception as e:
         raise SegmentationError(f"{path}: not a readable model file ({type(e).__name__}); retrain with `apose train-seg`") from None
     if not isinstance(blob, dict) or blob.get("format") != FORMAT:
