@@ -136,12 +136,17 @@ def start_viser(host: str, port: int, token: str | None, label: str = "apose stu
 
         return original(handler, *args, process_request=guarded, **kwargs)
 
+    import rich
+
+    printer = rich.print
     with _START_LOCK:  # viser starts its server inside the constructor; only that call sees the wrapper
         wss.serve = serve
+        rich.print = lambda *a, **k: None  # viser's banner shows the address without the token: `serve` prints ours
         try:
             return viser.ViserServer(host=host, port=port, label=label, verbose=False)
         finally:
             wss.serve = original
+            rich.print = printer
 
 
 def studio_url(host: str, port: int, token: str | None) -> str:
