@@ -61,3 +61,31 @@ def test_eval_on_a_bop_split_folder(clutter_dataset, tmp_path):
     assert {row.obj_id for row in rows} == {info["obj_ids"][base0]} and {row.scene_id for row in rows} == {2}
     r = run("eval", clutter_dataset / "test", "--assembly", clutter_dataset / "assembly.yaml", "--step", 2)
     assert r.returncode == 2 and "--obj-map" in r.stderr
+
+
+def test_a_hand_written_results_file_with_a_known_offset(gearbox_dataset, tmp_path):
+    """Scored against truth read straight from the BOP files (not through the code under test): each
+    image's base pose from scene_gt.json moved 10 mm along the camera's x gives an assembly pose 10 mm off
+    (a pure translation: ADD = MSSD = te = 10 mm, re = 0); a higher-scored row wins over a lower one."""
+    from apose_studio.bop import score_results
+    from apose_studio.dataset import Dataset
+
+    ds_info = json.loads((gearbox_dataset / "dataset_info.json").read_text())
+    sa = json.loads((gearbox_dataset / "test" / "000001" / "scene_assembly.json").read_text())
+    base_obj = ds_info["obj_ids"][sa["base"][0]]
+    gt = json.loads((gearbox_dataset / "test" / "000001" / "scene_gt.json").read_text())
+    lines = ["scene_id,im_id,obj_id,score,R,t,time"]
+    for im, objs in gt.items():
+        g = next(o for o in objs if o["obj_id"] == base_obj)
+        R = " ".join(repr(float(v)) for v in g["cam_R_m2c"])
+        t = np.asarray(g["cam_t_m2c"], float)
+        lines.append(f"1,{im},{base_obj},0.9,{R},{' '.join(repr(float(v)) for v in t + [10.0, 0, 0])},0.5")
+        lines.append(f"1,{im},{base_obj},0.2,{R},{' '.join(repr(float(v)) for v in t + [500.0, 0, 0])},0.5")  # loses
+    (tmp_path / "hand.csv").write_text("\n".join(lines) + "\n")
+    doc = score_results(Dataset(gearbox_dataset), read_results_csv(tmp_path / "hand.csv"))
+    frames = doc["steps"][0]["frames"]
+    assert len(frames) == len(gt) == 2
+    for f in frames:
+        assert f["ok"] and abs(f["mssd"] - 0.010) < 1e-6 and abs(f["te"] - 0.010) < 1e-6 and f["re_deg"] < 1e-4, f
+    d = doc["steps"][0]["part_diameter"]
+    assert doc["steps"][0]["recall_mssd"] == (1.0 if 0.010 < 0.1 * d else 0.0)  # recall at 0.1 x diameter

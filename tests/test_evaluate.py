@@ -10,6 +10,8 @@ import pytest
 from apose_studio.assembly import load_assembly
 from apose_studio.dataset import Dataset
 from apose_studio.evaluate import evaluate, format_table
+from apose_studio.mesh import load_parts
+from apose_studio.metrics import mssd
 from apose_studio.registration import RegistrationResult, resolve_params
 from apose_studio.render import RenderSettings, render_dataset
 
@@ -39,6 +41,22 @@ def test_evaluate_document(gearbox_fixed):
     assert all(isinstance(f[k], bool) for f in st["frames"] for k in ("ok", "ambiguous", "confident"))
     table = format_table(doc)
     assert "MSSD mm" in table and table.splitlines()[2].split()[0] == "2"
+    # the values: noise-free renders with the CAD's orientation known, both frames right to a tenth of a mm
+    assert st["failed"] == 0 and st["recall_mssd"] == 1.0 and st["ar_mssd"] == 1.0
+    models = load_parts(gearbox_fixed.assembly)
+    wheel = models["wheel"]
+    for f in st["frames"]:
+        truth = gearbox_fixed.frame(2, f["im_id"]).T_world_part  # the renderer's scene_assembly.json
+        est = np.array(f["T_world_part_est"])
+        np.testing.assert_allclose(f["T_world_part_gt"], truth, atol=1e-12)
+        assert f["ok"] and f["confident"]
+        # te and the rotation error by hand; MSSD (the metric is tested in test_metrics) against the truth
+        assert f["te"] == pytest.approx(np.linalg.norm(est[:3, 3] - truth[:3, 3])) and f["te"] < 1e-4
+        cos = (np.trace(est[:3, :3].T @ truth[:3, :3]) - 1) / 2
+        assert f["re_deg"] == pytest.approx(np.degrees(np.arccos(min(cos, 1.0))), abs=1e-6) and f["re_deg"] < 0.1
+        assert f["mssd"] == pytest.approx(mssd(est, truth, wheel.samples, wheel.symmetries)) and f["mssd"] < 1e-4
+    assert st["mssd"]["mean"] == pytest.approx(np.mean([f["mssd"] for f in st["frames"]]))
+    assert st["te"]["mean"] == pytest.approx(np.mean([f["te"] for f in st["frames"]]))
 
 
 def test_failed_frames_count_as_misses(gearbox_fixed, monkeypatch):
@@ -58,6 +76,13 @@ def test_estimate_and_eval_commands(gearbox_fixed, tmp_path):
     assert r.returncode == 0, r.stderr
     doc = json.loads(r.stdout)
     assert doc["ok"] and np.array(doc["T_world_part_est"]).shape == (4, 4) and doc["stages"][-1]["name"] == "final"
+    # the pose against the frame's truth (scene_assembly.json), not the numbers the command printed beside it
+    truth = gearbox_fixed.frame(2, 1).T_world_part
+    wheel = load_parts(gearbox_fixed.assembly)["wheel"]
+    est = np.array(doc["T_world_part_est"])
+    assert doc["confident"] and np.linalg.norm(est[:3, 3] - truth[:3, 3]) < 1e-4
+    assert mssd(est, truth, wheel.samples, wheel.symmetries) < 1e-4
+    np.testing.assert_allclose(doc["T_world_part"], est)
     r = subprocess.run(cli + ["estimate", str(gearbox_fixed.root), "--step", "2", "--frame", "1"],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0 and "T_world_part (estimated assembly pose):" in r.stdout and "q (w,x,y,z)" in r.stdout

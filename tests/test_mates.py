@@ -220,3 +220,102 @@ def test_apose_show_lists_mates_and_free_degrees(folder):
     text = run("show", path).stdout
     assert "from mates: coaxial; free: rotation about the coaxial axis [0, 0, 1] is free (add an angle mate); " \
            "sliding along [0, 0, 1] is free" in text
+
+
+@pytest.mark.parametrize("start_deg", [0, 40, -100, 170])
+def test_angle_mate_from_a_start_already_turned(folder, start_deg):
+    # The guess (pose_in_base) is already turned about the coaxial axis; the angle mate alone sets the
+    # turn: the part's x at +30 deg from the base's x, right-handed about +z, whatever the start. By
+    # hand R = Rz(30) (a turn of 30 - start applied to the start), t from the axis through (1, 2, 0):
+    # the part's origin on it, its height kept from the pose (9 mm).
+    pose = {"translation": [7, 8, 9], "rotation": {"euler_deg": [0, 0, start_deg], "order": "xyz"}}
+    asm = _asm(folder, [coax([1, 2, 0], [0, 0, 1], [0, 0, 0], [0, 0, 1]), angle([1, 0, 0], [1, 0, 0], 30)], pose=pose)
+    T = asm.steps[0].T_base_part
+    np.testing.assert_allclose(T[:3, :3], Rz(30), atol=1e-12)
+    np.testing.assert_allclose(T[:3, 3], [0.001, 0.002, 0.009], atol=1e-12)
+    # the base's reference along +y and the part's along +x: the part's x at 90 + 30 = 120 deg from the
+    # base's x, so R = Rz(120); and a -45 deg mate from the same start: Rz(-45)
+    asm = _asm(folder, [coax([1, 2, 0], [0, 0, 1], [0, 0, 0], [0, 0, 1]), angle([0, 1, 0], [1, 0, 0], 30)], pose=pose)
+    np.testing.assert_allclose(asm.steps[0].T_base_part[:3, :3], Rz(120), atol=1e-12)
+    asm = _asm(folder, [coax([1, 2, 0], [0, 0, 1], [0, 0, 0], [0, 0, 1]), angle([1, 0, 0], [1, 0, 0], -45)], pose=pose)
+    np.testing.assert_allclose(asm.steps[0].T_base_part[:3, :3], Rz(-45), atol=1e-12)
+
+
+def test_angle_mate_about_a_contact_normal_along_x(folder):
+    # The part's face (normal -x) on the base's face x = 4 (normal +x): contact takes the part's -x onto
+    # -(+x), so x is kept and the turn about +x is free; the angle mate sets it from the base's y to the
+    # part's y: +90 deg from a start at 25. By hand R = Rx(90) (y -> z), t_x = 4 mm (the face), t_y, t_z
+    # slide in the face and stay as given.
+    asm = _asm(folder, [contact([4, 0, 0], [1, 0, 0], [0, 0, 0], [-1, 0, 0]), angle([0, 1, 0], [0, 1, 0], 90)],
+               pose={"translation": [0, 5, 6], "rotation": {"euler_deg": [25, 0, 0], "order": "xyz"}})
+    T = asm.steps[0].T_base_part
+    np.testing.assert_allclose(T[:3, :3], [[1, 0, 0], [0, 0, -1], [0, 1, 0]], atol=1e-12)
+    np.testing.assert_allclose(T[:3, 3], [0.004, 0.005, 0.006], atol=1e-12)
+
+
+def test_refs_and_approaches_compare_every_field():
+    from apose_studio.mates import Approach, Ref
+
+    z = np.array([0.0, 0, 1])
+    assert Ref(direction=z) == Ref(direction=z.copy())
+    assert Ref(direction=z) != Ref(point=np.zeros(3), direction=z)  # a point on one side only
+    assert Ref(point=np.zeros(3), direction=z) != Ref(point=np.array([0, 0, 1e-9]), direction=z)
+    assert Approach(z, 0.03) == Approach(z.copy(), 0.03)
+    assert Approach(z, 0.03) != Approach(z, 0.04) and Approach(z, 0.04) != Approach(z, 0.03)  # either way round
+    assert Approach(z, 0.03) != Approach(np.array([1.0, 0, 0]), 0.03) and Approach(z, 0.03) != "approach"
+
+
+def test_solve_directly_and_a_reference_along_the_axis(folder):
+    from apose_studio.errors import AposeError
+    from apose_studio.mates import Mate, MateError, Ref, solve
+
+    # no guess: identity supplies what is free; the part's origin onto the axis through (1, 2, 0)
+    coax_m = Mate("coaxial", Ref(np.array([0.001, 0.002, 0]), np.array([0.0, 0, 1])), Ref(np.zeros(3), np.array([0.0, 0, 1])))
+    s = solve([coax_m])
+    np.testing.assert_allclose(s.T_base_part, [[1, 0, 0, 0.001], [0, 1, 0, 0.002], [0, 0, 1, 0], [0, 0, 0, 1]], atol=1e-12)
+    assert s.n_free == 2
+    # an angle mate whose part direction lies along the axis it turns about cannot say a turn
+    along = Mate("angle", Ref(direction=np.array([1.0, 0, 0])), Ref(direction=np.array([0.0, 0, 1])), degrees=30)
+    with pytest.raises(MateError, match="parallel to the axis"):
+        solve([coax_m, along])
+    with pytest.raises(AposeError, match="parallel to the axis"):
+        _asm(folder, [coax([0, 0, 0], [0, 0, 1], [0, 0, 0], [0, 0, 1]), angle([1, 0, 0], [0, 0, 1], 30)])
+
+
+def test_a_part_round_about_its_own_x_put_on_the_axis_is_not_free_to_turn(folder):
+    # the part's x axis (its symmetry axis) onto the base's z axis: R takes x to z, so the free turn about z
+    # is a turn about the part's own axis of symmetry: not worth a word; the sliding along z is
+    one = _asm(folder, [coax([0, 0, 0], [0, 0, 1], [0, 0, 0], [1, 0, 0])], symmetry={"axis": [1, 0, 0], "order": 0})
+    np.testing.assert_allclose(one.steps[0].T_base_part[:3, :3] @ [1, 0, 0], [0, 0, 1], atol=1e-12)
+    assert len(one.steps[0].free) == 1 and "sliding along [0, 0, 1]" in one.steps[0].free[0]
+    # round about its z instead: the turn about the base's z is a real freedom
+    other = _asm(folder, [coax([0, 0, 0], [0, 0, 1], [0, 0, 0], [1, 0, 0])], symmetry={"axis": [0, 0, 1], "order": 0})
+    assert any("rotation about the coaxial axis" in w for w in other.steps[0].free)
+
+
+def test_mates_must_be_a_non_empty_list(folder):
+    for bad in ([], {"type": "coaxial"}):
+        (p,) = _problem(folder, bad)
+        assert p.key == "steps[0].mates" and "expected a non-empty list of mates" in p.what, (bad, p.what)
+
+
+def test_contradiction_names_what_it_contradicts(folder):
+    (p,) = _problem(folder, [contact([0, 0, 10], [0, 0, 1], [0, 0, 0], [0, 0, -1]),
+                             contact([0, 0, 12], [0, 0, 1], [0, 0, 0], [0, 0, -1])])
+    assert "contradicts the mates before it" in p.what
+
+
+def test_save_writes_a_fixed_mate_and_unit_directions(folder):
+    fixed = {"type": "fixed", "base": {"translation": [1, 2, 3], "rotation": {"euler_deg": [0, 0, 90], "order": "xyz"}},
+             "part": {"translation": [0, 0, 1]}}
+    asm = _asm(folder, [coax([10, 5, 0], [0, 0, 2], [1, 0, 0], [0, 0, 1]), contact([0, 0, 5], [0, 0, 1], [0, 0, 0], [0, 0, -1])],
+               approach={"direction": [0, 0, -2], "distance": 30},
+               extra_steps=[{"part": "third", "base": ["base", "part"], "mates": [fixed]}])
+    text = save_assembly(asm, folder / "saved.yaml").read_text()
+    # directions and the approach as unit vectors, no offset on a coaxial mate nor a zero one on a contact, the
+    # fixed frame's turn as a quaternion (a quarter about z: w = z = sqrt(1/2))
+    assert "direction: [0, 0, 1]" in text and "direction: [0, 0, -1]" in text and "offset" not in text
+    assert "translation: [1, 2, 3]" in text and "quat_wxyz: [0.70710678" in text
+    again = load_assembly(folder / "saved.yaml")
+    assert again == asm
+    np.testing.assert_allclose(again.steps[1].T_base_part[:3, :3], Rz(90), atol=1e-12)
