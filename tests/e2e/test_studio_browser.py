@@ -75,7 +75,7 @@ def wait_until(cond, what, timeout: float = 60.0) -> None:
 def open_page(browser, st, url: str | None = None):
     page = browser.new_page(viewport={"width": 1400, "height": 900})
     page.goto(url or st.url)
-    page.get_by_role("button", name="Add part(s)").wait_for(timeout=30000)
+    page.get_by_role("button", name="Add part(s)").wait_for(timeout=90000)  # a second tab beside a drawn assembly: ~30 s in SwiftShader
     return page
 
 
@@ -142,9 +142,10 @@ def test_author_a_step_and_save(browser, studio, tmp_path):
     shot(page, "assembly_tab.png")
     # a second tab sees the same draft, and the server still serves after a broken file
     other = open_page(browser, studio)
+    other.set_default_timeout(90000)  # two tabs drawing the assembly in software WebGL share two cores: slow
     type_into(other, "Assembly file", str(tmp_path / "missing.yaml"))
     other.get_by_role("button", name="Open").click()
-    other.get_by_text("file not found", exact=False).first.wait_for(timeout=10000)
+    other.get_by_text("file not found", exact=False).first.wait_for(timeout=60000)
     assert len(studio.asm.steps) == 4
     other.close()
     page.close()
