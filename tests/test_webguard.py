@@ -94,3 +94,23 @@ def test_workspace_confines_paths(tmp_path):
     (tmp_path / "a" / "link").symlink_to("/etc")
     with pytest.raises(AposeError, match="outside"):  # a link out of the workspace does not count as inside
         w.resolve(tmp_path / "a" / "link" / "passwd")
+
+
+def test_rule_edges_pinned_by_mutation_testing():
+    from apose_studio.webguard import new_token
+
+    assert is_loopback_bind("127.0.0.1") and is_loopback_bind("localhost") and is_loopback_bind("::1")
+    assert not is_loopback_name("[::1") and not is_loopback_name("::1]")  # half a bracket pair is not a literal
+    tok = "b" * 20
+    assert ws("http://127.0.0.1:8080", path=f"/t/{tok}/assets/x.js?v=1", token=tok) is None  # '/' before '?'
+    assert "needs its token" in ws("http://127.0.0.1:8080", path=f"/t/{tok}?x=/t/{tok}/", token=tok[:-1] + "c")
+    # default ports: an Origin without a port means 80 (http) or 443 (https)
+    page80 = dict(path="/", host_header="127.0.0.1", port=80, bound_loopback=True, token=None, websocket=True)
+    assert refusal(origin="http://127.0.0.1", **page80) is None
+    assert refusal(origin="https://127.0.0.1", **page80) is not None
+    assert refusal(origin="https://127.0.0.1", **{**page80, "port": 443, "host_header": "127.0.0.1:443"}) is None
+    assert refusal(origin="http://127.0.0.1", **{**page80, "port": 81}) is not None
+    assert "not a loopback name" in ws("http://127.0.0.1:8080", host="127.0.0.1:99999")  # a bad port: refused, no crash
+    a, b = new_token(), new_token()
+    assert a != b and len(a) >= 32 and check_token(a) == a  # 24 random bytes
+    assert check_token("x" * 16) == "x" * 16  # 16 characters are enough, 15 are not (above)

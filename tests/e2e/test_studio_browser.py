@@ -35,6 +35,19 @@ def browser():
         b.close()
 
 
+@pytest.fixture(autouse=True)
+def _close_pages(request):
+    """Close every page a test opened, failed or not: an open page keeps drawing in software WebGL, and a
+    few left behind by one failure starve the next tests of CPU (seen as a cascade of timeouts)."""
+    yield
+    if "browser" in request.fixturenames:
+        for context in list(request.getfixturevalue("browser").contexts):
+            try:
+                context.close()
+            except Exception:
+                pass
+
+
 @pytest.fixture
 def studio(tmp_path_factory):
     from apose_studio.studio import serve
