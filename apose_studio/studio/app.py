@@ -74,10 +74,10 @@ class Studio:
             self.build_gui()
             server.on_client_connect(self.on_connect)
             limit_uploads(server, MAX_UPLOAD_BYTES, lambda *a, **k: self.notify(*a, **k))
-            if assembly is not None:
-                self.files.open_assembly(Path(assembly))
+            if assembly is not None:  # named on the command line: the user's own files, not the page's
+                self.files.open_assembly(Path(assembly), confine=False)
             if dataset is not None:
-                self.inspect.open_frames(str(dataset))
+                self.inspect.open_frames(str(dataset), confine=False)
 
     def notify(self, client, title: str, body: str, error: bool = False) -> None:
         """Tell the tab that acted (or every tab when no one did)."""

@@ -60,9 +60,12 @@ class AssemblyPanel:
             b = gui.add_button("Remove part", color="red")
             b.on_click(self.app.guarded("Remove part")(self.on_remove_part))
 
-    def open_assembly(self, path: Path, client=None) -> None:
+    def open_assembly(self, path: Path, client=None, confine: bool = True) -> None:
+        """Open an assembly file. `confine`: its meshes must lie in the workspace, as typed paths must (the
+        page's Open); a file named on the command line at start is the user's own choice and is not confined."""
         asm = load_assembly(path)
-        self.app.workspace.check_assembly(asm)  # the meshes a file names obey the workspace as typed paths do
+        if confine:
+            self.app.workspace.check_assembly(asm)  # the meshes a file names obey the workspace as typed paths do
         for pid in asm.parts:  # load every mesh now: a bad one is reported before anything changes
             self.app.model(pid, asm)
         self.app.steps.drop_meshes()

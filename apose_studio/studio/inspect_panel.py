@@ -117,7 +117,7 @@ class InspectPanel:
                 raise AposeError(f"{e}\n(still showing the data opened before: {self.frames_path})") from None
             raise
 
-    def open_frames(self, text: str, client=None) -> None:
+    def open_frames(self, text: str, client=None, confine: bool = True) -> None:
         from ..dataset import Dataset, open_frames
 
         frames = open_frames(Path(text).expanduser())
@@ -127,7 +127,8 @@ class InspectPanel:
             raise AposeError(f"{text}: a BOP scene folder; the studio opens apose datasets and single captures "
                              "(run `apose estimate` on BOP scenes)")
         if isinstance(frames, Dataset):
-            self.app.workspace.check_assembly(frames.assembly)
+            if confine:  # a dataset named on the command line at start is the user's choice
+                self.app.workspace.check_assembly(frames.assembly)
             steps = [f"{s}. {frames.assembly.steps[s - 1].part}" for s in frames.steps]
         else:
             if not self.app.valid_asm.steps:
