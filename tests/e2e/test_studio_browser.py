@@ -3,6 +3,7 @@ would use it. Screenshots land in artifacts/e2e/ (look at them: they are the rev
 
 import os
 import shutil
+import threading
 import time
 from pathlib import Path
 
@@ -400,11 +401,23 @@ def test_an_estimate_is_cached_under_the_settings_it_ran_with(browser, studio, g
     wait_until(lambda: "/inspect/scene" in studio.nodes, "the frame")
     b = open_page(browser, studio)
     b.get_by_role("tab", name="Inspect").click()
+    # the estimate is held at its first frame until B has switched the preset: the race is then the one
+    # this test is about (settings changed mid-run), and B's clicks do not compete with registration for
+    # the CPU (on 2 cores a click on B timed out in SwiftShader while A's estimate ran)
+    go, original = threading.Event(), studio.inspect.estimate
+
+    def held(job, im_id):
+        assert go.wait(120), "the test never released the estimate"
+        return original(job, im_id)
+
+    studio.inspect.estimate = held
     a.get_by_role("button", name="Estimate step").click()
     wait_until(lambda: studio.busy.locked(), "the estimate to start")
     field(b, "Preset").first.click()
     b.get_by_role("option", name="paper", exact=True).click()
     wait_until(lambda: studio.inspect.i_preset.value == "paper", "page B's preset")
+    assert studio.busy.locked() and len(studio.cache) == 0, "the estimate was meant to be held until now"
+    go.set()
     wait_until(lambda: not studio.busy.locked(), "the estimate to end", timeout=180)
     presets = {k[3] for k in studio.cache.entries}
     assert presets == {"default"}, presets
