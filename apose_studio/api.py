@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from . import se3
-from .config import CameraIntrinsics
-from .errors import AposeError
+from apose_studio.geometry import se3
+from apose_studio.geometry.camera import CameraIntrinsics
+from apose_studio.errors import AposeError
 
 
 @dataclass
@@ -83,9 +83,9 @@ _CONTEXTS: dict = {}
 
 def step_context(assembly, step: int):
     """(Assembly, StepContext) for an assembly (path or Assembly) and a 1-based step, cached per file."""
-    from .assembly import Assembly, load_assembly
-    from .evaluate import StepContext
-    from .mesh import load_parts
+    from apose_studio.assembly.model import Assembly, load_assembly
+    from apose_studio.evaluate import StepContext
+    from apose_studio.assembly.mesh import load_parts
 
     asm = assembly if isinstance(assembly, Assembly) else load_assembly(assembly)
     if not 1 <= step <= len(asm.steps):
@@ -104,10 +104,10 @@ def find_mask(rgb, depth, cam, mask=None, box=None, point=None) -> tuple[np.ndar
     if mask is not None:
         return check_mask(mask, depth.shape), "given"
     if box is not None or point is not None:
-        from .prompt import prompted_mask
+        from apose_studio.masks.prompt import prompted_mask
 
         return prompted_mask(rgb, depth, cam, box=box, point=point).mask, "box" if box is not None else "point"
-    from .segment import depth_mask
+    from apose_studio.masks.segment import depth_mask
 
     return depth_mask(depth, cam), "depth"
 
@@ -117,7 +117,7 @@ def estimate_pose(rgb: np.ndarray, depth: np.ndarray, K, assembly, step: int, *,
                   **params) -> PoseEstimate:
     """The assembly pose of `step`'s part from one frame. rgb (H, W, 3) uint8; depth (H, W) metres (0 or
     NaN where missing); K 3x3. Raises AposeError on bad input; a failed estimate is ok=False with a reason."""
-    from .registration import resolve_params
+    from apose_studio.registration import resolve_params
 
     t0 = time.perf_counter()
     depth = np.asarray(depth, np.float32)
@@ -130,7 +130,7 @@ def estimate_pose(rgb: np.ndarray, depth: np.ndarray, K, assembly, step: int, *,
     depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0).astype(np.float32)
     cam = camera_from_K(K, depth.shape[1], depth.shape[0])
     if T_world_camera is None:
-        from .plane import table_frame
+        from apose_studio.geometry.plane import table_frame
 
         T_world_camera = table_frame(depth, cam)
         T_world_camera = np.eye(4) if T_world_camera is None else T_world_camera
@@ -144,7 +144,7 @@ def estimate_pose(rgb: np.ndarray, depth: np.ndarray, K, assembly, step: int, *,
 def run_registration(depth, mask, source, cam, T_world_camera, ctx, params, orientation_prior, t0, t_mask,
                      trace_iterations: bool = False) -> PoseEstimate:
     """The registration step of estimate_pose (and of `apose estimate`), on a mask already found."""
-    from .registration import estimate
+    from apose_studio.registration import estimate
 
     ctx.base.warm_up(params)
     t1 = time.perf_counter()
@@ -159,7 +159,7 @@ def run_registration(depth, mask, source, cam, T_world_camera, ctx, params, orie
 
 def pose_estimate(r, T_world_camera, view, mask, source, timings) -> PoseEstimate:
     """A registration result as the robot-facing record (T_camera_part, the approach pose, the doubts)."""
-    from .registration import doubts
+    from apose_studio.registration import doubts
 
     ok = bool(r.ok)
     approach = view.approach.start(r.T_world_part, r.T_world_base) if ok and view.approach is not None else None

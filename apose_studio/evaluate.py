@@ -8,13 +8,13 @@ from pathlib import Path
 
 import numpy as np
 
-from . import metrics, se3
-from .assembly import Assembly
-from .dataset import Dataset, Frame
-from .errors import AposeError
-from .mesh import PartModel, base_mesh, load_parts
-from .registration import TIE_MARGIN, BaseObject, Params, RegistrationResult, estimate, prepare_base
-from .registration.scoring import twin_placements
+from apose_studio.geometry import metrics, se3
+from apose_studio.assembly.model import Assembly
+from apose_studio.data.dataset import Dataset, Frame
+from apose_studio.errors import AposeError
+from apose_studio.assembly.mesh import PartModel, base_mesh, load_parts
+from apose_studio.registration import TIE_MARGIN, BaseObject, Params, RegistrationResult, estimate, prepare_base
+from apose_studio.registration.scoring import twin_placements
 
 MASK_SOURCES = ("gt", "depth", "box")  # or the path of a model from `apose train-seg`
 BOX_MARGIN = 0.04  # the box prompt of `--mask box`: the ground truth's visible box, this much wider on each side
@@ -96,7 +96,7 @@ def _is_model(source: str) -> bool:
 
 
 def _segmenter(path: str, asm: Assembly | None = None):
-    from .segment import load_model
+    from apose_studio.masks.segment import load_model
 
     key = (path, Path(path).stat().st_mtime if Path(path).exists() else 0)
     if key not in _SEGMENTERS:
@@ -111,11 +111,11 @@ def frame_mask(frame: Frame, source: str) -> np.ndarray:
     if source == "gt":
         return frame.base_mask()
     if source == "depth":
-        from .segment import depth_mask
+        from apose_studio.masks.segment import depth_mask
 
         return depth_mask(frame.depth, frame.camera)
     if source == "box":
-        from .prompt import prompted_mask
+        from apose_studio.masks.prompt import prompted_mask
 
         box = truth_box(frame.base_mask())
         return prompted_mask(frame.rgb, frame.depth, frame.camera, box=box).mask if box else frame.base_mask()
@@ -151,7 +151,7 @@ def score_frame(frame: Frame, result: RegistrationResult, part: PartModel, mask:
     s = FrameScore(frame.step, frame.im_id, result.ok, result.reason, time_s=result.seconds,
                    T_world_part_gt=frame.T_world_part)
     if mask is not None and frame.masks:
-        from .segment import iou
+        from apose_studio.masks.segment import iou
 
         s.mask_iou = iou(mask, frame.base_mask())
     if not result.ok:
@@ -241,7 +241,7 @@ def _score_frame_of(ds: Dataset, step: int, im_id: int, ctx: "StepContext", para
                     orientation_prior: bool) -> FrameScore:
     """One frame's score; a frame whose files are missing or broken counts as a failed frame (with the
     reason) instead of ending the whole evaluation."""
-    from .errors import DatasetError
+    from apose_studio.errors import DatasetError
 
     try:
         frame = ds.frame(step, im_id)
@@ -267,8 +267,8 @@ def _score_group_of(ds: Dataset, step: int, ids: list[int], ctx: "StepContext", 
                     orientation_prior: bool) -> FrameScore:
     """One fused estimate over frames of one placement (registration.fusion), scored against the first
     frame's ground truth (the placement's); its record lists the frames in `im_ids`."""
-    from .errors import DatasetError
-    from .registration.fusion import View, estimate_views
+    from apose_studio.errors import DatasetError
+    from apose_studio.registration.fusion import View, estimate_views
 
     try:
         frames = [ds.frame(step, i) for i in ids]
@@ -308,7 +308,7 @@ def evaluate(ds: Dataset, params: Params, steps: list[int] | None = None, frames
     steps = steps or ds.steps
     for s in steps:
         if s not in ds.steps:
-            from .errors import DatasetError
+            from apose_studio.errors import DatasetError
             raise DatasetError(f"{ds.root}: step {s} was not rendered; rendered steps: {', '.join(map(str, ds.steps))}")
     todo = [(s, ds.image_ids(s)[:frames] if frames else ds.image_ids(s)) for s in steps]
     bar = tqdm(total=sum(len(ids) for _, ids in todo), unit="frame", desc=f"eval {params.preset}",

@@ -26,7 +26,7 @@ import struct
 from dataclasses import dataclass
 from pathlib import Path
 
-from .errors import AposeError
+from apose_studio.errors import AposeError
 
 MB = 2 ** 20
 

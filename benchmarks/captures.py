@@ -41,13 +41,13 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 
 from registration import ASSEMBLIES, loaded_assemblies  # noqa: E402
 
-from apose_studio import metrics  # noqa: E402
-from apose_studio.dataset import Dataset  # noqa: E402
+from apose_studio.geometry import metrics  # noqa: E402
+from apose_studio.data.dataset import Dataset  # noqa: E402
 from apose_studio.evaluate import StepContext, estimate_frame, score_frame, truth_box  # noqa: E402
-from apose_studio.prompt import prompted_mask  # noqa: E402
+from apose_studio.masks.prompt import prompted_mask  # noqa: E402
 from apose_studio.registration import resolve_params  # noqa: E402
-from apose_studio.render import RenderSettings, render_dataset  # noqa: E402
-from apose_studio.segment import iou  # noqa: E402
+from apose_studio.synth.render import RenderSettings, render_dataset  # noqa: E402
+from apose_studio.masks.segment import iou  # noqa: E402
 
 
 TELL_M = 0.004  # a pixel tells the truth from a twin when its depth is within this of the truth's surface and the
@@ -61,7 +61,7 @@ def telling_pixels(frame, ctx: StepContext) -> int:
     the part elsewhere (MSSD >= 10 % of its diameter, modulo its own symmetries). A telling pixel has depth
     within TELL_M of the truth's ray-cast surface, where the twin's surface is not, at least 2 px from
     either's outline. -1 when the base has no such twin."""
-    from apose_studio.raycast import raycast_depth
+    from apose_studio.geometry.raycast import raycast_depth
     from apose_studio.registration import mask_edge
 
     part, d = ctx.part, frame.depth
@@ -100,7 +100,7 @@ def run(ds: Dataset, asm, models, params, compare_depth: bool = False) -> list[d
             d = ctx.part.diameter
             right = bool(r.ok and sc.mssd_mod_base_sym < 0.1 * d)  # exact twins of the base are the same assembly
             if compare_depth:  # the unprompted grouping (DBSCAN in 3D) limited to the same box, for comparison
-                from apose_studio.segment import depth_mask
+                from apose_studio.masks.segment import depth_mask
 
                 rows.append({"depth_iou": iou(depth_mask(frame.depth, frame.camera, box=truth_box(truth)), truth)})
             final = r.model_mask if r.model_mask is not None else mask  # cut to the model's view at the pose

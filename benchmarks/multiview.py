@@ -32,12 +32,12 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 
 from registration import ASSEMBLIES, loaded_assemblies  # noqa: E402
 
-from apose_studio.dataset import Dataset  # noqa: E402
+from apose_studio.data.dataset import Dataset  # noqa: E402
 from apose_studio.evaluate import StepContext, score_frame  # noqa: E402
 from apose_studio.registration import estimate, resolve_params  # noqa: E402
 from apose_studio.registration.fusion import View, estimate_views  # noqa: E402
 from apose_studio.registration.next_view import next_view  # noqa: E402
-from apose_studio.render import RayGrid, RenderSettings, render_dataset, sample_scene, view_of  # noqa: E402
+from apose_studio.synth.render import RayGrid, RenderSettings, render_dataset, sample_scene, view_of  # noqa: E402
 
 
 def right(frame, r, ctx) -> bool:

@@ -19,9 +19,9 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from apose_studio.assembly import load_assembly  # noqa: E402
-from apose_studio.mesh import load_parts  # noqa: E402
-from apose_studio.render import RenderSettings, render_dataset  # noqa: E402
+from apose_studio.assembly.model import load_assembly  # noqa: E402
+from apose_studio.assembly.mesh import load_parts  # noqa: E402
+from apose_studio.synth.render import RenderSettings, render_dataset  # noqa: E402
 
 
 def assemblies() -> list[Path]:

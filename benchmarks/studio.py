@@ -31,8 +31,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from apose_studio.assembly import load_assembly  # noqa: E402
-from apose_studio.render import RenderSettings, render_dataset  # noqa: E402
+from apose_studio.assembly.model import load_assembly  # noqa: E402
+from apose_studio.synth.render import RenderSettings, render_dataset  # noqa: E402
 from apose_studio.studio import serve  # noqa: E402
 
 
@@ -75,13 +75,13 @@ class Ray:
 def time_picks(st, stl: Path, n: int = 20) -> tuple[float, list[float], int]:
     """(prepare seconds, pick seconds each, picks that found a flat or round face) for a part placed by a
     new step, clicked straight at random triangles."""
-    from apose_studio import se3
+    from apose_studio.geometry import se3
 
     st.files.f_mesh.value = str(stl)
     st.guarded("add")(lambda c: st.files.on_add_parts(c))(Click())
     pid = [p for p in st.asm.parts if p.startswith(stl.stem)][-1]
-    from apose_studio import authoring
-    from apose_studio.assembly import Step
+    from apose_studio.studio import authoring
+    from apose_studio.assembly.model import Step
 
     step = Step(pid, (st.asm.roots[0],), se3.make_T(t=np.array([0.1, 0.0, 0.0])))  # beside the base
     st.steps.step_index = len(st.asm.steps)

@@ -33,10 +33,10 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 
 from registration import ASSEMBLIES, loaded_assemblies  # noqa: E402
 
-from apose_studio.dataset import Dataset  # noqa: E402
+from apose_studio.data.dataset import Dataset  # noqa: E402
 from apose_studio.evaluate import StepContext, estimate_and_score  # noqa: E402
 from apose_studio.registration import resolve_params  # noqa: E402
-from apose_studio.render import RenderSettings, render_dataset  # noqa: E402
+from apose_studio.synth.render import RenderSettings, render_dataset  # noqa: E402
 
 
 def main() -> int:
@@ -103,7 +103,7 @@ def main() -> int:
 
 def compare_poses(before: dict, after: dict) -> None:
     """How far each frame's pose moved between two runs: identical, within thread noise, or apart."""
-    from apose_studio import se3
+    from apose_studio.geometry import se3
 
     common = sorted(set(before) & set(after))
     moves, rots, flips = [], [], []

@@ -61,8 +61,8 @@ def tiny_dir(tmp_path) -> Path:
 @pytest.fixture(scope="session")
 def gearbox_dataset(tmp_path_factory) -> Path:
     """Two RealSense-like views of gearbox step 1 with the base at the CAD's orientation (rendered once)."""
-    from apose_studio.assembly import load_assembly
-    from apose_studio.render import RenderSettings, render_dataset
+    from apose_studio.assembly.model import load_assembly
+    from apose_studio.synth.render import RenderSettings, render_dataset
 
     out = tmp_path_factory.mktemp("studio") / "ds"
     asm = load_assembly(SAMPLES / "helical_gearbox" / "assembly.yaml")
@@ -100,8 +100,8 @@ def write_capture(frame, folder: Path, camera: dict | None = None) -> Path:
 def clutter_dataset(tmp_path_factory) -> Path:
     """Kinect-like cluttered benches (objects standing against the base, base off-centre): gearbox step 2,
     three views (rendered once)."""
-    from apose_studio.assembly import load_assembly
-    from apose_studio.render import RenderSettings, render_dataset
+    from apose_studio.assembly.model import load_assembly
+    from apose_studio.synth.render import RenderSettings, render_dataset
 
     out = tmp_path_factory.mktemp("clutter") / "ds"
     asm = load_assembly(SAMPLES / "helical_gearbox" / "assembly.yaml")

@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 import yaml
 
-from apose_studio import se3
-from apose_studio.assembly import Assembly, assembly_from_dict, load_assembly, save_assembly
+from apose_studio.geometry import se3
+from apose_studio.assembly.model import Assembly, assembly_from_dict, load_assembly, save_assembly
 from apose_studio.errors import AssemblyError
 
 from .conftest import TINY_YAML
@@ -170,7 +170,7 @@ def test_yaml_syntax_and_missing_file(tmp_path):
 
 
 def test_save_is_atomic(tiny_dir, monkeypatch):
-    import apose_studio.assembly as A
+    import apose_studio.assembly.model as A
 
     asm = load_assembly(tiny_dir / "assembly.yaml")
     target = tiny_dir / "assembly.yaml"
@@ -263,7 +263,7 @@ def test_chaining_a_long_sequence_is_exact(tmp_path):
     once through the steps, checked against products computed here."""
     import trimesh
 
-    from apose_studio import se3
+    from apose_studio.geometry import se3
 
     trimesh.creation.box((1, 1, 1)).export(tmp_path / "b.stl")
     n = 1500

@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from apose_studio import authoring, se3
-from apose_studio.assembly import load_assembly, save_assembly
+from apose_studio.studio import authoring
+from apose_studio.geometry import se3
+from apose_studio.assembly.model import load_assembly, save_assembly
 from apose_studio.errors import AposeError
 
 

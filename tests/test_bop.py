@@ -7,10 +7,10 @@ import sys
 import numpy as np
 import pytest
 
-from apose_studio.bop import BopResult, read_results_csv, write_results_csv
+from apose_studio.data.bop import BopResult, read_results_csv, write_results_csv
 from apose_studio.errors import DatasetError
 
-APOSE = [sys.executable, "-m", "apose_studio.cli"]
+APOSE = [sys.executable, "-m", "apose_studio.cli.commands"]
 
 
 def run(*args):
@@ -67,8 +67,8 @@ def test_a_hand_written_results_file_with_a_known_offset(gearbox_dataset, tmp_pa
     """Scored against truth read straight from the BOP files (not through the code under test): each
     image's base pose from scene_gt.json moved 10 mm along the camera's x gives an assembly pose 10 mm off
     (a pure translation: ADD = MSSD = te = 10 mm, re = 0); a higher-scored row wins over a lower one."""
-    from apose_studio.bop import score_results
-    from apose_studio.dataset import Dataset
+    from apose_studio.data.bop import score_results
+    from apose_studio.data.dataset import Dataset
 
     ds_info = json.loads((gearbox_dataset / "dataset_info.json").read_text())
     sa = json.loads((gearbox_dataset / "test" / "000001" / "scene_assembly.json").read_text())

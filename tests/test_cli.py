@@ -8,7 +8,7 @@ import pytest
 
 from .conftest import SAMPLES
 
-APOSE = [sys.executable, "-m", "apose_studio.cli"]
+APOSE = [sys.executable, "-m", "apose_studio.cli.commands"]
 
 
 def run(*args, cwd=None):
@@ -71,7 +71,7 @@ def test_demo_runs_on_the_sample(tmp_path):
     # one line per step: the estimated position and its MSSD / ADI against the frame's truth
     import re
 
-    from apose_studio.dataset import Dataset
+    from apose_studio.data.dataset import Dataset
 
     rows = re.findall(r"step (\d): place (\w+) +at \( *([-+\d.]+), *([-+\d.]+), *([-+\d.]+)\) mm in the world; "
                       r"error vs truth: MSSD ([\d.]+) mm, ADI ([\d.]+) mm", r.stdout)

@@ -11,12 +11,12 @@ import cv2
 import numpy as np
 import pytest
 
-from apose_studio.dataset import Dataset
+from apose_studio.data.dataset import Dataset
 from apose_studio.evaluate import truth_box
 
 from .conftest import write_capture
 
-APOSE = [sys.executable, "-m", "apose_studio.cli"]
+APOSE = [sys.executable, "-m", "apose_studio.cli.commands"]
 
 
 def run(*args):
@@ -67,7 +67,7 @@ def test_api_matches_the_cli(capture):
     from apose_studio.api import estimate_pose
 
     f = capture["frame"]
-    from apose_studio.dataset import read_depth
+    from apose_studio.data.dataset import read_depth
 
     depth = read_depth(capture["ours"] / "depth.png", 1.0)  # metres, as the CLI reads the capture
     est = estimate_pose(f.rgb, depth, f.camera.K, capture["asm"], 2, box=truth_box(f.base_mask()))
@@ -126,8 +126,8 @@ def test_every_bad_input_exits_2_with_one_line(capture, tmp_path):
 @pytest.fixture(scope="module")
 def two_views(tmp_path_factory):
     """Gearbox step 1, two placements of two RealSense-like views each (`--views-per-scene 2`)."""
-    from apose_studio.assembly import load_assembly
-    from apose_studio.render import RenderSettings, render_dataset
+    from apose_studio.assembly.model import load_assembly
+    from apose_studio.synth.render import RenderSettings, render_dataset
 
     from .conftest import SAMPLES
 

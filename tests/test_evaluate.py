@@ -7,13 +7,13 @@ import sys
 import numpy as np
 import pytest
 
-from apose_studio.assembly import load_assembly
-from apose_studio.dataset import Dataset
+from apose_studio.assembly.model import load_assembly
+from apose_studio.data.dataset import Dataset
 from apose_studio.evaluate import evaluate, format_table
-from apose_studio.mesh import load_parts
-from apose_studio.metrics import mssd
+from apose_studio.assembly.mesh import load_parts
+from apose_studio.geometry.metrics import mssd
 from apose_studio.registration import RegistrationResult, resolve_params
-from apose_studio.render import RenderSettings, render_dataset
+from apose_studio.synth.render import RenderSettings, render_dataset
 
 from .conftest import SAMPLES
 
@@ -70,7 +70,7 @@ def test_failed_frames_count_as_misses(gearbox_fixed, monkeypatch):
 
 
 def test_estimate_and_eval_commands(gearbox_fixed, tmp_path):
-    cli = [sys.executable, "-m", "apose_studio.cli"]
+    cli = [sys.executable, "-m", "apose_studio.cli.commands"]
     r = subprocess.run(cli + ["estimate", str(gearbox_fixed.root), "--step", "2", "--frame", "1", "--json",
                               "--orientation-prior"], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr

@@ -5,9 +5,9 @@ import stat
 
 import numpy as np
 
-from apose_studio import authoring
-from apose_studio.assembly import load_assembly, save_assembly
-from apose_studio.fileio import atomic_write_text, current_umask, describe_path, roundtrip_yaml
+from apose_studio.studio import authoring
+from apose_studio.assembly.model import load_assembly, save_assembly
+from apose_studio.assembly.fileio import atomic_write_text, current_umask, describe_path, roundtrip_yaml
 
 
 def mode(p) -> int:
@@ -26,7 +26,7 @@ def test_atomic_write_keeps_the_mode_and_new_files_follow_the_umask(tmp_path):
 
 
 def test_rendered_json_files_are_not_private(tmp_path):
-    from apose_studio.dataset import write_json
+    from apose_studio.data.dataset import write_json
 
     write_json(tmp_path / "scene_gt.json", {"0": []})
     assert mode(tmp_path / "scene_gt.json") == 0o666 & ~current_umask()

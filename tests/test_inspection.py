@@ -2,8 +2,9 @@
 
 import numpy as np
 
-from apose_studio import inspection, se3
-from apose_studio.config import CameraIntrinsics
+from apose_studio.studio import inspection
+from apose_studio.geometry import se3
+from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.registration import RegistrationResult, Stage
 
 CAM = CameraIntrinsics(640, 480, 500.0, 500.0, 320.0, 240.0)

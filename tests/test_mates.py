@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from apose_studio.assembly import assembly_from_dict, load_assembly, save_assembly
+from apose_studio.assembly.model import assembly_from_dict, load_assembly, save_assembly
 from apose_studio.errors import AssemblyError
 
 
@@ -254,7 +254,7 @@ def test_angle_mate_about_a_contact_normal_along_x(folder):
 
 
 def test_refs_and_approaches_compare_every_field():
-    from apose_studio.mates import Approach, Ref
+    from apose_studio.assembly.mates import Approach, Ref
 
     z = np.array([0.0, 0, 1])
     assert Ref(direction=z) == Ref(direction=z.copy())
@@ -267,7 +267,7 @@ def test_refs_and_approaches_compare_every_field():
 
 def test_solve_directly_and_a_reference_along_the_axis(folder):
     from apose_studio.errors import AposeError
-    from apose_studio.mates import Mate, MateError, Ref, solve
+    from apose_studio.assembly.mates import Mate, MateError, Ref, solve
 
     # no guess: identity supplies what is free; the part's origin onto the axis through (1, 2, 0)
     coax_m = Mate("coaxial", Ref(np.array([0.001, 0.002, 0]), np.array([0.0, 0, 1])), Ref(np.zeros(3), np.array([0.0, 0, 1])))

@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 import trimesh
 
-from apose_studio.assembly import Part, Symmetry, load_assembly
+from apose_studio.assembly.model import Part, Symmetry, load_assembly
 from apose_studio.errors import MeshError
-from apose_studio.mesh import (build_part_model, diameter, load_mesh, load_part, load_parts, sample_surface,
+from apose_studio.assembly.mesh import (build_part_model, diameter, load_mesh, load_part, load_parts, sample_surface,
                                symmetry_transforms)
-from apose_studio.se3 import transform_points
+from apose_studio.geometry.se3 import transform_points
 
 
 @pytest.mark.parametrize("ext", ["stl", "ply", "obj", "off", "glb"])
@@ -54,7 +54,7 @@ def test_nan_vertices(tmp_path):
 
 
 def test_step_without_cascadio_is_explained(tmp_path, monkeypatch):
-    from apose_studio import mesh as M
+    from apose_studio.assembly import mesh as M
 
     p = tmp_path / "part.step"
     p.write_text("ISO-10303-21;")
@@ -134,7 +134,7 @@ def test_real_parts_match_paper_diameters(fidget_yaml):
 
 def test_large_meshes_fast_diameter_and_box_agree_with_exact():
     """Above EXACT_DIAMETER_POINTS the diameter comes from extreme points; check it against the exact one."""
-    from apose_studio import mesh as M
+    from apose_studio.assembly import mesh as M
 
     rng = np.random.default_rng(4)
     pts = rng.normal(size=(30000, 3)) * [0.03, 0.01, 0.004]
@@ -151,7 +151,7 @@ def test_large_meshes_fast_diameter_and_box_agree_with_exact():
 
 
 def test_merge_vertices_welds_stl_soup():
-    from apose_studio.mesh import merge_vertices
+    from apose_studio.assembly.mesh import merge_vertices
 
     box = trimesh.creation.box((1, 2, 3))
     soup_v = box.vertices[box.faces].reshape(-1, 3)  # three vertices per triangle, as STL stores them

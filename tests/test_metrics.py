@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from apose_studio import metrics as M
-from apose_studio.se3 import make_T
+from apose_studio.geometry import metrics as M
+from apose_studio.geometry.se3 import make_T
 
 
 def Rz(deg):

@@ -12,7 +12,7 @@ import time
 import pytest
 
 from apose_studio.errors import AposeError
-from apose_studio.outdir import (JOURNAL, LOCK, MANIFEST, OutputLock, check_output_dir, claim,
+from apose_studio.data.outdir import (JOURNAL, LOCK, MANIFEST, OutputLock, check_output_dir, claim,
                                  remove_previous_dataset, write_manifest)
 
 from .conftest import REPO, SAMPLES
@@ -100,7 +100,7 @@ def test_overwrite_after_kill_9_recovers_the_render_s_own_files(tmp_path):
     --overwrite recognises all of them as apose's (it refused them before) and replaces the dataset."""
     out = tmp_path / "ds"
     asm = SAMPLES / "planetary_reducer" / "assembly.yaml"
-    cmd = [sys.executable, "-m", "apose_studio.cli", "render", str(asm), "--out", str(out), "--frames", "400",
+    cmd = [sys.executable, "-m", "apose_studio.cli.commands", "render", str(asm), "--out", str(out), "--frames", "400",
            "--steps", "1"]
     proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:

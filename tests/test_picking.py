@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from apose_studio import authoring
-from apose_studio.assembly import Step, load_assembly
-from apose_studio.mesh import load_mesh
-from apose_studio.picking import FacePicker
+from apose_studio.studio import authoring
+from apose_studio.assembly.model import Step, load_assembly
+from apose_studio.assembly.mesh import load_mesh
+from apose_studio.studio.picking import FacePicker
 
 from .conftest import SAMPLES
 

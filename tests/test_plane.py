@@ -3,8 +3,8 @@ wall behind it, and the same answer for the same seed."""
 
 import numpy as np
 
-from apose_studio.dataset import Dataset
-from apose_studio.plane import fit_plane
+from apose_studio.data.dataset import Dataset
+from apose_studio.geometry.plane import fit_plane
 from apose_studio.registration import table_normal
 
 

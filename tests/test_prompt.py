@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from apose_studio.dataset import Dataset
+from apose_studio.data.dataset import Dataset
 from apose_studio.evaluate import truth_box
-from apose_studio.prompt import PromptError, check_box, prompted_mask
-from apose_studio.segment import iou
+from apose_studio.masks.prompt import PromptError, check_box, prompted_mask
+from apose_studio.masks.segment import iou
 
 
 def _frames(root):
@@ -18,10 +18,10 @@ def _frames(root):
 def test_clutter_render_stands_objects_against_the_base(clutter_dataset):
     """The clutter option is real clutter: in every frame something not of the assembly stands within
     2 mm of the base (trimesh's own proximity query on the scene the renderer drew)."""
-    from apose_studio.assembly import load_assembly
-    from apose_studio.clutter import clutter_around
-    from apose_studio.mesh import base_mesh, load_parts
-    from apose_studio.render import _resting_pose
+    from apose_studio.assembly.model import load_assembly
+    from apose_studio.synth.clutter import clutter_around
+    from apose_studio.assembly.mesh import base_mesh, load_parts
+    from apose_studio.synth.render import _resting_pose
     from scipy.spatial import cKDTree
 
     asm = load_assembly(clutter_dataset / "assembly.yaml")
@@ -94,7 +94,7 @@ def test_the_estimate_cuts_the_prompted_mask_to_the_model(clutter_dataset):
     more pixels, and closer to the renderer's own visible mask where an object stands in front of the
     base or clutter beside it got in. A dark base's sensor holes stay in the prompted mask."""
     from apose_studio.evaluate import StepContext, estimate_frame
-    from apose_studio.mesh import load_parts
+    from apose_studio.assembly.mesh import load_parts
     from apose_studio.registration import resolve_params
 
     ds = Dataset(clutter_dataset)

@@ -3,9 +3,9 @@
 import numpy as np
 import trimesh
 
-from apose_studio import se3
-from apose_studio.config import CameraIntrinsics
-from apose_studio.raycast import raycast_depth, raycast_points
+from apose_studio.geometry import se3
+from apose_studio.geometry.camera import CameraIntrinsics
+from apose_studio.geometry.raycast import raycast_depth, raycast_points
 
 CAM = CameraIntrinsics(640, 480, 615.0, 615.0, 320.0, 240.0)
 

@@ -7,14 +7,14 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from apose_studio import se3
-from apose_studio.assembly import load_assembly
-from apose_studio.config import CameraIntrinsics
-from apose_studio.dataset import Dataset, load_capture, open_frames
+from apose_studio.geometry import se3
+from apose_studio.assembly.model import load_assembly
+from apose_studio.geometry.camera import CameraIntrinsics
+from apose_studio.data.dataset import Dataset, load_capture, open_frames
 from apose_studio.errors import AposeError, DatasetError, RenderError
-from apose_studio.mesh import load_parts
-from apose_studio.noise import add_depth_noise
-from apose_studio.render import RenderSettings, render_dataset
+from apose_studio.assembly.mesh import load_parts
+from apose_studio.geometry.noise import add_depth_noise
+from apose_studio.synth.render import RenderSettings, render_dataset
 
 from .conftest import SAMPLES
 
@@ -141,7 +141,7 @@ def test_views_per_scene_share_a_placement(planetary, tmp_path):
     """--views-per-scene 2 with 5 frames: placements 0, 0, 1, 1, 2; the frames of a placement show the
     base at one pose (and the same scene: the loose part where it was), from cameras at least 30
     degrees apart; different placements differ. The folder stays a BOP scene (read by the BOP reader)."""
-    from apose_studio.bop import BopScene
+    from apose_studio.data.bop import BopScene
 
     asm, models = planetary
     s = RenderSettings(frames=5, seed=2, camera=SMALL_CAM, views_per_scene=2)
@@ -179,7 +179,7 @@ def test_depth_noise_models():
 def test_kinect_noise_model():
     """Kinect v1: coarser disparity steps than the RealSense model, the projector's shadow on the far
     surface left of a nearer one (width = the disparity difference), no depth on dark surfaces."""
-    from apose_studio.noise import projector_shadow
+    from apose_studio.geometry.noise import projector_shadow
 
     rng = np.random.default_rng(1)
     fx = 580.0
@@ -204,7 +204,7 @@ def test_kinect_noise_model():
 
 
 def test_frame_noise_is_measured_from_the_depth_itself():
-    from apose_studio.noise import estimate_depth_noise
+    from apose_studio.geometry.noise import estimate_depth_noise
 
     rng = np.random.default_rng(2)
     v, u = np.mgrid[0:240, 0:320]
@@ -269,12 +269,12 @@ def test_a_second_render_into_the_same_folder_is_refused(planetary, tmp_path):
     import subprocess
     import sys
 
-    from apose_studio.outdir import OutputLock
+    from apose_studio.data.outdir import OutputLock
 
     asm, models = planetary
     out = tmp_path / "race"
     out.mkdir()
-    holder = subprocess.Popen([sys.executable, "-c", "import sys; from apose_studio.outdir import OutputLock; "
+    holder = subprocess.Popen([sys.executable, "-c", "import sys; from apose_studio.data.outdir import OutputLock; "
                                f"l = OutputLock({str(out)!r}).__enter__(); print('held', flush=True); sys.stdin.read()"],
                               stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     try:
@@ -294,7 +294,7 @@ def test_a_second_render_into_the_same_folder_is_refused(planetary, tmp_path):
 
 
 def test_interrupted_render_leaves_finished_frames_readable(planetary, tmp_path, monkeypatch):
-    import apose_studio.render as R
+    import apose_studio.synth.render as R
 
     asm, models = planetary
     real, calls = R.render_frame, []

@@ -14,14 +14,14 @@ import pytest
 import trimesh
 
 from apose_studio import safeio
-from apose_studio.assembly import load_assembly
-from apose_studio.bop import BopScene, read_results_csv
+from apose_studio.assembly.model import load_assembly
+from apose_studio.data.bop import BopScene, read_results_csv
 from apose_studio.errors import AposeError, AssemblyError, DatasetError, MeshError
-from apose_studio.mesh import load_mesh, load_parts
+from apose_studio.assembly.mesh import load_mesh, load_parts
 
 from .conftest import TINY_YAML
 
-APOSE = [sys.executable, "-m", "apose_studio.cli"]
+APOSE = [sys.executable, "-m", "apose_studio.cli.commands"]
 
 
 def run(*args, timeout=120):
@@ -150,7 +150,7 @@ def test_gltf_buffer_that_is_a_fifo_does_not_hang(tmp_path):
 
 
 def test_each_mesh_file_is_loaded_once(tiny_dir, monkeypatch):
-    import apose_studio.mesh as M
+    import apose_studio.assembly.mesh as M
 
     text = TINY_YAML.split("steps:")[0] + "".join(f"  copy{i}: {{mesh: plate.stl}}\n" for i in range(40)) + "steps: []\n"
     (tiny_dir / "many.yaml").write_text(text.replace("parts:\n", "parts:\n", 1))
@@ -239,7 +239,7 @@ def test_system_errors_are_one_line_exit_2(tiny_dir, monkeypatch, capsys):
     """A full disk, a read-only folder: whatever command meets them prints the file, the reason and the fix."""
     import errno
 
-    import apose_studio.cli as cli
+    import apose_studio.cli.commands as cli
 
     for code, fix in ((errno.ENOSPC, "free some disk space"), (errno.EROFS, "read-only"), (errno.EACCES, "permission")):
         def fail(*a, **k):
@@ -284,7 +284,7 @@ def test_a_gltf_naming_one_big_buffer_many_times_is_refused_early(tmp_path):
 
 
 def test_a_link_planted_as_the_lock_or_journal_is_never_written_through(tmp_path):
-    from apose_studio.outdir import JOURNAL, LOCK, OutputLock, check_output_dir
+    from apose_studio.data.outdir import JOURNAL, LOCK, OutputLock, check_output_dir
 
     victim = tmp_path / "victim.txt"
     victim.write_text("precious")
@@ -320,7 +320,7 @@ def test_every_registration_parameter_has_a_range(tiny_dir):
 
 
 def test_a_mask_over_the_whole_image_is_named_as_such():
-    from apose_studio.config import CameraIntrinsics
+    from apose_studio.geometry.camera import CameraIntrinsics
     from apose_studio.registration import estimate, resolve_params
     from apose_studio.registration.base import prepare_base
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from apose_studio import se3
+from apose_studio.geometry import se3
 
 
 def test_rotations_vectorised_and_rigid_fit():

@@ -8,11 +8,11 @@ import sys
 import numpy as np
 import pytest
 
-from apose_studio.assembly import load_assembly
-from apose_studio.dataset import Dataset
+from apose_studio.assembly.model import load_assembly
+from apose_studio.data.dataset import Dataset
 from apose_studio.errors import AposeError
-from apose_studio.render import RenderSettings, render_dataset
-from apose_studio.segment import (SegmentationError, depth_mask, iou, label_map, load_model, save_model,
+from apose_studio.synth.render import RenderSettings, render_dataset
+from apose_studio.masks.segment import (SegmentationError, depth_mask, iou, label_map, load_model, save_model,
                                   split_frames, train)
 
 from .conftest import SAMPLES
@@ -95,7 +95,7 @@ def test_depth_fallback_finds_the_base(gearbox_dataset):
     assert min(scores) > 0.7, scores
     flat = np.full((120, 160), 0.5, np.float32)  # only a table: nothing stands on it
     flat[:5] = np.nan
-    from apose_studio.config import CameraIntrinsics
+    from apose_studio.geometry.camera import CameraIntrinsics
 
     cam = CameraIntrinsics(160, 120, 150.0, 150.0, 80.0, 60.0)
     assert not depth_mask(flat, cam).any()
@@ -117,11 +117,11 @@ def test_eval_with_depth_masks_reports_mask_iou(gearbox_dataset, tmp_path):
 
 def test_train_seg_command(tiny_ds, tmp_path):
     out = tmp_path / "m.pt"
-    r = subprocess.run([sys.executable, "-m", "apose_studio.cli", "train-seg", str(tiny_ds.root), "--out", str(out),
+    r = subprocess.run([sys.executable, "-m", "apose_studio.cli.commands", "train-seg", str(tiny_ds.root), "--out", str(out),
                         "--epochs", "1", "--batch", "4"], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert "held-out frames" in r.stdout and out.is_file()
-    r = subprocess.run([sys.executable, "-m", "apose_studio.cli", "estimate", str(tiny_ds.root), "--step", "1",
+    r = subprocess.run([sys.executable, "-m", "apose_studio.cli.commands", "estimate", str(tiny_ds.root), "--step", "1",
                         "--mask", str(out), "--json"], capture_output=True, text=True)
     doc = json.loads(r.stdout)
     assert r.returncode == (0 if doc["ok"] else 1), (r.returncode, doc["reason"])  # 1: a failed estimate, not a crash
@@ -132,13 +132,13 @@ def test_train_seg_command(tiny_ds, tmp_path):
     if doc["mask"]["source"] == str(out):  # as predicted (here: a 1-epoch model finds nothing, so rc 1, IoU 0)
         assert doc["mask"]["pixels"] == int(expect.sum())
     assert doc["mask_iou"] == pytest.approx(iou(expect, fr.base_mask()))
-    r = subprocess.run([sys.executable, "-m", "apose_studio.cli", "eval", str(SAMPLES / ".." / "tests"), "--mask", str(out)],
+    r = subprocess.run([sys.executable, "-m", "apose_studio.cli.commands", "eval", str(SAMPLES / ".." / "tests"), "--mask", str(out)],
                        capture_output=True, text=True)
     assert r.returncode == 2 and r.stderr.startswith("error:") and "Traceback" not in r.stderr
 
 
 def test_eval_command_puts_gt_masks_beside(gearbox_dataset):
-    r = subprocess.run([sys.executable, "-m", "apose_studio.cli", "eval", str(gearbox_dataset), "--mask", "depth",
+    r = subprocess.run([sys.executable, "-m", "apose_studio.cli.commands", "eval", str(gearbox_dataset), "--mask", "depth",
                         "--orientation-prior"], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert "masks depth" in r.stdout and "mask IoU" in r.stdout

@@ -10,10 +10,10 @@ import math
 import numpy as np
 import pytest
 
-from apose_studio import authoring
-from apose_studio.assembly import load_assembly, save_assembly
+from apose_studio.studio import authoring
+from apose_studio.assembly.model import load_assembly, save_assembly
 from apose_studio.errors import MeshError
-from apose_studio.mesh import load_mesh, load_parts, step_solids
+from apose_studio.assembly.mesh import load_mesh, load_parts, step_solids
 
 from .conftest import SAMPLES
 from .test_cli import run

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from apose_studio import se3
-from apose_studio.assembly import load_assembly
-from apose_studio.mesh import base_mesh, load_parts
+from apose_studio.geometry import se3
+from apose_studio.assembly.model import load_assembly
+from apose_studio.assembly.mesh import base_mesh, load_parts
 from apose_studio.registration import (
     detect_symmetries,
     prepare_base,
@@ -58,7 +58,7 @@ def test_a_small_feature_makes_a_turn_a_near_symmetry_not_an_exact_one():
     near-symmetries (their twins are wrong placements), although the mean surface distance they leave
     is tiny. The metric forgives the exact twin of a part's placement and not the near one."""
     from apose_studio.evaluate import FrameScore, truth_twins
-    from apose_studio.mesh import PartModel
+    from apose_studio.assembly.mesh import PartModel
 
     block = trimesh.creation.box((0.06, 0.04, 0.03))
     boss = trimesh.creation.box((0.005, 0.005, 0.005)).apply_translation([0.02, 0.0225, 0.0])  # on the +y side

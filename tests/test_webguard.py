@@ -3,7 +3,7 @@
 import pytest
 
 from apose_studio.errors import AposeError
-from apose_studio.webguard import Workspace, check_token, is_loopback_bind, is_loopback_name, refusal
+from apose_studio.studio.webguard import Workspace, check_token, is_loopback_bind, is_loopback_name, refusal
 
 
 def ws(origin, host="127.0.0.1:8080", token=None, path="/", bound_loopback=True):
@@ -97,7 +97,7 @@ def test_workspace_confines_paths(tmp_path):
 
 
 def test_rule_edges_pinned_by_mutation_testing():
-    from apose_studio.webguard import new_token
+    from apose_studio.studio.webguard import new_token
 
     assert is_loopback_bind("127.0.0.1") and is_loopback_bind("localhost") and is_loopback_bind("::1")
     assert not is_loopback_name("[::1") and not is_loopback_name("::1]")  # half a bracket pair is not a literal

@@ -7,12 +7,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .. import se3
-from ..config import CameraIntrinsics
-from ..metrics import quick_tree
-from ..symmetry import EXACT_SYMMETRY_MAX_M, NEAR_SYMMETRY_TOLERANCE, SYMMETRY_TOLERANCE, detect_symmetries, surface_offsets
-from .presets import Params
-from .stages import cloud, normals_fpfh
+from apose_studio.geometry import se3
+from apose_studio.geometry.camera import CameraIntrinsics
+from apose_studio.geometry.metrics import quick_tree
+from apose_studio.geometry.symmetry import EXACT_SYMMETRY_MAX_M, NEAR_SYMMETRY_TOLERANCE, SYMMETRY_TOLERANCE, detect_symmetries, surface_offsets
+from apose_studio.registration.presets import Params
+from apose_studio.registration.stages import cloud, normals_fpfh
 
 
 @dataclass(frozen=True, eq=False)
@@ -79,7 +79,7 @@ class BaseObject:
         triangle winding: the model that a partial view is matched against.
         """
         if "outer" not in self._features:
-            from ..raycast import raycast_points
+            from apose_studio.geometry.raycast import raycast_points
 
             cam = CameraIntrinsics(200, 200, 250.0, 250.0, 100.0, 100.0)  # 44 deg field of view
             dirs = [np.array([x, y, z], float) for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1) if x or y or z]
@@ -130,7 +130,7 @@ class NearGrid:
 
 
 def prepare_base(mesh, n_samples: int = 20000, seed: int = 0, detect: bool = True) -> BaseObject:
-    from ..mesh import diameter, sample_surface
+    from apose_studio.assembly.mesh import diameter, sample_surface
 
     pts, face = sample_surface(mesh, n_samples, seed, return_faces=True)
     normals = np.asarray(mesh.face_normals)[face]

@@ -24,16 +24,16 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .. import se3
-from ..config import CameraIntrinsics
-from .base import BaseObject
-from .pipeline import estimate, judge, observe
-from .presets import Params
-from .problem import Problem, prepare_problem
-from .refine import POLISH_ITERATIONS, tied
-from .results import CONFIDENT_COVERAGE, MIN_POINTS, Degenerate, RegistrationResult, failed
-from .scoring import discriminate, distinct_placements, poses_within, score_pose, twin_placements
-from .stages import cloud, icp, project_to_cloud, raycast_source
+from apose_studio.geometry import se3
+from apose_studio.geometry.camera import CameraIntrinsics
+from apose_studio.registration.base import BaseObject
+from apose_studio.registration.pipeline import estimate, judge, observe
+from apose_studio.registration.presets import Params
+from apose_studio.registration.problem import Problem, prepare_problem
+from apose_studio.registration.refine import POLISH_ITERATIONS, tied
+from apose_studio.registration.results import CONFIDENT_COVERAGE, MIN_POINTS, Degenerate, RegistrationResult, failed
+from apose_studio.registration.scoring import discriminate, distinct_placements, poses_within, score_pose, twin_placements
+from apose_studio.registration.stages import cloud, icp, project_to_cloud, raycast_source
 
 DISAGREE_DEGREES = 3.0  # a view whose own ICP turns the pose further than this disagrees with the others
 DISAGREE_VOXELS = 3.0  # ... or moves it further than this many voxels
@@ -111,7 +111,7 @@ def _disagreement(problems: dict[int, Problem], order: list[int], T_world_base: 
                   views: list[View], at_first: dict) -> str:
     """Why the views cannot be of one placement seen from the given camera poses ("" when they can).
     `at_first`: view -> score_pose of the first view's pose there."""
-    from .refine import polish
+    from apose_studio.registration.refine import polish
 
     for i in order[1:]:
         pb = problems[i]

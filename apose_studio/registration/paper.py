@@ -7,11 +7,11 @@ import time
 
 import numpy as np
 
-from .. import se3
-from ..metrics import quick_tree
-from .presets import Params
-from .results import MIN_POINTS, Candidate, Degenerate, RegistrationResult
-from .stages import cloud, global_registration, icp, normals_fpfh, place_source, raycast_source, stage
+from apose_studio.geometry import se3
+from apose_studio.geometry.metrics import quick_tree
+from apose_studio.registration.presets import Params
+from apose_studio.registration.results import MIN_POINTS, Candidate, Degenerate, RegistrationResult
+from apose_studio.registration.stages import cloud, global_registration, icp, normals_fpfh, place_source, raycast_source, stage
 
 
 def estimate_paper(target_pts, cam, T_world_camera, base, T_base_part, p: Params, voxel, prior, trace_iterations,

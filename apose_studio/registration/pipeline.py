@@ -12,18 +12,17 @@ from dataclasses import replace
 
 import numpy as np
 
-from .. import se3
-from ..config import CameraIntrinsics
-from .base import BaseObject
-from .paper import estimate_paper
-from .presets import Params
-from .problem import Problem, prepare_problem, scale_problem
-from .refine import add_symmetric_twins, choose, polish_chosen, refine_candidates, select_starts
-from .results import CONFIDENT_COVERAGE, MIN_POINTS, Degenerate, RegistrationResult, failed
-from .scoring import (Observation, agreement_tolerance, depth_buffer, distinct_placements, evidence, mask_edge,
-                      twin_placements)
-from .searches import ModelSearch, search_poses, try_prior
-from .stages import place_source, project_to_cloud, trace_stages
+from apose_studio.geometry import se3
+from apose_studio.geometry.camera import CameraIntrinsics
+from apose_studio.registration.base import BaseObject
+from apose_studio.registration.paper import estimate_paper
+from apose_studio.registration.presets import Params
+from apose_studio.registration.problem import Problem, prepare_problem, scale_problem
+from apose_studio.registration.refine import add_symmetric_twins, choose, polish_chosen, refine_candidates, select_starts
+from apose_studio.registration.results import CONFIDENT_COVERAGE, MIN_POINTS, Degenerate, RegistrationResult, failed
+from apose_studio.registration.scoring import Observation, agreement_tolerance, depth_buffer, distinct_placements, evidence, mask_edge, twin_placements
+from apose_studio.registration.searches import ModelSearch, search_poses, try_prior
+from apose_studio.registration.stages import place_source, project_to_cloud, trace_stages
 
 
 def estimate(depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray,
@@ -91,7 +90,7 @@ def model_cut_mask(result: RegistrationResult, depth: np.ndarray, mask: np.ndarr
     from 0.85 to 0.93; pixels the prompt missed stay missed."""
     import cv2
 
-    from .stages import raycast_source
+    from apose_studio.registration.stages import raycast_source
 
     seen, _ = raycast_source(base, result.T_world_base, T_world_camera, cam)
     zbuf = cv2.erode(depth_buffer(seen, T_world_camera, cam).astype(np.float32), np.ones((5, 5), np.uint8))  # 2 px wider, the nearer surface winning
@@ -130,7 +129,7 @@ def observe(depth: np.ndarray, mask: np.ndarray) -> Observation:
 def frame_noise(depth: np.ndarray, mask: np.ndarray) -> float:
     """The depth noise (metres, one sigma) around the object: in its mask's box, twice as large. 0 when
     it cannot be measured (too few pixels)."""
-    from ..noise import estimate_depth_noise
+    from apose_studio.geometry.noise import estimate_depth_noise
 
     ys, xs = np.nonzero(mask)
     h, w = mask.shape
@@ -238,8 +237,8 @@ def judge(result: RegistrationResult, depth: np.ndarray, mask: np.ndarray, cam: 
     tol = agreement_tolerance(min(result.voxel, scale_voxel), result.depth_noise)
     if result.voxel > 1.01 * scale_voxel:  # a coarse preset (the paper's fixed 8 mm): its fit is judged at the
         # scale-aware tolerance, on what the camera sees of the model at the final pose, like ours
-        from ..metrics import quick_tree
-        from .stages import raycast_source
+        from apose_studio.geometry.metrics import quick_tree
+        from apose_studio.registration.stages import raycast_source
 
         seen, _ = raycast_source(base, result.T_world_base, T_world_camera, cam)
         if len(seen) and len(result.target_cloud):

@@ -7,8 +7,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..config import CameraIntrinsics, RegistrationConfig
-from ..errors import AposeError
+from apose_studio.geometry.camera import CameraIntrinsics, RegistrationConfig
+from apose_studio.errors import AposeError
 
 
 @dataclass(frozen=True)

@@ -11,12 +11,12 @@ from functools import cached_property
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..config import CameraIntrinsics
-from .base import BaseObject
-from .presets import Params
-from .results import Degenerate
-from .scoring import Observation
-from .stages import cloud
+from apose_studio.geometry.camera import CameraIntrinsics
+from apose_studio.registration.base import BaseObject
+from apose_studio.registration.presets import Params
+from apose_studio.registration.results import Degenerate
+from apose_studio.registration.scoring import Observation
+from apose_studio.registration.stages import cloud
 
 
 @dataclass(frozen=True, eq=False)

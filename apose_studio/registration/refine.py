@@ -9,13 +9,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .. import se3
-from .results import MIN_POINTS, TIE_MARGIN, TWIN_TIE_MARGIN, Candidate
-from .scoring import discriminate, poses_within, score_pose, score_seen
-from .stages import cloud, icp, raycast_source
+from apose_studio.geometry import se3
+from apose_studio.registration.results import MIN_POINTS, TIE_MARGIN, TWIN_TIE_MARGIN, Candidate
+from apose_studio.registration.scoring import discriminate, poses_within, score_pose, score_seen
+from apose_studio.registration.stages import cloud, icp, raycast_source
 
 if TYPE_CHECKING:
-    from .searches import Found, Start
+    from apose_studio.registration.searches import Found, Start
 
 POLISH_ITERATIONS = 6
 KEEP_DISTINCT = 3  # refine at most this many distinct coarse poses (several starts often converge to one)

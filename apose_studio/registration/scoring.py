@@ -8,14 +8,14 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from .. import se3
-from ..config import CameraIntrinsics
-from ..metrics import quick_tree
-from .results import Candidate
-from .stages import raycast_source
+from apose_studio.geometry import se3
+from apose_studio.geometry.camera import CameraIntrinsics
+from apose_studio.geometry.metrics import quick_tree
+from apose_studio.registration.results import Candidate
+from apose_studio.registration.stages import raycast_source
 
 if TYPE_CHECKING:
-    from .problem import Problem
+    from apose_studio.registration.problem import Problem
 
 MASK_MARGIN_PX = 2  # mask edges are a pixel or two off: a model point further outside contradicts its pose
 DISCRIMINATE_MIN_POINTS = 10  # fewer pixels than this where two placements differ: they are symmetric twins

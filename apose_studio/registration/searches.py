@@ -16,13 +16,13 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .. import se3
-from ..config import CameraIntrinsics
-from ..plane import fit_plane
-from .refine import polish
-from .results import MIN_POINTS, RegistrationResult
-from .scoring import agreement_tolerance, score_seen, visible_agreement
-from .stages import cloud, estimate_normals, global_registration, icp, normals_fpfh, place_source, raycast_source, trace_stages
+from apose_studio.geometry import se3
+from apose_studio.geometry.camera import CameraIntrinsics
+from apose_studio.geometry.plane import fit_plane
+from apose_studio.registration.refine import polish
+from apose_studio.registration.results import MIN_POINTS, RegistrationResult
+from apose_studio.registration.scoring import agreement_tolerance, score_seen, visible_agreement
+from apose_studio.registration.stages import cloud, estimate_normals, global_registration, icp, normals_fpfh, place_source, raycast_source, trace_stages
 
 PRIOR_ACCEPT = 0.95  # the prior's pose is kept without a global search when both shares reach this
 UPRIGHT_YAW_STEP_DEG = 10.0

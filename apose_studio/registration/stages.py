@@ -9,15 +9,15 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .. import se3
-from ..config import CameraIntrinsics
-from ..errors import AposeError
-from ..metrics import fitness_rmse
-from .presets import Params
-from .results import Candidate, Stage
+from apose_studio.geometry import se3
+from apose_studio.geometry.camera import CameraIntrinsics
+from apose_studio.errors import AposeError
+from apose_studio.geometry.metrics import fitness_rmse
+from apose_studio.registration.presets import Params
+from apose_studio.registration.results import Candidate, Stage
 
 if TYPE_CHECKING:
-    from .base import BaseObject
+    from apose_studio.registration.base import BaseObject
 
 
 def project_to_cloud(depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray) -> np.ndarray:
@@ -44,7 +44,7 @@ def raycast_source(base: "BaseObject", T_world_source: np.ndarray, T_world_camer
     With `look_at`, the virtual camera turns to look at that point (the paper's virtual camera looks
     at the target's centre); otherwise it is the real camera. Returns world points and normals.
     """
-    from ..raycast import raycast_points
+    from apose_studio.geometry.raycast import raycast_points
 
     T_cam = T_world_camera if look_at is None else se3.look_at(T_world_camera[:3, 3], look_at)
     return raycast_points(base.mesh, T_world_source, T_cam, cam)
@@ -113,7 +113,7 @@ def icp(source, target, T_init: np.ndarray, threshold: float, iterations: int, t
     reused when given; else Open3D's (multi-threaded, not bit-repeatable).
     """
     if deterministic:
-        from .solvers import icp_point_to_plane
+        from apose_studio.registration.solvers import icp_point_to_plane
 
         return icp_point_to_plane(np.asarray(source.points), np.asarray(target.points), np.asarray(target.normals),
                                   T_init, threshold, iterations, trace, target_tree)

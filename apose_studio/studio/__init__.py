@@ -5,8 +5,8 @@ panel's widgets and callbacks, `widgets.py` the small shared pieces, `viser_adap
 internals it touches. This package is the only one that imports viser.
 """
 
-from .app import Studio, default_workspace, serve
-from .inspect_panel import EstimateJob
-from .widgets import MAX_UPLOAD_BYTES, esc
+from apose_studio.studio.app import Studio, default_workspace, serve
+from apose_studio.studio.inspect_panel import EstimateJob
+from apose_studio.studio.widgets import MAX_UPLOAD_BYTES, esc
 
 __all__ = ["EstimateJob", "MAX_UPLOAD_BYTES", "Studio", "default_workspace", "esc", "serve"]

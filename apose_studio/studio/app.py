@@ -20,20 +20,20 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import authoring, inspection
-from ..assembly import Assembly
-from ..errors import AposeError, AssemblyError
-from ..mesh import PartModel, load_part
-from ..webguard import Workspace
-from .assembly_panel import AssemblyPanel
-from .inspect_panel import InspectPanel
-from .mates_panel import MatesPanel
-from .results_view import ResultsView
-from .prompt_panel import PromptPanel
-from .steps_panel import StepsPanel
-from .views_panel import ViewsPanel
-from .viser_adapter import limit_uploads
-from .widgets import ACTIVE, MAX_UPLOAD_BYTES, VIEWS
+from apose_studio.studio import authoring, inspection
+from apose_studio.assembly.model import Assembly
+from apose_studio.errors import AposeError, AssemblyError
+from apose_studio.assembly.mesh import PartModel, load_part
+from apose_studio.studio.webguard import Workspace
+from apose_studio.studio.assembly_panel import AssemblyPanel
+from apose_studio.studio.inspect_panel import InspectPanel
+from apose_studio.studio.mates_panel import MatesPanel
+from apose_studio.studio.results_view import ResultsView
+from apose_studio.studio.prompt_panel import PromptPanel
+from apose_studio.studio.steps_panel import StepsPanel
+from apose_studio.studio.views_panel import ViewsPanel
+from apose_studio.studio.viser_adapter import limit_uploads
+from apose_studio.studio.widgets import ACTIVE, MAX_UPLOAD_BYTES, VIEWS
 
 log = logging.getLogger(__name__)
 
@@ -254,7 +254,7 @@ def serve(assembly=None, dataset=None, host: str = "127.0.0.1", port: int = 8080
 
     Only the studio's own page may connect (Origin check), and the page and its websocket need
     `token` (a new random one when None, on loopback too); `studio.url` is the address to open."""
-    from ..webguard import check_token, new_token, start_viser, studio_url
+    from apose_studio.studio.webguard import check_token, new_token, start_viser, studio_url
 
     if not 0 < int(port) < 65536:
         raise AposeError(f"--port {port}: expected a port number from 1 to 65535")

@@ -8,19 +8,19 @@ import logging
 from pathlib import Path
 
 
-from .. import authoring
-from ..assembly import dump_assembly, load_assembly, save_assembly
-from ..errors import AposeError
-from ..fileio import atomic_write_bytes, describe_path
-from ..mesh import supported_extensions
-from .widgets import MAX_UPLOAD_BYTES, UNITS, esc, hex_colour
+from apose_studio.studio import authoring
+from apose_studio.assembly.model import dump_assembly, load_assembly, save_assembly
+from apose_studio.errors import AposeError
+from apose_studio.assembly.fileio import atomic_write_bytes, describe_path
+from apose_studio.assembly.mesh import supported_extensions
+from apose_studio.studio.widgets import MAX_UPLOAD_BYTES, UNITS, esc, hex_colour
 
 log = logging.getLogger(__name__)
 
 
 def _same_bytes(path: Path, content: bytes) -> bool:
     """The regular file at `path` holds exactly `content` (a pipe or device there is never the same)."""
-    from ..safeio import read_bytes
+    from apose_studio.safeio import read_bytes
 
     try:
         return path.is_file() and path.stat().st_size == len(content) and read_bytes(path, "a mesh", len(content)) == content

@@ -11,11 +11,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import inspection, se3
-from ..assembly import Assembly
-from ..errors import AposeError
-from .prompt_panel import PROMPT_SOURCE
-from .widgets import PRESETS, esc
+from apose_studio.studio import inspection
+from apose_studio.geometry import se3
+from apose_studio.assembly.model import Assembly
+from apose_studio.errors import AposeError
+from apose_studio.studio.prompt_panel import PROMPT_SOURCE
+from apose_studio.studio.widgets import PRESETS, esc
 
 log = logging.getLogger(__name__)
 
@@ -39,7 +40,7 @@ class EstimateJob:
 
     def params(self):
         """The estimator's parameters for this job (Upright applies to the default preset)."""
-        from ..registration import resolve_params
+        from apose_studio.registration import resolve_params
 
         return resolve_params(self.preset, self.assembly.registration,
                               **({"upright": self.upright} if self.preset == "default" else {}))
@@ -78,7 +79,7 @@ class InspectPanel:
             self.i_frame.on_update(self.app.guarded("Frame")(lambda c: self.on_frame_changed()))
         with gui.add_folder("Estimate") as self.estimate_folder:
             self.i_preset = gui.add_dropdown("Preset", PRESETS, initial_value="default")
-            from ..evaluate import MASK_SOURCES
+            from apose_studio.evaluate import MASK_SOURCES
 
             self.i_mask = gui.add_dropdown("Mask", MASK_SOURCES + (PROMPT_SOURCE,), initial_value=MASK_SOURCES[0],
                                            hint="gt: the dataset's masks; depth: table removal + 3D clustering; box: "
@@ -118,10 +119,10 @@ class InspectPanel:
             raise
 
     def open_frames(self, text: str, client=None, confine: bool = True) -> None:
-        from ..dataset import Dataset, open_frames
+        from apose_studio.data.dataset import Dataset, open_frames
 
         frames = open_frames(Path(text).expanduser())
-        from ..bop import BopScene
+        from apose_studio.data.bop import BopScene
 
         if isinstance(frames, BopScene):
             raise AposeError(f"{text}: a BOP scene folder; the studio opens apose datasets and single captures "
@@ -153,7 +154,7 @@ class InspectPanel:
         fr = self.frame
         if fr is None:
             return
-        from ..registration import project_to_cloud
+        from apose_studio.registration import project_to_cloud
 
         mask = fr.base_mask()
         if not mask.any() and self.result is not None and len(self.result.target_cloud):
@@ -174,7 +175,7 @@ class InspectPanel:
         self.app.look_at(centre, 1.3 * radius, direction)
 
     def inspect_assembly(self) -> Assembly:
-        from ..dataset import Dataset
+        from apose_studio.data.dataset import Dataset
 
         return self.frames.assembly if isinstance(self.frames, Dataset) else self.app.valid_asm
 
@@ -206,7 +207,7 @@ class InspectPanel:
             return None
 
     def load_frame(self, step: int, im_id: int, frames=None, asm: Assembly | None = None):
-        from ..dataset import Dataset
+        from apose_studio.data.dataset import Dataset
 
         frames = self.frames if frames is None else frames
         if isinstance(frames, Dataset):
@@ -215,7 +216,7 @@ class InspectPanel:
         return frames
 
     def on_frame_changed(self) -> None:
-        from ..dataset import Dataset
+        from apose_studio.data.dataset import Dataset
 
         if self._syncing or self.frames is None:
             return
@@ -240,7 +241,7 @@ class InspectPanel:
         self.app.results.draw_frame()
 
     def inspect_models(self) -> dict:
-        from ..mesh import load_parts
+        from apose_studio.assembly.mesh import load_parts
 
         asm = self.inspect_assembly()
         if id(asm) not in self._part_models:
@@ -248,7 +249,7 @@ class InspectPanel:
         return self._part_models[id(asm)]
 
     def context(self, step: int):
-        from ..evaluate import StepContext
+        from apose_studio.evaluate import StepContext
 
         asm = self.inspect_assembly()
         key = (id(asm), step)
@@ -258,14 +259,14 @@ class InspectPanel:
 
     def estimate(self, job: "EstimateJob", im_id: int):
         """Estimate one frame of `job` and cache it under the job's key (runs without the studio lock)."""
-        from ..evaluate import StepContext, estimate_and_score
+        from apose_studio.evaluate import StepContext, estimate_and_score
 
         ctx = StepContext(job.assembly, job.models, job.step)
         frame = self.load_frame(job.step, im_id, job.frames, job.assembly)
         params = job.params()
         mask = None
         if job.crop is not None:
-            from ..segment import depth_mask
+            from apose_studio.masks.segment import depth_mask
 
             keep = inspection.pixels_in_box(frame.depth, frame.camera, frame.T_world_camera, *job.crop)
             mask = depth_mask(frame.depth, frame.camera, keep=keep)
@@ -378,7 +379,7 @@ class InspectPanel:
         self.app.notify(client, "Crop box", "centred at ({:.0f}, {:.0f}, {:.0f}) mm".format(*(hit * 1000)))
 
     def on_use_model(self, client) -> None:
-        from ..evaluate import check_mask_source
+        from apose_studio.evaluate import check_mask_source
 
         text = self.i_model.value.strip()
         if not text:
@@ -395,7 +396,7 @@ class InspectPanel:
         self.app.guarded(which)(lambda c: self.run_estimation(which == "Estimate step", c))(event)
 
     def run_estimation(self, whole_step: bool, client) -> None:
-        from ..dataset import Dataset
+        from apose_studio.data.dataset import Dataset
 
         if self.frames is None:
             raise AposeError("open a dataset or capture first")

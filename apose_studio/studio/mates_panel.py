@@ -10,10 +10,11 @@ import time
 
 import numpy as np
 
-from .. import authoring, se3
-from ..errors import AposeError
-from ..picking import FacePicker, Feature
-from .widgets import esc, pos, wxyz
+from apose_studio.studio import authoring
+from apose_studio.geometry import se3
+from apose_studio.errors import AposeError
+from apose_studio.studio.picking import FacePicker, Feature
+from apose_studio.studio.widgets import esc, pos, wxyz
 
 PICK_COLOURS = {"part": (120, 255, 0), "base": (255, 0, 255)}  # lime and magenta: in no part palette
 APPROACH_COLOUR = (255, 110, 0)
@@ -291,7 +292,7 @@ class MatesPanel:
         choice = DIRECTIONS[self.f_app_dir.value]
         s = self.app.asm.steps[i]
         if choice == "mate":
-            from ..mates import angle_axis, in_base_frame
+            from apose_studio.assembly.mates import angle_axis, in_base_frame
 
             axis = angle_axis(in_base_frame(s.mates, s.base[0], self.app.asm.step_view(i + 1).T_base_members))
             if axis is None:

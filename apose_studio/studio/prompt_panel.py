@@ -5,15 +5,16 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import inspection, se3
-from ..errors import AposeError
+from apose_studio.studio import inspection
+from apose_studio.geometry import se3
+from apose_studio.errors import AposeError
 
 PROMPT_SOURCE = "prompt"
 
 
 def parse_prompt(text: str) -> tuple[tuple | None, tuple | None]:
     """'x0,y0,x1,y1' -> (box, None); 'u,v' -> (None, point); AposeError otherwise."""
-    from ..prompt import parse_box, parse_point
+    from apose_studio.masks.prompt import parse_box, parse_point
 
     n = len([t for t in text.split(",") if t.strip()])
     if n == 4:
@@ -48,7 +49,7 @@ class PromptPanel:
         return parse_prompt(text)
 
     def mask(self, frame, prompt=None) -> np.ndarray:
-        from ..prompt import prompted_mask
+        from apose_studio.masks.prompt import prompted_mask
 
         prompt = prompt if prompt is not None else self.prompt()
         key = (frame.source, frame.im_id, frame.step, prompt)

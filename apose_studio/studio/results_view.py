@@ -10,9 +10,10 @@ import time
 
 import numpy as np
 
-from .. import inspection, se3
-from ..errors import AposeError
-from .widgets import LAYERS, legend_html, pos, wxyz
+from apose_studio.studio import inspection
+from apose_studio.geometry import se3
+from apose_studio.errors import AposeError
+from apose_studio.studio.widgets import LAYERS, legend_html, pos, wxyz
 
 log = logging.getLogger(__name__)
 

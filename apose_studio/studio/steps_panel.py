@@ -10,9 +10,10 @@ import time
 
 import numpy as np
 
-from .. import authoring, se3
-from ..errors import AposeError
-from .widgets import esc, pos, wxyz
+from apose_studio.studio import authoring
+from apose_studio.geometry import se3
+from apose_studio.errors import AposeError
+from apose_studio.studio.widgets import esc, pos, wxyz
 
 log = logging.getLogger(__name__)
 

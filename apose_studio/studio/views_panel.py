@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import se3
-from ..errors import AposeError
+from apose_studio.geometry import se3
+from apose_studio.errors import AposeError
 
 ORANGE = (255, 140, 0)
 
@@ -30,7 +30,7 @@ class ViewsPanel:
 
     def refresh(self) -> None:
         """The checkboxes for the shown frame's placement (called when the frame changes)."""
-        from ..dataset import Dataset
+        from apose_studio.data.dataset import Dataset
 
         for h in self.ticks.values():
             h.remove()
@@ -55,9 +55,9 @@ class ViewsPanel:
         return [i for i, h in self.ticks.items() if h.value]
 
     def on_estimate(self, client) -> None:
-        from ..evaluate import frame_mask, score_frame
-        from ..registration.fusion import View, estimate_views
-        from ..registration.next_view import next_view
+        from apose_studio.evaluate import frame_mask, score_frame
+        from apose_studio.registration.fusion import View, estimate_views
+        from apose_studio.registration.next_view import next_view
 
         ins = self.app.inspect
         ids = self.ticked()

@@ -6,7 +6,8 @@ import html
 
 import numpy as np
 
-from .. import inspection, se3
+from apose_studio.studio import inspection
+from apose_studio.geometry import se3
 
 MAX_UPLOAD_BYTES = 200 * 1024 * 1024  # a CAD part above this is almost surely the wrong file
 UNITS = ("m", "cm", "mm", "in")

@@ -107,7 +107,7 @@ def client_of(st, page):
 def to_screen(page, camera, points_world: np.ndarray) -> np.ndarray:
     """(N, 2) page pixels of world points as the page's 3D view shows them (viser's camera: OpenCV axes,
     vertical field of view `fov`), computed here from the camera the page reports."""
-    from apose_studio import se3
+    from apose_studio.geometry import se3
 
     box = page.locator("canvas").first.bounding_box()
     R = se3.quat_wxyz_to_matrix(np.asarray(camera.wxyz))
@@ -282,7 +282,7 @@ def test_type_poses_into_two_new_steps_and_save(browser, studio, tmp_path):
 
 
 def _umask() -> int:
-    from apose_studio.fileio import current_umask
+    from apose_studio.assembly.fileio import current_umask
 
     return current_umask()
 
@@ -433,7 +433,7 @@ def test_drag_a_box_prompt_in_the_3d_view_then_estimate(browser, studio, clutter
     """A cluttered bench: press 'Drag a box', drag a rectangle around the base in the 3D view with the
     mouse; the box prompt, its mask over the RGB and an estimate with it follow."""
     from apose_studio.registration import project_to_cloud
-    from apose_studio.segment import iou
+    from apose_studio.masks.segment import iou
 
     page = open_page(browser, studio)
     page.get_by_role("tab", name="Inspect").click()
@@ -472,8 +472,8 @@ def test_tick_the_views_of_a_placement_and_fuse_them(browser, studio, tmp_path_f
     """A dataset with two cameras per placement: in the page, open the Views folder, see both frames of
     the shown placement ticked, press 'Estimate views together' (one fused estimate of 2 views); untick
     frame 1 with the mouse and estimate again (1 view)."""
-    from apose_studio.assembly import load_assembly
-    from apose_studio.render import RenderSettings, render_dataset
+    from apose_studio.assembly.model import load_assembly
+    from apose_studio.synth.render import RenderSettings, render_dataset
 
     root = tmp_path_factory.mktemp("views") / "mv"
     render_dataset(load_assembly(REPO / "sample_assemblies" / "helical_gearbox" / "assembly.yaml"), root,
@@ -505,7 +505,7 @@ def test_place_the_sun_gear_by_picking_faces(browser, studio, tmp_path):
     the mouse (contact with a 3 mm gap, then coaxial; each time the base's face first) in at most 6 clicks, and lands where the planetary
     sample's file puts it (within 1e-6 m). Between clicks the view turns to the face, as a user orbits
     to it (a drag, not a click). Then Undo and Redo, with the buttons and with Ctrl+Z / Ctrl+Shift+Z."""
-    from apose_studio.assembly import load_assembly
+    from apose_studio.assembly.model import load_assembly
 
     src = SAMPLES / "planetary_reducer"
     for f in ("motor.ply", "sun_gear.ply"):
@@ -607,7 +607,7 @@ def turn_view(cam, eye, target) -> None:
 def drag_gizmo_x(page, st, cam, turn: bool = True) -> None:
     """Drag the gizmo's x arrow with the mouse from 0.75 to 1.5 of its length, with the view first
     turned to see it (`turn`)."""
-    from apose_studio import se3
+    from apose_studio.geometry import se3
 
     g = st.nodes["/assembly/gizmo"]
     R, o = se3.quat_wxyz_to_matrix(np.asarray(g.wxyz)), np.asarray(g.position)

@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from apose_studio import se3
-from apose_studio.assembly import load_assembly
-from apose_studio.config import CameraIntrinsics
-from apose_studio.mesh import base_mesh, load_parts
+from apose_studio.geometry import se3
+from apose_studio.assembly.model import load_assembly
+from apose_studio.geometry.camera import CameraIntrinsics
+from apose_studio.assembly.mesh import base_mesh, load_parts
 from apose_studio.registration import (
     prepare_base,
 )
@@ -26,7 +26,7 @@ def gearbox_step2():
 
 def synthetic_view(base, T_world_base, T_world_camera):
     """Depth and mask of the base alone, ray-cast exactly (no table, no noise)."""
-    from apose_studio.raycast import raycast_points
+    from apose_studio.geometry.raycast import raycast_points
 
     pts, _ = raycast_points(base.mesh, T_world_base, T_world_camera, CAM)
     pc = se3.transform_points(se3.inv(T_world_camera), pts)
@@ -39,8 +39,8 @@ def synthetic_view(base, T_world_base, T_world_camera):
 
 @pytest.fixture(scope="module")
 def gearbox_yaw(tmp_path_factory):
-    from apose_studio.dataset import Dataset
-    from apose_studio.render import RenderSettings, render_dataset
+    from apose_studio.data.dataset import Dataset
+    from apose_studio.synth.render import RenderSettings, render_dataset
 
     out = tmp_path_factory.mktemp("yaw") / "ds"
     asm = load_assembly(SAMPLES / "helical_gearbox" / "assembly.yaml")
@@ -50,8 +50,8 @@ def gearbox_yaw(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def planetary_yaw(tmp_path_factory):
-    from apose_studio.dataset import Dataset
-    from apose_studio.render import RenderSettings, render_dataset
+    from apose_studio.data.dataset import Dataset
+    from apose_studio.synth.render import RenderSettings, render_dataset
 
     out = tmp_path_factory.mktemp("planetary") / "ds"
     asm = load_assembly(SAMPLES / "planetary_reducer" / "assembly.yaml")

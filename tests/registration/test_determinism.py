@@ -12,12 +12,12 @@ from ..conftest import SAMPLES, write_capture
 
 SCRIPT = r"""
 import hashlib, json, sys
-from apose_studio.assembly import load_assembly
-from apose_studio.dataset import load_capture
+from apose_studio.assembly.model import load_assembly
+from apose_studio.data.dataset import load_capture
 from apose_studio.evaluate import StepContext
-from apose_studio.mesh import load_parts
+from apose_studio.assembly.mesh import load_parts
 from apose_studio.registration import estimate, resolve_params
-from apose_studio.segment import depth_mask
+from apose_studio.masks.segment import depth_mask
 
 cap, asm_path, box = sys.argv[1], sys.argv[2], tuple(json.loads(sys.argv[3]))
 fr = load_capture(cap)
@@ -37,7 +37,7 @@ print(json.dumps(out))
 
 
 def test_two_fresh_processes_give_identical_masks_and_poses(gearbox_dataset, tmp_path):
-    from apose_studio.dataset import Dataset
+    from apose_studio.data.dataset import Dataset
 
     fr = Dataset(gearbox_dataset).frame(1, 1)
     cap = write_capture(fr, tmp_path / "capture")

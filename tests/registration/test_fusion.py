@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from apose_studio import se3
-from apose_studio.metrics import mssd
+from apose_studio.geometry import se3
+from apose_studio.geometry.metrics import mssd
 from apose_studio.registration import prepare_base, resolve_params
 from apose_studio.registration.fusion import View, estimate_views
 from apose_studio.registration.next_view import next_view
@@ -33,9 +33,9 @@ def bossed(tmp_path_factory):
     """(assembly, models, base, scene, grid, settings): the block (80 x 50 x 40 mm, a notch 14 x 14 mm
     and 12 mm deep in its +x face, off-centre towards +y; the estimator's tolerance here is 4 mm, so
     the notch is a feature it can see) standing at the CAD's pose, no distractors."""
-    from apose_studio.assembly import load_assembly
-    from apose_studio.mesh import base_mesh, load_parts
-    from apose_studio.render import RayGrid, RenderSettings, sample_scene
+    from apose_studio.assembly.model import load_assembly
+    from apose_studio.assembly.mesh import base_mesh, load_parts
+    from apose_studio.synth.render import RayGrid, RenderSettings, sample_scene
 
     d = tmp_path_factory.mktemp("bossed")
     block = trimesh.creation.box((80, 50, 40))
@@ -60,7 +60,7 @@ def _look(bossed, azimuth_deg: float, elevation_deg: float = 35.0, distance: flo
 
 
 def _look_from(bossed, T_world_camera: np.ndarray, name: str = "advised camera") -> View:
-    from apose_studio.render import view_of
+    from apose_studio.synth.render import view_of
 
     _, _, _, scene, grid, settings = bossed
     fr = view_of(scene, T_world_camera, grid, np.random.default_rng(1))

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from apose_studio import se3
-from apose_studio.assembly import load_assembly
-from apose_studio.mesh import load_parts
-from apose_studio.metrics import mssd
+from apose_studio.geometry import se3
+from apose_studio.assembly.model import load_assembly
+from apose_studio.assembly.mesh import load_parts
+from apose_studio.geometry.metrics import mssd
 from apose_studio.registration import estimate, prepare_base, resolve_params
 
 from ..conftest import SAMPLES
@@ -84,10 +84,10 @@ def test_a_symmetric_base_reports_both_seats(fidget_yaml, tmp_path):
     `ambiguous` (that is for near-symmetric twins, which are wrong placements), gives the other seat (23
     mm away, half a turn) as its one `equivalent` placement, and the truth is the estimate or that one;
     the metric that forgives exact twins scores it right, the strict one need not."""
-    from apose_studio.dataset import Dataset
+    from apose_studio.data.dataset import Dataset
     from apose_studio.evaluate import StepContext, estimate_frame, score_frame
     from apose_studio.registration import RegistrationResult
-    from apose_studio.render import RenderSettings, render_dataset
+    from apose_studio.synth.render import RenderSettings, render_dataset
 
     asm = load_assembly(fidget_yaml)
     render_dataset(asm, tmp_path / "ds", RenderSettings(frames=3, seed=11, base_pose="yaw"), steps=[1], progress=False)
@@ -114,7 +114,7 @@ def test_a_symmetric_base_reports_both_seats(fidget_yaml, tmp_path):
 
 def test_junk_is_never_a_confident_pose(gearbox_dataset):
     """A box on empty table, the wrong object, 40 points of noise: ok=False or not confident, every time."""
-    from apose_studio.dataset import Dataset
+    from apose_studio.data.dataset import Dataset
     from apose_studio.evaluate import StepContext
 
     ds = Dataset(gearbox_dataset)
@@ -160,7 +160,7 @@ def test_the_time_budget_through_a_fake_clock(gearbox_dataset, monkeypatch):
     (max_seconds 0) the same racing clock cuts nothing. Timing itself is measured in benchmarks/."""
     from dataclasses import replace
 
-    from apose_studio.dataset import Dataset
+    from apose_studio.data.dataset import Dataset
     from apose_studio.evaluate import StepContext
     from apose_studio.registration import pipeline, problem
     from apose_studio.registration.results import doubts
@@ -349,10 +349,10 @@ def test_the_paper_preset_is_not_confident_about_wrong_poses(tmp_path):
     its 16 mm tolerance; judged at the scale-aware tolerance on what the camera sees of the model there,
     such poses are not confident (frame 3 was, before). Wrong = off by 0.1 x the part's diameter even
     modulo the base's exact symmetries (its half turn is the same assembly)."""
-    from apose_studio.assembly import load_assembly
-    from apose_studio.dataset import Dataset
+    from apose_studio.assembly.model import load_assembly
+    from apose_studio.data.dataset import Dataset
     from apose_studio.evaluate import StepContext, estimate_frame, frame_mask, score_frame
-    from apose_studio.render import RenderSettings, render_dataset
+    from apose_studio.synth.render import RenderSettings, render_dataset
 
     asm = load_assembly(SAMPLES / "helical_gearbox" / "assembly.yaml")
     render_dataset(asm, tmp_path / "ds", RenderSettings(frames=4, seed=5, noise="kinect", clutter=True), steps=[1],
@@ -376,7 +376,7 @@ def test_second_look_cuts_clutter_from_the_mask(gearbox_dataset):
     view at that pose, is confident, and its mask lies inside the given one."""
     from dataclasses import replace
 
-    from apose_studio.dataset import Dataset
+    from apose_studio.data.dataset import Dataset
     from apose_studio.evaluate import StepContext
 
     ds = Dataset(gearbox_dataset)

@@ -4,7 +4,7 @@ from dataclasses import replace
 
 import pytest
 
-from apose_studio.config import RegistrationConfig
+from apose_studio.geometry.camera import RegistrationConfig
 from apose_studio.errors import AposeError
 from apose_studio.registration import (
     resolve_params,

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from apose_studio import se3
+from apose_studio.geometry import se3
 from apose_studio.registration import (
     icp,
     project_to_cloud,
@@ -18,7 +18,7 @@ def test_polish_refines_a_noisy_view_onto_the_model(gearbox_step2):
     """The last refinement registers the (noisy) target onto the model seen at the pose, with the
     model's exact normals: from 1 mm and 0.5 deg off, on a view with 1 mm depth noise, it ends within
     0.15 mm (ADI of the base), where the usual ICP (target normals) at the same start does clearly worse."""
-    from apose_studio.metrics import adi
+    from apose_studio.geometry.metrics import adi
     from apose_studio.registration import Observation, mask_edge
     from apose_studio.registration.problem import prepare_problem
     from apose_studio.registration.refine import polish

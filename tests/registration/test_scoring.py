@@ -2,8 +2,8 @@
 
 import numpy as np
 
-from apose_studio.mesh import load_parts
-from apose_studio.metrics import mssd
+from apose_studio.assembly.mesh import load_parts
+from apose_studio.geometry.metrics import mssd
 from apose_studio.registration import resolve_params
 
 from .conftest import CAM
@@ -72,7 +72,7 @@ def test_a_nearly_symmetric_base_is_told_apart_where_the_view_allows(planetary_y
 def test_same_placement_modulo_the_parts_symmetries():
     """A 4-fold part turned a quarter about its axis is the same placement; turned an eighth, or moved
     5 mm, it is not; without symmetries only the pose itself is."""
-    from apose_studio import se3
+    from apose_studio.geometry import se3
     from apose_studio.registration.scoring import same_placement
 
     def turn(deg, t=(0.0, 0.0, 0.0)):
@@ -90,9 +90,9 @@ def test_same_placement_modulo_the_parts_symmetries():
 
 def _kinect_clutter(tmp_path_factory, name, step):
     """The frames benchmarks/captures.py measures (seed 5, six views, Kinect-like noise, cluttered bench), one step."""
-    from apose_studio.assembly import load_assembly
-    from apose_studio.dataset import Dataset
-    from apose_studio.render import RenderSettings, render_dataset
+    from apose_studio.assembly.model import load_assembly
+    from apose_studio.data.dataset import Dataset
+    from apose_studio.synth.render import RenderSettings, render_dataset
 
     from ..conftest import SAMPLES
 
@@ -104,7 +104,7 @@ def _kinect_clutter(tmp_path_factory, name, step):
 
 def _box_prompted(fr):
     from apose_studio.evaluate import truth_box
-    from apose_studio.prompt import prompted_mask
+    from apose_studio.masks.prompt import prompted_mask
 
     return prompted_mask(fr.rgb, fr.depth, fr.camera, box=truth_box(fr.base_mask())).mask
 
@@ -117,7 +117,7 @@ def test_twins_are_told_apart_along_the_ray(tmp_path_factory):
     when the other had none within the tolerance) left the result tied with the twin (ambiguous); along
     the ray it is confident and right."""
     from apose_studio.evaluate import StepContext, estimate_frame
-    from apose_studio.raycast import raycast_depth
+    from apose_studio.geometry.raycast import raycast_depth
 
     ds = _kinect_clutter(tmp_path_factory, "helical_gearbox", 1)
     ctx = StepContext(ds.assembly, load_parts(ds.assembly), 1)

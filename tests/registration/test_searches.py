@@ -2,10 +2,10 @@
 
 import numpy as np
 
-from apose_studio import se3
-from apose_studio.assembly import load_assembly
-from apose_studio.mesh import load_parts
-from apose_studio.metrics import mssd
+from apose_studio.geometry import se3
+from apose_studio.assembly.model import load_assembly
+from apose_studio.assembly.mesh import load_parts
+from apose_studio.geometry.metrics import mssd
 from apose_studio.registration import estimate, prepare_base, resolve_params
 
 from ..conftest import SAMPLES
@@ -79,9 +79,9 @@ def test_a_right_prior_is_accepted_on_noisy_depth(tmp_path):
     """With RealSense-like noise, the depth at the mask's outline (mixed pixels) and its dropouts
     can neither confirm nor deny the model; left out of the prior's check, a right prior is taken
     at once (no global search), and the pose is within 0.5 mm."""
-    from apose_studio.dataset import Dataset
+    from apose_studio.data.dataset import Dataset
     from apose_studio.evaluate import StepContext, estimate_frame
-    from apose_studio.render import RenderSettings, render_dataset
+    from apose_studio.synth.render import RenderSettings, render_dataset
 
     asm = load_assembly(SAMPLES / "helical_gearbox" / "assembly.yaml")
     render_dataset(asm, tmp_path / "ds", RenderSettings(frames=3, seed=11, noise="realsense", base_pose="fixed"),
@@ -103,10 +103,10 @@ def test_a_base_seen_only_on_its_top_still_stands_on_the_table(tmp_path):
     its diameter above it), the upright search runs, and the estimate fits (the truth is the result or
     among the tied placements: the view hides the connector). Refusing that table sent the frame to
     the free search, which ended 25 mm and 93 degrees off."""
-    from apose_studio.dataset import Dataset
+    from apose_studio.data.dataset import Dataset
     from apose_studio.evaluate import StepContext, estimate_frame
     from apose_studio.registration import table_normal
-    from apose_studio.render import RenderSettings, render_dataset
+    from apose_studio.synth.render import RenderSettings, render_dataset
 
     asm = load_assembly(SAMPLES / "planetary_reducer" / "assembly.yaml")
     render_dataset(asm, tmp_path / "ds", RenderSettings(frames=2, noise="kinect", clutter=True, seed=0), steps=[1],

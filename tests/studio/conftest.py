@@ -49,7 +49,7 @@ def gearbox_copy(tmp_path) -> Path:
 @pytest.fixture
 def capture(gearbox_dataset, tmp_path) -> Path:
     """A real-capture folder (rgb.png, depth.png in mm, camera.json) made from a rendered frame."""
-    from apose_studio.dataset import Dataset
+    from apose_studio.data.dataset import Dataset
 
     return write_capture(Dataset(gearbox_dataset).frame(1, 1), tmp_path / "capture")
 

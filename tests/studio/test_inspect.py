@@ -37,7 +37,7 @@ def test_an_ambiguous_result_shows_the_other_placements_in_magenta(studio, gearb
     and the metrics say so; a clear result draws none."""
     from dataclasses import replace
 
-    from apose_studio import se3
+    from apose_studio.geometry import se3
     from apose_studio.registration import Candidate
 
     st = studio(SAMPLES / "helical_gearbox" / "assembly.yaml", gearbox_dataset)
@@ -80,7 +80,7 @@ def test_capture_with_depth_masks_and_model_choice(studio, capture, tmp_path):
 
 
 def test_crop_box_limits_depth_masks(studio, gearbox_dataset):
-    from apose_studio.dataset import Dataset
+    from apose_studio.data.dataset import Dataset
 
     st = studio(SAMPLES / "helical_gearbox" / "assembly.yaml", gearbox_dataset)
     st.inspect.i_mask.value = "depth"
@@ -101,7 +101,7 @@ def test_crop_box_limits_depth_masks(studio, gearbox_dataset):
 
 def test_demo_estimates_are_found_in_the_cache(gearbox_dataset):
     """`apose demo` caches its estimates under the key the studio builds for its default settings."""
-    from apose_studio.inspection import ResultCache
+    from apose_studio.studio.inspection import ResultCache
 
     server, st = serve(SAMPLES / "helical_gearbox" / "assembly.yaml", gearbox_dataset, port=free_port())
     try:
@@ -125,8 +125,8 @@ def test_a_failed_open_says_what_stays_on_screen(studio, gearbox_dataset, tmp_pa
 
 
 def test_crop_box_typed_or_centred_on_a_click(studio, gearbox_dataset):
-    from apose_studio import se3
-    from apose_studio.dataset import Dataset
+    from apose_studio.geometry import se3
+    from apose_studio.data.dataset import Dataset
 
     st = studio(SAMPLES / "helical_gearbox" / "assembly.yaml", gearbox_dataset)
     fr = Dataset(gearbox_dataset).frame(1, 0)
@@ -151,10 +151,10 @@ def test_crop_box_typed_or_centred_on_a_click(studio, gearbox_dataset):
 def test_prompted_mask_on_a_cluttered_capture(studio, clutter_dataset, tmp_path):
     """A capture of a cluttered bench: the prompt (typed box, then a click in the 3D view) gives a mask
     drawn over the RGB, and the estimate with it lands on the renderer's pose."""
-    from apose_studio import se3
-    from apose_studio.dataset import Dataset
+    from apose_studio.geometry import se3
+    from apose_studio.data.dataset import Dataset
     from apose_studio.evaluate import truth_box
-    from apose_studio.segment import iou
+    from apose_studio.masks.segment import iou
 
     from ..conftest import write_capture
 
@@ -192,10 +192,10 @@ def test_views_of_one_placement_are_ticked_and_fused(studio, tmp_path):
     (frames 0 and 1), both ticked; Estimate views together gives one fused result (2 views) that lands
     on the renderer's pose. Advice is drawn as a frustum labelled "look from here" and removed when
     the frame changes."""
-    from apose_studio import se3
-    from apose_studio.assembly import load_assembly
+    from apose_studio.geometry import se3
+    from apose_studio.assembly.model import load_assembly
     from apose_studio.registration.next_view import NextView
-    from apose_studio.render import RenderSettings, render_dataset
+    from apose_studio.synth.render import RenderSettings, render_dataset
 
     asm_path = SAMPLES / "helical_gearbox" / "assembly.yaml"
     render_dataset(load_assembly(asm_path), tmp_path / "mv", RenderSettings(frames=4, views_per_scene=2, seed=3),

@@ -3,7 +3,7 @@
 
 import numpy as np
 
-from apose_studio import se3
+from apose_studio.geometry import se3
 
 from .conftest import errors
 

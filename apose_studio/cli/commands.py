@@ -1,0 +1,453 @@
+"""`apose` command line: a thin shell over the core. Errors become one line each, never a traceback."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+
+from apose_studio import __version__
+from apose_studio.cli.frames import _check_output_file, cmd_estimate, cmd_eval
+from apose_studio.errors import AposeError
+from apose_studio.assembly.summary import show_json, show_text
+
+REPO = Path(__file__).resolve().parents[2]  # the checkout: apose_studio/cli/commands.py -> the repo
+SAMPLES = REPO / "sample_assemblies"
+DEFAULT_SAMPLE = SAMPLES / "helical_gearbox" / "assembly.yaml"
+
+
+def cmd_show(args) -> int:
+    from apose_studio.assembly.model import load_assembly
+    from apose_studio.assembly.mesh import load_parts
+
+    asm = load_assembly(args.assembly)
+    models = load_parts(asm)
+    if args.json:
+        print(json.dumps(show_json(asm, models), indent=2))
+    else:
+        print(show_text(asm, models))
+    return 0
+
+
+def cmd_demo(args) -> int:
+    """The slice end to end on a sample: summary, a small rendered dataset, one estimate per step."""
+    from apose_studio.assembly.model import load_assembly
+    from apose_studio.data.dataset import Dataset
+    from apose_studio.evaluate import StepContext, estimate_and_score
+    from apose_studio.assembly.mesh import load_parts
+    from apose_studio.registration import doubts, resolve_params
+    from apose_studio.synth.render import RenderSettings, render_dataset
+
+    path = Path(args.assembly) if args.assembly else DEFAULT_SAMPLE
+    if not path.is_file():
+        raise AposeError(f"{path}: sample assembly not found; run `python sample_assemblies/generate.py` "
+                         "in the repository to create it")
+    print(f"apose demo: the sample assembly {path.resolve()}\n")
+    asm = load_assembly(path)
+    models = load_parts(asm)
+    print(show_text(asm, models))
+    out = Path(args.out)
+    settings = RenderSettings(frames=args.frames, noise="realsense", seed=1)
+    print(f"\nrendering {args.frames} RealSense-like views per step into {out} ...")
+    summary = render_dataset(asm, out, settings, overwrite=True, progress=sys.stderr.isatty(), models=models)
+    print(f"  {summary['frames']} frames in {summary['seconds']:.1f} s")
+    ds = Dataset(out)
+    params = resolve_params("default", asm.registration)
+    print("\nestimating each step's assembly pose (preset default; no orientation prior: the base stands on the "
+          "table at an unknown yaw; ground-truth masks):")
+    from apose_studio.studio.inspection import ResultCache
+
+    cache = ResultCache()
+    for step in ds.steps:
+        ctx = StepContext(ds.assembly, models, step)
+        frame = ds.frame(step, 0)
+        r, sc = estimate_and_score(frame, ctx, params, trace_iterations=True)
+        cache.put(cache.key(Path(out).resolve(), step, frame.im_id, "default", "gt", False), (r, sc if r.ok else None))
+        if not r.ok:
+            print(f"  step {step}: place {ctx.part.id}: failed: {r.reason}")
+            continue
+        t = r.T_world_part[:3, 3] * 1000
+        print(f"  step {step}: place {ctx.part.id:<8} at ({t[0]:+7.1f}, {t[1]:+7.1f}, {t[2]:+7.1f}) mm in the world; "
+              f"error vs truth: MSSD {sc.mssd * 1000:.2f} mm, ADI {sc.adi * 1000:.2f} mm; {r.seconds * 1000:.0f} ms"
+              + ("  (ambiguous: symmetric base)" if r.ambiguous else "")
+              + ("" if r.confident else f"  (low confidence: {doubts(r)}; likely wrong)"))
+    print(f"\nnext: `apose eval {out}` for the per-step table, `apose estimate {out} --step 1` for one frame")
+    if args.no_studio:
+        return 0
+    print("\nopening the studio on this assembly and dataset (the estimates above are cached in its Inspect tab)")
+    return _serve_studio(path, out, args.host, args.port, cache, root=args.root, token=args.token)
+
+
+def _serve_studio(assembly, dataset, host: str, port: int, cache=None, root=None, token=None) -> int:
+    from apose_studio.studio import serve
+    from apose_studio.studio.webguard import is_loopback_bind
+
+    if root is not None and not Path(root).is_dir():
+        raise AposeError(f"--root {root}: no such folder")
+    server, studio = serve(assembly, dataset, host=host, port=port, cache=cache, root=root, token=token)
+    print(f"studio: {studio.url}  (Ctrl-C to stop; open this address: the page needs the token in it)")
+    print(f"workspace: the page may open and save files only under {', '.join(str(r) for r in studio.workspace.roots)}")
+    if not is_loopback_bind(host):
+        print(f"note: listening on {host}; the page and its websocket need the token in the address above. Anyone "
+              "with that address can open and save files in the workspace: share it only with people you trust",
+              file=sys.stderr)
+    try:
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        server.stop()
+    return 0
+
+
+def cmd_studio(args) -> int:
+    if args.assembly and not Path(args.assembly).is_file():
+        raise AposeError(f"{args.assembly}: no such assembly file")
+    return _serve_studio(args.assembly, args.dataset, args.host, args.port, root=args.root, token=args.token)
+
+
+def _pair(text: str, what: str) -> tuple[float, float]:
+    try:
+        a, b = (float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{what}: expected two numbers as min,max (e.g. 20,70), got {text!r}") from None
+    return a, b
+
+
+def _positive_int(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number of at least 1, got {text!r}")
+    return n
+
+
+def _os_error(e: OSError) -> str:
+    """One line for an OSError: the file, what the system said, and what to do."""
+    import errno
+
+    where = f"{e.filename}: " if getattr(e, "filename", None) else ""
+    fix = {errno.ENOSPC: "free some disk space or choose another folder (nothing half-written was kept)",
+           errno.EDQUOT: "free some space under your quota or choose another folder",
+           errno.EROFS: "the file system is read-only; choose another folder",
+           errno.EACCES: "permission denied; choose a folder you may write to",
+           errno.EPERM: "not permitted; choose a folder you may write to",
+           errno.ENAMETOOLONG: "use a shorter path",
+           errno.EMFILE: "too many open files; raise `ulimit -n`"}.get(e.errno, "check the path and try again")
+    return f"{where}{e.strerror or e}; {fix}"
+
+
+def _check_argument_text(args) -> None:
+    """Every text argument without NUL bytes and within the system's path length (a path named on the
+    command line reaches open() only after this)."""
+    from apose_studio.safeio import check_path_text
+
+    for name, value in vars(args).items():
+        for v in value if isinstance(value, list) else [value]:
+            if isinstance(v, str):
+                check_path_text(v, f"--{name.replace('_', '-')}")
+
+
+def _count(lo: int, hi: int):
+    """An argparse type: a whole number from lo to hi."""
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            v = None
+        if v is None or not lo <= v <= hi:
+            raise argparse.ArgumentTypeError(f"expected a whole number from {lo} to {hi}, got {text!r}")
+        return v
+    return parse
+
+
+def _port(text: str) -> int:
+    try:
+        port = int(text)
+    except ValueError:
+        port = -1
+    if not 0 < port < 65536:
+        raise argparse.ArgumentTypeError(f"expected a port number from 1 to 65535, got {text!r}")
+    return port
+
+
+def _steps(text: str) -> list[int]:
+    try:
+        return [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected step numbers such as 1,2, got {text!r}") from None
+
+
+def cmd_render(args) -> int:
+    from dataclasses import replace
+
+    from apose_studio.assembly.model import load_assembly
+    from apose_studio.synth.render import RenderSettings, render_dataset
+
+    asm = load_assembly(args.assembly)
+    settings = RenderSettings(frames=args.frames, seed=args.seed, noise=args.noise, noise_sigma_at_05m=args.noise_sigma,
+                              base_pose=args.base_pose, distractors=args.distractors, clutter=args.clutter,
+                              views_per_scene=args.views_per_scene)
+    if asm.camera is not None:
+        settings = replace(settings, camera=asm.camera)
+    for name, attr in (("yaw_range", "yaw_range_deg"), ("pitch_range", "pitch_range_deg"),
+                       ("distance_range", "distance_range_m")):
+        if getattr(args, name) is not None:
+            settings = replace(settings, **{attr: getattr(args, name)})
+    summary = render_dataset(asm, args.out, settings, args.steps, overwrite=args.overwrite,
+                             progress=not args.quiet and sys.stderr.isatty())
+    print(f"rendered {summary['frames']} frames of {asm.name} into {args.out} in {summary['seconds']:.1f} s "
+          f"({summary['fps']:.1f} frames/s, plus {summary['setup_seconds']:.1f} s loading parts)")
+    return 0
+
+
+def _estimator_args(p: argparse.ArgumentParser, mask_default: str | None = "gt") -> None:
+    p.add_argument("--preset", default="default", choices=["default", "paper"], help="estimator settings (default: ours)")
+    p.add_argument("--mask", default=mask_default, metavar="gt|depth|box|MODEL.pt|MASK.png",
+                   help="the base object's mask: gt (the data's ground truth; the default where there is one), depth "
+                   "(table-plane removal and 3D clustering, no training; the default for captures), box (eval: the "
+                   "prompted mask from the ground truth's visible box, as a detector would give), a model from "
+                   "`apose train-seg`, or a mask image")
+    p.add_argument("--orientation-prior", action="store_true",
+                   help="take the CAD's orientation as the base's orientation in the world (true for --base-pose fixed renders)")
+    p.add_argument("--upright", action=argparse.BooleanOptionalAction, default=None,
+                   help="where a table is seen, first search the yaw of the base standing on it as modelled (its CAD "
+                   "z axis along the table's normal), then freely if that fits poorly: on by default in the default "
+                   "preset; --no-upright searches freely from the start")
+
+
+def cmd_train_seg(args) -> int:
+    from apose_studio.data.dataset import Dataset
+    from apose_studio.masks.segment import save_model, train
+
+    ds = Dataset(args.dataset)
+    out = Path(args.out)
+    if out.suffix != ".pt":
+        raise AposeError(f"--out {out}: name the model file *.pt")
+    _check_output_file(out, "--out")  # now, not after minutes of training
+    print(f"training a segmentation network for {ds.assembly.name} ({len(ds.assembly.parts)} parts + background) "
+          f"on {args.dataset}")
+    seg, rep = train(ds, epochs=args.epochs, device=args.device, batch=args.batch, seed=args.seed,
+                     max_minutes=args.max_minutes, progress=sys.stderr.isatty())
+    save_model(seg, out)
+    print(f"trained {rep['epochs']} epochs on {rep['train_frames']} frames in {rep['seconds']:.0f} s ({rep['device']}); "
+          f"loss {rep['losses'][0]:.3f} -> {rep['losses'][-1]:.3f}")
+    print(f"held-out frames ({rep['frames']}): mean IoU of the base object {rep['mean_base_iou']:.3f} "
+          f"(network alone {rep['mean_base_iou_raw']:.3f}; outlines sharpened with depth)")
+    for step, v in rep["base_iou"].items():
+        print(f"  step {step} base object: IoU {v:.3f}")
+    for pid, v in rep["part_iou"].items():
+        print(f"  part {pid}: IoU {v:.3f}")
+    print(f"wrote {out}; use it with --mask {out}")
+    return 0
+
+
+def _server_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to listen on (default 127.0.0.1: this machine only; 0.0.0.0 exposes the studio to the network)")
+    p.add_argument("--port", type=_port, default=8080, help="port (default 8080; the next free one if taken)")
+    p.add_argument("--root", default=None, help="the folder whose files the page may open and save (default: the "
+                   "current directory, or the assembly file's folder when it lies outside)")
+    p.add_argument("--token", default=None, help="the secret in the studio's address (/t/TOKEN/; at least 16 "
+                   "characters of A-Z a-z 0-9 - _); default: a new random one each start, printed with the address")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="apose", description="6D assembly pose estimation by point-cloud "
+                                 "registration, with a browser studio.")
+    ap.add_argument("--version", action="version", version=f"apose_studio {__version__}")
+    ap.add_argument("-v", "--verbose", action="store_true", help="show debug logging and tracebacks")
+    sub = ap.add_subparsers(dest="command", metavar="COMMAND")
+    for add in (_add_show, _add_render, _add_estimate, _add_eval, _add_train_seg, _add_demo, _add_studio):
+        add(sub)
+    return ap
+
+
+def _add_show(sub) -> None:
+    p = sub.add_parser("show", help="summarise an assembly file: parts, sizes, steps and poses")
+    p.add_argument("assembly", help="assembly YAML file (format apose-assembly/1)")
+    p.add_argument("--json", action="store_true", help="print JSON (metres, 4x4 row-major lists)")
+    p.set_defaults(func=cmd_show)
+
+
+def _add_render(sub) -> None:
+    p = sub.add_parser("render", help="render a synthetic RGB-D dataset (BOP layout), one scene per assembly step",
+                       description="Render N views of every assembly step into a BOP-layout dataset: RGB, depth, "
+                       "visible masks, object and camera poses, and each step's ground-truth assembly pose.")
+    p.add_argument("assembly", help="assembly YAML file")
+    p.add_argument("--out", required=True, help="output folder (must be empty unless --overwrite)")
+    p.add_argument("--frames", type=int, default=10, help="views per step (default 10)")
+    p.add_argument("--views-per-scene", type=int, default=1, metavar="K",
+                   help="camera poses per placement of the base, at least 30 degrees apart, as an eye-in-hand camera "
+                   "takes them (default 1); --frames stays the number of images per step")
+    p.add_argument("--seed", type=_count(0, 2 ** 32 - 1), default=0, help="random seed; the same seed gives the same dataset")
+    p.add_argument("--steps", type=_steps, help="only these steps, e.g. 1,3 (default: all)")
+    p.add_argument("--noise", default="none", choices=["none", "gaussian", "realsense", "kinect"],
+                   help="depth noise: none; gaussian (axial, grows with z^2); realsense (gaussian + edge "
+                   "dropouts + disparity quantisation); kinect (Kinect v1 as in LINEMOD: coarser quantisation, "
+                   "projector shadows beside edges, no depth on dark or glossy surfaces)")
+    p.add_argument("--noise-sigma", type=float, default=0.001, help="axial depth noise at 0.5 m, metres (default 0.001)")
+    p.add_argument("--base-pose", default="yaw", choices=["yaw", "fixed"],
+                   help="yaw: base at a random position and yaw on the table (default); fixed: base at a known pose, "
+                   "only the camera moves (the paper's protocol)")
+    p.add_argument("--yaw-range", type=lambda t: _pair(t, "--yaw-range"), metavar="MIN,MAX",
+                   help="camera yaw around the base, degrees (default 0,360)")
+    p.add_argument("--pitch-range", type=lambda t: _pair(t, "--pitch-range"), metavar="MIN,MAX",
+                   help="camera elevation above the table, degrees (default 25,75)")
+    p.add_argument("--distance-range", type=lambda t: _pair(t, "--distance-range"), metavar="MIN,MAX",
+                   help="camera distance to the base centre, metres (default: the base fills 25-50%% of the image)")
+    p.add_argument("--distractors", type=_count(0, 50), default=2, help="random boxes, cylinders and balls on the table (default 2)")
+    p.add_argument("--clutter", action="store_true",
+                   help="a cluttered bench: objects of the base's height standing against it and around it, the base "
+                   "off-centre in the image (tests prompted masks: --box / --point)")
+    p.add_argument("--overwrite", action="store_true", help="replace a dataset already in --out")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_render)
+
+
+def _add_estimate(sub) -> None:
+    p = sub.add_parser("estimate", help="estimate the assembly pose in one frame: a rendered dataset, a capture or a BOP scene",
+                       description="Exit codes: 0 a pose, 1 the estimate failed (the reason is printed), 2 bad input.")
+    p.add_argument("input", nargs="+", help="dataset folder from `apose render`, capture folder (rgb.png, depth.png, camera.json "
+                   "with fx,fy,cx,cy or BOP's cam_K) or BOP scene folder (scene_camera.json, rgb/, depth/); several "
+                   "capture folders of one placement (camera.json with cam_R_w2c, cam_t_w2c) give one fused estimate")
+    p.add_argument("--assembly", help="assembly YAML (needed for a capture or BOP scene; a dataset has its own)")
+    p.add_argument("--step", type=int, required=True, help="assembly step (1-based)")
+    p.add_argument("--frame", type=int, default=0, help="image id within the step or BOP scene (default 0)")
+    p.add_argument("--views", type=_count(1, 64), default=1, metavar="K",
+                   help="a dataset: fuse up to K frames of --frame's placement (default 1); several capture folders are "
+                   "fused whatever this says")
+    p.add_argument("--box", metavar="X0,Y0,X1,Y1", action="append",
+                   help="a box around the base object in pixels: the mask from depth and colour (several views: once per view)")
+    p.add_argument("--point", metavar="U,V", action="append",
+                   help="a click on the base object in pixels: the mask from depth and colour (several views: once per view)")
+    p.add_argument("--obj-map", action="append", metavar="PART=OBJ_ID",
+                   help="BOP scene: which BOP obj_id each part is (repeatable), for the ground truth in scene_gt.json")
+    p.add_argument("--json", action="store_true", help="print JSON (metres): ok, reason, T_world_base, T_world_part, "
+                   "T_camera_part, confident, coverage, ambiguous, alternatives, mask, timings, stages")
+    _estimator_args(p, mask_default=None)
+    p.set_defaults(func=cmd_estimate)
+
+
+def _add_eval(sub) -> None:
+    p = sub.add_parser("eval", help="evaluate the estimator on a dataset: the paper's per-step table")
+    p.add_argument("dataset", help="dataset folder made by `apose render`, or a BOP split folder (e.g. lmo/test: "
+                   "numbered scene folders) with --assembly, --step and --obj-map")
+    _estimator_args(p)
+    p.add_argument("--steps", type=_steps, help="only these steps, e.g. 1,3")
+    p.add_argument("--frames", type=int, help="at most this many frames per step (default: all)")
+    p.add_argument("--workers", type=int, default=1, help="processes in parallel (default 1; --views runs in one)")
+    p.add_argument("--views", type=_count(1, 64), default=1, metavar="K",
+                   help="group the frames by placement (apose render --views-per-scene) and fuse up to K per estimate "
+                   "(default 1: every frame alone); the JSON records list the frames in im_ids")
+    p.add_argument("--json", metavar="OUT", help="also write the full results (per frame) as JSON")
+    p.add_argument("--no-gt-compare", action="store_true",
+                   help="with --mask depth|MODEL.pt, skip the second run with ground-truth masks")
+    p.add_argument("--assembly", help="BOP split: the assembly whose step to evaluate")
+    p.add_argument("--step", type=int, help="BOP split: the assembly step (1-based)")
+    p.add_argument("--obj-map", action="append", metavar="PART=OBJ_ID",
+                   help="BOP split: the BOP obj_id of a part (repeatable), e.g. --obj-map can=5")
+    p.add_argument("--bop-results", metavar="OUT.csv", help="also write the estimates as a BOP19 results CSV "
+                   "(scene_id = step, obj_id = base[0], R and t of base[0] in the camera, mm)")
+    p.add_argument("--score-results", metavar="CSV", help="score a BOP19 results CSV from any method on this dataset "
+                   "with our metrics and table, instead of running the estimator")
+    p.set_defaults(func=cmd_eval)
+
+
+def _add_train_seg(sub) -> None:
+    p = sub.add_parser("train-seg", help="train a segmentation network (torch) on a rendered dataset of one assembly")
+    p.add_argument("dataset", help="dataset folder made by `apose render` (noisy renders with --noise realsense transfer best)")
+    p.add_argument("--out", required=True, help="model file to write (*.pt)")
+    p.add_argument("--epochs", type=_positive_int, default=60, help="passes over the training frames (default 60)")
+    p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="default: cuda when torch sees a GPU")
+    p.add_argument("--batch", type=_positive_int, default=8, help="frames per step (default 8)")
+    p.add_argument("--seed", type=_count(0, 2 ** 32 - 1), default=0, help="seed of the split, the initial weights and the augmentation")
+    p.add_argument("--max-minutes", type=float, help="stop after the epoch that passes this wall time")
+    p.set_defaults(func=cmd_train_seg)
+
+
+def _add_demo(sub) -> None:
+    p = sub.add_parser("demo", help="run the main job on the embedded sample assembly: show, render, estimate, then open the studio")
+    p.add_argument("assembly", nargs="?", help="another assembly file instead of the sample")
+    p.add_argument("--out", default="out/demo", help="where the demo dataset goes (default out/demo; an earlier demo there is replaced, anything else refused)")
+    p.add_argument("--frames", type=int, default=2, help="views per step (default 2)")
+    p.add_argument("--no-studio", action="store_true", help="stop after the estimates instead of opening the studio")
+    _server_args(p)
+    p.set_defaults(func=cmd_demo)
+
+
+def _add_studio(sub) -> None:
+    p = sub.add_parser("studio", help="open the browser studio: author assemblies, inspect datasets and registrations")
+    p.add_argument("assembly", nargs="?", help="assembly YAML file to open (default: a new, empty assembly)")
+    p.add_argument("--dataset", help="dataset folder (from `apose render`) or capture folder to open in the Inspect tab")
+    _server_args(p)
+    p.set_defaults(func=cmd_studio)
+
+
+class _Printable:
+    """stdout/stderr with control characters shown as escapes (\\x1b): a part or file name holding ESC
+    sequences cannot retitle or clear the user's terminal. Newlines, tabs and the progress bars' \\r pass."""
+
+    _TABLE = {c: f"\\x{c:02x}" for c in [*range(0x20), 0x7f, *range(0x80, 0xa0)] if c not in (9, 10, 13)}
+
+    def __init__(self, stream):
+        self._stream = stream
+
+    def write(self, text: str) -> int:
+        return self._stream.write(text.translate(self._TABLE))
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
+def main(argv=None) -> int:
+    out, err = sys.stdout, sys.stderr
+    sys.stdout, sys.stderr = _Printable(out), _Printable(err)
+    try:
+        return _main(argv)
+    finally:
+        sys.stdout, sys.stderr = out, err
+
+
+def _main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
+                        format="%(levelname)s: %(message)s")
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        _check_argument_text(args)
+        return args.func(args)
+    except AposeError as e:  # bad input: the message names the thing and the fix
+        for line in str(e).splitlines():
+            print(f"error: {line}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:  # `apose show ... | head`: the reader left; say nothing more
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
+    except OSError as e:  # the system refused: a full disk, a read-only folder, a name too long
+        print(f"error: {_os_error(e)}", file=sys.stderr)
+        return 2
+    except MemoryError:
+        print("error: out of memory; use smaller inputs (fewer frames, a decimated mesh, a smaller image)", file=sys.stderr)
+        return 2
+    except Exception as e:  # a bug: one line, plus the traceback with --verbose
+        if args.verbose:
+            raise
+        print(f"error: unexpected {type(e).__name__}: {e} (run with -v for the traceback, and please report it)",
+              file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,314 @@
+"""BOP interoperability: BOP scene folders as input, the BOP19 results CSV out and in.
+
+A BOP scene folder holds scene_camera.json, rgb/ (or gray/), depth/ and, with ground truth,
+scene_gt.json (+ mask_visib/). A split folder (e.g. lmo/test) holds scene folders named by number.
+Units are BOP's at the edge (mm, row-major R) and metres inside. Facts checked against bop_toolkit:
+../shared/docs/BOP_NOTES.md.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from apose_studio.geometry import se3
+from apose_studio.data.dataset import DatasetError, Frame, _read_image, check_camera_entry, check_scene_images, gt_entries, read_depth, read_json, read_rgb
+
+CSV_HEADER = ["scene_id", "im_id", "obj_id", "score", "R", "t", "time"]
+
+
+def is_bop_scene(path: Path) -> bool:
+    path = Path(path)
+    return (path / "scene_camera.json").is_file() and (path / "depth").is_dir()
+
+
+def scene_folders(split: Path) -> list[Path]:
+    """The BOP scene folders of a split folder (or the folder itself when it is one scene)."""
+    split = Path(split)
+    if is_bop_scene(split):
+        return [split]
+    return sorted(p for p in split.iterdir() if p.is_dir() and p.name.isdigit() and is_bop_scene(p)) if split.is_dir() else []
+
+
+def parse_obj_map(items: list[str] | None, parts) -> dict[str, int]:
+    """['can=5', ...] -> {part id: BOP obj_id}; DatasetError naming the flag for a bad entry."""
+    out: dict[str, int] = {}
+    for item in items or []:
+        name, _, num = item.partition("=")
+        if not num.strip().isdigit():
+            raise DatasetError(f"--obj-map {item}: expected PART=OBJ_ID, e.g. can=5")
+        if name not in parts:
+            raise DatasetError(f"--obj-map {item}: the assembly has no part {name!r}; parts: {', '.join(parts)}")
+        out[name] = int(num)
+    return out
+
+
+class BopScene:
+    """One BOP scene folder, read lazily: frames with the camera of each image and, where scene_gt.json
+    maps an object to a part (obj_of_part), its pose and visible mask."""
+
+    def __init__(self, folder: str | Path, obj_of_part: dict[str, int] | None = None):
+        self.dir = Path(folder)
+        if not is_bop_scene(self.dir):
+            raise DatasetError(f"{self.dir}: not a BOP scene folder (scene_camera.json and depth/ expected)")
+        self.camera = check_scene_images(read_json(self.dir / "scene_camera.json"), str(self.dir / "scene_camera.json"),
+                                         "{cam_K, depth_scale}")
+        gt = self.dir / "scene_gt.json"
+        self.gt = check_scene_images(read_json(gt), str(gt), "[{obj_id, cam_R_m2c, cam_t_m2c}]") if gt.exists() else {}
+        self.obj_of_part = dict(obj_of_part or {})
+        self.scene_id = int(self.dir.name) if self.dir.name.isdigit() else 0
+
+    def image_ids(self) -> list[int]:
+        return sorted(int(k) for k in self.camera)
+
+    def _image(self, sub: str, im_id: int) -> Path:
+        for ext in (".png", ".jpg", ".tif"):
+            p = self.dir / sub / f"{im_id:06d}{ext}"
+            if p.exists():
+                return p
+        return self.dir / sub / f"{im_id:06d}.png"
+
+    def frame(self, im_id: int, view=None) -> Frame:
+        """Frame im_id (metres). With a step's view, its ground truth T_world_base / T_world_part when
+        scene_gt.json shows base[0] (mapped to an obj_id)."""
+        key = str(im_id)
+        if key not in self.camera:
+            ids = self.image_ids()
+            raise DatasetError(f"{self.dir}: no image {im_id} in scene_camera.json; images are "
+                               f"{ids[0]}..{ids[-1]}" if ids else f"{self.dir}: scene_camera.json lists no images")
+        rgb_path = self._image("rgb", im_id)
+        if not rgb_path.exists() and self._image("gray", im_id).exists():
+            rgb_path = self._image("gray", im_id)
+        rgb = read_rgb(rgb_path)
+        h, w = rgb.shape[:2]
+        cam, scale, T_world_camera = check_camera_entry(self.camera[key], f"{self.dir / 'scene_camera.json'}: {key}", w, h)
+        depth = read_depth(self._image("depth", im_id), scale)
+        if depth.shape != (h, w):
+            raise DatasetError(f"{self.dir}: image {im_id}: depth is {depth.shape[1]}x{depth.shape[0]} but RGB is {w}x{h}")
+        if T_world_camera is None:
+            from apose_studio.geometry.plane import table_frame
+
+            T_world_camera = table_frame(depth, cam)
+            T_world_camera = np.eye(4) if T_world_camera is None else T_world_camera
+        frame = Frame(rgb=rgb, depth=depth, camera=cam, T_world_camera=T_world_camera, im_id=im_id,
+                      source=str(rgb_path), step=self.scene_id)
+        part_of = {v: k for k, v in self.obj_of_part.items()}
+        for i, (obj_id, T_camera_obj) in enumerate(gt_entries(self.gt, key, str(self.dir / "scene_gt.json"))):
+            pid = part_of.get(obj_id)
+            if pid is None or pid in frame.poses:
+                continue
+            frame.poses[pid] = T_world_camera @ T_camera_obj
+            mpath = self.dir / "mask_visib" / f"{im_id:06d}_{i:06d}.png"
+            if mpath.exists():
+                import cv2
+
+                frame.masks[pid] = _read_image(mpath, cv2.IMREAD_GRAYSCALE) > 127
+        if view is not None:
+            frame.part, frame.base, frame.T_base_part = view.part, tuple(view.base), view.T_base_part
+            if view.base[0] in frame.poses:
+                frame.T_world_base = frame.poses[view.base[0]]
+                frame.T_world_part = frame.T_world_base @ view.T_base_part
+        return frame
+
+
+# --------------------------------------------------------------------------------------- results CSV
+
+
+@dataclass
+class BopResult:
+    scene_id: int
+    im_id: int
+    obj_id: int
+    score: float
+    T_camera_obj: np.ndarray  # metres
+    time: float  # seconds for the image (-1: unknown)
+
+
+def write_results_csv(path: Path, rows: list[BopResult]) -> None:
+    """BOP19 results: one line per estimate, R row-major and t in mm, space-separated (atomic write)."""
+    from apose_studio.assembly.fileio import atomic_write_text
+
+    lines = [",".join(CSV_HEADER)]
+    for r in rows:
+        R, t = r.T_camera_obj[:3, :3].reshape(-1), r.T_camera_obj[:3, 3] * 1000.0
+        lines.append(f"{r.scene_id},{r.im_id},{r.obj_id},{r.score!r},{' '.join(repr(float(v)) for v in R)},"
+                     f"{' '.join(repr(float(v)) for v in t)},{r.time!r}")
+    atomic_write_text(Path(path), "\n".join(lines) + "\n")
+
+
+def read_results_csv(path: Path) -> list[BopResult]:
+    """A BOP19 results CSV from any method; DatasetError naming the line for a malformed one."""
+    import io
+
+    from apose_studio import safeio
+    from apose_studio.errors import AposeError
+
+    path = Path(path)
+    if not path.exists() and not path.is_symlink():
+        raise DatasetError(f"{path}: no such results file")
+    try:
+        text = safeio.read_text(path, "a BOP19 results file", safeio.LIMITS.csv_bytes)  # a BOM is dropped
+    except AposeError as e:
+        raise DatasetError(str(e)) from None
+    rows = []
+    reader = csv.reader(io.StringIO(text, newline=""))
+    try:
+        header = next(reader, None)
+        if header is None or [h.strip() for h in header] != CSV_HEADER:
+            raise DatasetError(f"{path}: line 1: expected the BOP19 header {','.join(CSV_HEADER)}")
+        for rec in reader:
+            n = reader.line_num
+            if not rec:
+                continue
+            try:
+                scene, im, obj, score, R, t, tm = rec
+                R9 = np.array([float(v) for v in R.split()], float)
+                t3 = np.array([float(v) for v in t.split()], float)
+                if R9.shape != (9,) or t3.shape != (3,) or not (np.isfinite(R9).all() and np.isfinite(t3).all()):
+                    raise ValueError
+                ids = int(scene), int(im), int(obj)
+                score_v, time_v = float(score), float(tm)
+            except ValueError:
+                raise DatasetError(f"{path}: line {n}: expected scene_id,im_id,obj_id,score,R (9 numbers),t (3 numbers, "
+                                   "mm),time") from None
+            if min(ids) < 0:
+                raise DatasetError(f"{path}: line {n}: scene_id, im_id and obj_id are whole numbers >= 0, got "
+                                   f"{','.join(map(str, ids))}")
+            if not math.isfinite(score_v):
+                raise DatasetError(f"{path}: line {n}: score is {score}; write a finite number (the highest score "
+                                   "per image is the estimate that counts)")
+            rows.append(BopResult(*ids, score_v, se3.make_T(R9.reshape(3, 3), t3 / 1000.0), time_v))
+    except csv.Error as e:
+        raise DatasetError(f"{path}: line {reader.line_num}: not a readable CSV row ({e}); is it a BOP19 results "
+                           "file?") from None
+    return rows
+
+
+def best_per_image(rows: list[BopResult], obj_id: int) -> dict[tuple[int, int], BopResult]:
+    """The highest-scoring estimate of obj_id per (scene_id, im_id) (BOP's rule for one instance)."""
+    out: dict[tuple[int, int], BopResult] = {}
+    for r in rows:
+        if r.obj_id != obj_id:
+            continue
+        k = (r.scene_id, r.im_id)
+        if k not in out or r.score > out[k].score:  # scores are finite (read_results_csv refuses others)
+            out[k] = r
+    return out
+
+
+# --------------------------------------------------------------------------------------- our datasets
+
+
+def _step_truth(ds, step: int) -> tuple[dict, np.ndarray, int]:
+    """(frames of scene_assembly.json, T_base_part, obj_id of base[0]) of a rendered step."""
+    sa = ds._scene(step)["scene_assembly"]
+    return sa["frames"], np.asarray(sa["T_base_part"], float), ds.obj_ids[sa["base"][0]]
+
+
+def results_from_eval(ds, doc: dict) -> list[BopResult]:
+    """The BOP19 rows of an `apose eval` document: per estimated frame, base[0]'s pose in the camera
+    (T_camera_base = T_camera_world T_world_part T_part_base), scene_id = step, score 1 when confident
+    else 0.5."""
+    rows = []
+    for st in doc["steps"]:
+        frames, T_base_part, obj_id = _step_truth(ds, st["step"])
+        for f in st["frames"]:
+            if not f["ok"] or f["T_world_part_est"] is None:
+                continue
+            T_world_camera = np.asarray(frames[str(f["im_id"])]["T_world_camera"], float)
+            T = se3.inv(T_world_camera) @ np.asarray(f["T_world_part_est"], float) @ se3.inv(T_base_part)
+            rows.append(BopResult(st["step"], f["im_id"], obj_id, 1.0 if f["confident"] else 0.5, T, float(f["time_s"])))
+    return rows
+
+
+def score_results(ds, rows: list[BopResult], steps: list[int] | None = None, models=None) -> dict:
+    """Score any method's BOP19 results on one of our datasets with our metrics and tables: per step,
+    the highest-scoring estimate of base[0] per image, composed with the step's T_base_part into the
+    assembly pose; an image without an estimate counts as failed. Exact symmetries of the base are
+    forgiven in `mssd_mod_base_sym`, as for our own estimates."""
+    from apose_studio.evaluate import FrameScore, StepContext, summarise_step, truth_twins
+    from apose_studio.assembly.mesh import load_parts
+
+    models = models or load_parts(ds.assembly)
+    doc = {"preset": "results file", "dataset": str(ds.root), "mask": "-", "orientation_prior": False, "steps": [],
+           "missing_steps": ds.missing_steps}
+    for step in steps or ds.steps:
+        frames, T_base_part, obj_id = _step_truth(ds, step)
+        best = best_per_image(rows, obj_id)
+        part = models[ds.assembly.step_view(step).part]
+        symmetries = StepContext(ds.assembly, models, step).base.symmetries
+        scores = []
+        for im_id in ds.image_ids(step):
+            fr = frames[str(im_id)]
+            G = np.asarray(fr["T_world_part"], float)
+            r = best.get((step, im_id))
+            if r is None:
+                scores.append(FrameScore(step, im_id, False, "no estimate in the results file", T_world_part_gt=G))
+                continue
+            T = np.asarray(fr["T_world_camera"], float) @ r.T_camera_obj @ T_base_part
+            s = FrameScore(step, im_id, True, T_world_part_gt=G, time_s=max(r.time, 0.0))
+            s.set_errors(T, part, truth_twins(G, T_base_part, symmetries))
+            s.confident = r.score >= 1.0
+            scores.append(s)
+        doc["steps"].append(summarise_step(step, scores, part))
+    return doc
+
+
+# --------------------------------------------------------------------------------------- BOP splits
+
+
+def evaluate_split(split: Path, asm, step: int, obj_of_part: dict[str, int], params, mask_source: str = "gt",
+                   frames: int | None = None, progress: bool = False) -> tuple[dict, list[BopResult]]:
+    """`apose eval` on a BOP split folder (real captures with downloaded ground truth): every image of
+    every scene whose scene_gt.json shows the step's base[0] (its obj_id from obj_of_part) is one frame;
+    the truth is T_world_base = that object's pose, composed with the step's T_base_part. Returns the
+    evaluation document (one step) and the BOP19 rows of the estimates."""
+    from tqdm import tqdm
+
+    from apose_studio.api import step_context
+    from apose_studio.errors import AposeError
+    from apose_studio.evaluate import FrameScore, estimate_and_score, frame_mask, summarise_step
+
+    _, ctx = step_context(asm, step)
+    view = ctx.view
+    missing = [p for p in view.base if p not in obj_of_part]
+    if view.base[0] in missing:
+        raise AposeError(f"step {step} places {view.part} on {', '.join(view.base)}: map {view.base[0]} to its BOP object "
+                         f"id with --obj-map {view.base[0]}=ID")
+    scenes = scene_folders(split)
+    if not scenes:
+        raise DatasetError(f"{split}: no BOP scene folders here (numbered folders with scene_camera.json and depth/)")
+    todo = []
+    for folder in scenes:
+        sc = BopScene(folder, obj_of_part)
+        ids = [i for i in sc.image_ids() if any(int(g["obj_id"]) == obj_of_part[view.base[0]] for g in sc.gt.get(str(i), []))]
+        todo += [(sc, i) for i in (ids[:frames] if frames else ids)]
+    if not todo:
+        raise DatasetError(f"{split}: no image shows obj_id {obj_of_part[view.base[0]]} ({view.base[0]}) in scene_gt.json")
+    ctx.base.warm_up(params)
+    scores, rows = [], []
+    obj_id = obj_of_part[view.base[0]]
+    for sc, im_id in tqdm(todo, unit="frame", desc=f"eval {params.preset}", disable=not progress, leave=False):
+        try:
+            frame = sc.frame(im_id, view)
+        except DatasetError as e:
+            scores.append(FrameScore(sc.scene_id, im_id, False, f"unreadable frame: {e}"))
+            continue
+        if mask_source == "gt" and not frame.base_mask().any():
+            scores.append(FrameScore(sc.scene_id, im_id, False, "no mask_visib for the base in this image",
+                                     T_world_part_gt=frame.T_world_part))
+            continue
+        mask = frame_mask(frame, mask_source)
+        r, s = estimate_and_score(frame, ctx, params, mask_source, mask=mask)
+        s.scene_id = sc.scene_id
+        scores.append(s)
+        if r.ok:
+            T = se3.inv(frame.T_world_camera) @ r.T_world_base
+            rows.append(BopResult(sc.scene_id, im_id, obj_id, 1.0 if r.confident else 0.5, T, r.seconds))
+    doc = {"preset": params.preset, "dataset": str(split), "mask": mask_source, "orientation_prior": False,
+           "steps": [summarise_step(step, scores, ctx.part)], "missing_steps": []}
+    return doc, rows

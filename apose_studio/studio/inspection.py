@@ -1,0 +1,248 @@
+"""What the studio's Inspect tab shows, as pure functions: boxes, their 2D projection, clouds per stage.
+
+Colours, one per thing (the legend): target cloud red, source cloud blue, estimated box green, ground
+truth amber (dashed, drawn a little outside the estimate so coincident boxes do not z-fight),
+alternatives magenta. Everything is metres and world frame unless a name says otherwise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from apose_studio.geometry import se3
+from apose_studio.geometry.camera import CameraIntrinsics
+from apose_studio.registration import RegistrationResult
+
+RED = (220, 40, 40)
+BLUE = (40, 90, 230)
+GREEN = (30, 190, 60)
+AMBER = (255, 160, 0)  # ground truth
+MAGENTA = (220, 60, 220)  # other placements that fit as well as the estimate (an ambiguous result)
+LEGEND = (("target cloud", RED), ("source cloud", BLUE), ("estimate", GREEN), ("truth (dashed)", AMBER),
+          ("alternatives", MAGENTA))
+
+# the 12 edges of a box whose corners are ordered as mesh.PartModel.box_corners() (x major, z minor)
+BOX_EDGES = np.array([[0, 1], [2, 3], [4, 5], [6, 7], [0, 2], [1, 3], [4, 6], [5, 7], [0, 4], [1, 5], [2, 6], [3, 7]])
+
+
+def box_segments(corners_part: np.ndarray, T_world_part: np.ndarray) -> np.ndarray:
+    """(12, 2, 3) world line segments of a part's box (corners in the part frame) at a pose."""
+    c = se3.transform_points(T_world_part, corners_part)
+    return c[BOX_EDGES]
+
+
+def inflate(corners_part: np.ndarray, fraction: float) -> np.ndarray:
+    """Box corners moved out from the box centre by `fraction` of its size (a ground-truth box drawn just
+    outside an estimate on the same spot stays visible instead of z-fighting)."""
+    c = corners_part.mean(axis=0)
+    return c + (corners_part - c) * (1.0 + fraction)
+
+
+def dashed(segments: np.ndarray, dashes: int = 6) -> np.ndarray:
+    """(N, 2, 3) segments cut into `dashes` pieces each, every other piece kept: (N * dashes // 2... , 2, 3)."""
+    t = np.linspace(0.0, 1.0, 2 * dashes)
+    a, b = segments[:, :1, :], segments[:, 1:, :]
+    pts = a + (b - a) * t[None, :, None]  # (N, 2*dashes, 3)
+    return pts.reshape(len(segments), dashes, 2, 3).reshape(-1, 2, 3)
+
+
+def crop_window(shape: tuple[int, int], uv: np.ndarray, margin: float = 0.35, min_size: int = 96) -> tuple[int, int, int, int]:
+    """(x0, y0, x1, y1): the image window around pixels `uv` (N, 2) with a margin of their extent, at least
+    `min_size` across, clipped to the image; the whole image when nothing is given."""
+    h, w = shape
+    uv = uv[np.isfinite(uv).all(axis=1)] if len(uv) else uv
+    if not len(uv):
+        return 0, 0, w, h
+    lo, hi = uv.min(axis=0), uv.max(axis=0)
+    size = max(float((hi - lo).max()) * (1.0 + 2.0 * margin), min_size)
+    c = (lo + hi) / 2.0
+    x0, y0 = int(np.clip(c[0] - size / 2, 0, w - 1)), int(np.clip(c[1] - size / 2, 0, h - 1))
+    x1, y1 = int(np.clip(c[0] + size / 2, x0 + 1, w)), int(np.clip(c[1] + size / 2, y0 + 1, h))
+    return x0, y0, x1, y1
+
+
+def pose_report(result: RegistrationResult, T_world_camera: np.ndarray) -> dict:
+    """The estimate as a robot needs it: T_world_part and T_camera_part (4x4, metres) and each as
+    translation (mm) + quaternion wxyz. JSON-ready."""
+    T_camera_part = se3.inv(T_world_camera) @ result.T_world_part
+
+    def entry(T):
+        return {"matrix": T.tolist(), "translation_mm": (T[:3, 3] * 1000.0).tolist(),
+                "quat_wxyz": [float(v) for v in se3.matrix_to_quat_wxyz(T[:3, :3])]}
+
+    return {"T_world_part": entry(result.T_world_part), "T_camera_part": entry(T_camera_part),
+            "T_world_base": entry(result.T_world_base), "fitness": float(result.fitness),
+            "inlier_rmse_mm": float(result.inlier_rmse * 1000.0), "coverage": float(result.coverage),
+            "confident": bool(result.confident), "ambiguous": bool(result.ambiguous)}
+
+
+def pose_markdown(report: dict) -> str:
+    """The two poses of `pose_report` as a small table (mm, wxyz)."""
+    rows = []
+    for name in ("T_world_part", "T_camera_part"):
+        t, q = report[name]["translation_mm"], report[name]["quat_wxyz"]
+        rows.append(f"| `{name}` | {t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f} | {q[0]:.4f}, {q[1]:.4f}, {q[2]:.4f}, {q[3]:.4f} |")
+    return "| pose | t (mm) | q (wxyz) |\n|---|---|---|\n" + "\n".join(rows)
+
+
+def project_points(points_world: np.ndarray, T_world_camera: np.ndarray, cam: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates (N, 2) and a mask of the points in front of the camera."""
+    pc = se3.transform_points(se3.inv(T_world_camera), points_world)
+    front = pc[:, 2] > 1e-6
+    u, v = cam.project(np.where(front[:, None], pc, [0.0, 0.0, 1.0]))
+    return np.stack([u, v], axis=1), front
+
+
+def draw_boxes(rgb: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray, corners_part: np.ndarray,
+               boxes: list[tuple[np.ndarray, tuple[int, int, int]]], thickness: int = 2) -> np.ndarray:
+    """A copy of the RGB image with each (T_world_part, colour) box projected and drawn (OpenCV lines).
+    Earlier boxes are drawn thicker, so a later box on top of one (a good estimate on the truth) leaves
+    both visible."""
+    out = np.ascontiguousarray(rgb.copy())
+    for i, (T, colour) in enumerate(boxes):
+        width = thickness + 2 * (len(boxes) - 1 - i)
+        seg = box_segments(corners_part, T).reshape(-1, 3)
+        uv, front = project_points(seg, T_world_camera, cam)
+        for k in range(0, len(uv), 2):
+            if front[k] and front[k + 1]:
+                a = tuple(int(round(v)) for v in uv[k])
+                b = tuple(int(round(v)) for v in uv[k + 1])
+                cv2.line(out, a, b, colour, width, cv2.LINE_AA)
+    return out
+
+
+def scene_cloud(depth: np.ndarray, rgb: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray,
+                max_points: int = 60000) -> tuple[np.ndarray, np.ndarray]:
+    """The whole depth image back-projected to world points with their RGB colours, thinned on a pixel
+    grid to at most ~max_points (so a browser draws it smoothly)."""
+    h, w = depth.shape
+    stride = max(1, int(np.ceil(np.sqrt(h * w / max_points))))
+    d = depth[::stride, ::stride]
+    vs, us = np.nonzero(np.isfinite(d) & (d > 0))
+    u, v = us * stride, vs * stride
+    pc = cam.backproject(u, v, d[vs, us])
+    return se3.transform_points(T_world_camera, pc).astype(np.float32), rgb[v, u]
+
+
+def pixels_in_box(depth: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray, T_world_box: np.ndarray,
+                  size: np.ndarray) -> np.ndarray:
+    """(H, W) bool: pixels whose depth point lies inside a box (pose of its centre, full side lengths)."""
+    h, w = depth.shape
+    v, u = np.mgrid[0:h, 0:w]
+    z = np.where(np.isfinite(depth), depth, 0.0)
+    pc = cam.backproject(u, v, z).reshape(-1, 3)
+    local = se3.transform_points(se3.inv(T_world_box) @ T_world_camera, pc)
+    inside = (np.abs(local) <= np.asarray(size) / 2.0).all(axis=1).reshape(h, w)
+    return inside & (z > 0)
+
+
+def point_on_ray(points: np.ndarray, origin: np.ndarray, direction: np.ndarray, max_offset: float) -> np.ndarray | None:
+    """The point a click's ray hits first: among points within `max_offset` of the ray (in front of its
+    origin), the one nearest the origin; None when the ray passes no point."""
+    d = direction / np.linalg.norm(direction)
+    rel = points - origin
+    along = rel @ d
+    off = np.linalg.norm(rel - along[:, None] * d, axis=1)
+    near = (along > 0) & (off < max_offset)
+    if not near.any():
+        return None
+    return points[near][np.argmin(along[near])].astype(float)
+
+
+def thin(points: np.ndarray, max_points: int, seed: int = 0) -> np.ndarray:
+    if len(points) <= max_points:
+        return points
+    idx = np.random.default_rng(seed).choice(len(points), max_points, replace=False)
+    return points[np.sort(idx)]
+
+
+@dataclass(frozen=True)
+class StageView:
+    """One frame of the registration replay."""
+
+    name: str
+    source_world: np.ndarray  # (N, 3) the source cloud at this stage's pose
+    T_world_base: np.ndarray
+    fitness: float
+    inlier_rmse: float
+
+
+def replay(result: RegistrationResult, max_points: int = 20000) -> list[StageView]:
+    """The source cloud moved by each stage's T_world_base: initial -> global -> ICP iterations -> final."""
+    src = thin(result.source_cloud, max_points)
+    return [StageView(s.name, se3.transform_points(s.T_world_base, src).astype(np.float32), s.T_world_base,
+                      float(s.fitness), float(s.inlier_rmse)) for s in result.stages]
+
+
+def metrics_markdown(score, result: RegistrationResult | None) -> str:
+    """The metrics panel: errors against ground truth (when known) and the estimator's own numbers."""
+    if result is None:
+        return "_No estimate for this frame yet: press **Estimate frame**._"
+    if not result.ok:
+        import html
+
+        return f"**Estimation failed:** {html.escape(str(result.reason))}"
+    rows = [("fitness", f"{result.fitness:.3f}"), ("inlier RMSE", f"{result.inlier_rmse * 1000:.2f} mm"),
+            ("time", f"{result.seconds * 1000:.0f} ms"), ("coverage", f"{result.coverage:.0%}")]
+    if score is not None and score.adi is not None:
+        rows = [("ADI", f"{score.adi * 1000:.2f} mm"), ("MSSD", f"{score.mssd * 1000:.2f} mm"),
+                ("te", f"{score.te * 1000:.2f} mm"), ("re", f"{score.re_deg:.2f}°")] + rows
+    if score is not None and score.mask_iou is not None:
+        rows.append(("mask IoU", f"{score.mask_iou:.3f}"))
+    flags = []
+    if result.ambiguous:
+        flags.append(f"ambiguous: {len(result.alternatives) + 1} placements fit the data equally (a (nearly) symmetric "
+                     "base, and what tells them apart is not in view); the others are the magenta boxes")
+    if not result.confident:
+        from apose_studio.registration import doubts
+
+        flags.append(f"low confidence: {doubts(result)}")
+    table = "| metric | value |\n|---|---|\n" + "\n".join(f"| {k} | {v} |" for k, v in rows)
+    return table + ("\n\n" + "\n\n".join(f"⚠ {f}" for f in flags) if flags else "")
+
+
+@dataclass
+class ResultCache:
+    """Estimates per (dataset, step, frame, preset, mask, prior), so revisiting a frame is instant."""
+
+    entries: dict = field(default_factory=dict)
+
+    @staticmethod
+    def key(dataset: str, step: int | None, im_id: int, preset: str, mask, prior: bool) -> tuple:
+        return (str(dataset), step, int(im_id), preset, mask, bool(prior))
+
+    def get(self, key):
+        return self.entries.get(key)
+
+    def put(self, key, value) -> None:
+        self.entries[key] = value
+
+    def __len__(self) -> int:
+        return len(self.entries)
+
+
+def box_from_view_rect(points_world: np.ndarray, T_world_view: np.ndarray, fov: float, aspect: float,
+                       rect_min, rect_max, T_world_camera: np.ndarray, cam: CameraIntrinsics) -> tuple[int, int, int, int] | None:
+    """A box prompt (x0, y0, x1, y1 in the frame's pixels) from a rectangle dragged in the 3D view: the
+    scene points the rectangle covers (the view's camera: OpenCV axes, vertical field of view `fov` in
+    radians, width/height `aspect`, the rectangle in 0..1 screen coordinates), projected into the frame.
+    None when it covers no scene point."""
+    pc = se3.transform_points(se3.inv(T_world_view), points_world)
+    front = pc[:, 2] > 1e-6
+    t = np.tan(fov / 2.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sx = 0.5 + pc[:, 0] / np.where(front, pc[:, 2], 1.0) / (2.0 * t * aspect)
+        sy = 0.5 + pc[:, 1] / np.where(front, pc[:, 2], 1.0) / (2.0 * t)
+    (x0, y0), (x1, y1) = rect_min, rect_max
+    inside = front & (sx >= min(x0, x1)) & (sx <= max(x0, x1)) & (sy >= min(y0, y1)) & (sy <= max(y0, y1))
+    if inside.sum() < 3:
+        return None
+    uv, ok = project_points(points_world[inside], T_world_camera, cam)
+    uv = uv[ok]
+    if not len(uv):
+        return None
+    lo, hi = np.floor(uv.min(axis=0)), np.ceil(uv.max(axis=0)) + 1
+    return (int(max(lo[0], 0)), int(max(lo[1], 0)), int(min(hi[0], cam.width)), int(min(hi[1], cam.height)))

@@ -1,0 +1,192 @@
+"""Who may drive the studio, and which files it may touch.
+
+viser 1.1 accepts a websocket from any web page: a page on another site (or on another port of this
+machine) that the user happens to visit could open `ws://127.0.0.1:8080` and press Open or Save. This
+module closes that hole the way Jupyter does:
+
+- **Origin check**: the websocket is accepted only from the studio's own page (same host and port;
+  loopback names count as one host). Bound to loopback, the Host header must also name loopback, so a
+  DNS-rebinding page (evil.example resolving to 127.0.0.1) is refused too. A *loopback name* is an IP
+  literal in 127.0.0.0/8, `::1`, or exactly `localhost` (`is_loopback_name`): never a DNS name that
+  merely starts with `127.` (`127.attacker.example`, `127.0.0.1.nip.io` can point anywhere).
+- **Token**: the page and its websocket live under `/t/<token>/`, a secret made per start and printed
+  by the command; without it, nothing but a "needs the token" page is served. On loopback too, as
+  Jupyter does: any local process (another user's, a sandboxed app's) can forge an Origin header,
+  but cannot guess 192 random bits. `--token` picks a fixed one (a bookmark, a scripted demo).
+- **Workspace**: file paths typed into the page resolve inside a few root folders (`--root`).
+
+viser offers no hook for the first two, so `start_viser` wraps the request hook of the websockets
+server while viser starts it (the one place that touches viser's internals for this).
+"""
+
+from __future__ import annotations
+
+import hmac
+import http
+import ipaddress
+import secrets
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from urllib.parse import urlsplit
+
+from apose_studio.errors import AposeError
+
+_START_LOCK = threading.Lock()
+
+
+def is_loopback_name(name: str) -> bool:
+    """True for an IP literal in 127.0.0.0/8 or ::1 (brackets allowed) and for exactly `localhost`
+    (any case). Everything else is a name some DNS server answers for: `127.evil.example`,
+    `127.0.0.1.nip.io`, `localhost.`, `localhost.evil.example`, `0x7f.1` and `2130706433` are not loopback."""
+    name = (name or "").lower()
+    if name == "localhost":
+        return True
+    if name.startswith("[") and name.endswith("]"):
+        name = name[1:-1]
+    try:
+        address = ipaddress.ip_address(name)
+    except ValueError:
+        return False
+    return address.is_loopback and (address.version == 4 or address == ipaddress.IPv6Address("::1"))
+
+
+def is_loopback_bind(host: str) -> bool:
+    return is_loopback_name(host)
+
+
+def _host_port(netloc: str, default_port: int | None) -> tuple[str, int | None]:
+    """('127.0.0.1', 8080) from '127.0.0.1:8080'; IPv6 brackets removed; names lower-cased."""
+    parts = urlsplit("//" + netloc)
+    try:
+        port = parts.port
+    except ValueError:
+        return "", None
+    return (parts.hostname or "").lower(), port if port is not None else default_port
+
+
+def _has_token(path: str, token: str) -> bool:
+    """`path` is /t/<token>, /t/<token>/… or /t/<token>?…; compared in constant time."""
+    if not path.startswith("/t/"):
+        return False
+    rest = path[3:]
+    end = min((i for i in (rest.find("/"), rest.find("?")) if i >= 0), default=len(rest))
+    return hmac.compare_digest(rest[:end].encode("utf-8", "surrogateescape"), token.encode())
+
+
+def refusal(*, path: str, host_header: str | None, origin: str | None, port: int, bound_loopback: bool,
+            token: str | None, websocket: bool) -> str | None:
+    """Why a request must be refused, or None to let it through (pure; the rules of the module doc)."""
+    if token is not None and not _has_token(path, token):
+        return "this studio needs its token: open the address that `apose studio` printed (it ends in /t/<token>/)"
+    host, host_port = _host_port(host_header or "", 80)
+    if bound_loopback and not is_loopback_name(host):
+        return f"refused: the studio listens on this machine only, and Host {host_header!r} is not a loopback name"
+    if not websocket:
+        return None
+    if not origin:
+        return "refused: a websocket without an Origin header (only the studio's own page may connect)"
+    o = urlsplit(origin)
+    o_host, o_port = _host_port(o.netloc, {"http": 80, "https": 443}.get(o.scheme))
+    same_host = o_host == host or (is_loopback_name(o_host) and is_loopback_name(host))
+    if o.scheme not in ("http", "https") or not same_host or o_port != port:
+        return f"refused: Origin {origin!r} is not the studio's own page"
+    return None
+
+
+def new_token() -> str:
+    return secrets.token_urlsafe(24)
+
+
+def check_token(token: str) -> str:
+    """A chosen token, refused when it is guessable or does not fit in a URL path segment."""
+    token = str(token)
+    if len(token) < 16 or not all(c.isascii() and (c.isalnum() or c in "-_") for c in token):
+        raise AposeError(f"--token: {len(token)} characters; use at least 16 of A-Z, a-z, 0-9, '-' and '_' "
+                         "(or leave it out: each start then makes a new random one)")
+    return token
+
+
+def start_viser(host: str, port: int, token: str | None, label: str = "apose studio"):
+    """A viser server whose websockets and page go through `refusal` first."""
+    import viser
+    import websockets.asyncio.server as wss
+
+    original = wss.serve
+    bound_loopback = is_loopback_bind(host)
+
+    def serve(handler, *args, process_request=None, **kwargs):
+        def guarded(connection, request):
+            def one(name: str) -> str | None:  # a header sent twice counts as missing
+                values = request.headers.get_all(name)
+                return values[0] if len(values) == 1 else None
+
+            websocket = (one("Upgrade") or "").lower() == "websocket"
+            reason = refusal(path=request.path, host_header=one("Host"), origin=one("Origin"),
+                             port=connection.local_address[1], bound_loopback=bound_loopback, token=token,
+                             websocket=websocket)
+            if reason is not None:
+                return connection.respond(http.HTTPStatus.FORBIDDEN, reason + "\n")
+            if token is not None and not websocket:  # the page lives under /t/<token>/
+                from websockets.http11 import Request
+
+                rest = request.path[len(f"/t/{token}"):] or "/"
+                request = Request(rest, request.headers)
+            return process_request(connection, request) if process_request is not None else None
+
+        return original(handler, *args, process_request=guarded, **kwargs)
+
+    import rich
+
+    printer = rich.print
+    with _START_LOCK:  # viser starts its server inside the constructor; only that call sees the wrapper
+        wss.serve = serve
+        rich.print = lambda *a, **k: None  # viser's banner shows the address without the token: `serve` prints ours
+        try:
+            return viser.ViserServer(host=host, port=port, label=label, verbose=False)
+        finally:
+            wss.serve = original
+            rich.print = printer
+
+
+def studio_url(host: str, port: int, token: str | None) -> str:
+    shown = "127.0.0.1" if host in ("0.0.0.0", "::", "") else host
+    return f"http://{shown}:{port}/" + (f"t/{token}/" if token else "")
+
+
+# --------------------------------------------------------------------------------------- files
+
+
+@dataclass(frozen=True)
+class Workspace:
+    """The folders whose files the studio's page may name. Paths typed into the page resolve here."""
+
+    roots: tuple[Path, ...]
+
+    @classmethod
+    def of(cls, *folders) -> "Workspace":
+        return cls(tuple(dict.fromkeys(Path(f).expanduser().resolve() for f in folders if f is not None)))
+
+    def check_assembly(self, asm) -> None:
+        """Every mesh an assembly file names lies in the workspace (a file in it may name
+        `../outside/secret.stl` or `/etc/...`); AposeError naming the file, the part and the mesh."""
+        for pid, part in asm.parts.items():
+            try:
+                self.resolve(part.mesh, "mesh")
+            except AposeError as e:
+                where = f"{asm.path}: " if getattr(asm, "path", None) else ""
+                raise AposeError(f"{where}parts.{pid}.mesh: {e}") from None
+
+    def resolve(self, text: str | Path, what: str = "file") -> Path:
+        """The absolute path, or an AposeError naming the workspace when it lies outside."""
+        from apose_studio.safeio import check_path_text
+
+        p = check_path_text(text, what).expanduser()
+        if not p.is_absolute():
+            p = self.roots[0] / p
+        p = p.resolve()
+        if not any(p == r or p.is_relative_to(r) for r in self.roots):
+            where = ", ".join(str(r) for r in self.roots)
+            raise AposeError(f"{p}: outside the studio's workspace ({where}); the studio reads and writes only "
+                             f"there. Move the {what} in, or restart with --root covering it.")
+        return p
