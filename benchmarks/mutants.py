@@ -2,7 +2,7 @@
 the bugs they catch (killed) and those they miss (survived). No dependency beyond the standard library.
 
     .venv/bin/python benchmarks/mutants.py                       # every default module, its default tests
-    .venv/bin/python benchmarks/mutants.py --modules apose_studio/metrics.py --tests tests/test_metrics.py
+    .venv/bin/python benchmarks/mutants.py --modules apose_studio/geometry/metrics.py --tests tests/geometry/test_metrics.py
     .venv/bin/python benchmarks/mutants.py --modules apose_studio/registration/pipeline.py::judge --list
 
 Each mutant is one edit found with `ast` (a comparison flipped, `and` for `or`, `+` for `-`, `max` for `min`
@@ -41,20 +41,20 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
 
-DEFAULT_MODULES = ["apose_studio/metrics.py", "apose_studio/se3.py", "apose_studio/mates.py",
+DEFAULT_MODULES = ["apose_studio/geometry/metrics.py", "apose_studio/geometry/se3.py", "apose_studio/assembly/mates.py",
                    "apose_studio/registration/results.py", "apose_studio/registration/pipeline.py::judge",
-                   "apose_studio/webguard.py", "apose_studio/outdir.py"]
+                   "apose_studio/studio/webguard.py", "apose_studio/data/outdir.py"]
 # the tests that target each module directly (used when --tests is not given)
 DEFAULT_TESTS = {
-    "apose_studio/metrics.py": ["tests/test_metrics.py"],
-    "apose_studio/se3.py": ["tests/test_se3.py"],
-    "apose_studio/mates.py": ["tests/test_mates.py"],
+    "apose_studio/geometry/metrics.py": ["tests/geometry/test_metrics.py"],
+    "apose_studio/geometry/se3.py": ["tests/geometry/test_se3.py"],
+    "apose_studio/assembly/mates.py": ["tests/assembly/test_mates.py"],
     "apose_studio/registration/results.py": ["tests/registration/test_scoring.py", "tests/test_evaluate.py"],
     "apose_studio/registration/pipeline.py": [  # judge()
         "tests/registration/test_pipeline.py::test_a_pose_the_camera_cannot_have_seen_is_not_ok",
         "tests/registration/test_pipeline.py::test_judge_edges_by_hand"],
-    "apose_studio/webguard.py": ["tests/test_webguard.py"],
-    "apose_studio/outdir.py": ["tests/test_outdir.py"],
+    "apose_studio/studio/webguard.py": ["tests/studio/test_webguard.py"],
+    "apose_studio/data/outdir.py": ["tests/data/test_outdir.py"],
 }
 IGNORE = (".git", ".venv", "__pycache__", ".pytest_cache", "artifacts", "out", "build", "*.egg-info", ".gl", ".whl",
           "*.pyc")

@@ -15,14 +15,14 @@ from apose_studio.synth.render import RenderSettings, render_dataset
 from apose_studio.masks.segment import (SegmentationError, depth_mask, iou, label_map, load_model, save_model,
                                   split_frames, train)
 
-from .conftest import SAMPLES
+from ..conftest import SAMPLES
 
 
 @pytest.fixture(scope="module")
 def tiny_ds(tmp_path_factory):
     import trimesh
 
-    from .conftest import TINY_YAML
+    from ..conftest import TINY_YAML
 
     d = tmp_path_factory.mktemp("seg")
     trimesh.creation.box((60, 40, 4)).export(d / "plate.stl")

@@ -13,7 +13,7 @@ from apose_studio.assembly.model import Step, load_assembly
 from apose_studio.assembly.mesh import load_mesh
 from apose_studio.studio.picking import FacePicker
 
-from .conftest import SAMPLES
+from ..conftest import SAMPLES
 
 
 def test_box_faces_are_planes_with_outward_normals():

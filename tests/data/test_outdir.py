@@ -15,7 +15,7 @@ from apose_studio.errors import AposeError
 from apose_studio.data.outdir import (JOURNAL, LOCK, MANIFEST, OutputLock, check_output_dir, claim,
                                  remove_previous_dataset, write_manifest)
 
-from .conftest import REPO, SAMPLES
+from ..conftest import REPO, SAMPLES
 
 
 def _starter(out, barrier, log):

@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from .conftest import SAMPLES
+from ..conftest import SAMPLES
 
 APOSE = [sys.executable, "-m", "apose_studio.cli.commands"]
 

@@ -15,8 +15,8 @@ from apose_studio.assembly.model import load_assembly, save_assembly
 from apose_studio.errors import MeshError
 from apose_studio.assembly.mesh import load_mesh, load_parts, step_solids
 
-from .conftest import SAMPLES
-from .test_cli import run
+from ..conftest import SAMPLES
+from ..cli.test_cli import run
 
 BRACKET = SAMPLES / "step_bracket"
 

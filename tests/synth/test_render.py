@@ -16,7 +16,7 @@ from apose_studio.assembly.mesh import load_parts
 from apose_studio.geometry.noise import add_depth_noise
 from apose_studio.synth.render import RenderSettings, render_dataset
 
-from .conftest import SAMPLES
+from ..conftest import SAMPLES
 
 SMALL_CAM = CameraIntrinsics(320, 240, 300.0, 300.0, 160.0, 120.0)
 
@@ -382,7 +382,7 @@ def test_five_frames_per_step_at_full_size(name, tmp_path, request):
 
 def test_a_capture_without_extrinsics_gets_the_table_as_its_world(gearbox_dataset, tmp_path):
     """The camera's height above the table and its tilt, from the depth alone, match the renderer's truth."""
-    from .conftest import write_capture
+    from ..conftest import write_capture
 
     fr = Dataset(gearbox_dataset).frame(1, 0)
     cap = write_capture(fr, tmp_path / "cap", {"cam_K": fr.camera.K.reshape(-1).tolist(), "depth_scale": 1.0})

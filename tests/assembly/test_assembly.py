@@ -6,7 +6,7 @@ from apose_studio.geometry import se3
 from apose_studio.assembly.model import Assembly, assembly_from_dict, load_assembly, save_assembly
 from apose_studio.errors import AssemblyError
 
-from .conftest import TINY_YAML
+from ..conftest import TINY_YAML
 
 
 def Rz(deg):

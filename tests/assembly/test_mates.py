@@ -205,8 +205,8 @@ def test_save_writes_mates_and_solved_pose_and_round_trips(folder):
 def test_apose_show_lists_mates_and_free_degrees(folder):
     import json
 
-    from .conftest import SAMPLES
-    from .test_cli import run
+    from ..conftest import SAMPLES
+    from ..cli.test_cli import run
 
     doc = json.loads(run("show", SAMPLES / "planetary_reducer" / "assembly.yaml", "--json").stdout)
     s = doc["steps"][0]
