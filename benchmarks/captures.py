@@ -83,7 +83,7 @@ def telling_pixels(frame, ctx: StepContext) -> int:
 
 
 def run(ds: Dataset, asm, models, params, compare_depth: bool = False) -> list[dict]:
-    from apose_studio.registration.results import doubts
+    from apose_studio.registration.types import doubts
 
     rows = []
     for step in ds.steps:

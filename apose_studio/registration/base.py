@@ -147,3 +147,26 @@ def prepare_base(mesh, n_samples: int = 20000, seed: int = 0, detect: bool = Tru
     exact[0] = True
     return BaseObject(mesh, d, (lo + hi) / 2, pts, normals, turns[exact], offsets[exact], turns[close & ~exact],
                       turns[~exact])
+
+
+def place_source(base: BaseObject, target_centre: np.ndarray, R_world_base: np.ndarray | None = None) -> np.ndarray:
+    """TFORM: T_world_source that puts the base's box centre on the target's centre, orientation kept;
+    (n, 4, 4) for (n, 3, 3) orientations."""
+    R = np.eye(3) if R_world_base is None else np.asarray(R_world_base)
+    T = np.tile(np.eye(4), R.shape[:-2] + (1, 1))
+    T[..., :3, :3], T[..., :3, 3] = R, target_centre - R @ base.centre
+    return T
+
+
+
+def raycast_source(base: BaseObject, T_world_source: np.ndarray, T_world_camera: np.ndarray,
+                   cam: CameraIntrinsics, look_at: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """RCAST: the base mesh at T_world_source seen by a pinhole camera at the real camera's position.
+
+    With `look_at`, the virtual camera turns to look at that point (the paper's virtual camera looks
+    at the target's centre); otherwise it is the real camera. Returns world points and normals.
+    """
+    from apose_studio.geometry.raycast import raycast_points
+
+    T_cam = T_world_camera if look_at is None else se3.look_at(T_world_camera[:3, 3], look_at)
+    return raycast_points(base.mesh, T_world_source, T_cam, cam)

@@ -29,11 +29,12 @@ from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.registration.base import BaseObject
 from apose_studio.registration.pipeline import estimate, judge, observe
 from apose_studio.registration.presets import Params
-from apose_studio.registration.problem import Problem, prepare_problem
+from apose_studio.registration.task import Task, prepare_task
 from apose_studio.registration.refine import POLISH_ITERATIONS, tied
-from apose_studio.registration.results import CONFIDENT_COVERAGE, MIN_POINTS, Degenerate, RegistrationResult, failed
+from apose_studio.registration.types import CONFIDENT_COVERAGE, MIN_POINTS, Degenerate, RegistrationResult, failed
 from apose_studio.registration.scoring import discriminate, distinct_placements, poses_within, score_pose, twin_placements
-from apose_studio.registration.stages import cloud, icp, project_to_cloud, raycast_source
+from apose_studio.registration.stages import cloud, icp, project_to_cloud
+from apose_studio.registration.base import raycast_source
 
 DISAGREE_DEGREES = 3.0  # a view whose own ICP turns the pose further than this disagrees with the others
 DISAGREE_VOXELS = 3.0  # ... or moves it further than this many voxels
@@ -99,15 +100,15 @@ def _name(view: View, i: int) -> str:
     return view.name or f"view {i + 1}"
 
 
-def _problem(view: View, base: BaseObject, T_base_part: np.ndarray, params: Params, voxel: float) -> Problem:
+def _problem(view: View, base: BaseObject, T_base_part: np.ndarray, params: Params, voxel: float) -> Task:
     pts = project_to_cloud(view.depth, view.mask, view.cam, view.T_world_camera)
     if len(pts) < MIN_POINTS:
         raise Degenerate(f"only {len(pts)} valid depth points under its mask (need {MIN_POINTS})")
-    return prepare_problem(pts, view.cam, view.T_world_camera, base, T_base_part, params, voxel,
+    return prepare_task(pts, view.cam, view.T_world_camera, base, T_base_part, params, voxel,
                            observe(view.depth, view.mask), light=True)
 
 
-def _disagreement(problems: dict[int, Problem], order: list[int], T_world_base: np.ndarray, voxel: float,
+def _disagreement(problems: dict[int, Task], order: list[int], T_world_base: np.ndarray, voxel: float,
                   views: list[View], at_first: dict) -> str:
     """Why the views cannot be of one placement seen from the given camera poses ("" when they can).
     `at_first`: view -> score_pose of the first view's pose there."""
@@ -136,7 +137,7 @@ WEIGH_MARGIN = 0.15  # the first view's placements scoring within this of its be
 WEIGH_MAX = 6
 
 
-def _weigh(first: RegistrationResult, problems: dict[int, Problem], order: list[int],
+def _weigh(first: RegistrationResult, problems: dict[int, Task], order: list[int],
            base: BaseObject, at_first: dict, part_symmetries: np.ndarray | None = None) -> RegistrationResult:
     """The first view's placements scored in every view; the chosen one polished on the fused cloud."""
     voxel = first.voxel
@@ -186,7 +187,7 @@ def _weigh(first: RegistrationResult, problems: dict[int, Problem], order: list[
     return result
 
 
-def fused_polish(problems: dict[int, Problem], order: list[int], T_world_base: np.ndarray, voxel: float,
+def fused_polish(problems: dict[int, Task], order: list[int], T_world_base: np.ndarray, voxel: float,
                  seen: dict | None = None) -> np.ndarray:
     """The last refinement on every view at once: all targets (world), down-sampled at the voxel (twice
     the points of one view at half of it, as `refine.polish` uses),

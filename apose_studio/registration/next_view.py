@@ -23,7 +23,7 @@ import numpy as np
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.registration.base import BaseObject
-from apose_studio.registration.results import RegistrationResult
+from apose_studio.registration.types import RegistrationResult
 from apose_studio.registration.scoring import depth_buffer, distinct_placements
 
 ADVICE_YAWS = 12
@@ -66,7 +66,7 @@ def hemisphere(centre: np.ndarray, distance: float) -> list[np.ndarray]:
 
 
 def _depth_image(base: BaseObject, T_world_base: np.ndarray, T_world_camera: np.ndarray, cam: CameraIntrinsics) -> np.ndarray:
-    from apose_studio.registration.stages import raycast_source
+    from apose_studio.registration.base import raycast_source
 
     return depth_buffer(raycast_source(base, T_world_base, T_world_camera, cam)[0], T_world_camera, cam)
 

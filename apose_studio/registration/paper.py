@@ -10,8 +10,9 @@ import numpy as np
 from apose_studio.geometry import se3
 from apose_studio.geometry.metrics import quick_tree
 from apose_studio.registration.presets import Params
-from apose_studio.registration.results import MIN_POINTS, Candidate, Degenerate, RegistrationResult
-from apose_studio.registration.stages import cloud, global_registration, icp, normals_fpfh, place_source, raycast_source, stage
+from apose_studio.registration.types import MIN_POINTS, Candidate, Degenerate, RegistrationResult
+from apose_studio.registration.stages import cloud, global_registration, icp, normals_fpfh, stage
+from apose_studio.registration.base import place_source, raycast_source
 
 
 def estimate_paper(target_pts, cam, T_world_camera, base, T_base_part, p: Params, voxel, prior, trace_iterations,

@@ -17,12 +17,14 @@ from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.registration.base import BaseObject
 from apose_studio.registration.paper import estimate_paper
 from apose_studio.registration.presets import Params
-from apose_studio.registration.problem import Problem, prepare_problem, scale_problem
+from apose_studio.registration.task import Task, prepare_task, scale_problem
 from apose_studio.registration.refine import add_symmetric_twins, choose, polish_chosen, refine_candidates, select_starts
-from apose_studio.registration.results import CONFIDENT_COVERAGE, MIN_POINTS, Degenerate, RegistrationResult, failed
-from apose_studio.registration.scoring import Observation, agreement_tolerance, depth_buffer, distinct_placements, evidence, mask_edge, twin_placements
+from apose_studio.registration.types import CONFIDENT_COVERAGE, MIN_POINTS, Degenerate, RegistrationResult, failed
+from apose_studio.registration.scoring import agreement_tolerance, depth_buffer, distinct_placements, evidence, mask_edge, twin_placements
+from apose_studio.registration.types import Observation
 from apose_studio.registration.searches import ModelSearch, search_poses, try_prior
-from apose_studio.registration.stages import place_source, project_to_cloud, trace_stages
+from apose_studio.registration.stages import project_to_cloud, trace_stages
+from apose_studio.registration.base import place_source
 
 
 def estimate(depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray,
@@ -90,7 +92,7 @@ def model_cut_mask(result: RegistrationResult, depth: np.ndarray, mask: np.ndarr
     from 0.85 to 0.93; pixels the prompt missed stay missed."""
     import cv2
 
-    from apose_studio.registration.stages import raycast_source
+    from apose_studio.registration.base import raycast_source
 
     seen, _ = raycast_source(base, result.T_world_base, T_world_camera, cam)
     zbuf = cv2.erode(depth_buffer(seen, T_world_camera, cam).astype(np.float32), np.ones((5, 5), np.uint8))  # 2 px wider, the nearer surface winning
@@ -145,7 +147,7 @@ def estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Para
                      part_symmetries: np.ndarray | None = None) -> RegistrationResult:
     """Ours after PROJ3D: the prior fast path, else search -> refine -> choose -> polish -> compose."""
     t = time.perf_counter()
-    pb = prepare_problem(target_pts, cam, T_world_camera, base, T_base_part, p, voxel, observation, deadline,
+    pb = prepare_task(target_pts, cam, T_world_camera, base, T_base_part, p, voxel, observation, deadline,
                          part_symmetries=part_symmetries)
     if prior is not None and p.prior_fast_path:  # the caller knows the orientation: ICP from it, kept if it fits
         timings["features"] = time.perf_counter() - t
@@ -180,7 +182,7 @@ def estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Para
     return result
 
 
-def compose(pb: Problem, refined: list, chosen: int, close: list[int], T_world_source: np.ndarray,
+def compose(pb: Task, refined: list, chosen: int, close: list[int], T_world_source: np.ndarray,
             timings: dict) -> RegistrationResult:
     """The result: the chosen pose and its part pose, the replay, every candidate (best first), and the
     other placements that fit as well when the result is ambiguous."""
@@ -199,7 +201,7 @@ def compose(pb: Problem, refined: list, chosen: int, close: list[int], T_world_s
                               preset=pb.params.preset)
 
 
-def better_of_free_search(result: RegistrationResult, target_pts, pb: Problem, prior, trace_iterations,
+def better_of_free_search(result: RegistrationResult, target_pts, pb: Task, prior, trace_iterations,
                           timings: dict) -> RegistrationResult:
     """The base lies on its side, is held in a hand or sits on a fixture: search freely too, keep the
     better of the two, and count the time of both."""
@@ -238,7 +240,7 @@ def judge(result: RegistrationResult, depth: np.ndarray, mask: np.ndarray, cam: 
     if result.voxel > 1.01 * scale_voxel:  # a coarse preset (the paper's fixed 8 mm): its fit is judged at the
         # scale-aware tolerance, on what the camera sees of the model at the final pose, like ours
         from apose_studio.geometry.metrics import quick_tree
-        from apose_studio.registration.stages import raycast_source
+        from apose_studio.registration.base import raycast_source
 
         seen, _ = raycast_source(base, result.T_world_base, T_world_camera, cam)
         if len(seen) and len(result.target_cloud):

@@ -5,17 +5,15 @@ near-ties, and the polish of the chosen pose."""
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from apose_studio.geometry import se3
-from apose_studio.registration.results import MIN_POINTS, TIE_MARGIN, TWIN_TIE_MARGIN, Candidate
+from apose_studio.registration.types import MIN_POINTS, TIE_MARGIN, TWIN_TIE_MARGIN, Candidate
 from apose_studio.registration.scoring import discriminate, poses_within, score_pose, score_seen
-from apose_studio.registration.stages import cloud, icp, raycast_source
-
-if TYPE_CHECKING:
-    from apose_studio.registration.searches import Found, Start
+from apose_studio.registration.stages import cloud, icp
+from apose_studio.registration.base import raycast_source
+from apose_studio.registration.types import Found, Start
 
 POLISH_ITERATIONS = 6
 KEEP_DISTINCT = 3  # refine at most this many distinct coarse poses (several starts often converge to one)

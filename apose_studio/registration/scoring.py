@@ -4,18 +4,15 @@ evidence where two placements differ, and the clearly different placements among
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.geometry.metrics import quick_tree
-from apose_studio.registration.results import Candidate
-from apose_studio.registration.stages import raycast_source
-
-if TYPE_CHECKING:
-    from apose_studio.registration.problem import Problem
+from apose_studio.registration.types import Candidate
+from apose_studio.registration.base import raycast_source
+from apose_studio.registration.task import Task
 
 MASK_MARGIN_PX = 2  # mask edges are a pixel or two off: a model point further outside contradicts its pose
 DISCRIMINATE_MIN_POINTS = 10  # fewer pixels than this where two placements differ: they are symmetric twins
@@ -23,13 +20,6 @@ EDGE_PX = 2  # a pixel of one placement differs from another's only if no depth 
 # other is within the tolerance: a sub-millimetre shift moves depth edges and outlines by a pixel or two
 
 
-class Observation(NamedTuple):
-    """What a frame shows of the base: its mask, the depth (metres) and the mask's outline (`mask_edge`)."""
-
-    mask: np.ndarray
-    depth: np.ndarray
-    edge: np.ndarray
-    noise: float = 0.0  # the frame's own axial depth noise (metres, one sigma; noise.estimate_depth_noise)
 
 
 def mask_edge(mask: np.ndarray, px: int = MASK_MARGIN_PX) -> np.ndarray:
@@ -83,7 +73,7 @@ def agreement_tolerance(voxel: float, noise: float = 0.0) -> float:
     return max(2 * voxel, 0.002, NOISE_SIGMAS * noise)
 
 
-def score_pose(pb: "Problem", T_world_base: np.ndarray, symmetry: int = 0) -> tuple[Candidate, np.ndarray, np.ndarray]:
+def score_pose(pb: "Task", T_world_base: np.ndarray, symmetry: int = 0) -> tuple[Candidate, np.ndarray, np.ndarray]:
     """A candidate at a refined pose: what the camera would see of the base there (world points and
     normals, also returned), the target share it explains, and the share of it the depth confirms."""
     src_w, src_n = raycast_source(pb.base, T_world_base, pb.T_world_camera, pb.cam)
@@ -91,7 +81,7 @@ def score_pose(pb: "Problem", T_world_base: np.ndarray, symmetry: int = 0) -> tu
     return cand, src_w, src_n
 
 
-def score_seen(pb: "Problem", T_world_base: np.ndarray, src_w: np.ndarray, symmetry: int = 0) -> tuple[Candidate, np.ndarray]:
+def score_seen(pb: "Task", T_world_base: np.ndarray, src_w: np.ndarray, symmetry: int = 0) -> tuple[Candidate, np.ndarray]:
     """score_pose with what the camera sees of the base at T_world_base given (world points). One
     query gives the fitness and RMSE (within thr) and the coverage (within 2 voxels)."""
     thr, fine_pts = pb.thr, pb.fine_pts
@@ -134,7 +124,7 @@ def evidence(points_world: np.ndarray, T_world_camera, cam: CameraIntrinsics, de
     return int(confirmed.sum()), int(contradicted.sum())
 
 
-def discriminate(pb: "Problem", close: list[int], cands: list[Candidate], traces: list) -> list[int]:
+def discriminate(pb: "Task", close: list[int], cands: list[Candidate], traces: list) -> list[int]:
     """Break near-ties between placements by their differences only (a nearly symmetric motor block
     differs in one connector). For each pair, the pixels where one placement shows a surface that the
     other shows nowhere near (no depth of the other within EDGE_PX pixels comes within the tolerance)

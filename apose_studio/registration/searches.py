@@ -20,9 +20,10 @@ from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.geometry.plane import fit_plane
 from apose_studio.registration.refine import polish
-from apose_studio.registration.results import MIN_POINTS, RegistrationResult
+from apose_studio.registration.types import MIN_POINTS, Found, RegistrationResult, Start
 from apose_studio.registration.scoring import agreement_tolerance, score_seen, visible_agreement
-from apose_studio.registration.stages import cloud, estimate_normals, global_registration, icp, normals_fpfh, place_source, raycast_source, trace_stages
+from apose_studio.registration.stages import cloud, estimate_normals, global_registration, icp, normals_fpfh, trace_stages
+from apose_studio.registration.base import place_source, raycast_source
 
 PRIOR_ACCEPT = 0.95  # the prior's pose is kept without a global search when both shares reach this
 UPRIGHT_YAW_STEP_DEG = 10.0
@@ -32,25 +33,8 @@ UPRIGHT_FALLBACK = 0.6  # below this share explained by the best upright start, 
 SCREEN_POINTS = 500  # target points the screening looks up per starting pose
 
 
-@dataclass
-class Start:
-    """A starting pose after the coarse ICP: the share of what it shows that the target explains,
-    the symmetry it came from (-1: the caller's prior), the pose ICP began from, the coarse pose."""
-
-    explained: float
-    symmetry: int
-    T_start: np.ndarray
-    T_coarse: np.ndarray
 
 
-@dataclass
-class Found:
-    """What the searches found: coarse poses (best first), the best upright pose's near-symmetric
-    twins, and whether the base was taken to stand upright on a table."""
-
-    coarse: list[Start]
-    twins: list[Start] = field(default_factory=list)
-    upright: bool = False
 
 
 def try_prior(pb, prior: np.ndarray, trace_iterations: bool, timings: dict, **kw) -> RegistrationResult | None:

@@ -4,7 +4,6 @@ replay's stage records. Open3D is imported where it is used."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -14,10 +13,7 @@ from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.errors import AposeError
 from apose_studio.geometry.metrics import fitness_rmse
 from apose_studio.registration.presets import Params
-from apose_studio.registration.results import Candidate, Stage
-
-if TYPE_CHECKING:
-    from apose_studio.registration.base import BaseObject
+from apose_studio.registration.types import Candidate, Stage
 
 
 def project_to_cloud(depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray) -> np.ndarray:
@@ -26,28 +22,6 @@ def project_to_cloud(depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics,
         raise AposeError(f"mask is {mask.shape[1]}x{mask.shape[0]} but depth is {depth.shape[1]}x{depth.shape[0]}")
     vs, us = np.nonzero(mask & np.isfinite(depth) & (depth > 0))
     return se3.transform_points(T_world_camera, cam.backproject(us, vs, depth[vs, us]))
-
-
-def place_source(base: "BaseObject", target_centre: np.ndarray, R_world_base: np.ndarray | None = None) -> np.ndarray:
-    """TFORM: T_world_source that puts the base's box centre on the target's centre, orientation kept;
-    (n, 4, 4) for (n, 3, 3) orientations."""
-    R = np.eye(3) if R_world_base is None else np.asarray(R_world_base)
-    T = np.tile(np.eye(4), R.shape[:-2] + (1, 1))
-    T[..., :3, :3], T[..., :3, 3] = R, target_centre - R @ base.centre
-    return T
-
-
-def raycast_source(base: "BaseObject", T_world_source: np.ndarray, T_world_camera: np.ndarray,
-                   cam: CameraIntrinsics, look_at: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """RCAST: the base mesh at T_world_source seen by a pinhole camera at the real camera's position.
-
-    With `look_at`, the virtual camera turns to look at that point (the paper's virtual camera looks
-    at the target's centre); otherwise it is the real camera. Returns world points and normals.
-    """
-    from apose_studio.geometry.raycast import raycast_points
-
-    T_cam = T_world_camera if look_at is None else se3.look_at(T_world_camera[:3, 3], look_at)
-    return raycast_points(base.mesh, T_world_source, T_cam, cam)
 
 
 def cloud(points: np.ndarray, normals: np.ndarray | None = None):

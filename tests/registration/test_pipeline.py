@@ -162,8 +162,8 @@ def test_the_time_budget_through_a_fake_clock(gearbox_dataset, monkeypatch):
 
     from apose_studio.data.dataset import Dataset
     from apose_studio.evaluate import StepContext
-    from apose_studio.registration import pipeline, problem
-    from apose_studio.registration.results import doubts
+    from apose_studio.registration import pipeline, task
+    from apose_studio.registration.types import doubts
 
     ds = Dataset(gearbox_dataset)
     ctx = StepContext(ds.assembly, load_parts(ds.assembly), 1)
@@ -174,7 +174,7 @@ def test_the_time_budget_through_a_fake_clock(gearbox_dataset, monkeypatch):
     def run(step, params):
         clock = FakeClock(step)
         monkeypatch.setattr(pipeline, "time", clock)
-        monkeypatch.setattr(problem, "time", clock)
+        monkeypatch.setattr(task, "time", clock)
         return estimate(fr.depth, fr.base_mask(), fr.camera, fr.T_world_camera, ctx.base, ctx.view.T_base_part, params)
 
     still = run(0.0, p)
@@ -191,16 +191,16 @@ def test_the_time_budget_through_a_fake_clock(gearbox_dataset, monkeypatch):
 def test_out_of_time_notes_once_from_the_deadline_on():
     from types import SimpleNamespace
 
-    from apose_studio.registration import problem
-    from apose_studio.registration.problem import Problem
+    from apose_studio.registration import task
+    from apose_studio.registration.task import Task
 
     clock = FakeClock(0.0)
     pb = SimpleNamespace(deadline=105.0, notes=[])
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(problem, "time", clock)
-        assert not Problem.out_of_time(pb, "a") and pb.notes == []  # 100 s: before the deadline
+        mp.setattr(task, "time", clock)
+        assert not Task.out_of_time(pb, "a") and pb.notes == []  # 100 s: before the deadline
         clock.now = 105.0  # at the deadline: out of time
-        assert Problem.out_of_time(pb, "a") and Problem.out_of_time(pb, "a") and Problem.out_of_time(pb, "b")
+        assert Task.out_of_time(pb, "a") and Task.out_of_time(pb, "a") and Task.out_of_time(pb, "b")
     assert pb.notes == ["a", "b"]
 
 
@@ -321,7 +321,7 @@ def test_judge_edges_by_hand(gearbox_step2):
 
     # a coarse preset (voxel 1.5 x the scale voxel: above the 1.01 x switch): coverage is measured again, as
     # the share of target points within the tolerance (2 scale voxels) of what the camera sees of the model
-    from apose_studio.registration.stages import raycast_source
+    from apose_studio.registration.base import raycast_source
 
     T = se3.make_T(t=np.asarray(centre) - base.centre)
     seen, _ = raycast_source(base, T, I4, CAM)

@@ -20,7 +20,7 @@ def test_polish_refines_a_noisy_view_onto_the_model(gearbox_step2):
     0.15 mm (ADI of the base), where the usual ICP (target normals) at the same start does clearly worse."""
     from apose_studio.geometry.metrics import adi
     from apose_studio.registration import Observation, mask_edge
-    from apose_studio.registration.problem import prepare_problem
+    from apose_studio.registration.task import prepare_task
     from apose_studio.registration.refine import polish
 
     _, base, _ = gearbox_step2
@@ -33,7 +33,7 @@ def test_polish_refines_a_noisy_view_onto_the_model(gearbox_step2):
     p = resolve_params("default")
     voxel = p.voxel(base.diameter)
     T_start = se3.make_T(se3.axis_angle_matrix([1.0, 1.0, 0], np.radians(0.5)), [0.001, 0, 0]) @ T_true
-    pb = prepare_problem(np.asarray(target.points), CAM, T_world_camera, base, np.eye(4), p, voxel,
+    pb = prepare_task(np.asarray(target.points), CAM, T_world_camera, base, np.eye(4), p, voxel,
                          Observation(mask, depth, mask_edge(mask)))
     T, seen = polish(pb, T_start, None)
     err = adi(T, T_true, base.samples)

@@ -1,8 +1,10 @@
-"""What an estimate returns: the result, its candidates and the stages of its replay."""
+"""The registration package's shared data: what a frame shows (Observation), the searches' starting poses
+(Start, Found), and what an estimate returns (the result, its candidates and the stages of its replay)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -115,3 +117,32 @@ def failed(reason: str, **kw) -> RegistrationResult:
 
 class Degenerate(Exception):
     """Input the estimator cannot work with (raised inside, returned as ok=False with the reason)."""
+
+class Observation(NamedTuple):
+    """What a frame shows of the base: its mask, the depth (metres) and the mask's outline (`mask_edge`)."""
+
+    mask: np.ndarray
+    depth: np.ndarray
+    edge: np.ndarray
+    noise: float = 0.0  # the frame's own axial depth noise (metres, one sigma; noise.estimate_depth_noise)
+
+
+@dataclass
+class Start:
+    """A starting pose after the coarse ICP: the share of what it shows that the target explains,
+    the symmetry it came from (-1: the caller's prior), the pose ICP began from, the coarse pose."""
+
+    explained: float
+    symmetry: int
+    T_start: np.ndarray
+    T_coarse: np.ndarray
+
+
+@dataclass
+class Found:
+    """What the searches found: coarse poses (best first), the best upright pose's near-symmetric
+    twins, and whether the base was taken to stand upright on a table."""
+
+    coarse: list[Start]
+    twins: list[Start] = field(default_factory=list)
+    upright: bool = False

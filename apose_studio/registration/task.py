@@ -14,13 +14,13 @@ from scipy.spatial import cKDTree
 from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.registration.base import BaseObject
 from apose_studio.registration.presets import Params
-from apose_studio.registration.results import Degenerate
-from apose_studio.registration.scoring import Observation
+from apose_studio.registration.types import Degenerate
+from apose_studio.registration.types import Observation
 from apose_studio.registration.stages import cloud
 
 
 @dataclass(frozen=True, eq=False)
-class Problem:
+class Task:
     base: BaseObject
     T_base_part: np.ndarray  # the step's pose of the part in the frame of base[0]
     params: Params
@@ -75,10 +75,10 @@ class Problem:
         return self.T_world_camera[:3, 3]
 
 
-def prepare_problem(target_pts: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray, base: BaseObject,
+def prepare_task(target_pts: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray, base: BaseObject,
                     T_base_part: np.ndarray, p: Params, voxel: float, observation: Observation,
                     deadline: float = float("inf"), light: bool = False,
-                    part_symmetries: np.ndarray | None = None) -> Problem:
+                    part_symmetries: np.ndarray | None = None) -> Task:
     """The target down-sampled (coarse: flying pixels and speckle removed; fine: with normals). Raises
     Degenerate when too little of it is left, or when it is a line. `light`: for scoring and polishing
     only (registration.fusion's other views): no outlier removal, no target normals."""
@@ -99,7 +99,7 @@ def prepare_problem(target_pts: np.ndarray, cam: CameraIntrinsics, T_world_camer
     if not light:
         fine.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=p.normal_radius_factor * voxel, max_nn=30))
         fine.orient_normals_towards_camera_location(T_world_camera[:3, 3])
-    return Problem(base, T_base_part, p, cam, T_world_camera, observation, voxel, target_pts, target_full, target, fine,
+    return Task(base, T_base_part, p, cam, T_world_camera, observation, voxel, target_pts, target_full, target, fine,
                    cKDTree(np.asarray(fine.points)), deadline,  # balanced: queried by many ICP iterations
                    part_symmetries=part_symmetries)
 
