@@ -14,13 +14,19 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
+from apose_studio.errors import AposeError
+from apose_studio.estimation import StepContext, array_mask, check_mask, estimate_view, step_context
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
-from apose_studio.errors import AposeError
+from apose_studio.geometry.plane import table_frame
+from apose_studio.registration import Params, doubts, resolve_params
+from apose_studio.registration.types import RegistrationResult, View
+
+__all__ = ["PoseEstimate", "camera_from_K", "check_mask", "estimate_pose", "pose_estimate", "run_registration",
+           "step_context"]
 
 
 @dataclass
@@ -68,57 +74,11 @@ def camera_from_K(K, width: int, height: int) -> CameraIntrinsics:
     return CameraIntrinsics.from_K(K, width, height)
 
 
-def check_mask(mask: np.ndarray, shape: tuple[int, int], what: str = "mask") -> np.ndarray:
-    mask = np.asarray(mask)
-    if mask.ndim == 3:
-        mask = mask[..., 0]
-    if mask.shape != shape:
-        raise AposeError(f"{what} is {mask.shape[1] if mask.ndim > 1 else '?'}x{mask.shape[0]} but the depth is "
-                         f"{shape[1]}x{shape[0]}; give a mask of the same size as the image")
-    return mask > 0
-
-
-_CONTEXTS: dict = {}
-
-
-def step_context(assembly, step: int):
-    """(Assembly, StepContext) for an assembly (path or Assembly) and a 1-based step, cached per file."""
-    from apose_studio.assembly.model import Assembly, load_assembly
-    from apose_studio.evaluate import StepContext
-    from apose_studio.assembly.mesh import load_parts
-
-    asm = assembly if isinstance(assembly, Assembly) else load_assembly(assembly)
-    if not 1 <= step <= len(asm.steps):
-        raise AposeError(f"{asm.path}: step {step} does not exist; the assembly has steps 1..{len(asm.steps)}"
-                         if asm.steps else f"{asm.path}: the assembly has no steps")
-    key = (str(asm.path), Path(asm.path).stat().st_mtime if Path(str(asm.path)).exists() else id(asm), step)
-    if key not in _CONTEXTS:
-        if len(_CONTEXTS) > 8:
-            _CONTEXTS.clear()
-        _CONTEXTS[key] = StepContext(asm, load_parts(asm), step)
-    return asm, _CONTEXTS[key]
-
-
-def find_mask(rgb, depth, cam, mask=None, box=None, point=None) -> tuple[np.ndarray, str]:
-    """The base object's mask and where it came from (see the module's doc)."""
-    if mask is not None:
-        return check_mask(mask, depth.shape), "given"
-    if box is not None or point is not None:
-        from apose_studio.masks.prompt import prompted_mask
-
-        return prompted_mask(rgb, depth, cam, box=box, point=point).mask, "box" if box is not None else "point"
-    from apose_studio.masks.segment import depth_mask
-
-    return depth_mask(depth, cam), "depth"
-
-
 def estimate_pose(rgb: np.ndarray, depth: np.ndarray, K, assembly, step: int, *, T_world_camera=None,
                   mask=None, box=None, point=None, preset: str = "default", orientation_prior: bool = False,
                   **params) -> PoseEstimate:
     """The assembly pose of `step`'s part from one frame. rgb (H, W, 3) uint8; depth (H, W) metres (0 or
     NaN where missing); K 3x3. Raises AposeError on bad input; a failed estimate is ok=False with a reason."""
-    from apose_studio.registration import resolve_params
-
     t0 = time.perf_counter()
     depth = np.asarray(depth, np.float32)
     if depth.ndim != 2:
@@ -130,37 +90,32 @@ def estimate_pose(rgb: np.ndarray, depth: np.ndarray, K, assembly, step: int, *,
     depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0).astype(np.float32)
     cam = camera_from_K(K, depth.shape[1], depth.shape[0])
     if T_world_camera is None:
-        from apose_studio.geometry.plane import table_frame
-
         T_world_camera = table_frame(depth, cam)
         T_world_camera = np.eye(4) if T_world_camera is None else T_world_camera
     asm, ctx = step_context(assembly, step)
-    m, source = find_mask(rgb, depth, cam, mask, box, point)
+    m, source = array_mask(rgb, depth, cam, mask, box, point)
     t_mask = time.perf_counter() - t0
-    return run_registration(depth, m, source, cam, np.asarray(T_world_camera, float), ctx,
-                            resolve_params(preset, asm.registration, **params), orientation_prior, t0, t_mask)
+    view = View(depth, m, cam, np.asarray(T_world_camera, float))
+    return run_registration(view, source, ctx, resolve_params(preset, asm.registration, **params), orientation_prior,
+                            t0, t_mask)
 
 
-def run_registration(depth, mask, source, cam, T_world_camera, ctx, params, orientation_prior, t0, t_mask,
-                     trace_iterations: bool = False) -> PoseEstimate:
-    """The registration step of estimate_pose (and of `apose estimate`), on a mask already found."""
-    from apose_studio.registration import estimate
-
-    ctx.base.warm_up(params)
+def run_registration(view: View, source: str, ctx: StepContext, params: Params, orientation_prior: bool, t0: float,
+                     t_mask: float, trace_iterations: bool = False) -> PoseEstimate:
+    """The registration step of estimate_pose (and of `apose estimate`) on a view whose mask is found,
+    as the robot-facing record; `t0` and `t_mask` (seconds) are when the call began and what the mask took."""
     t1 = time.perf_counter()
-    r = estimate(depth, mask, cam, T_world_camera, ctx.base, ctx.view.T_base_part, params,
-                 prior_T_world_base=np.eye(4) if orientation_prior else None, trace_iterations=trace_iterations,
-                 part_symmetries=ctx.part.symmetries)
+    r = estimate_view(view, ctx, params, orientation_prior, trace_iterations)
     t2 = time.perf_counter()
+    mask = view.mask
     if r.model_mask is not None:  # what the model shows at the pose: occluders in front and clutter beside it cut
         mask, source = r.model_mask, f"{source}, cut to the model's view"
-    return pose_estimate(r, T_world_camera, ctx.view, mask, source, {"mask": t_mask, "registration": t2 - t1, "total": t2 - t0})
+    return pose_estimate(r, view.T_world_camera, ctx.view, mask, source,
+                         {"mask": t_mask, "registration": t2 - t1, "total": t2 - t0})
 
 
-def pose_estimate(r, T_world_camera, view, mask, source, timings) -> PoseEstimate:
+def pose_estimate(r: RegistrationResult, T_world_camera, view, mask, source, timings) -> PoseEstimate:
     """A registration result as the robot-facing record (T_camera_part, the approach pose, the doubts)."""
-    from apose_studio.registration import doubts
-
     ok = bool(r.ok)
     approach = view.approach.start(r.T_world_part, r.T_world_base) if ok and view.approach is not None else None
     return PoseEstimate(ok, r.reason, T_world_camera, r.T_world_base if ok else None, r.T_world_part if ok else None,

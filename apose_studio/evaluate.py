@@ -1,23 +1,27 @@
-"""Evaluation over a rendered dataset: estimate every frame of every step, score it, tabulate like the paper."""
+"""Evaluation: estimate every frame of every step of a dataset (ours, or a BOP split), score it against
+the ground truth with the paper's metrics, and tabulate it like the paper; also score another method's
+BOP19 results file on one of our datasets. The estimates themselves come from `estimation`."""
 
 from __future__ import annotations
 
+import multiprocessing as mp
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
-from apose_studio.geometry import metrics, se3
-from apose_studio.assembly.model import Assembly
-from apose_studio.data.dataset import Dataset, Frame
+from apose_studio.assembly.mesh import PartModel, load_parts
+from apose_studio.data.bop import BopResult, BopScene, best_per_image, scene_folders, step_truth
+from apose_studio.data.dataset import Dataset, DatasetError, Frame
 from apose_studio.errors import AposeError
-from apose_studio.assembly.mesh import PartModel, base_mesh, load_parts
-from apose_studio.registration import TIE_MARGIN, BaseObject, Params, RegistrationResult, estimate, prepare_base
+from apose_studio.estimation import StepContext, check_mask_source, estimate_frame, estimate_frames, frame_mask, step_context
+from apose_studio.geometry import metrics, se3
+from apose_studio.masks.segment import iou
+from apose_studio.registration import TIE_MARGIN, Params, RegistrationResult
 from apose_studio.registration.scoring import twin_placements
-
-MASK_SOURCES = ("gt", "depth", "box")  # or the path of a model from `apose train-seg`
-BOX_MARGIN = 0.04  # the box prompt of `--mask box`: the ground truth's visible box, this much wider on each side
+from apose_studio.registration.types import View
 
 
 @dataclass
@@ -77,64 +81,6 @@ class FrameScore:
         return out
 
 
-def check_mask_source(source: str, asm: Assembly) -> str:
-    """'gt', 'depth', or a model file trained for this assembly (loaded once here, so a wrong one is
-    refused before any work). Raises AposeError naming the fix."""
-    if source in MASK_SOURCES:
-        return source
-    if _is_model(source):
-        _segmenter(str(Path(source).resolve()), asm)
-        return str(Path(source).resolve())
-    raise AposeError(f"--mask {source}: expected gt, depth, or a model file (.pt) from `apose train-seg`")
-
-
-_SEGMENTERS: dict = {}
-
-
-def _is_model(source: str) -> bool:
-    return source.endswith(".pt") or Path(source).exists()
-
-
-def _segmenter(path: str, asm: Assembly | None = None):
-    from apose_studio.masks.segment import load_model
-
-    key = (path, Path(path).stat().st_mtime if Path(path).exists() else 0)
-    if key not in _SEGMENTERS:
-        _SEGMENTERS[key] = load_model(path, asm)
-    elif asm is not None and list(asm.parts) != _SEGMENTERS[key].part_ids:
-        load_model(path, asm)  # raises with the explanation
-    return _SEGMENTERS[key]
-
-
-def frame_mask(frame: Frame, source: str) -> np.ndarray:
-    """The base object's mask in a frame: ground truth, from depth alone, or from a trained model."""
-    if source == "gt":
-        return frame.base_mask()
-    if source == "depth":
-        from apose_studio.masks.segment import depth_mask
-
-        return depth_mask(frame.depth, frame.camera)
-    if source == "box":
-        from apose_studio.masks.prompt import prompted_mask
-
-        box = truth_box(frame.base_mask())
-        return prompted_mask(frame.rgb, frame.depth, frame.camera, box=box).mask if box else frame.base_mask()
-    if _is_model(source):
-        return _segmenter(str(Path(source).resolve())).mask(frame.rgb, frame.depth, frame.base, frame.camera)
-    raise ValueError(f"unknown mask source {source!r}; available: {', '.join(MASK_SOURCES)} or a .pt model")
-
-
-def truth_box(mask: np.ndarray, margin: float = BOX_MARGIN) -> tuple[int, int, int, int] | None:
-    """The box a user or detector would draw: the visible mask's box, `margin` of its size wider per side."""
-    if not mask.any():
-        return None
-    ys, xs = np.nonzero(mask)
-    mx, my = margin * (np.ptp(xs) + 1), margin * (np.ptp(ys) + 1)
-    h, w = mask.shape
-    return (max(int(xs.min() - mx), 0), max(int(ys.min() - my), 0), min(int(xs.max() + 1 + mx), w),
-            min(int(ys.max() + 1 + my), h))
-
-
 def truth_twins(T_world_part_gt: np.ndarray, T_base_part: np.ndarray, base_symmetries) -> list[np.ndarray]:
     """The ground truth's placements that the base's exact symmetries (T_base_base, identity first) make
     the same assembly: the base turned onto itself, the part with it."""
@@ -151,8 +97,6 @@ def score_frame(frame: Frame, result: RegistrationResult, part: PartModel, mask:
     s = FrameScore(frame.step, frame.im_id, result.ok, result.reason, time_s=result.seconds,
                    T_world_part_gt=frame.T_world_part)
     if mask is not None and frame.masks:
-        from apose_studio.masks.segment import iou
-
         s.mask_iou = iou(mask, frame.base_mask())
     if not result.ok:
         return s
@@ -196,30 +140,6 @@ def summarise_step(step: int, scores: list[FrameScore], part: PartModel) -> dict
     }
 
 
-class StepContext:
-    """What a step's frames share: its base object (prepared once) and the part to place."""
-
-    def __init__(self, asm: Assembly, models: dict[str, PartModel], step: int):
-        self.view = asm.step_view(step)
-        self.base: BaseObject = prepare_base(base_mesh(models, self.view))
-        self.part = models[self.view.part]
-
-
-def estimate_frame(frame: Frame, ctx: StepContext, params: Params, mask_source: str = "gt",
-                   orientation_prior: bool = False, trace_iterations: bool = False,
-                   mask: np.ndarray | None = None) -> RegistrationResult:
-    """Run the estimator on one frame. With orientation_prior the CAD's orientation is taken as the
-    base's orientation in the world (what `--base-pose fixed` renders, and the paper assumes).
-    `mask` overrides `mask_source` (a caller that already computed it)."""
-    ctx.base.warm_up(params)
-    prior = np.eye(4) if orientation_prior else None
-    if mask is None:
-        mask = frame_mask(frame, mask_source)
-    return estimate(frame.depth, mask, frame.camera, frame.T_world_camera, ctx.base,
-                    ctx.view.T_base_part, params, prior_T_world_base=prior, trace_iterations=trace_iterations,
-                    part_symmetries=ctx.part.symmetries)
-
-
 def estimate_and_score(frame: Frame, ctx: StepContext, params: Params, mask_source: str = "gt",
                        orientation_prior: bool = False, trace_iterations: bool = False,
                        mask: np.ndarray | None = None) -> tuple[RegistrationResult, FrameScore | None]:
@@ -241,8 +161,6 @@ def _score_frame_of(ds: Dataset, step: int, im_id: int, ctx: "StepContext", para
                     orientation_prior: bool) -> FrameScore:
     """One frame's score; a frame whose files are missing or broken counts as a failed frame (with the
     reason) instead of ending the whole evaluation."""
-    from apose_studio.errors import DatasetError
-
     try:
         frame = ds.frame(step, im_id)
     except DatasetError as e:
@@ -267,17 +185,12 @@ def _score_group_of(ds: Dataset, step: int, ids: list[int], ctx: "StepContext", 
                     orientation_prior: bool) -> FrameScore:
     """One fused estimate over frames of one placement (registration.fusion), scored against the first
     frame's ground truth (the placement's); its record lists the frames in `im_ids`."""
-    from apose_studio.errors import DatasetError
-    from apose_studio.registration.fusion import View, estimate_views
-
     try:
         frames = [ds.frame(step, i) for i in ids]
     except DatasetError as e:
         return FrameScore(scene_id=step, im_id=ids[0], ok=False, reason=f"unreadable frame: {e}", im_ids=list(ids))
-    ctx.base.warm_up(params)
     views = [View.of(f, frame_mask(f, mask_source)) for f in frames]
-    r = estimate_views(views, ctx.base, ctx.view.T_base_part, params, np.eye(4) if orientation_prior else None,
-                       ctx.part.symmetries)
+    r = estimate_frames(views, ctx, params, orientation_prior)
     s = score_frame(frames[0], r, ctx.part, None if mask_source == "gt" else views[0].mask, ctx.base.symmetries)
     s.time_s = float(r.timings.get("total fused", r.seconds))
     s.im_ids = list(ids)
@@ -298,17 +211,14 @@ def placement_groups(ds: Dataset, step: int, ids: list[int], views: int) -> list
 def evaluate(ds: Dataset, params: Params, steps: list[int] | None = None, frames: int | None = None,
              mask_source: str = "gt", orientation_prior: bool = False, progress: bool = True,
              models: dict[str, PartModel] | None = None, workers: int = 1, views: int = 1) -> dict:
-    """The evaluation document (see the README): per step, means and stds, times, recall, per-frame records.
+    """The evaluation document (docs/ESTIMATOR.md describes it): per step, means and stds, times, recall, per-frame records.
     `views` > 1: one fused estimate per group of frames of one placement (at most `views` each), one
     record per group (in one process)."""
-    from tqdm import tqdm
-
     models = models or load_parts(ds.assembly)
     mask_source = check_mask_source(mask_source, ds.assembly)
     steps = steps or ds.steps
     for s in steps:
         if s not in ds.steps:
-            from apose_studio.errors import DatasetError
             raise DatasetError(f"{ds.root}: step {s} was not rendered; rendered steps: {', '.join(map(str, ds.steps))}")
     todo = [(s, ds.image_ids(s)[:frames] if frames else ds.image_ids(s)) for s in steps]
     bar = tqdm(total=sum(len(ids) for _, ids in todo), unit="frame", desc=f"eval {params.preset}",
@@ -331,7 +241,6 @@ def evaluate(ds: Dataset, params: Params, steps: list[int] | None = None, frames
         doc["wall_s"] = time.perf_counter() - t0
         return doc
     if workers > 1:  # separate processes (Open3D holds the GIL); each loads the dataset once
-        import multiprocessing as mp
 
         tasks = [(step, im_id, params, mask_source, orientation_prior) for step, ids in todo for im_id in ids]
         by_step: dict[int, list[FrameScore]] = {step: [] for step, _ in todo}
@@ -386,3 +295,82 @@ def format_table(doc: dict) -> str:
                  "no surface point moves more than 1 mm); near-symmetric twins: wrong placements that tied with the right one; "
                  "AR: BOP average over 0.05..0.5")
     return "\n".join(lines)
+
+
+# ---- BOP results files and splits ---------------------------------------------------------------------
+
+def score_results(ds, rows: list[BopResult], steps: list[int] | None = None, models=None) -> dict:
+    """Score any method's BOP19 results on one of our datasets with our metrics and tables: per step,
+    the highest-scoring estimate of base[0] per image, composed with the step's T_base_part into the
+    assembly pose; an image without an estimate counts as failed. Exact symmetries of the base are
+    forgiven in `mssd_mod_base_sym`, as for our own estimates."""
+    models = models or load_parts(ds.assembly)
+    doc = {"preset": "results file", "dataset": str(ds.root), "mask": "-", "orientation_prior": False, "steps": [],
+           "missing_steps": ds.missing_steps}
+    for step in steps or ds.steps:
+        frames, T_base_part, obj_id = step_truth(ds, step)
+        best = best_per_image(rows, obj_id)
+        part = models[ds.assembly.step_view(step).part]
+        symmetries = StepContext(ds.assembly, models, step).base.symmetries
+        scores = []
+        for im_id in ds.image_ids(step):
+            fr = frames[str(im_id)]
+            G = np.asarray(fr["T_world_part"], float)
+            r = best.get((step, im_id))
+            if r is None:
+                scores.append(FrameScore(step, im_id, False, "no estimate in the results file", T_world_part_gt=G))
+                continue
+            T = np.asarray(fr["T_world_camera"], float) @ r.T_camera_obj @ T_base_part
+            s = FrameScore(step, im_id, True, T_world_part_gt=G, time_s=max(r.time, 0.0))
+            s.set_errors(T, part, truth_twins(G, T_base_part, symmetries))
+            s.confident = r.score >= 1.0
+            scores.append(s)
+        doc["steps"].append(summarise_step(step, scores, part))
+    return doc
+
+
+def evaluate_split(split: Path, asm, step: int, obj_of_part: dict[str, int], params, mask_source: str = "gt",
+                   frames: int | None = None, progress: bool = False) -> tuple[dict, list[BopResult]]:
+    """`apose eval` on a BOP split folder (real captures with downloaded ground truth): every image of
+    every scene whose scene_gt.json shows the step's base[0] (its obj_id from obj_of_part) is one frame;
+    the truth is T_world_base = that object's pose, composed with the step's T_base_part. Returns the
+    evaluation document (one step) and the BOP19 rows of the estimates."""
+    _, ctx = step_context(asm, step)
+    view = ctx.view
+    missing = [p for p in view.base if p not in obj_of_part]
+    if view.base[0] in missing:
+        raise AposeError(f"step {step} places {view.part} on {', '.join(view.base)}: map {view.base[0]} to its BOP object "
+                         f"id with --obj-map {view.base[0]}=ID")
+    scenes = scene_folders(split)
+    if not scenes:
+        raise DatasetError(f"{split}: no BOP scene folders here (numbered folders with scene_camera.json and depth/)")
+    todo = []
+    for folder in scenes:
+        sc = BopScene(folder, obj_of_part)
+        ids = [i for i in sc.image_ids() if any(int(g["obj_id"]) == obj_of_part[view.base[0]] for g in sc.gt.get(str(i), []))]
+        todo += [(sc, i) for i in (ids[:frames] if frames else ids)]
+    if not todo:
+        raise DatasetError(f"{split}: no image shows obj_id {obj_of_part[view.base[0]]} ({view.base[0]}) in scene_gt.json")
+    ctx.base.warm_up(params)
+    scores, rows = [], []
+    obj_id = obj_of_part[view.base[0]]
+    for sc, im_id in tqdm(todo, unit="frame", desc=f"eval {params.preset}", disable=not progress, leave=False):
+        try:
+            frame = sc.frame(im_id, view)
+        except DatasetError as e:
+            scores.append(FrameScore(sc.scene_id, im_id, False, f"unreadable frame: {e}"))
+            continue
+        if mask_source == "gt" and not frame.base_mask().any():
+            scores.append(FrameScore(sc.scene_id, im_id, False, "no mask_visib for the base in this image",
+                                     T_world_part_gt=frame.T_world_part))
+            continue
+        mask = frame_mask(frame, mask_source)
+        r, s = estimate_and_score(frame, ctx, params, mask_source, mask=mask)
+        s.scene_id = sc.scene_id
+        scores.append(s)
+        if r.ok:
+            T = se3.inv(frame.T_world_camera) @ r.T_world_base
+            rows.append(BopResult(sc.scene_id, im_id, obj_id, 1.0 if r.confident else 0.5, T, r.seconds))
+    doc = {"preset": params.preset, "dataset": str(split), "mask": mask_source, "orientation_prior": False,
+           "steps": [summarise_step(step, scores, ctx.part)], "missing_steps": []}
+    return doc, rows

@@ -26,6 +26,9 @@ import struct
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
+import numpy as np
+
 from apose_studio.errors import AposeError
 
 MB = 2 ** 20
@@ -220,9 +223,6 @@ def _tiff_header(data: bytes):
 def read_image(path: str | os.PathLike, flags: int, what: str = "an image"):
     """A PNG, JPEG or TIFF decoded by OpenCV (`flags` as cv2.imread), after its header has been checked against
     `LIMITS.image_side`; returns (array, header)."""
-    import cv2
-    import numpy as np
-
     data = read_bytes(path, what, LIMITS.image_bytes)
     head = image_header(data)
     if head is None:

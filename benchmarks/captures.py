@@ -41,14 +41,15 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 
 from registration import ASSEMBLIES, loaded_assemblies  # noqa: E402
 
-from apose_studio.geometry import metrics  # noqa: E402
 from apose_studio.data.dataset import Dataset  # noqa: E402
-from apose_studio.evaluate import StepContext, estimate_frame, score_frame, truth_box  # noqa: E402
+from apose_studio.estimation import StepContext, estimate_frame, truth_box  # noqa: E402
+from apose_studio.evaluate import score_frame
+from apose_studio.geometry import metrics  # noqa: E402
 from apose_studio.masks.prompt import prompted_mask  # noqa: E402
-from apose_studio.registration import resolve_params  # noqa: E402
-from apose_studio.synth.render import RenderSettings, render_dataset  # noqa: E402
 from apose_studio.masks.segment import iou  # noqa: E402
-
+from apose_studio.registration import resolve_params  # noqa: E402
+from apose_studio.synth.frame import RenderSettings  # noqa: E402
+from apose_studio.synth.render import render_dataset
 
 TELL_M = 0.004  # a pixel tells the truth from a twin when its depth is within this of the truth's surface and the
 # twin's surface there is not (along the ray)

@@ -33,11 +33,14 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 from registration import ASSEMBLIES, loaded_assemblies  # noqa: E402
 
 from apose_studio.data.dataset import Dataset  # noqa: E402
-from apose_studio.evaluate import StepContext, score_frame  # noqa: E402
+from apose_studio.estimation import StepContext  # noqa: E402
+from apose_studio.evaluate import score_frame
 from apose_studio.registration import estimate, resolve_params  # noqa: E402
-from apose_studio.registration.fusion import View, estimate_views  # noqa: E402
+from apose_studio.registration.fusion import estimate_views  # noqa: E402
 from apose_studio.registration.next_view import next_view  # noqa: E402
-from apose_studio.synth.render import RayGrid, RenderSettings, render_dataset, sample_scene, view_of  # noqa: E402
+from apose_studio.registration.types import View  # noqa: E402
+from apose_studio.synth.frame import RenderSettings, sample_scene, view_of  # noqa: E402
+from apose_studio.synth.render import RayGrid, render_dataset
 
 
 def right(frame, r, ctx) -> bool:
@@ -71,7 +74,7 @@ def run(root: Path, asm, models, settings: RenderSettings, params) -> list[dict]
             row = {"step": step, "single": [], "t_single": []}
             for f, v in zip(frames, views):
                 t = time.perf_counter()
-                r = estimate(v.depth, v.mask, v.cam, v.T_world_camera, ctx.base, ctx.view.T_base_part, params,
+                r = estimate(v, ctx.base, ctx.view.T_base_part, params,
                              part_symmetries=ctx.part.symmetries)
                 row["t_single"].append(time.perf_counter() - t)
                 row["single"].append((right(f, r, ctx), bool(r.ok and r.confident), bool(r.ambiguous)))
@@ -82,7 +85,7 @@ def run(root: Path, asm, models, settings: RenderSettings, params) -> list[dict]
             row["t_fused"] = time.perf_counter() - t
             row["fused"] = (right(frames[0], fused, ctx), bool(fused.ok and fused.confident))
             if first.ok and not (first.confident and not first.ambiguous):
-                advice = next_view(first, ctx.base, [views[0].T_world_camera], views[0].cam)
+                advice = next_view(first, ctx.base, [views[0].T_world_camera], views[0].camera)
                 row["doubt"] = True
                 if advice is not None:
                     adv = advised_view(asm, models, ctx, settings, step, placement, advice.T_world_camera, grid)

@@ -19,9 +19,10 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from apose_studio.assembly.model import load_assembly  # noqa: E402
 from apose_studio.assembly.mesh import load_parts  # noqa: E402
-from apose_studio.synth.render import RenderSettings, render_dataset  # noqa: E402
+from apose_studio.assembly.model import load_assembly  # noqa: E402
+from apose_studio.synth.frame import RenderSettings  # noqa: E402
+from apose_studio.synth.render import render_dataset
 
 
 def assemblies() -> list[Path]:

@@ -23,13 +23,14 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
+from apose_studio.assembly.mesh import load_parts  # noqa: E402
 from apose_studio.assembly.model import load_assembly  # noqa: E402
 from apose_studio.data.dataset import Dataset  # noqa: E402
 from apose_studio.evaluate import evaluate  # noqa: E402
-from apose_studio.assembly.mesh import load_parts  # noqa: E402
-from apose_studio.registration import resolve_params  # noqa: E402
-from apose_studio.synth.render import RenderSettings, render_dataset  # noqa: E402
 from apose_studio.masks.segment import evaluate_masks, save_model, train  # noqa: E402
+from apose_studio.registration import resolve_params  # noqa: E402
+from apose_studio.synth.frame import RenderSettings  # noqa: E402
+from apose_studio.synth.render import render_dataset
 
 
 def main() -> int:

@@ -32,8 +32,9 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
 from apose_studio.assembly.model import load_assembly  # noqa: E402
-from apose_studio.synth.render import RenderSettings, render_dataset  # noqa: E402
 from apose_studio.studio import serve  # noqa: E402
+from apose_studio.synth.frame import RenderSettings  # noqa: E402
+from apose_studio.synth.render import render_dataset
 
 
 def dense_torus(triangles: int):
@@ -80,8 +81,8 @@ def time_picks(st, stl: Path, n: int = 20) -> tuple[float, list[float], int]:
     st.files.f_mesh.value = str(stl)
     st.guarded("add")(lambda c: st.files.on_add_parts(c))(Click())
     pid = [p for p in st.asm.parts if p.startswith(stl.stem)][-1]
-    from apose_studio.studio import authoring
     from apose_studio.assembly.model import Step
+    from apose_studio.studio import authoring
 
     step = Step(pid, (st.asm.roots[0],), se3.make_T(t=np.array([0.1, 0.0, 0.0])))  # beside the base
     st.steps.step_index = len(st.asm.steps)

@@ -34,9 +34,11 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 from registration import ASSEMBLIES, loaded_assemblies  # noqa: E402
 
 from apose_studio.data.dataset import Dataset  # noqa: E402
-from apose_studio.evaluate import StepContext, estimate_and_score  # noqa: E402
+from apose_studio.estimation import StepContext  # noqa: E402
+from apose_studio.evaluate import estimate_and_score
 from apose_studio.registration import resolve_params  # noqa: E402
-from apose_studio.synth.render import RenderSettings, render_dataset  # noqa: E402
+from apose_studio.synth.frame import RenderSettings  # noqa: E402
+from apose_studio.synth.render import render_dataset
 
 
 def main() -> int:

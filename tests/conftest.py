@@ -62,7 +62,8 @@ def tiny_dir(tmp_path) -> Path:
 def gearbox_dataset(tmp_path_factory) -> Path:
     """Two RealSense-like views of gearbox step 1 with the base at the CAD's orientation (rendered once)."""
     from apose_studio.assembly.model import load_assembly
-    from apose_studio.synth.render import RenderSettings, render_dataset
+    from apose_studio.synth.frame import RenderSettings
+    from apose_studio.synth.render import render_dataset
 
     out = tmp_path_factory.mktemp("studio") / "ds"
     asm = load_assembly(SAMPLES / "helical_gearbox" / "assembly.yaml")
@@ -101,7 +102,8 @@ def clutter_dataset(tmp_path_factory) -> Path:
     """Kinect-like cluttered benches (objects standing against the base, base off-centre): gearbox step 2,
     three views (rendered once)."""
     from apose_studio.assembly.model import load_assembly
-    from apose_studio.synth.render import RenderSettings, render_dataset
+    from apose_studio.synth.frame import RenderSettings
+    from apose_studio.synth.render import render_dataset
 
     out = tmp_path_factory.mktemp("clutter") / "ds"
     asm = load_assembly(SAMPLES / "helical_gearbox" / "assembly.yaml")

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from apose_studio.data.dataset import Dataset
-from apose_studio.evaluate import truth_box
+from apose_studio.estimation import truth_box
 
 from .conftest import write_capture
 
@@ -127,7 +127,8 @@ def test_every_bad_input_exits_2_with_one_line(capture, tmp_path):
 def two_views(tmp_path_factory):
     """Gearbox step 1, two placements of two RealSense-like views each (`--views-per-scene 2`)."""
     from apose_studio.assembly.model import load_assembly
-    from apose_studio.synth.render import RenderSettings, render_dataset
+    from apose_studio.synth.frame import RenderSettings
+    from apose_studio.synth.render import render_dataset
 
     from .conftest import SAMPLES
 
@@ -186,7 +187,8 @@ def _png_header_only(path, width, height, colour=0, bits=16):
     import zlib
 
     ihdr = struct.pack(">IIBBBBB", width, height, bits, colour, 0, 0, 0)
-    chunk = lambda kind, data: struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+    def chunk(kind, data):
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
     path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\0" * 4096)))
 
 

@@ -7,13 +7,14 @@ import sys
 import numpy as np
 import pytest
 
+from apose_studio.assembly.mesh import load_parts
 from apose_studio.assembly.model import load_assembly
 from apose_studio.data.dataset import Dataset
 from apose_studio.evaluate import evaluate, format_table
-from apose_studio.assembly.mesh import load_parts
 from apose_studio.geometry.metrics import mssd
 from apose_studio.registration import RegistrationResult, resolve_params
-from apose_studio.synth.render import RenderSettings, render_dataset
+from apose_studio.synth.frame import RenderSettings
+from apose_studio.synth.render import render_dataset
 
 from .conftest import SAMPLES
 
@@ -60,7 +61,7 @@ def test_evaluate_document(gearbox_fixed):
 
 
 def test_failed_frames_count_as_misses(gearbox_fixed, monkeypatch):
-    import apose_studio.evaluate as E
+    import apose_studio.estimation as E
 
     monkeypatch.setattr(E, "estimate", lambda *a, **k: RegistrationResult(ok=False, reason="empty mask: test"))
     doc = evaluate(gearbox_fixed, resolve_params("default"), progress=False)

@@ -2,8 +2,8 @@
 pins; each was written to fail on the code before the fix (say so when changing one)."""
 
 import json
-import re
 import os
+import re
 import subprocess
 import sys
 import threading
@@ -14,10 +14,11 @@ import pytest
 import trimesh
 
 from apose_studio import safeio
+from apose_studio.assembly.mesh import load_mesh, load_parts
 from apose_studio.assembly.model import load_assembly
 from apose_studio.data.bop import BopScene, read_results_csv
 from apose_studio.errors import AposeError, AssemblyError, DatasetError, MeshError
-from apose_studio.assembly.mesh import load_mesh, load_parts
+from apose_studio.registration.types import View
 
 from .conftest import TINY_YAML
 
@@ -328,5 +329,5 @@ def test_a_mask_over_the_whole_image_is_named_as_such():
     depth = np.full((48, 64), 0.5, np.float32)
     depth[:, :32] = 2.0  # a wide scene: far larger than a 2 cm cube
     base = prepare_base(trimesh.creation.box((0.02, 0.02, 0.02)), n_samples=2000)
-    r = estimate(depth, np.ones((48, 64), bool), cam, np.eye(4), base, np.eye(4), resolve_params("default"))
+    r = estimate(View(depth, np.ones((48, 64), bool), cam, np.eye(4)), base, np.eye(4), resolve_params("default"))
     assert not r.ok and "the mask covers 100% of the image" in r.reason and "depth_scale" not in r.reason

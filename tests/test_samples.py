@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from apose_studio.assembly.model import load_assembly
 from apose_studio.assembly.mesh import load_parts
+from apose_studio.assembly.model import load_assembly
 
 from .conftest import SAMPLES
 

@@ -13,9 +13,12 @@ import re
 import stat
 import tempfile
 import threading
+import time
 from pathlib import Path
 
 import yaml
+from ruamel.yaml import YAML
+from ruamel.yaml.comments import CommentedMap, CommentedSeq
 
 from apose_studio.errors import AssemblyError, Problem
 
@@ -67,8 +70,6 @@ STALE_TMP_SECONDS = 600  # a temporary file of ours this old was left by a kille
 def _sweep_stale_tmp(path: Path) -> None:
     """Remove `.NAME.*.tmp` (and `.NAME.bak.*.tmp`) files beside `path` that a writer killed mid-save
     left behind; only ours (that exact prefix) and only old ones, so a save in flight is never touched."""
-    import time
-
     now, prefix = time.time(), f".{path.name}."  # also matches .NAME.bak.*.tmp
     try:
         names = [n for n in os.listdir(path.parent) if n.startswith(prefix) and n.endswith(".tmp")]
@@ -154,8 +155,6 @@ def parse_yaml(text: str, file: str):
         raise AssemblyError([Problem(file, "", "nested far too deeply to be an assembly file")]) from None
 
 
-
-
 def _same(a, b) -> bool:
     """Equal as data (1 == 1.0; a ruamel CommentedMap equals a dict with the same items)."""
     if isinstance(a, dict) and isinstance(b, dict):
@@ -171,8 +170,6 @@ def _same(a, b) -> bool:
 
 def _flow(value):
     """New short lists of scalars in flow style ([x, y, z]), as the format doc writes them."""
-    from ruamel.yaml.comments import CommentedMap, CommentedSeq
-
     if isinstance(value, dict):
         out = CommentedMap()
         for k, v in value.items():
@@ -219,8 +216,6 @@ def _merge(old, new, path: tuple, keep):
 def roundtrip_yaml(previous_text: str | None, data: dict, keep=None) -> str:
     """YAML text of `data`; where `previous_text` is a YAML mapping, written into it so that what the
     user wrote by hand (comments, key order, quoting) stays wherever the data did not change."""
-    from ruamel.yaml import YAML
-
     yaml = YAML(typ="rt")
     yaml.width = 4096
     yaml.indent(mapping=2, sequence=4, offset=2)

@@ -15,10 +15,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
-from apose_studio.geometry import se3
 from apose_studio.assembly.fileio import yaml_number as _num
 from apose_studio.assembly.yamlcheck import Checker, kind, rotation
+from apose_studio.geometry import se3
 
 MATE_TYPES = ("coaxial", "contact", "aligned", "angle", "fixed")
 LENGTH_TOL_M = 1e-6  # the format's tolerances for contradictions and a disagreeing pose_in_base
@@ -157,8 +158,6 @@ def _rotation(mates: list[Mate], R_guess: np.ndarray, w: list[float]) -> tuple[n
     elif not pairs:
         R, all_free = R_guess, True
     elif max(np.linalg.norm(np.cross(v, pairs[0][1])) for _, v in pairs) > 1e-9:
-        from scipy.spatial.transform import Rotation
-
         R = Rotation.align_vectors([v for _, v in pairs], [u for u, _ in pairs], weights=pw)[0].as_matrix()
     else:
         u, v = pairs[0]

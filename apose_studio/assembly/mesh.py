@@ -14,10 +14,12 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
+from scipy.spatial import ConvexHull
 
-from apose_studio.geometry import se3
+from apose_studio import safeio
 from apose_studio.assembly.model import Assembly, Part, StepView, Symmetry
-from apose_studio.errors import MeshError
+from apose_studio.errors import AposeError, MeshError
+from apose_studio.geometry import se3
 from apose_studio.geometry.units import UNIT_TO_M, suspicious_unit
 
 log = logging.getLogger(__name__)
@@ -67,9 +69,6 @@ def load_mesh(path: str | Path, unit: str = "m", solid: str | None = None) -> tr
 
     STEP files carry their own length unit and are read in metres whatever `unit` says; `solid` picks
     one named solid of a STEP file (None: all of them as one part)."""
-    from apose_studio import safeio
-    from apose_studio.errors import AposeError
-
     path = Path(path)
     ext = path.suffix.lower()
     try:
@@ -153,14 +152,10 @@ class _ConfinedResolver(trimesh.resolvers.FilePathResolver):
 
     def __init__(self, source: str, budget: list | None = None):
         super().__init__(source)
-        from apose_studio import safeio
 
         self.budget = budget if budget is not None else [safeio.LIMITS.mesh_bytes]  # shared with namespaced copies
 
     def get(self, name: str):
-        from apose_studio import safeio
-        from apose_studio.errors import AposeError
-
         too_much = AposeError(f"the files it refers to add up to more than the {safeio.LIMITS.mesh_bytes // 2**20} MB "
                               f"a mesh may have (at {name[:80]!r}); is a buffer named many times?")
         try:
@@ -181,8 +176,6 @@ class _ConfinedResolver(trimesh.resolvers.FilePathResolver):
 def _check_declared_size(path: Path, ext: str, data: bytes) -> None:
     """Refuse a PLY or binary STL whose header declares more triangles than a part may have, before
     the parser allocates for them."""
-    from apose_studio import safeio
-
     cap = safeio.LIMITS.mesh_triangles
     n = None
     if ext == ".stl" and len(data) >= 84 and not data[:5].lower() == b"solid":
@@ -240,8 +233,6 @@ def _step_solid(path: Path, solid: str | None) -> trimesh.Trimesh:
 
 def _not_a(path: Path, ext: str) -> str | None:
     """What a file really is when its first bytes contradict its extension ("a text file", "a PNG image")."""
-    from apose_studio import safeio
-
     fd, _ = safeio.open_regular(path, "a mesh file")
     try:
         head = os.read(fd, 512)
@@ -337,8 +328,6 @@ def diameter(points: np.ndarray) -> float:
             a, b, d = (a, fa, da) if da >= db else (fb, b, db)
         return float(d)
     try:
-        from scipy.spatial import ConvexHull
-
         pts = pts[ConvexHull(pts).vertices]
     except Exception:  # flat or tiny sets: fall back to all points
         pass
@@ -477,8 +466,6 @@ def load_part(part: Part, unit: str, index: int = 0) -> PartModel:
 
 def load_parts(asm: Assembly) -> dict[str, PartModel]:
     """Every part of an assembly, in file order. Raises MeshError naming the part on the first bad mesh."""
-    from apose_studio import safeio
-
     out, triangles, seen = {}, 0, set()
     for i, (pid, part) in enumerate(asm.parts.items()):
         try:

@@ -14,14 +14,17 @@ from pathlib import Path
 
 import numpy as np
 
-from apose_studio.geometry import se3
-from apose_studio.geometry.camera import CameraIntrinsics, RegistrationConfig, camera_from_dict, camera_to_dict, registration_from_dict, registration_to_dict
-from apose_studio.errors import AssemblyError, Problem
-from apose_studio.assembly.fileio import atomic_write_text, parse_yaml, roundtrip_yaml
+from apose_studio import safeio
+from apose_studio.assembly import mates as mt
+from apose_studio.assembly.fileio import atomic_write_text, describe_path, parse_yaml, roundtrip_yaml
 from apose_studio.assembly.fileio import yaml_number as _num
 from apose_studio.assembly.mates import Approach, Mate, MateError, approach_to_dict, mate_to_dict, parse_approach, parse_mates
-from apose_studio.geometry.units import UNIT_TO_M
 from apose_studio.assembly.yamlcheck import Checker, kind, rotation
+from apose_studio.errors import AposeError, AssemblyError, Problem
+from apose_studio.geometry import se3
+from apose_studio.geometry.camera import CameraIntrinsics, camera_from_dict, camera_to_dict
+from apose_studio.geometry.units import UNIT_TO_M
+from apose_studio.params import RegistrationConfig, registration_from_dict, registration_to_dict
 
 FORMAT = "apose-assembly/1"
 _TOP_KEYS = ("format", "name", "units", "parts", "steps", "camera", "registration")
@@ -180,8 +183,6 @@ def _parse_parts(c: Checker, parts_raw, folder: Path, scale: float) -> dict[str,
             continue
         mesh_path = (folder / mesh).resolve()
         if not mesh_path.is_file():
-            from apose_studio.assembly.fileio import describe_path
-
             c.add(f"{key}.mesh", f"{mesh_path}: {describe_path(mesh_path, 'a mesh file')}")
         color = None
         if spec.get("color") is not None:
@@ -283,8 +284,6 @@ def _parse_base(c: Checker, base, key: str, part, parts: dict[str, Part]) -> lis
 def solve_step_mates(step: Step, T_base_members: dict[str, np.ndarray], part: Part):
     """The mates' solution (`mates.Solution`) for a step whose base parts sit at `T_base_members` (in
     base[0]'s frame); what the mates leave free comes from the step's current pose. Raises MateError."""
-    from apose_studio.assembly import mates as mt
-
     sym = part.symmetry
     axis = np.asarray(sym.axis) if sym is not None and sym.order == 0 else None
     return mt.solve(mt.in_base_frame(step.mates, step.base[0], T_base_members), step.T_base_part, axis)
@@ -294,8 +293,6 @@ def _solve_mates(c: Checker, steps: list[Step], parts: dict[str, Part], given: d
     """Solve every step's mates in order (a base part's pose comes from the steps before), in place.
     Step indices in key paths count the steps as written; these are the parsed ones, which match
     when nothing was rejected (this runs only then)."""
-    from apose_studio.assembly import mates as mt
-
     T_root: dict[str, np.ndarray] = {}
     for i, s in enumerate(steps):
         T_root_base0 = T_root.get(s.base[0], np.eye(4))
@@ -370,9 +367,6 @@ def assembly_from_dict(data, file: str | Path, folder: Path | None = None) -> As
 
 def load_assembly(path: str | Path) -> Assembly:
     """Read and validate an assembly file; raises AssemblyError naming file, key path and expectation."""
-    from apose_studio import safeio
-    from apose_studio.errors import AposeError
-
     path = Path(path)
     try:
         data = safeio.read_bytes(path, "an assembly file (.yaml)", MAX_FILE_BYTES)
@@ -455,9 +449,6 @@ def save_assembly(asm: Assembly, path: str | Path, backup: bool = False) -> Path
     path = Path(path).resolve()
     previous = None
     if path.is_file():
-        from apose_studio import safeio
-        from apose_studio.errors import AposeError
-
         try:
             previous = safeio.read_text(path, "an assembly file", MAX_FILE_BYTES)
         except AposeError:  # unreadable or not ours to merge into: written afresh (the old one kept as .bak)

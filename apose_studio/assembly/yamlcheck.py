@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from apose_studio.errors import Problem
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import is_number
-from apose_studio.errors import Problem
 
 
 class Checker:

@@ -3,26 +3,44 @@
 from __future__ import annotations
 
 import argparse
-import os
+import errno
 import json
 import logging
+import os
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 from apose_studio import __version__
-from apose_studio.cli.frames import _check_output_file, cmd_estimate, cmd_eval
-from apose_studio.errors import AposeError
 from apose_studio.assembly.summary import show_json, show_text
+from apose_studio.cli.common import check_output_file, estimator_args
+from apose_studio.errors import AposeError
+from apose_studio.safeio import check_path_text
 
 REPO = Path(__file__).resolve().parents[2]  # the checkout: apose_studio/cli/commands.py -> the repo
 SAMPLES = REPO / "sample_assemblies"
 DEFAULT_SAMPLE = SAMPLES / "helical_gearbox" / "assembly.yaml"
 
 
+def cmd_estimate(args) -> int:
+    # loaded per command: `apose --help` loads none of the core
+    from apose_studio.cli.frames import cmd_estimate
+
+    return cmd_estimate(args)
+
+
+def cmd_eval(args) -> int:
+    # loaded per command: `apose --help` loads none of the core
+    from apose_studio.cli.frames import cmd_eval
+
+    return cmd_eval(args)
+
+
 def cmd_show(args) -> int:
-    from apose_studio.assembly.model import load_assembly
+    # loaded per command: `apose --help` loads none of the core
     from apose_studio.assembly.mesh import load_parts
+    from apose_studio.assembly.model import load_assembly
 
     asm = load_assembly(args.assembly)
     models = load_parts(asm)
@@ -35,12 +53,15 @@ def cmd_show(args) -> int:
 
 def cmd_demo(args) -> int:
     """The slice end to end on a sample: summary, a small rendered dataset, one estimate per step."""
+    # loaded per command: `apose --help` loads none of the core
+    from apose_studio.assembly.mesh import load_parts
     from apose_studio.assembly.model import load_assembly
     from apose_studio.data.dataset import Dataset
-    from apose_studio.evaluate import StepContext, estimate_and_score
-    from apose_studio.assembly.mesh import load_parts
+    from apose_studio.estimation import StepContext
+    from apose_studio.evaluate import estimate_and_score
     from apose_studio.registration import doubts, resolve_params
-    from apose_studio.synth.render import RenderSettings, render_dataset
+    from apose_studio.synth.frame import RenderSettings
+    from apose_studio.synth.render import render_dataset
 
     path = Path(args.assembly) if args.assembly else DEFAULT_SAMPLE
     if not path.is_file():
@@ -83,6 +104,7 @@ def cmd_demo(args) -> int:
 
 
 def _serve_studio(assembly, dataset, host: str, port: int, cache=None, root=None, token=None) -> int:
+    # loaded per command: `apose --help` loads none of the core
     from apose_studio.studio import serve
     from apose_studio.studio.webguard import is_loopback_bind
 
@@ -129,8 +151,6 @@ def _positive_int(text: str) -> int:
 
 def _os_error(e: OSError) -> str:
     """One line for an OSError: the file, what the system said, and what to do."""
-    import errno
-
     where = f"{e.filename}: " if getattr(e, "filename", None) else ""
     fix = {errno.ENOSPC: "free some disk space or choose another folder (nothing half-written was kept)",
            errno.EDQUOT: "free some space under your quota or choose another folder",
@@ -145,8 +165,6 @@ def _os_error(e: OSError) -> str:
 def _check_argument_text(args) -> None:
     """Every text argument without NUL bytes and within the system's path length (a path named on the
     command line reaches open() only after this)."""
-    from apose_studio.safeio import check_path_text
-
     for name, value in vars(args).items():
         for v in value if isinstance(value, list) else [value]:
             if isinstance(v, str):
@@ -184,10 +202,10 @@ def _steps(text: str) -> list[int]:
 
 
 def cmd_render(args) -> int:
-    from dataclasses import replace
-
+    # loaded per command: `apose --help` loads none of the core
     from apose_studio.assembly.model import load_assembly
-    from apose_studio.synth.render import RenderSettings, render_dataset
+    from apose_studio.synth.frame import RenderSettings
+    from apose_studio.synth.render import render_dataset
 
     asm = load_assembly(args.assembly)
     settings = RenderSettings(frames=args.frames, seed=args.seed, noise=args.noise, noise_sigma_at_05m=args.noise_sigma,
@@ -206,22 +224,8 @@ def cmd_render(args) -> int:
     return 0
 
 
-def _estimator_args(p: argparse.ArgumentParser, mask_default: str | None = "gt") -> None:
-    p.add_argument("--preset", default="default", choices=["default", "paper"], help="estimator settings (default: ours)")
-    p.add_argument("--mask", default=mask_default, metavar="gt|depth|box|MODEL.pt|MASK.png",
-                   help="the base object's mask: gt (the data's ground truth; the default where there is one), depth "
-                   "(table-plane removal and 3D clustering, no training; the default for captures), box (eval: the "
-                   "prompted mask from the ground truth's visible box, as a detector would give), a model from "
-                   "`apose train-seg`, or a mask image")
-    p.add_argument("--orientation-prior", action="store_true",
-                   help="take the CAD's orientation as the base's orientation in the world (true for --base-pose fixed renders)")
-    p.add_argument("--upright", action=argparse.BooleanOptionalAction, default=None,
-                   help="where a table is seen, first search the yaw of the base standing on it as modelled (its CAD "
-                   "z axis along the table's normal), then freely if that fits poorly: on by default in the default "
-                   "preset; --no-upright searches freely from the start")
-
-
 def cmd_train_seg(args) -> int:
+    # loaded per command: `apose --help` loads none of the core
     from apose_studio.data.dataset import Dataset
     from apose_studio.masks.segment import save_model, train
 
@@ -229,7 +233,7 @@ def cmd_train_seg(args) -> int:
     out = Path(args.out)
     if out.suffix != ".pt":
         raise AposeError(f"--out {out}: name the model file *.pt")
-    _check_output_file(out, "--out")  # now, not after minutes of training
+    check_output_file(out, "--out")  # now, not after minutes of training
     print(f"training a segmentation network for {ds.assembly.name} ({len(ds.assembly.parts)} parts + background) "
           f"on {args.dataset}")
     seg, rep = train(ds, epochs=args.epochs, device=args.device, batch=args.batch, seed=args.seed,
@@ -330,7 +334,7 @@ def _add_estimate(sub) -> None:
                    help="BOP scene: which BOP obj_id each part is (repeatable), for the ground truth in scene_gt.json")
     p.add_argument("--json", action="store_true", help="print JSON (metres): ok, reason, T_world_base, T_world_part, "
                    "T_camera_part, confident, coverage, ambiguous, alternatives, mask, timings, stages")
-    _estimator_args(p, mask_default=None)
+    estimator_args(p, mask_default=None)
     p.set_defaults(func=cmd_estimate)
 
 
@@ -338,7 +342,7 @@ def _add_eval(sub) -> None:
     p = sub.add_parser("eval", help="evaluate the estimator on a dataset: the paper's per-step table")
     p.add_argument("dataset", help="dataset folder made by `apose render`, or a BOP split folder (e.g. lmo/test: "
                    "numbered scene folders) with --assembly, --step and --obj-map")
-    _estimator_args(p)
+    estimator_args(p)
     p.add_argument("--steps", type=_steps, help="only these steps, e.g. 1,3")
     p.add_argument("--frames", type=int, help="at most this many frames per step (default: all)")
     p.add_argument("--workers", type=int, default=1, help="processes in parallel (default 1; --views runs in one)")

@@ -6,19 +6,25 @@ the camera pose to look from next (registration.next_view)."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
+from apose_studio.api import pose_estimate
+from apose_studio.assembly.model import load_assembly
+from apose_studio.cli.common import params_of, parse_prompt, pose_lines
+from apose_studio.data.dataset import Dataset, read_json
+from apose_studio.data.sources import open_frames
 from apose_studio.errors import AposeError
+from apose_studio.estimation import MaskRequest, estimate_frames, find_mask, step_context
+from apose_studio.evaluate import score_frame
+from apose_studio.registration.next_view import next_view
+from apose_studio.registration.types import View
 
 
 def open_views(args) -> tuple[list, object, object]:
     """(frames, assembly, step context): the views `apose estimate` was given."""
-    from apose_studio.api import step_context
-    from apose_studio.assembly.model import load_assembly
-    from apose_studio.data.dataset import Dataset, open_frames, read_json
-
     if len(args.input) == 1:
         src = open_frames(args.input[0])
         if not isinstance(src, Dataset):
@@ -47,46 +53,26 @@ def open_views(args) -> tuple[list, object, object]:
             raise AposeError(f"{Path(folder) / 'camera.json'}: several views are fused in one world frame; add the "
                              "camera's pose as cam_R_w2c (row-major 3x3) and cam_t_w2c (mm), e.g. from the robot's "
                              "kinematics")
-        fr.base, fr.part, fr.step = tuple(ctx.view.base), ctx.view.part, args.step
-        frames.append(fr)
+        frames.append(replace(fr, base=tuple(ctx.view.base), part=ctx.view.part, step=args.step))
     return frames, asm, ctx
 
 
 def view_masks(args, frames, asm) -> list[tuple[np.ndarray, str]]:
     """Each view's mask: --box/--point once per input (in order), else --mask (default: the ground truth
     where there is one, else depth)."""
-    from types import SimpleNamespace
-
-    from apose_studio.cli.frames import _estimate_mask
-
     out = []
     for k, fr in enumerate(frames):
-        one = {"box": None, "point": None}
-        for flag in one:
-            given = getattr(args, flag) or []
-            if given and len(given) != len(frames):
-                raise AposeError(f"--{flag} given {len(given)} time(s) for {len(frames)} views: give it once per view, "
-                                 "in the order of the views")
-            one[flag] = given[k] if given else None
-        out.append(_estimate_mask(SimpleNamespace(**{**vars(args), **one, "input": fr.source or args.input[0]}), fr, asm))
+        request = MaskRequest(args.mask, *(parse_prompt(args, flag, k, len(frames)) for flag in ("box", "point")))
+        out.append(find_mask(fr, request, asm, fr.source or args.input[0]))
     return out
 
 
 def cmd_estimate_views(args) -> int:
-    from apose_studio.api import pose_estimate
-    from apose_studio.cli.frames import _upright
-    from apose_studio.evaluate import score_frame
-    from apose_studio.registration import resolve_params
-    from apose_studio.registration.fusion import View, estimate_views
-    from apose_studio.registration.next_view import next_view
-
     frames, asm, ctx = open_views(args)
-    params = resolve_params(args.preset, asm.registration, **_upright(args))
+    params = params_of(args, asm.registration)
     masks = view_masks(args, frames, asm)
     views = [View.of(f, m) for f, (m, _) in zip(frames, masks)]
-    ctx.base.warm_up(params)
-    r = estimate_views(views, ctx.base, ctx.view.T_base_part, params, np.eye(4) if args.orientation_prior else None,
-                       ctx.part.symmetries)
+    r = estimate_frames(views, ctx, params, args.orientation_prior)
     T_wc = frames[0].T_world_camera
     est = pose_estimate(r, T_wc, ctx.view, masks[0][0], masks[0][1], r.timings)
     advice = next_view(r, ctx.base, [f.T_world_camera for f in frames], frames[0].camera) if r.ok else None
@@ -108,10 +94,9 @@ def cmd_estimate_views(args) -> int:
     if not r.ok:
         print(f"estimation failed: {r.reason}")
         return 1
-    from apose_studio.cli.frames import _pose_lines
 
     print("T_world_part (estimated assembly pose, fused):")
-    print("\n".join(_pose_lines(r.T_world_part)))
+    print("\n".join(pose_lines(r.T_world_part)))
     print(f"{r.timings.get('total fused', r.seconds) * 1000:.0f} ms; coverage {r.coverage:.2f} (the worst view)")
     if not r.confident:
         print(f"low confidence: {est.doubts}")

@@ -9,14 +9,30 @@ Units are BOP's at the edge (mm, row-major R) and metres inside. Facts checked a
 from __future__ import annotations
 
 import csv
+import io
 import math
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
+from apose_studio import safeio
+from apose_studio.assembly.fileio import atomic_write_text
+from apose_studio.data.dataset import (
+    DatasetError,
+    Frame,
+    check_camera_entry,
+    check_scene_images,
+    gt_entries,
+    read_depth,
+    read_image,
+    read_json,
+    read_rgb,
+)
+from apose_studio.errors import AposeError
 from apose_studio.geometry import se3
-from apose_studio.data.dataset import DatasetError, Frame, _read_image, check_camera_entry, check_scene_images, gt_entries, read_depth, read_json, read_rgb
+from apose_studio.geometry.plane import table_frame
 
 CSV_HEADER = ["scene_id", "im_id", "obj_id", "score", "R", "t", "time"]
 
@@ -90,8 +106,6 @@ class BopScene:
         if depth.shape != (h, w):
             raise DatasetError(f"{self.dir}: image {im_id}: depth is {depth.shape[1]}x{depth.shape[0]} but RGB is {w}x{h}")
         if T_world_camera is None:
-            from apose_studio.geometry.plane import table_frame
-
             T_world_camera = table_frame(depth, cam)
             T_world_camera = np.eye(4) if T_world_camera is None else T_world_camera
         frame = Frame(rgb=rgb, depth=depth, camera=cam, T_world_camera=T_world_camera, im_id=im_id,
@@ -104,9 +118,7 @@ class BopScene:
             frame.poses[pid] = T_world_camera @ T_camera_obj
             mpath = self.dir / "mask_visib" / f"{im_id:06d}_{i:06d}.png"
             if mpath.exists():
-                import cv2
-
-                frame.masks[pid] = _read_image(mpath, cv2.IMREAD_GRAYSCALE) > 127
+                frame.masks[pid] = read_image(mpath, cv2.IMREAD_GRAYSCALE) > 127
         if view is not None:
             frame.part, frame.base, frame.T_base_part = view.part, tuple(view.base), view.T_base_part
             if view.base[0] in frame.poses:
@@ -130,8 +142,6 @@ class BopResult:
 
 def write_results_csv(path: Path, rows: list[BopResult]) -> None:
     """BOP19 results: one line per estimate, R row-major and t in mm, space-separated (atomic write)."""
-    from apose_studio.assembly.fileio import atomic_write_text
-
     lines = [",".join(CSV_HEADER)]
     for r in rows:
         R, t = r.T_camera_obj[:3, :3].reshape(-1), r.T_camera_obj[:3, 3] * 1000.0
@@ -142,11 +152,6 @@ def write_results_csv(path: Path, rows: list[BopResult]) -> None:
 
 def read_results_csv(path: Path) -> list[BopResult]:
     """A BOP19 results CSV from any method; DatasetError naming the line for a malformed one."""
-    import io
-
-    from apose_studio import safeio
-    from apose_studio.errors import AposeError
-
     path = Path(path)
     if not path.exists() and not path.is_symlink():
         raise DatasetError(f"{path}: no such results file")
@@ -203,7 +208,7 @@ def best_per_image(rows: list[BopResult], obj_id: int) -> dict[tuple[int, int], 
 # --------------------------------------------------------------------------------------- our datasets
 
 
-def _step_truth(ds, step: int) -> tuple[dict, np.ndarray, int]:
+def step_truth(ds, step: int) -> tuple[dict, np.ndarray, int]:
     """(frames of scene_assembly.json, T_base_part, obj_id of base[0]) of a rendered step."""
     sa = ds._scene(step)["scene_assembly"]
     return sa["frames"], np.asarray(sa["T_base_part"], float), ds.obj_ids[sa["base"][0]]
@@ -215,7 +220,7 @@ def results_from_eval(ds, doc: dict) -> list[BopResult]:
     else 0.5."""
     rows = []
     for st in doc["steps"]:
-        frames, T_base_part, obj_id = _step_truth(ds, st["step"])
+        frames, T_base_part, obj_id = step_truth(ds, st["step"])
         for f in st["frames"]:
             if not f["ok"] or f["T_world_part_est"] is None:
                 continue
@@ -223,92 +228,3 @@ def results_from_eval(ds, doc: dict) -> list[BopResult]:
             T = se3.inv(T_world_camera) @ np.asarray(f["T_world_part_est"], float) @ se3.inv(T_base_part)
             rows.append(BopResult(st["step"], f["im_id"], obj_id, 1.0 if f["confident"] else 0.5, T, float(f["time_s"])))
     return rows
-
-
-def score_results(ds, rows: list[BopResult], steps: list[int] | None = None, models=None) -> dict:
-    """Score any method's BOP19 results on one of our datasets with our metrics and tables: per step,
-    the highest-scoring estimate of base[0] per image, composed with the step's T_base_part into the
-    assembly pose; an image without an estimate counts as failed. Exact symmetries of the base are
-    forgiven in `mssd_mod_base_sym`, as for our own estimates."""
-    from apose_studio.evaluate import FrameScore, StepContext, summarise_step, truth_twins
-    from apose_studio.assembly.mesh import load_parts
-
-    models = models or load_parts(ds.assembly)
-    doc = {"preset": "results file", "dataset": str(ds.root), "mask": "-", "orientation_prior": False, "steps": [],
-           "missing_steps": ds.missing_steps}
-    for step in steps or ds.steps:
-        frames, T_base_part, obj_id = _step_truth(ds, step)
-        best = best_per_image(rows, obj_id)
-        part = models[ds.assembly.step_view(step).part]
-        symmetries = StepContext(ds.assembly, models, step).base.symmetries
-        scores = []
-        for im_id in ds.image_ids(step):
-            fr = frames[str(im_id)]
-            G = np.asarray(fr["T_world_part"], float)
-            r = best.get((step, im_id))
-            if r is None:
-                scores.append(FrameScore(step, im_id, False, "no estimate in the results file", T_world_part_gt=G))
-                continue
-            T = np.asarray(fr["T_world_camera"], float) @ r.T_camera_obj @ T_base_part
-            s = FrameScore(step, im_id, True, T_world_part_gt=G, time_s=max(r.time, 0.0))
-            s.set_errors(T, part, truth_twins(G, T_base_part, symmetries))
-            s.confident = r.score >= 1.0
-            scores.append(s)
-        doc["steps"].append(summarise_step(step, scores, part))
-    return doc
-
-
-# --------------------------------------------------------------------------------------- BOP splits
-
-
-def evaluate_split(split: Path, asm, step: int, obj_of_part: dict[str, int], params, mask_source: str = "gt",
-                   frames: int | None = None, progress: bool = False) -> tuple[dict, list[BopResult]]:
-    """`apose eval` on a BOP split folder (real captures with downloaded ground truth): every image of
-    every scene whose scene_gt.json shows the step's base[0] (its obj_id from obj_of_part) is one frame;
-    the truth is T_world_base = that object's pose, composed with the step's T_base_part. Returns the
-    evaluation document (one step) and the BOP19 rows of the estimates."""
-    from tqdm import tqdm
-
-    from apose_studio.api import step_context
-    from apose_studio.errors import AposeError
-    from apose_studio.evaluate import FrameScore, estimate_and_score, frame_mask, summarise_step
-
-    _, ctx = step_context(asm, step)
-    view = ctx.view
-    missing = [p for p in view.base if p not in obj_of_part]
-    if view.base[0] in missing:
-        raise AposeError(f"step {step} places {view.part} on {', '.join(view.base)}: map {view.base[0]} to its BOP object "
-                         f"id with --obj-map {view.base[0]}=ID")
-    scenes = scene_folders(split)
-    if not scenes:
-        raise DatasetError(f"{split}: no BOP scene folders here (numbered folders with scene_camera.json and depth/)")
-    todo = []
-    for folder in scenes:
-        sc = BopScene(folder, obj_of_part)
-        ids = [i for i in sc.image_ids() if any(int(g["obj_id"]) == obj_of_part[view.base[0]] for g in sc.gt.get(str(i), []))]
-        todo += [(sc, i) for i in (ids[:frames] if frames else ids)]
-    if not todo:
-        raise DatasetError(f"{split}: no image shows obj_id {obj_of_part[view.base[0]]} ({view.base[0]}) in scene_gt.json")
-    ctx.base.warm_up(params)
-    scores, rows = [], []
-    obj_id = obj_of_part[view.base[0]]
-    for sc, im_id in tqdm(todo, unit="frame", desc=f"eval {params.preset}", disable=not progress, leave=False):
-        try:
-            frame = sc.frame(im_id, view)
-        except DatasetError as e:
-            scores.append(FrameScore(sc.scene_id, im_id, False, f"unreadable frame: {e}"))
-            continue
-        if mask_source == "gt" and not frame.base_mask().any():
-            scores.append(FrameScore(sc.scene_id, im_id, False, "no mask_visib for the base in this image",
-                                     T_world_part_gt=frame.T_world_part))
-            continue
-        mask = frame_mask(frame, mask_source)
-        r, s = estimate_and_score(frame, ctx, params, mask_source, mask=mask)
-        s.scene_id = sc.scene_id
-        scores.append(s)
-        if r.ok:
-            T = se3.inv(frame.T_world_camera) @ r.T_world_base
-            rows.append(BopResult(sc.scene_id, im_id, obj_id, 1.0 if r.confident else 0.5, T, r.seconds))
-    doc = {"preset": params.preset, "dataset": str(split), "mask": mask_source, "orientation_prior": False,
-           "steps": [summarise_step(step, scores, ctx.part)], "missing_steps": []}
-    return doc, rows

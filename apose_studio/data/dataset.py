@@ -22,18 +22,21 @@ render leaves every listed frame readable.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from apose_studio.geometry import se3
-from apose_studio.assembly.model import Assembly, load_assembly
-from apose_studio.geometry.camera import CameraIntrinsics
-from apose_studio.errors import AposeError, DatasetError
-from apose_studio.assembly.fileio import atomic_write_text
+from apose_studio import safeio
+from apose_studio.assembly.fileio import atomic_write_bytes, atomic_write_text
 from apose_studio.assembly.mesh import PartModel
+from apose_studio.assembly.model import Assembly, load_assembly, save_assembly
+from apose_studio.data.outdir import claim
+from apose_studio.errors import AposeError, DatasetError
+from apose_studio.geometry import se3
+from apose_studio.geometry.camera import CameraIntrinsics
+from apose_studio.geometry.plane import table_frame
 
 FORMAT = "apose-bop/1"
 SPLIT = "test"
@@ -41,15 +44,11 @@ DEPTH_SCALE = 0.1  # BOP: depth in mm = PNG value * depth_scale; 0.1 mm steps up
 
 
 def write_json(path: Path, data) -> None:
-    from apose_studio.data.outdir import claim
-
     atomic_write_text(claim(path), json.dumps(data, indent=1))
 
 
 def read_json(path: Path, what: str = "a JSON file"):
     """A dataset's JSON file: regular, size-capped, strict (safeio); DatasetError naming the file."""
-    from apose_studio import safeio
-
     if not Path(path).exists() and not Path(path).is_symlink():
         raise DatasetError(f"{path}: missing")
     try:
@@ -100,10 +99,8 @@ class Frame:
         return out
 
 
-def _read_image(path: Path, flags: int, what: str = "an image", header: bool = False):
+def read_image(path: Path, flags: int, what: str = "an image", header: bool = False):
     """An image through safeio (regular file, size and pixel caps checked before decoding)."""
-    from apose_studio import safeio
-
     if not path.exists() and not path.is_symlink():
         raise DatasetError(f"{path}: missing")
     try:
@@ -114,13 +111,13 @@ def _read_image(path: Path, flags: int, what: str = "an image", header: bool = F
 
 
 def read_rgb(path: Path) -> np.ndarray:
-    img = _read_image(path, cv2.IMREAD_COLOR, "the colour image")
+    img = read_image(path, cv2.IMREAD_COLOR, "the colour image")
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
 def read_depth(path: Path, depth_scale_mm: float) -> np.ndarray:
     """uint16 depth PNG -> metres (float32); NaN, negative and missing become 0."""
-    raw, (fmt, _, _, channels, bits) = _read_image(path, cv2.IMREAD_UNCHANGED, "the depth image", header=True)
+    raw, (fmt, _, _, channels, bits) = read_image(path, cv2.IMREAD_UNCHANGED, "the depth image", header=True)
     if channels != 1 or raw.ndim != 2:
         raise DatasetError(f"{path}: a {bits}-bit {fmt} with {channels} channels; depth is one channel of 16-bit "
                            "integers (depth in mm = value x depth_scale), as RealSense, Kinect and BOP write it")
@@ -240,7 +237,7 @@ class Dataset:
             pid = self.part_of_obj[obj_id]
             poses[pid] = T_world_camera @ T_camera_obj
             mpath = d / "mask_visib" / f"{im_id:06d}_{i:06d}.png"
-            masks[pid] = _read_image(mpath, cv2.IMREAD_GRAYSCALE) > 127
+            masks[pid] = read_image(mpath, cv2.IMREAD_GRAYSCALE) > 127
             if masks[pid].shape != depth.shape:
                 raise DatasetError(f"{mpath}: mask is {masks[pid].shape[1]}x{masks[pid].shape[0]} but the depth is "
                                    f"{depth.shape[1]}x{depth.shape[0]}")
@@ -393,30 +390,11 @@ def load_capture(folder: str | Path) -> Frame:
         raise DatasetError(f"{folder}: depth.png is {depth.shape[1]}x{depth.shape[0]} but rgb.png is "
                            f"{rgb.shape[1]}x{rgb.shape[0]}; align depth to colour first")
     if T_world_camera is None:  # no extrinsics: the world on the table (z = 0, z up) when one is seen
-        from apose_studio.geometry.plane import table_frame
 
         T_world_camera = table_frame(depth, intr)
         if T_world_camera is None:
             T_world_camera = np.eye(4)
     return Frame(rgb=rgb, depth=depth, camera=intr, T_world_camera=T_world_camera, source=str(folder))
-
-
-def open_frames(path: str | Path):
-    """A Dataset for a rendered folder, a BopScene for a BOP scene folder, or a single Frame for a
-    real-capture folder."""
-    path = Path(path)
-    if (path / "dataset_info.json").is_file():
-        return Dataset(path)
-    if (path / "rgb.png").is_file():
-        return load_capture(path)
-    from apose_studio.data.bop import BopScene, is_bop_scene
-
-    if is_bop_scene(path):
-        return BopScene(path)
-    if not path.exists():
-        raise DatasetError(f"{path}: no such folder")
-    raise DatasetError(f"{path}: neither a dataset (dataset_info.json), a capture (rgb.png, depth.png, camera.json) "
-                       "nor a BOP scene (scene_camera.json, rgb/, depth/)")
 
 
 # ----------------------------------------------------------------------------------- writing
@@ -501,7 +479,6 @@ class SceneWriter:
 
 def _imwrite(path: Path, img: np.ndarray, params=(cv2.IMWRITE_PNG_COMPRESSION, 1)) -> None:
     # fast PNG compression by default: renders are written far more often than they are read
-    from apose_studio.data.outdir import claim
 
     if not cv2.imwrite(str(claim(path)), img, list(params)):
         raise AposeError(f"{path}: could not write the image (disk full or no permission?)")
@@ -534,13 +511,6 @@ def _symmetry_info(part, model: PartModel) -> dict:
 
 def write_models(asm: Assembly, models: dict[str, PartModel], out) -> tuple[dict[str, int], Assembly]:
     """models/ in BOP form and the assembly rewritten to point at them (units mm)."""
-    from dataclasses import replace
-    from pathlib import Path
-
-    from apose_studio.assembly.model import save_assembly
-    from apose_studio.assembly.fileio import atomic_write_bytes
-    from apose_studio.data.outdir import claim
-
     mdir = Path(out) / "models"
     mdir.mkdir(parents=True, exist_ok=True)
     obj_ids, infos, parts = {}, {}, {}

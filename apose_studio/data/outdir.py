@@ -15,8 +15,9 @@ import tempfile
 import threading
 from pathlib import Path
 
-from apose_studio.errors import AposeError
 from apose_studio.assembly.fileio import atomic_write_text
+from apose_studio.errors import AposeError
+from apose_studio.safeio import read_json, read_text
 
 MANIFEST = "dataset_info.json"  # its "files" lists every file a render wrote: all that --overwrite may delete
 LOCK = ".apose-render.lock"
@@ -127,8 +128,6 @@ class OutputLock:
 
 def _journal_files(out: Path) -> list[str]:
     """The files a render that did not finish (kill -9, a full disk) had started to write."""
-    from apose_studio.safeio import read_text
-
     p = Path(out) / JOURNAL
     if not p.is_file():
         return []
@@ -195,8 +194,6 @@ def check_writable(out: Path) -> None:
 
 
 def _manifest_files(out: Path) -> list[str]:
-    from apose_studio.safeio import read_json
-
     try:
         files = read_json(Path(out) / MANIFEST, "a dataset manifest").get("files", [])
     except (AposeError, AttributeError):

@@ -1,8 +1,5 @@
-"""Typed settings read from an assembly file: camera intrinsics and registration parameters.
-
-Each is a frozen dataclass with its defaults in one place; `*_from_dict` validates a mapping and
-reports every problem with the key path it sits at.
-"""
+"""Pinhole cameras: the intrinsics (OpenCV convention), and an assembly file's `camera` section read
+with every problem reported at its key path."""
 
 from __future__ import annotations
 
@@ -46,79 +43,8 @@ class CameraIntrinsics:
                                 float(K[0, 2]), float(K[1, 2]))
 
 
-@dataclass(frozen=True)
-class RegistrationConfig:
-    """Parameters of the estimator; None means "the preset decides". Lengths in metres."""
-
-    preset: str | None = None
-    voxel_size_m: float | None = None
-    normal_radius_factor: float | None = None
-    feature_radius_factor: float | None = None
-    ransac_max_iterations: int | None = None
-    ransac_confidence: float | None = None
-    ransac_edge_length: float | None = None
-    ransac_distance_factor: float | None = None
-    icp_threshold_factor: float | None = None
-    icp_max_iterations: int | None = None
-    seed: int | None = None
-    use_orientation_prior: bool | None = None
-    upright: bool | None = None
-    deterministic: bool | None = None
-    max_seconds: float | None = None
-
-    def overrides(self) -> dict:
-        """The parameters that were set, by name."""
-        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
-                if getattr(self, f.name) is not None}
-
-
-PRESETS = ("paper", "default")
-
-# name -> (kind, check, what the check expects)
-_REG_RULES: dict[str, tuple[str, object, str]] = {
-    "preset": ("str", lambda v: v in PRESETS, f"one of {', '.join(PRESETS)}"),
-    "voxel_size_m": ("float", lambda v: 1e-4 <= v <= 0.5, "a length in metres from 0.0001 to 0.5"),
-    "normal_radius_factor": ("float", lambda v: 0.5 <= v <= 20, "a number from 0.5 to 20 (x voxel)"),
-    "feature_radius_factor": ("float", lambda v: 0.5 <= v <= 50, "a number from 0.5 to 50 (x voxel)"),
-    "ransac_max_iterations": ("int", lambda v: 1 <= v <= 1_000_000, "a whole number from 1 to 1000000"),
-    "ransac_confidence": ("float", lambda v: 0 < v <= 1, "a number in (0, 1]"),
-    "ransac_edge_length": ("float", lambda v: 0 < v < 1, "a number in (0, 1)"),
-    "ransac_distance_factor": ("float", lambda v: 0.1 <= v <= 20, "a number from 0.1 to 20 (x voxel)"),
-    "icp_threshold_factor": ("float", lambda v: 0.05 <= v <= 20, "a number from 0.05 to 20 (x voxel)"),
-    "icp_max_iterations": ("int", lambda v: 1 <= v <= 1000, "a whole number from 1 to 1000"),
-    "seed": ("int", lambda v: 0 <= v < 2 ** 32, "a whole number from 0 to 4294967295"),
-    "use_orientation_prior": ("bool", lambda v: True, "true or false"),
-    "upright": ("bool", lambda v: True, "true or false"),
-    "deterministic": ("bool", lambda v: True, "true or false"),
-    "max_seconds": ("float", lambda v: 0 <= v <= 3600, "seconds from 0 (no limit) to 3600"),
-}
-
-
 def is_number(v) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and bool(np.isfinite(v))
-
-
-def registration_from_dict(data, file: str, key: str = "registration") -> tuple[RegistrationConfig, list[Problem]]:
-    problems: list[Problem] = []
-    if data is None:
-        return RegistrationConfig(), problems
-    if not isinstance(data, dict):
-        return RegistrationConfig(), [Problem(file, key, f"expected a mapping of parameter names, got {type(data).__name__}")]
-    values = {}
-    for name, v in data.items():
-        where = f"{key}.{name}"
-        if name not in _REG_RULES:
-            problems.append(Problem(file, where, f"unknown parameter; known: {', '.join(_REG_RULES)}"))
-            continue
-        kind, check, expected = _REG_RULES[name]
-        ok_type = {"str": isinstance(v, str), "bool": isinstance(v, bool),
-                   "int": isinstance(v, int) and not isinstance(v, bool),
-                   "float": is_number(v)}[kind]
-        if not ok_type or not check(v):
-            problems.append(Problem(file, where, f"expected {expected}, got {v!r}"))
-            continue
-        values[name] = float(v) if kind == "float" else v
-    return RegistrationConfig(**values), problems
 
 
 _CAMERA_KEYS = {"width": "int", "height": "int", "fx": "float", "fy": "float", "cx": "float", "cy": "float"}
@@ -151,9 +77,10 @@ def camera_to_dict(cam: CameraIntrinsics) -> dict:
     return dataclasses.asdict(cam)
 
 
-def registration_to_dict(reg: RegistrationConfig) -> dict:
-    return reg.overrides()
+def fov_camera(width: int, height: int, hfov_deg: float) -> CameraIntrinsics:
+    """A centred pinhole camera of `width` x `height` pixels with a horizontal field of view in degrees."""
+    f = (width / 2) / np.tan(np.radians(hfov_deg) / 2)
+    return CameraIntrinsics(width, height, f, f, width / 2, height / 2)
 
 
-__all__ = ["CameraIntrinsics", "RegistrationConfig", "PRESETS", "registration_from_dict",
-           "camera_from_dict", "camera_to_dict", "registration_to_dict", "is_number"]
+__all__ = ["CameraIntrinsics", "camera_from_dict", "camera_to_dict", "fov_camera", "is_number"]

@@ -34,7 +34,7 @@ class Body:
     """A mesh prepared once for ray casting and shading: its BVH in its own frame and plain arrays."""
 
     def __init__(self, mesh: trimesh.Trimesh):
-        import open3d as o3d
+        import open3d as o3d  # heavy (~0.9 s to import): loaded where it is used
 
         self.mesh = mesh  # keeps id(mesh) valid while cached
         v = np.asarray(mesh.vertices, dtype=np.float64)
@@ -119,7 +119,7 @@ def raycast_depth(mesh: trimesh.Trimesh, T_world_mesh: np.ndarray, T_world_camer
 def _cast(mesh: trimesh.Trimesh, T_world_mesh: np.ndarray, T_world_camera: np.ndarray, cam: CameraIntrinsics):
     """(body, pixel window, (h, w, 6) rays in the mesh frame, Open3D hits) of one ray per pixel over the
     mesh's image box; None when the mesh is outside the image."""
-    import open3d as o3d
+    import open3d as o3d  # heavy (~0.9 s to import): loaded where it is used
 
     b = body(mesh)
     w = pixel_window(b.corners, se3.inv(T_world_camera) @ T_world_mesh, cam)

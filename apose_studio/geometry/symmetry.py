@@ -9,6 +9,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from apose_studio.geometry import se3
+from apose_studio.geometry.raycast import body
 
 SYMMETRY_TOLERANCE = 0.005  # a symmetry: mean surface distance after the turn < 0.5 % of the diameter
 EXACT_SYMMETRY_MAX_M = 0.001  # an exact symmetry moves no point of the surface more than 1 mm off the surface:
@@ -69,9 +70,7 @@ def detect_symmetries(points: np.ndarray, diameter: float, tolerance: float = 0.
 def surface_offsets(mesh, points: np.ndarray, turns: np.ndarray) -> np.ndarray:
     """(n,) for each turn T (n, 4, 4): the largest distance (metres) of the turned surface samples from
     the mesh's surface itself (exact, by Open3D's distance query: no sampling spacing in it)."""
-    import open3d as o3d
-
-    from apose_studio.geometry.raycast import body
+    import open3d as o3d  # heavy (~0.9 s to import): loaded where it is used
 
     scene = body(mesh).scene
     out = np.zeros(len(turns))

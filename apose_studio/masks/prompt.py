@@ -21,9 +21,12 @@ from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
-from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.errors import AposeError
+from apose_studio.geometry.camera import CameraIntrinsics
+from apose_studio.geometry.noise import depth_edges
+from apose_studio.geometry.plane import fit_table
 
 MIN_PATCH_PX = 20  # depth patches smaller than this are noise
 
@@ -89,9 +92,6 @@ class Surfaces:
 
 def surfaces(depth: np.ndarray, cam: CameraIntrinsics) -> Surfaces:
     """Table plane removed (`plane.fit_table`), the rest cut at depth discontinuities."""
-    from apose_studio.geometry.noise import depth_edges
-    from apose_studio.geometry.plane import fit_table
-
     h, w = depth.shape
     z = np.where(np.isfinite(depth) & (depth > 0), depth, 0).astype(np.float32)
     valid = z > 0
@@ -177,8 +177,6 @@ def _nearer_colour(lab: np.ndarray, query: np.ndarray, ours: np.ndarray, theirs:
     """(H, W) bool over `query` pixels: nearer (Lab, mean distance to the 5 nearest of up to 2000 samples)
     to the colours of the `ours` pixels than to those of `theirs`, decided per little area (5x5 median),
     not per noisy pixel. Each distinct colour (to 4 levels per channel) is looked up once."""
-    from scipy.spatial import cKDTree
-
     rng = np.random.default_rng(0)
 
     def samples(m: np.ndarray) -> np.ndarray:

@@ -11,15 +11,21 @@ torch is imported inside the functions that use it, so the rest of apose_studio 
 
 from __future__ import annotations
 
+import io
 import math
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
+from tqdm import tqdm
 
+from apose_studio import safeio
 from apose_studio.errors import AposeError
+from apose_studio.geometry.plane import fit_table
 
 FORMAT = "apose-seg/1"
 INPUT_SIZE = (160, 120)  # network input (width, height); outlines come back at full size from depth (refine_with_depth)
@@ -28,9 +34,7 @@ INPUT_SIZE = (160, 120)  # network input (width, height); outlines come back at 
 def _torch():
     """torch, with its thread count set to the machine's cores (apose_studio sets OMP_NUM_THREADS=1 for
     Open3D's sake, which torch would otherwise take as its own limit)."""
-    import os
-
-    import torch
+    import torch  # heavy (~1.1 s): loaded only where a model is trained or used
 
     if torch.get_num_threads() < (os.cpu_count() or 1):
         torch.set_num_threads(os.cpu_count() or 1)
@@ -47,7 +51,7 @@ class SegmentationError(AposeError):
 def build_net(n_classes: int, width: int = 16):
     """A 4-level U-Net: 4 input channels (RGB + normalised depth), `n_classes` logits per pixel."""
     torch = _torch()
-    from torch import nn
+    from torch import nn  # heavy (~1.1 s): loaded only where a model is trained or used
 
     def block(a, b):
         return nn.Sequential(nn.Conv2d(a, b, 3, padding=1, bias=False), nn.BatchNorm2d(b), nn.ReLU(inplace=True),
@@ -174,10 +178,6 @@ def load_model(path: str | Path, asm=None, device: str = "cpu") -> Segmenter:
     """Load a model; with `asm`, refuse one trained for other parts (names the difference and the fix)."""
     torch = _torch()
 
-    import io
-
-    from apose_studio import safeio
-
     path = Path(path)
     if not path.exists() and not path.is_symlink():
         raise SegmentationError(f"{path}: no such model file (train one with `apose train-seg DATASET --out {path.name}`)")
@@ -269,7 +269,6 @@ def train(ds, epochs: int = 60, device: str = "auto", batch: int = 8, lr: float 
           log=print) -> tuple[Segmenter, dict]:
     """Train from scratch on a rendered dataset; returns the model and a report (losses, held-out IoU)."""
     torch = _torch()
-    from tqdm import tqdm
 
     device = resolve_device(device)
     torch.manual_seed(seed)
@@ -361,10 +360,7 @@ def table_objects(depth: np.ndarray, cam, plane_tol: float | None = None, gap: f
     points in 3D (DBSCAN: points closer than `gap` join). Tolerances default to fractions of the
     median depth (0.6 % and 2 %: 3 mm and 1 cm at 0.5 m). `keep` (H, W) bool limits the points to
     those pixels. None when the image has too little depth or nothing stands on the plane."""
-    import open3d as o3d
-    from scipy.spatial import cKDTree
-
-    from apose_studio.geometry.plane import fit_table
+    import open3d as o3d  # heavy (~0.9 s to import): loaded where it is used
 
     rng = np.random.default_rng(0)
     table = fit_table(depth, cam, plane_tol, rng)

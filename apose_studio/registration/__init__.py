@@ -16,16 +16,24 @@ per-step caches), `problem.py` (one frame's prepared target), `results.py` (what
 """
 
 from apose_studio.geometry.symmetry import detect_symmetries
-from apose_studio.registration.base import BaseObject, NearGrid, prepare_base
+from apose_studio.params import PRESET_PARAMS, Params, resolve_params
+from apose_studio.registration.base import BaseObject, NearGrid, place_source, prepare_base, raycast_source
 from apose_studio.registration.pipeline import estimate
-from apose_studio.registration.presets import PRESET_PARAMS, Params, resolve_params
-from apose_studio.registration.task import scale_problem
-from apose_studio.registration.types import CONFIDENT_COVERAGE, MIN_POINTS, TIE_MARGIN, Candidate, RegistrationResult, Stage, doubts, failed
 from apose_studio.registration.scoring import MASK_MARGIN_PX, mask_edge
-from apose_studio.registration.types import Observation
 from apose_studio.registration.searches import table_normal, upright_starts
 from apose_studio.registration.stages import global_registration, icp, project_to_cloud
-from apose_studio.registration.base import place_source, raycast_source
+from apose_studio.registration.task import scale_problem
+from apose_studio.registration.types import (
+           CONFIDENT_COVERAGE,
+           MIN_POINTS,
+           TIE_MARGIN,
+           Candidate,
+           Observation,
+           RegistrationResult,
+           Stage,
+           doubts,
+           failed,
+)
 
 __all__ = ["BaseObject", "CONFIDENT_COVERAGE", "Candidate", "MASK_MARGIN_PX", "MIN_POINTS", "NearGrid", "Observation",
            "PRESET_PARAMS", "Params", "RegistrationResult", "Stage", "TIE_MARGIN", "detect_symmetries", "doubts", "estimate",

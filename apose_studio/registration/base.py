@@ -7,11 +7,19 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from apose_studio.assembly.mesh import diameter, sample_surface
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.geometry.metrics import quick_tree
-from apose_studio.geometry.symmetry import EXACT_SYMMETRY_MAX_M, NEAR_SYMMETRY_TOLERANCE, SYMMETRY_TOLERANCE, detect_symmetries, surface_offsets
-from apose_studio.registration.presets import Params
+from apose_studio.geometry.raycast import raycast_points
+from apose_studio.geometry.symmetry import (
+    EXACT_SYMMETRY_MAX_M,
+    NEAR_SYMMETRY_TOLERANCE,
+    SYMMETRY_TOLERANCE,
+    detect_symmetries,
+    surface_offsets,
+)
+from apose_studio.params import Params
 from apose_studio.registration.stages import cloud, normals_fpfh
 
 
@@ -79,8 +87,6 @@ class BaseObject:
         triangle winding: the model that a partial view is matched against.
         """
         if "outer" not in self._features:
-            from apose_studio.geometry.raycast import raycast_points
-
             cam = CameraIntrinsics(200, 200, 250.0, 250.0, 100.0, 100.0)  # 44 deg field of view
             dirs = [np.array([x, y, z], float) for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1) if x or y or z]
             pts, nrm = [], []
@@ -130,8 +136,6 @@ class NearGrid:
 
 
 def prepare_base(mesh, n_samples: int = 20000, seed: int = 0, detect: bool = True) -> BaseObject:
-    from apose_studio.assembly.mesh import diameter, sample_surface
-
     pts, face = sample_surface(mesh, n_samples, seed, return_faces=True)
     normals = np.asarray(mesh.face_normals)[face]
     d = diameter(mesh.vertices)
@@ -158,7 +162,6 @@ def place_source(base: BaseObject, target_centre: np.ndarray, R_world_base: np.n
     return T
 
 
-
 def raycast_source(base: BaseObject, T_world_source: np.ndarray, T_world_camera: np.ndarray,
                    cam: CameraIntrinsics, look_at: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """RCAST: the base mesh at T_world_source seen by a pinhole camera at the real camera's position.
@@ -166,7 +169,5 @@ def raycast_source(base: BaseObject, T_world_source: np.ndarray, T_world_camera:
     With `look_at`, the virtual camera turns to look at that point (the paper's virtual camera looks
     at the target's centre); otherwise it is the real camera. Returns world points and normals.
     """
-    from apose_studio.geometry.raycast import raycast_points
-
     T_cam = T_world_camera if look_at is None else se3.look_at(T_world_camera[:3, 3], look_at)
     return raycast_points(base.mesh, T_world_source, T_cam, cam)

@@ -20,41 +20,23 @@ Frames: T_<to>_<from>, metres.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 
 from apose_studio.geometry import se3
-from apose_studio.geometry.camera import CameraIntrinsics
-from apose_studio.registration.base import BaseObject
+from apose_studio.params import Params
+from apose_studio.registration.base import BaseObject, raycast_source
 from apose_studio.registration.pipeline import estimate, judge, observe
-from apose_studio.registration.presets import Params
-from apose_studio.registration.task import Task, prepare_task
-from apose_studio.registration.refine import POLISH_ITERATIONS, tied
-from apose_studio.registration.types import CONFIDENT_COVERAGE, MIN_POINTS, Degenerate, RegistrationResult, failed
+from apose_studio.registration.refine import POLISH_ITERATIONS, polish, tied
 from apose_studio.registration.scoring import discriminate, distinct_placements, poses_within, score_pose, twin_placements
 from apose_studio.registration.stages import cloud, icp, project_to_cloud
-from apose_studio.registration.base import raycast_source
+from apose_studio.registration.task import Task, prepare_task
+from apose_studio.registration.types import CONFIDENT_COVERAGE, MIN_POINTS, Degenerate, RegistrationResult, View, failed
 
 DISAGREE_DEGREES = 3.0  # a view whose own ICP turns the pose further than this disagrees with the others
 DISAGREE_VOXELS = 3.0  # ... or moves it further than this many voxels
 DISAGREE_COVERAGE = 0.5  # ... or of whose target the pose explains less than this share
-
-
-@dataclass
-class View:
-    """One look at the placement: depth (metres), the base's mask, intrinsics and the camera's pose."""
-
-    depth: np.ndarray
-    mask: np.ndarray
-    cam: CameraIntrinsics
-    T_world_camera: np.ndarray
-    name: str = ""  # how errors name it (a file, "frame 3")
-
-    @classmethod
-    def of(cls, frame, mask: np.ndarray) -> "View":
-        """A dataset.Frame (a render, a capture) with the base's mask."""
-        return cls(frame.depth, mask, frame.camera, frame.T_world_camera, frame.source or f"frame {frame.im_id}")
 
 
 def estimate_views(views: list[View], base: BaseObject, T_base_part: np.ndarray, params: Params,
@@ -64,18 +46,14 @@ def estimate_views(views: list[View], base: BaseObject, T_base_part: np.ndarray,
     bad data: disagreeing camera poses or a view without depth give ok=False and a reason.
     `part_symmetries`: as for `pipeline.estimate`."""
     if len(views) == 1:
-        v = views[0]
-        return estimate(v.depth, v.mask, v.cam, v.T_world_camera, base, T_base_part, params, prior_T_world_base,
-                        part_symmetries=part_symmetries)
+        return estimate(views[0], base, T_base_part, params, prior_T_world_base, part_symmetries=part_symmetries)
     t0 = time.perf_counter()
     counts = [int((v.mask & (v.depth > 0)).sum()) for v in views]
     order = sorted(range(len(views)), key=lambda i: -counts[i])
     first_view = views[order[0]]
-    first = estimate(first_view.depth, first_view.mask, first_view.cam, first_view.T_world_camera, base, T_base_part,
-                     params, prior_T_world_base, part_symmetries=part_symmetries)
+    first = estimate(first_view, base, T_base_part, params, prior_T_world_base, part_symmetries=part_symmetries)
     if not first.ok:
-        first.reason = f"{_name(first_view, order[0])}: {first.reason}"
-        return first
+        return replace(first, reason=f"{_name(first_view, order[0])}: {first.reason}")
     t1 = time.perf_counter()
     problems = {order[0]: first.problem if first.problem is not None else
                 _problem(first_view, base, T_base_part, params, first.voxel)}
@@ -90,10 +68,8 @@ def estimate_views(views: list[View], base: BaseObject, T_base_part: np.ndarray,
         return failed(disagreement + "; the views are not fused", preset=params.preset, timings=first.timings,
                       T_world_base=first.T_world_base, T_world_part=first.T_world_part)
     result = _weigh(first, problems, order, base, at_first, part_symmetries)
-    result.timings = {**first.timings, "fusion": time.perf_counter() - t1}
-    result.timings["total fused"] = time.perf_counter() - t0
-    result.views = len(views)
-    return result
+    t2 = time.perf_counter()
+    return replace(result, timings={**first.timings, "fusion": t2 - t1, "total fused": t2 - t0}, views=len(views))
 
 
 def _name(view: View, i: int) -> str:
@@ -101,10 +77,10 @@ def _name(view: View, i: int) -> str:
 
 
 def _problem(view: View, base: BaseObject, T_base_part: np.ndarray, params: Params, voxel: float) -> Task:
-    pts = project_to_cloud(view.depth, view.mask, view.cam, view.T_world_camera)
+    pts = project_to_cloud(view.depth, view.mask, view.camera, view.T_world_camera)
     if len(pts) < MIN_POINTS:
         raise Degenerate(f"only {len(pts)} valid depth points under its mask (need {MIN_POINTS})")
-    return prepare_task(pts, view.cam, view.T_world_camera, base, T_base_part, params, voxel,
+    return prepare_task(pts, view.camera, view.T_world_camera, base, T_base_part, params, voxel,
                            observe(view.depth, view.mask), light=True)
 
 
@@ -112,8 +88,6 @@ def _disagreement(problems: dict[int, Task], order: list[int], T_world_base: np.
                   views: list[View], at_first: dict) -> str:
     """Why the views cannot be of one placement seen from the given camera poses ("" when they can).
     `at_first`: view -> score_pose of the first view's pose there."""
-    from apose_studio.registration.refine import polish
-
     for i in order[1:]:
         pb = problems[i]
         cand, seen, normals = at_first[i]
@@ -182,9 +156,8 @@ def _weigh(first: RegistrationResult, problems: dict[int, Task], order: list[int
                      coverage=float(final.coverage), fitness=final.fitness,
                      inlier_rmse=final.inlier_rmse, second_look=None, model_mask=None)
     obs = pb0.observation
-    result = judge(result, obs.depth, obs.mask, pb0.cam, pb0.T_world_camera, base)
-    result.equivalent = twin_placements(T, result.T_world_part, base.symmetries) if result.ok else []
-    return result
+    result = judge(result, View(obs.depth, obs.mask, pb0.cam, pb0.T_world_camera), base)
+    return replace(result, equivalent=twin_placements(T, result.T_world_part, base.symmetries) if result.ok else [])
 
 
 def fused_polish(problems: dict[int, Task], order: list[int], T_world_base: np.ndarray, voxel: float,

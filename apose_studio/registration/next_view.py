@@ -22,9 +22,9 @@ import numpy as np
 
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
-from apose_studio.registration.base import BaseObject
-from apose_studio.registration.types import RegistrationResult
+from apose_studio.registration.base import BaseObject, raycast_source
 from apose_studio.registration.scoring import depth_buffer, distinct_placements
+from apose_studio.registration.types import RegistrationResult
 
 ADVICE_YAWS = 12
 ADVICE_PITCHES_DEG = (30.0, 50.0, 70.0)
@@ -66,8 +66,6 @@ def hemisphere(centre: np.ndarray, distance: float) -> list[np.ndarray]:
 
 
 def _depth_image(base: BaseObject, T_world_base: np.ndarray, T_world_camera: np.ndarray, cam: CameraIntrinsics) -> np.ndarray:
-    from apose_studio.registration.base import raycast_source
-
     return depth_buffer(raycast_source(base, T_world_base, T_world_camera, cam)[0], T_world_camera, cam)
 
 

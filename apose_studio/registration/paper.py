@@ -9,10 +9,10 @@ import numpy as np
 
 from apose_studio.geometry import se3
 from apose_studio.geometry.metrics import quick_tree
-from apose_studio.registration.presets import Params
-from apose_studio.registration.types import MIN_POINTS, Candidate, Degenerate, RegistrationResult
-from apose_studio.registration.stages import cloud, global_registration, icp, normals_fpfh, stage
+from apose_studio.params import Params
 from apose_studio.registration.base import place_source, raycast_source
+from apose_studio.registration.stages import cloud, global_registration, icp, normals_fpfh, stage
+from apose_studio.registration.types import MIN_POINTS, Candidate, Degenerate, RegistrationResult
 
 
 def estimate_paper(target_pts, cam, T_world_camera, base, T_base_part, p: Params, voxel, prior, trace_iterations,
@@ -57,6 +57,7 @@ def estimate_paper(target_pts, cam, T_world_camera, base, T_base_part, p: Params
     coverage = float(np.mean(quick_tree(seen).query(target_pts, distance_upper_bound=max(thr, 2 * voxel))[0] < np.inf))
     cand = Candidate(T_world_base, T_world_part, final.fitness, float("nan"), final.inlier_rmse, final.fitness, 0,
                      coverage)
-    return RegistrationResult(True, "", T_world_base, T_world_part, T_world_source, target_pts, src_base, stages,
-                              final.fitness, final.inlier_rmse, timings, [cand], False, voxel=voxel, coverage=coverage,
-                              **kw)
+    return RegistrationResult(ok=True, T_world_base=T_world_base, T_world_part=T_world_part,
+                              T_world_source=T_world_source, target_cloud=target_pts, source_cloud=src_base,
+                              stages=stages, fitness=final.fitness, inlier_rmse=final.inlier_rmse, timings=timings,
+                              candidates=[cand], voxel=voxel, coverage=coverage, **kw)

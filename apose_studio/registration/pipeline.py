@@ -10,30 +10,46 @@ from __future__ import annotations
 import time
 from dataclasses import replace
 
+import cv2
 import numpy as np
 
 from apose_studio.geometry import se3
-from apose_studio.geometry.camera import CameraIntrinsics
-from apose_studio.registration.base import BaseObject
+from apose_studio.geometry.metrics import quick_tree
+from apose_studio.geometry.noise import estimate_depth_noise
+from apose_studio.params import Params
+from apose_studio.registration.base import BaseObject, place_source, raycast_source
 from apose_studio.registration.paper import estimate_paper
-from apose_studio.registration.presets import Params
-from apose_studio.registration.task import Task, prepare_task, scale_problem
 from apose_studio.registration.refine import add_symmetric_twins, choose, polish_chosen, refine_candidates, select_starts
-from apose_studio.registration.types import CONFIDENT_COVERAGE, MIN_POINTS, Degenerate, RegistrationResult, failed
-from apose_studio.registration.scoring import agreement_tolerance, depth_buffer, distinct_placements, evidence, mask_edge, twin_placements
-from apose_studio.registration.types import Observation
+from apose_studio.registration.scoring import (
+    agreement_tolerance,
+    depth_buffer,
+    distinct_placements,
+    evidence,
+    mask_edge,
+    twin_placements,
+)
 from apose_studio.registration.searches import ModelSearch, search_poses, try_prior
 from apose_studio.registration.stages import project_to_cloud, trace_stages
-from apose_studio.registration.base import place_source
+from apose_studio.registration.task import Task, prepare_task, scale_problem
+from apose_studio.registration.types import (
+    CONFIDENT_COVERAGE,
+    MIN_POINTS,
+    Degenerate,
+    Observation,
+    RegistrationResult,
+    View,
+    failed,
+)
 
 
-def estimate(depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray,
-             base: BaseObject, T_base_part: np.ndarray, params: Params,
+def estimate(view: View, base: BaseObject, T_base_part: np.ndarray, params: Params,
              prior_T_world_base: np.ndarray | None = None, trace_iterations: bool = True,
              part_symmetries: np.ndarray | None = None) -> RegistrationResult:
-    """T_world_part for one frame. Never raises on bad data: a degenerate input gives ok=False and a reason.
-    `part_symmetries`: the part's own (T_part_part, identity first; PartModel.symmetries): placements of the
-    part that differ by one of them are the same placement, so they make no ambiguity."""
+    """T_world_part for one view (its depth, the base's mask, the camera and its pose). Never raises on bad
+    data: a degenerate input gives ok=False and a reason. `part_symmetries`: the part's own (T_part_part,
+    identity first; PartModel.symmetries): placements of the part that differ by one of them are the same
+    placement, so they make no ambiguity."""
+    depth, mask, cam, T_world_camera = view.depth, view.mask, view.camera, view.T_world_camera
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     if mask is None or not np.any(mask):
@@ -66,34 +82,28 @@ def estimate(depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics, T_world
                                       part_symmetries)
     except Degenerate as e:
         return failed(str(e), target_cloud=target_pts, timings=timings, preset=params.preset, voxel=voxel)
-    result.depth_noise = noise
-    result = judge(result, depth, mask, cam, T_world_camera, base)  # ok only when the data supports the pose
+    result = judge(replace(result, depth_noise=noise), view, base)  # ok only when the data supports the pose
     if result.ok and params.use_symmetries:
-        result.equivalent = twin_placements(result.T_world_base, result.T_world_part, base.symmetries)
+        result = replace(result, equivalent=twin_placements(result.T_world_base, result.T_world_part, base.symmetries))
     if params.second_look and result.ok and not result.confident:
-        result = second_look(result, depth, mask, cam, T_world_camera, base, T_base_part, params, prior_T_world_base,
-                             trace_iterations, part_symmetries)
+        result = second_look(result, view, base, T_base_part, params, prior_T_world_base, trace_iterations,
+                             part_symmetries)
     if result.ok:
         t = time.perf_counter()
-        cut = model_cut_mask(result, depth, mask if result.second_look is None else result.second_look, cam,
-                             T_world_camera, base)
-        result.model_mask = cut if cut.sum() >= MIN_POINTS else None
-        result.timings["mask cut"] = time.perf_counter() - t
+        cut = model_cut_mask(result, view if result.second_look is None else replace(view, mask=result.second_look), base)
+        result = replace(result, model_mask=cut if cut.sum() >= MIN_POINTS else None,
+                         timings={**result.timings, "mask cut": time.perf_counter() - t})
     return result
 
 
-def model_cut_mask(result: RegistrationResult, depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics,
-                   T_world_camera: np.ndarray, base: BaseObject) -> np.ndarray:
+def model_cut_mask(result: RegistrationResult, view: View, base: BaseObject) -> np.ndarray:
     """The mask cut to what the model shows at the result's pose: pixels inside its silhouette (2 px
     wider), and not in front of its surface by more than the agreement tolerance (an occluder).
 
     Every ok result carries it (`model_mask`): on 240 cluttered renders with box prompts
     (benchmarks/captures.py, Kinect-like noise) it raised the mask IoU against the renderer's masks
     from 0.85 to 0.93; pixels the prompt missed stay missed."""
-    import cv2
-
-    from apose_studio.registration.base import raycast_source
-
+    depth, mask, cam, T_world_camera = view.depth, view.mask, view.camera, view.T_world_camera
     seen, _ = raycast_source(base, result.T_world_base, T_world_camera, cam)
     zbuf = cv2.erode(depth_buffer(seen, T_world_camera, cam).astype(np.float32), np.ones((5, 5), np.uint8))  # 2 px wider, the nearer surface winning
     tol = agreement_tolerance(result.voxel, result.depth_noise)
@@ -101,7 +111,7 @@ def model_cut_mask(result: RegistrationResult, depth: np.ndarray, mask: np.ndarr
     return mask & np.isfinite(zbuf) & ~in_front
 
 
-def second_look(result: RegistrationResult, depth, mask, cam, T_world_camera, base, T_base_part, params: Params,
+def second_look(result: RegistrationResult, view: View, base: BaseObject, T_base_part: np.ndarray, params: Params,
                 prior, trace_iterations, part_symmetries=None) -> RegistrationResult:
     """A result that is not confident, often from a mask that took in clutter beside the base or an
     object in front of it: estimate again on the mask cut to the model's view at that pose, and keep
@@ -109,18 +119,15 @@ def second_look(result: RegistrationResult, depth, mask, cam, T_world_camera, ba
     supports). Measured on 240 cluttered renders with box prompts (benchmarks/captures.py): right
     poses called unconfident 56 -> 39, confident-and-wrong 0 -> 0, recall unchanged."""
     t = time.perf_counter()
-    cut = model_cut_mask(result, depth, mask, cam, T_world_camera, base)
-    if cut.sum() < MIN_POINTS or cut.sum() >= mask.sum():
+    cut = model_cut_mask(result, view, base)
+    if cut.sum() < MIN_POINTS or cut.sum() >= view.mask.sum():
         return result
-    again = estimate(depth, cut, cam, T_world_camera, base, T_base_part, replace(params, second_look=False), prior,
+    again = estimate(replace(view, mask=cut), base, T_base_part, replace(params, second_look=False), prior,
                      trace_iterations, part_symmetries)
     seconds = time.perf_counter() - t
     if not again.confident:
-        result.timings["second look"] = seconds
-        return result
-    again.second_look = cut
-    again.timings = {**result.timings, "second look": seconds}
-    return again
+        return replace(result, timings={**result.timings, "second look": seconds})
+    return replace(again, second_look=cut, timings={**result.timings, "second look": seconds})
 
 
 def observe(depth: np.ndarray, mask: np.ndarray) -> Observation:
@@ -131,8 +138,6 @@ def observe(depth: np.ndarray, mask: np.ndarray) -> Observation:
 def frame_noise(depth: np.ndarray, mask: np.ndarray) -> float:
     """The depth noise (metres, one sigma) around the object: in its mask's box, twice as large. 0 when
     it cannot be measured (too few pixels)."""
-    from apose_studio.geometry.noise import estimate_depth_noise
-
     ys, xs = np.nonzero(mask)
     h, w = mask.shape
     cy, cx, hy, hx = (ys.min() + ys.max()) / 2, (xs.min() + xs.max()) / 2, np.ptp(ys) + 1, np.ptp(xs) + 1
@@ -177,9 +182,7 @@ def estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Para
     result = compose(pb, refined, chosen, close, T_world_source, timings)  # T_world_part = T_world_base @ T_base_part
     if found.upright and not result.fits and not pb.out_of_time("the free search after the upright one"):
         return better_of_free_search(result, target_pts, pb, prior, trace_iterations, timings)  # not upright
-    result.out_of_time = "; ".join(pb.notes)
-    result.problem = pb
-    return result
+    return replace(result, out_of_time="; ".join(pb.notes), problem=pb)
 
 
 def compose(pb: Task, refined: list, chosen: int, close: list[int], T_world_source: np.ndarray,
@@ -195,10 +198,12 @@ def compose(pb: Task, refined: list, chosen: int, close: list[int], T_world_sour
     placements = distinct_placements([c] + [cands[i] for i in close if i != chosen], pb.voxel, symmetries,
                                      pb.part_symmetries)
     ambiguous = bool(len(placements) > 1 and c.coverage >= CONFIDENT_COVERAGE)  # exact twins are not ambiguity
-    return RegistrationResult(True, "", c.T_world_base, c.T_world_part, T_world_source, pb.fine_pts, src_b, stages,
-                              c.fitness, c.inlier_rmse, timings, [cands[i] for i in order], ambiguous,
-                              placements[1:] if ambiguous else [], voxel=pb.voxel, coverage=float(c.coverage),
-                              preset=pb.params.preset)
+    return RegistrationResult(ok=True, T_world_base=c.T_world_base, T_world_part=c.T_world_part,
+                              T_world_source=T_world_source, target_cloud=pb.fine_pts, source_cloud=src_b,
+                              stages=stages, fitness=c.fitness, inlier_rmse=c.inlier_rmse, timings=timings,
+                              candidates=[cands[i] for i in order], ambiguous=ambiguous,
+                              alternatives=placements[1:] if ambiguous else [], voxel=pb.voxel,
+                              coverage=float(c.coverage), preset=pb.params.preset)
 
 
 def better_of_free_search(result: RegistrationResult, target_pts, pb: Task, prior, trace_iterations,
@@ -213,8 +218,7 @@ def better_of_free_search(result: RegistrationResult, target_pts, pb: Task, prio
         free_timings[k] = free_timings.get(k, 0.0) + v
     if free.coverage > result.coverage:
         return free
-    result.timings = free_timings
-    return result
+    return replace(result, timings=free_timings)
 
 
 CONFIDENCE_VOXELS_PER_DIAMETER = 50.0  # confidence is judged at diameter / 50 (ours) whatever the preset's voxel
@@ -222,33 +226,32 @@ UNSUPPORTED_SHARE = 0.05  # fitness or coverage below this: the model explains (
 UNSUPPORTED_CONTRADICTION = 0.5  # the camera sees past more than this share of what the model shows
 
 
-def judge(result: RegistrationResult, depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics,
-          T_world_camera: np.ndarray, base: BaseObject) -> RegistrationResult:
+def judge(result: RegistrationResult, view: View, base: BaseObject) -> RegistrationResult:
     """`ok` means a pose that the data supports. A result whose model explains (almost) none of the
     target, that the depth contradicts on most of what it shows (the camera sees past it: a part placed
     where there is table), or that puts the base where the camera cannot have seen it (behind it,
     outside the image, beyond the farthest depth) becomes ok=False with the reason; its pose stays in
-    the result for inspection. Also sets `contradiction`, which `confident` reads.
+    the result for inspection. The judged copy also carries `contradiction`, which `confident` reads.
 
     Measured on 50 RealSense-like renders (benchmarks/tune.py frames): right poses contradict 0-2 % of
     their view; a base placed on the wrong object 7-100 % (CONFIDENT_CONTRADICTION is 5 %)."""
     if not result.ok:
         return result
+    depth, mask, cam, T_world_camera = view.depth, view.mask, view.camera, view.T_world_camera
+    coverage, contradiction = result.coverage, result.contradiction
     seen = se3.transform_points(result.T_world_base, result.source_cloud) if len(result.source_cloud) else None
     scale_voxel = base.diameter / CONFIDENCE_VOXELS_PER_DIAMETER
     tol = agreement_tolerance(min(result.voxel, scale_voxel), result.depth_noise)
     if result.voxel > 1.01 * scale_voxel:  # a coarse preset (the paper's fixed 8 mm): its fit is judged at the
         # scale-aware tolerance, on what the camera sees of the model at the final pose, like ours
-        from apose_studio.geometry.metrics import quick_tree
-        from apose_studio.registration.base import raycast_source
 
         seen, _ = raycast_source(base, result.T_world_base, T_world_camera, cam)
         if len(seen) and len(result.target_cloud):
             d = quick_tree(seen).query(result.target_cloud, distance_upper_bound=tol)[0]
-            result.coverage = float(np.mean(d < tol))
+            coverage = float(np.mean(d < tol))
     if seen is not None and len(seen):
         confirmed, contradicted = evidence(seen, T_world_camera, cam, depth, mask, ~(mask | mask_edge(mask)), tol)
-        result.contradiction = contradicted / max(confirmed + contradicted, 1)
+        contradiction = contradicted / max(confirmed + contradicted, 1)
     reason = None
     centre = se3.transform_points(se3.inv(T_world_camera) @ result.T_world_base, base.centre[None])[0]
     valid = depth[np.isfinite(depth) & (depth > 0)]
@@ -262,12 +265,11 @@ def judge(result: RegistrationResult, depth: np.ndarray, mask: np.ndarray, cam: 
         margin = cam.fx * base.diameter / centre[2]  # the base's size in pixels: its centre may lie that far out
         if not (-margin <= float(u[0]) <= cam.width + margin and -margin <= float(v[0]) <= cam.height + margin):
             reason = "the pose puts the base outside the image"
-    if reason is None and (result.fitness < UNSUPPORTED_SHARE or result.coverage < UNSUPPORTED_SHARE):
+    if reason is None and (result.fitness < UNSUPPORTED_SHARE or coverage < UNSUPPORTED_SHARE):
         reason = (f"the model explains almost none of the target (fitness {result.fitness:.2f}, coverage "
-                  f"{result.coverage:.2f}): the mask holds something else, or too little of the base")
-    if reason is None and result.contradiction > UNSUPPORTED_CONTRADICTION:
-        reason = (f"the depth contradicts {result.contradiction:.0%} of what the model shows at this pose (the camera "
+                  f"{coverage:.2f}): the mask holds something else, or too little of the base")
+    if reason is None and contradiction > UNSUPPORTED_CONTRADICTION:
+        reason = (f"the depth contradicts {contradiction:.0%} of what the model shows at this pose (the camera "
                   "sees past it): the mask holds something else")
-    if reason is not None:
-        result.ok, result.reason = False, reason + "; no pose is reported"
-    return result
+    judged = replace(result, coverage=coverage, contradiction=contradiction)
+    return judged if reason is None else replace(judged, ok=False, reason=reason + "; no pose is reported")

@@ -9,11 +9,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from apose_studio.geometry import se3
-from apose_studio.registration.types import MIN_POINTS, TIE_MARGIN, TWIN_TIE_MARGIN, Candidate
+from apose_studio.registration.base import raycast_source
 from apose_studio.registration.scoring import discriminate, poses_within, score_pose, score_seen
 from apose_studio.registration.stages import cloud, icp
-from apose_studio.registration.base import raycast_source
-from apose_studio.registration.types import Found, Start
+from apose_studio.registration.types import MIN_POINTS, TIE_MARGIN, TWIN_TIE_MARGIN, Candidate, Found, Start
 
 POLISH_ITERATIONS = 6
 KEEP_DISTINCT = 3  # refine at most this many distinct coarse poses (several starts often converge to one)

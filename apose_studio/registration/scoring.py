@@ -4,15 +4,15 @@ evidence where two placements differ, and the clearly different placements among
 
 from __future__ import annotations
 
-
+import cv2
 import numpy as np
 
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.geometry.metrics import quick_tree
-from apose_studio.registration.types import Candidate
 from apose_studio.registration.base import raycast_source
 from apose_studio.registration.task import Task
+from apose_studio.registration.types import Candidate
 
 MASK_MARGIN_PX = 2  # mask edges are a pixel or two off: a model point further outside contradicts its pose
 DISCRIMINATE_MIN_POINTS = 10  # fewer pixels than this where two placements differ: they are symmetric twins
@@ -20,12 +20,8 @@ EDGE_PX = 2  # a pixel of one placement differs from another's only if no depth 
 # other is within the tolerance: a sub-millimetre shift moves depth edges and outlines by a pixel or two
 
 
-
-
 def mask_edge(mask: np.ndarray, px: int = MASK_MARGIN_PX) -> np.ndarray:
     """Pixels within `px` of the mask's outline, on either side (where depth and mask are mixed)."""
-    import cv2
-
     k = np.ones((2 * px + 1, 2 * px + 1), np.uint8)
     m = mask.astype(np.uint8)
     return (cv2.dilate(m, k) > 0) & ~(cv2.erode(m, k) > 0)
@@ -140,8 +136,6 @@ def discriminate(pb: "Task", close: list[int], cands: list[Candidate], traces: l
     point by point in 3D (a point counted only when no point of the other lay within the tolerance)
     missed differences seen along the ray (a boss or connector a few millimetres proud of a face), and
     left right poses tied with twins whose difference the depth showed on 300 pixels."""
-    import cv2
-
     fine_pts, T_world_camera, cam, voxel, thr = pb.fine_pts, pb.T_world_camera, pb.cam, pb.voxel, pb.thr
     observation = pb.observation
     tol = agreement_tolerance(voxel, observation.noise)

@@ -12,18 +12,18 @@ Each yields coarse poses (`Start`s, best first) for refine.py; none of them deci
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 
 import numpy as np
 
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.geometry.plane import fit_plane
+from apose_studio.registration.base import place_source, raycast_source
 from apose_studio.registration.refine import polish
-from apose_studio.registration.types import MIN_POINTS, Found, RegistrationResult, Start
 from apose_studio.registration.scoring import agreement_tolerance, score_seen, visible_agreement
 from apose_studio.registration.stages import cloud, estimate_normals, global_registration, icp, normals_fpfh, trace_stages
-from apose_studio.registration.base import place_source, raycast_source
+from apose_studio.registration.types import MIN_POINTS, Found, RegistrationResult, Start
 
 PRIOR_ACCEPT = 0.95  # the prior's pose is kept without a global search when both shares reach this
 UPRIGHT_YAW_STEP_DEG = 10.0
@@ -31,10 +31,6 @@ UPRIGHT_STARTS = 4  # the best-screened yaws refined by coarse ICP (4 and 6 reac
 UPRIGHT_TWINS = 3  # at most this many (near-)symmetric turns of the best upright pose are refined too
 UPRIGHT_FALLBACK = 0.6  # below this share explained by the best upright start, the base is not upright: search freely
 SCREEN_POINTS = 500  # target points the screening looks up per starting pose
-
-
-
-
 
 
 def try_prior(pb, prior: np.ndarray, trace_iterations: bool, timings: dict, **kw) -> RegistrationResult | None:
@@ -74,8 +70,10 @@ def try_prior(pb, prior: np.ndarray, trace_iterations: bool, timings: dict, **kw
         return None
     src_b = se3.transform_points(se3.inv(T), src_w)
     stages = trace_stages(T_world_source, "prior", T0, trace, cand, src_b, fine_pts, thr)
-    return RegistrationResult(True, "", T, cand.T_world_part, T_world_source, fine_pts, src_b, stages, cand.fitness,
-                              cand.inlier_rmse, timings, [cand], False, voxel=voxel, coverage=cand.coverage, **kw)
+    return RegistrationResult(ok=True, T_world_base=T, T_world_part=cand.T_world_part, T_world_source=T_world_source,
+                              target_cloud=fine_pts, source_cloud=src_b, stages=stages, fitness=cand.fitness,
+                              inlier_rmse=cand.inlier_rmse, timings=timings, candidates=[cand], voxel=voxel,
+                              coverage=cand.coverage, **kw)
 
 
 def table_normal(depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray,

@@ -14,7 +14,6 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-
 QUERY_WORKERS = 1  # more threads cost more than they save on the few thousand points of one ICP step
 
 

@@ -4,15 +4,15 @@ replay's stage records. Open3D is imported where it is used."""
 
 from __future__ import annotations
 
-
 import numpy as np
 from scipy.spatial import cKDTree
 
+from apose_studio.errors import AposeError
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
-from apose_studio.errors import AposeError
 from apose_studio.geometry.metrics import fitness_rmse
-from apose_studio.registration.presets import Params
+from apose_studio.params import Params
+from apose_studio.registration.solvers import icp_point_to_plane
 from apose_studio.registration.types import Candidate, Stage
 
 
@@ -25,7 +25,7 @@ def project_to_cloud(depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics,
 
 
 def cloud(points: np.ndarray, normals: np.ndarray | None = None):
-    import open3d as o3d
+    import open3d as o3d  # heavy (~0.9 s to import): loaded where it is used
 
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
     if normals is not None:
@@ -35,7 +35,7 @@ def cloud(points: np.ndarray, normals: np.ndarray | None = None):
 
 def estimate_normals(pc, voxel: float, p: Params, camera_pos: np.ndarray | None) -> None:
     """Estimate normals once (oriented towards the camera when its position is known)."""
-    import open3d as o3d
+    import open3d as o3d  # heavy (~0.9 s to import): loaded where it is used
 
     if not pc.has_normals():
         pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=p.normal_radius_factor * voxel, max_nn=30))
@@ -44,7 +44,7 @@ def estimate_normals(pc, voxel: float, p: Params, camera_pos: np.ndarray | None)
 
 
 def normals_fpfh(pc, voxel: float, p: Params, camera_pos: np.ndarray | None):
-    import open3d as o3d
+    import open3d as o3d  # heavy (~0.9 s to import): loaded where it is used
 
     reg = o3d.pipelines.registration
     estimate_normals(pc, voxel, p, camera_pos)
@@ -54,7 +54,7 @@ def normals_fpfh(pc, voxel: float, p: Params, camera_pos: np.ndarray | None):
 def global_registration(source, target, f_source, f_target, voxel: float, p: Params) -> np.ndarray:
     """PCDREG, global part: RANSAC on FPFH matches (Open3D's, seeded with p.seed: it repeats exactly on one
     OpenMP thread, see apose_studio/__init__.py). Returns T_target_source."""
-    import open3d as o3d
+    import open3d as o3d  # heavy (~0.9 s to import): loaded where it is used
 
     reg = o3d.pipelines.registration
     o3d.utility.random.seed(p.seed)
@@ -87,11 +87,9 @@ def icp(source, target, T_init: np.ndarray, threshold: float, iterations: int, t
     reused when given; else Open3D's (multi-threaded, not bit-repeatable).
     """
     if deterministic:
-        from apose_studio.registration.solvers import icp_point_to_plane
-
         return icp_point_to_plane(np.asarray(source.points), np.asarray(target.points), np.asarray(target.normals),
                                   T_init, threshold, iterations, trace, target_tree)
-    import open3d as o3d
+    import open3d as o3d  # heavy (~0.9 s to import): loaded where it is used
 
     reg = o3d.pipelines.registration
     est = reg.TransformationEstimationPointToPlane()

@@ -12,11 +12,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from apose_studio.geometry.camera import CameraIntrinsics
+from apose_studio.params import Params
 from apose_studio.registration.base import BaseObject
-from apose_studio.registration.presets import Params
-from apose_studio.registration.types import Degenerate
-from apose_studio.registration.types import Observation
 from apose_studio.registration.stages import cloud
+from apose_studio.registration.types import Degenerate, Observation
 
 
 @dataclass(frozen=True, eq=False)
@@ -82,7 +81,7 @@ def prepare_task(target_pts: np.ndarray, cam: CameraIntrinsics, T_world_camera: 
     """The target down-sampled (coarse: flying pixels and speckle removed; fine: with normals). Raises
     Degenerate when too little of it is left, or when it is a line. `light`: for scoring and polishing
     only (registration.fusion's other views): no outlier removal, no target normals."""
-    import open3d as o3d
+    import open3d as o3d  # heavy (~0.9 s to import): loaded where it is used
 
     vg = voxel * p.global_voxel_factor
     target_full = cloud(target_pts)

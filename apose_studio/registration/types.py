@@ -8,6 +8,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from apose_studio.geometry.camera import CameraIntrinsics
+
 MIN_POINTS = 30  # fewer target points than this cannot constrain 6 DoF with any confidence
 TIE_MARGIN = 0.03  # candidates scoring within this of the best explain the data equally well
 TWIN_TIE_MARGIN = 0.045  # ... and a twin of the best (turned by a symmetry or close twin) within this: the evidence
@@ -43,8 +45,11 @@ class Candidate:
     coverage: float = float("nan")  # share of target points within 2 voxels of what the model shows (loose fitness)
 
 
-@dataclass
+@dataclass(frozen=True, eq=False, kw_only=True)
 class RegistrationResult:
+    """What `estimate` returns. Frozen: a stage that changes a result (judge, the second look, fusion)
+    returns a new one (`dataclasses.replace`)."""
+
     ok: bool
     reason: str = ""
     T_world_base: np.ndarray | None = None
@@ -146,3 +151,20 @@ class Found:
     coarse: list[Start]
     twins: list[Start] = field(default_factory=list)
     upright: bool = False
+
+
+@dataclass(frozen=True, eq=False)
+class View:
+    """One look at the base: depth (metres), the base's mask, the intrinsics and the camera's pose; what
+    `estimate` takes, and `estimate_views` takes several of."""
+
+    depth: np.ndarray
+    mask: np.ndarray
+    camera: CameraIntrinsics
+    T_world_camera: np.ndarray
+    name: str = ""  # how errors name it (a file, "frame 3")
+
+    @classmethod
+    def of(cls, frame, mask: np.ndarray) -> "View":
+        """A dataset.Frame (a render, a capture) with the base's mask."""
+        return cls(frame.depth, mask, frame.camera, frame.T_world_camera, frame.source or f"frame {frame.im_id}")

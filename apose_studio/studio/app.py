@@ -1,13 +1,21 @@
-"""The studio app: one viser server, the shared draft, the lock, the guarded door every callback goes
-through, notifications, the 3D view's two scenes, and `serve()`.
+"""The studio app: one viser server, the shared state (the draft, the selection, the inspected frame)
+and the event hub the panels talk through, the lock, the guarded door every callback goes through,
+notifications, the 3D view's two scenes, and `serve()`.
 
 Design: the GUI is an edge. Each folder of controls belongs to a panel class in its own module
-(assembly_panel, steps_panel, inspect_panel, results_view) that owns its widgets with their
-callbacks beside them; editing goes through `authoring` (pure, returns new Assemblies), drawing
-through `inspection` (pure). Every callback runs through `Studio.guarded`, so bad input becomes a
-notification to the browser that caused it and the server keeps serving. The state is shared by
-all browser tabs (one studio, one draft); notifications go to the tab that acted. A new panel (mates,
-prompted masks, view advice) arrives as a new module and one line in `build_gui`.
+(assembly_panel, steps_panel, mates_panel, inspect_panel, prompt_panel, views_panel, results_view)
+that owns its widgets with their callbacks beside them; editing goes through `authoring` (pure,
+returns new Assemblies), drawing through `inspection` (pure). Every callback runs through
+`Studio.guarded`, so bad input becomes a notification to the browser that caused it and the server
+keeps serving. The state is shared by all browser tabs (one studio, one draft); notifications go to
+the tab that acted.
+
+Panels talk through the app, never to each other: what one panel writes and others read is in
+`Studio.state` (`state.StudioState`), and what others must react to is an `Event` on `Studio.events`
+that they subscribe to (in their constructors, so in the order the panels are made below). A panel
+reads and calls the app (`self.app.state`, `self.app.events`, `self.app.model(...)`, ...), never
+another panel's attributes or widgets (tests/studio/test_panel_boundaries.py checks it). A new panel
+arrives as a new module, one line in `__init__` and one in `build_gui`.
 """
 
 from __future__ import annotations
@@ -20,19 +28,21 @@ from pathlib import Path
 
 import numpy as np
 
-from apose_studio.studio import authoring, inspection
+from apose_studio.assembly.mesh import PartModel, load_part
 from apose_studio.assembly.model import Assembly
 from apose_studio.errors import AposeError, AssemblyError
-from apose_studio.assembly.mesh import PartModel, load_part
-from apose_studio.studio.webguard import Workspace
+from apose_studio.geometry import se3
+from apose_studio.studio import authoring, inspection
 from apose_studio.studio.assembly_panel import AssemblyPanel
-from apose_studio.studio.inspect_panel import InspectPanel
+from apose_studio.studio.inspect_panel import EstimateJob, InspectPanel
 from apose_studio.studio.mates_panel import MatesPanel
-from apose_studio.studio.results_view import ResultsView
 from apose_studio.studio.prompt_panel import PromptPanel
+from apose_studio.studio.results_view import ResultsView
+from apose_studio.studio.state import Event, Events, StudioState
 from apose_studio.studio.steps_panel import StepsPanel
 from apose_studio.studio.views_panel import ViewsPanel
 from apose_studio.studio.viser_adapter import limit_uploads
+from apose_studio.studio.webguard import Workspace, check_token, new_token, start_viser, studio_url
 from apose_studio.studio.widgets import ACTIVE, MAX_UPLOAD_BYTES, VIEWS
 
 log = logging.getLogger(__name__)
@@ -42,8 +52,19 @@ class Studio:
     """One studio on one viser server. `assembly` and `dataset` are optional paths opened at start;
     `workspace` holds the folders whose files the page may name (default: see `default_workspace`).
 
-    Panels: `files` (File, Parts), `steps` (Steps, Preview), `inspect` (Data, Estimate), `results`
-    (replay, Result, Layers)."""
+    Panels (each owns its folders; only the app calls them): `files` (File, Parts), `steps` (Steps,
+    Preview), `mates` (Mates, Approach), `inspect` (Data, Estimate), `prompt` (Prompt), `views` (Views),
+    `results` (replay, Result, Layers). Shared: `state` (the data) and `events` (the hub)."""
+
+    files: AssemblyPanel
+    steps: StepsPanel
+    mates: MatesPanel
+    inspect: InspectPanel
+    prompt: PromptPanel
+    views: ViewsPanel
+    results: ResultsView
+    state: StudioState
+    events: Events
 
     def __init__(self, server, assembly: str | Path | None = None, dataset: str | Path | None = None,
                  cache: inspection.ResultCache | None = None, workspace: Workspace | None = None):
@@ -53,9 +74,8 @@ class Studio:
         self.workspace = workspace if workspace is not None else default_workspace(assembly, dataset)
         self.lock = threading.RLock()  # one edit at a time, whichever tab it comes from
         self.busy = threading.Lock()  # one estimation at a time
-        self.asm: Assembly = authoring.new_assembly()
-        self.valid_asm: Assembly = self.asm  # last draft without problems: what the preview shows
-        self.problems: list = authoring.problems(self.asm)  # the empty draft is not saveable either
+        self.state = StudioState.empty()  # the empty draft is not saveable either (it has no steps)
+        self.events = Events()
         self.models: dict[tuple, PartModel] = {}  # (mesh path, units, colour, index) -> PartModel
         self.nodes: dict[str, object] = {}  # scene nodes by name (tests look here)
         self.cache = cache if cache is not None else inspection.ResultCache()
@@ -67,9 +87,9 @@ class Studio:
         self.mates = MatesPanel(self)
         self.history = authoring.History()
         self.inspect = InspectPanel(self)
-        self.results = ResultsView(self)
         self.prompt = PromptPanel(self)
-        self.views = ViewsPanel(self)
+        self.views = ViewsPanel(self)  # before results: a frame change refreshes the views, then draws
+        self.results = ResultsView(self)
         with self.lock:  # a page that connects while the start-up files load waits for them
             self.build_gui()
             server.on_client_connect(self.on_connect)
@@ -78,6 +98,33 @@ class Studio:
                 self.files.open_assembly(Path(assembly), confine=False)
             if dataset is not None:
                 self.inspect.open_frames(str(dataset), confine=False)
+
+    @property
+    def asm(self) -> Assembly:
+        """The draft (`state.asm`)."""
+        return self.state.asm
+
+    @asm.setter
+    def asm(self, asm: Assembly) -> None:
+        self.state.asm = asm
+
+    @property
+    def valid_asm(self) -> Assembly:
+        """The last draft without problems, what the preview shows (`state.valid_asm`)."""
+        return self.state.valid_asm
+
+    @valid_asm.setter
+    def valid_asm(self, asm: Assembly) -> None:
+        self.state.valid_asm = asm
+
+    @property
+    def problems(self) -> list:
+        """The draft's problems (`state.problems`)."""
+        return self.state.problems
+
+    @problems.setter
+    def problems(self, problems: list) -> None:
+        self.state.problems = problems
 
     def notify(self, client, title: str, body: str, error: bool = False) -> None:
         """Tell the tab that acted (or every tab when no one did)."""
@@ -148,7 +195,7 @@ class Studio:
         if which == "Inspect":
             self.inspect.frame_camera_on_frame()
         else:
-            self.steps.frame_camera_on_assembly()
+            self.frame_camera_on_assembly()
 
     def show_view(self, which: str) -> None:
         self.current_view = which
@@ -157,7 +204,7 @@ class Studio:
             if name.startswith("/assembly") or name.startswith("/inspect"):
                 want = name.startswith("/assembly") == (which == "Assembly")
                 handle.visible = want and getattr(handle, "_apose_visible", True)
-        for pid, h in self.steps.mesh_handles.items():
+        for pid, h in self.state.meshes.items():
             h.visible = which == "Assembly" and getattr(h, "_apose_visible", True)
 
     def node(self, name: str, handle, visible: bool = True):
@@ -177,6 +224,50 @@ class Studio:
             eye = centre + direction * (radius / np.sin(fov / 2.0)) * 1.1
             cam.position, cam.look_at = tuple(float(v) for v in eye), tuple(float(v) for v in centre)
 
+    def frame_camera_on_assembly(self) -> None:
+        """Frame every part shown in the preview (exploded or not)."""
+        spheres = []
+        for pid, T_world_part in self.state.preview.items():
+            try:
+                m = self.model(pid, self.valid_asm)
+            except (AposeError, KeyError):
+                continue
+            spheres.append((se3.transform_points(T_world_part, m.box_corners()).mean(axis=0), m.diameter / 2.0))
+        if not spheres:
+            return
+        centres = np.array([c for c, _ in spheres])
+        centre = (centres.min(axis=0) + centres.max(axis=0)) / 2.0
+        radius = max(float(np.linalg.norm(c - centre)) + r for c, r in spheres)
+        self.look_at(centre, radius, np.array([1.0, -1.0, 0.75]))
+
+    def next_pointer(self, client, title: str, kind: str, handle, ask: str) -> None:
+        """The next click (kind "click") or dragged rectangle ("rect") in the 3D view of this tab goes to
+        handle(event, client), guarded like every callback; `ask` tells the user what to do. Pointing
+        is at the inspected frame, so there must be one."""
+        if self.state.inspect.frame is None:
+            raise AposeError("open a dataset or capture first")
+        if client is None:
+            raise AposeError("no browser to point in")
+        scene = client.scene
+        register, remove = ((scene.on_click, scene.remove_click_callback) if kind == "click"
+                            else (scene.on_rect_select, scene.remove_rect_select_callback))
+
+        def once(event) -> None:
+            remove(once)
+            self.guarded(title)(lambda c: handle(event, c))(event)
+
+        register()(once)
+        self.notify(client, title, ask)
+
+    def estimate_job(self, step: int, ids: list[int]) -> EstimateJob:
+        """An estimate of frames `ids` of `step` with the Inspect panel's settings of this moment (its
+        Estimate folder owns them); for panels that estimate in their own way (Views)."""
+        return self.inspect.job(step, ids)
+
+    def step_context(self, step: int):
+        """The inspected assembly's prepared context for `step` (cached by the Inspect panel)."""
+        return self.inspect.context(step)
+
     def model(self, pid: str, asm: Assembly | None = None) -> PartModel:
         """A part's loaded mesh and derived geometry, cached by file, unit, colour and index."""
         asm = asm if asm is not None else self.asm
@@ -188,14 +279,14 @@ class Studio:
 
     def undo_redo(self, which: str, client) -> None:
         asm = self.history.undo(self.asm) if which == "Undo" else self.history.redo(self.asm)
-        self.steps.drop_meshes()  # a part may come back with another mesh
+        self.events.emit(Event.MESHES_CHANGED, pid=None)  # a part may come back with another mesh
         self.mates.clear_picks()
-        self.set_assembly(asm, client, record=False)
-        self.steps.sync_typed_pose()
+        self.set_assembly(asm, client, record=False)  # the typed pose fields follow the draft
 
     def set_assembly(self, asm: Assembly, client=None, quiet: bool = False, record: bool = True) -> None:
-        """Adopt a new draft: validate, remember the last valid one, refresh every view of it. With
-        `record`, the draft it replaces goes on the undo history."""
+        """Adopt a new draft: validate, remember the last valid one, keep the selected step inside it,
+        and tell every view of it (DRAFT_CHANGED). With `record`, the draft it replaces goes on the
+        undo history."""
         if record and asm is not self.asm:
             self.history.record(self.asm)
         self.asm = asm
@@ -205,10 +296,9 @@ class Studio:
             self.valid_asm = asm
         elif not quiet:
             self.notice_problems_later(client)
-        if self.steps.step_index is not None and self.steps.step_index >= len(asm.steps):
-            self.steps.step_index = len(asm.steps) - 1 if asm.steps else None
+        if self.state.step_index is not None and self.state.step_index >= len(asm.steps):
+            self.state.step_index = len(asm.steps) - 1 if asm.steps else None
         self.refresh_assembly_widgets()
-        self.steps.refresh_assembly_scene()
 
     def notice_problems_later(self, client, delay: float = 0.8) -> None:
         """Notify about a draft's problems once typing pauses (a text field updates on every key)."""
@@ -234,8 +324,8 @@ class Studio:
             raise AssemblyError(self.problems)
 
     def refresh_assembly_widgets(self) -> None:
-        self.files.refresh_files()
-        self.steps.refresh_steps()
+        """Every widget and the preview show the draft and the selected step as they are now."""
+        self.events.emit(Event.DRAFT_CHANGED)
 
 
 def default_workspace(assembly=None, dataset=None, root=None) -> Workspace:
@@ -254,8 +344,6 @@ def serve(assembly=None, dataset=None, host: str = "127.0.0.1", port: int = 8080
 
     Only the studio's own page may connect (Origin check), and the page and its websocket need
     `token` (a new random one when None, on loopback too); `studio.url` is the address to open."""
-    from apose_studio.studio.webguard import check_token, new_token, start_viser, studio_url
-
     if not 0 < int(port) < 65536:
         raise AposeError(f"--port {port}: expected a port number from 1 to 65535")
     token = new_token() if token is None else check_token(token)

@@ -1,18 +1,24 @@
 """The Assembly tab's File and Parts folders: open, new, save (atomic, asking before it replaces a file
 this studio did not open), download; name and units; parts added by path, folder or upload, their
-colours and removal. Every path goes through the studio's workspace."""
+colours and removal. Every path goes through the studio's workspace.
+
+The file the draft came from or was saved to is `state.saved_path`. A part whose mesh must be drawn
+anew is MESHES_CHANGED; an opened file DRAFT_OPENED; a save DRAFT_SAVED. Name, units and the parts
+table follow DRAFT_CHANGED."""
 
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 from pathlib import Path
 
-
-from apose_studio.studio import authoring
-from apose_studio.assembly.model import dump_assembly, load_assembly, save_assembly
-from apose_studio.errors import AposeError
 from apose_studio.assembly.fileio import atomic_write_bytes, describe_path
 from apose_studio.assembly.mesh import supported_extensions
+from apose_studio.assembly.model import dump_assembly, load_assembly, save_assembly
+from apose_studio.errors import AposeError
+from apose_studio.safeio import read_bytes
+from apose_studio.studio import authoring
+from apose_studio.studio.state import Event, shared
 from apose_studio.studio.widgets import MAX_UPLOAD_BYTES, UNITS, esc, hex_colour
 
 log = logging.getLogger(__name__)
@@ -20,8 +26,6 @@ log = logging.getLogger(__name__)
 
 def _same_bytes(path: Path, content: bytes) -> bool:
     """The regular file at `path` holds exactly `content` (a pipe or device there is never the same)."""
-    from apose_studio.safeio import read_bytes
-
     try:
         return path.is_file() and path.stat().st_size == len(content) and read_bytes(path, "a mesh", len(content)) == content
     except AposeError:
@@ -29,11 +33,13 @@ def _same_bytes(path: Path, content: bytes) -> bool:
 
 
 class AssemblyPanel:
+    saved_path = shared("saved_path", "the file the draft was opened from or last saved to (`state.saved_path`)")
+
     def __init__(self, app):
         self.app = app
         self._syncing = False
-        self.saved_path: Path | None = None
         self._pending_save: Path | None = None  # a file that Save would replace, waiting for "Replace"
+        app.events.on(Event.DRAFT_CHANGED, self.refresh_files)
 
     def build(self) -> None:
         gui = self.app.server.gui
@@ -68,13 +74,13 @@ class AssemblyPanel:
             self.app.workspace.check_assembly(asm)  # the meshes a file names obey the workspace as typed paths do
         for pid in asm.parts:  # load every mesh now: a bad one is reported before anything changes
             self.app.model(pid, asm)
-        self.app.steps.drop_meshes()
-        self.app.steps.step_index = 0 if asm.steps else None
+        self.app.events.emit(Event.MESHES_CHANGED, pid=None)
+        self.app.state.step_index = 0 if asm.steps else None
         self.saved_path = asm.path
         self.f_path.value = str(asm.path)
         self.app.set_assembly(asm, client)
-        self.app.steps.f_upto.value = len(asm.steps)
-        self.app.steps.frame_camera_on_assembly()
+        self.app.events.emit(Event.DRAFT_OPENED)
+        self.app.frame_camera_on_assembly()
         self.warn_units(client)
 
     def warn_units(self, client) -> None:
@@ -108,8 +114,8 @@ class AssemblyPanel:
                              "assembly into 'Assembly file'")
         if not target.parent.is_dir():
             raise AposeError(f"{target.parent}: folder does not exist; create it or type another path")
-        self.app.steps.drop_meshes()
-        self.app.steps.step_index = None
+        self.app.events.emit(Event.MESHES_CHANGED, pid=None)
+        self.app.state.step_index = None
         name = target.stem
         self.app.valid_asm = authoring.new_assembly(name, self.f_units.value, target.parent)  # an empty preview
         self.app.set_assembly(authoring.new_assembly(name, self.f_units.value, target.parent), client, quiet=True)
@@ -142,7 +148,7 @@ class AssemblyPanel:
         self.saved_path = path
         self.app.asm = load_assembly(path)  # what is on disk is what the studio now edits (paths re-anchored)
         self.app.valid_asm = self.app.asm
-        self.app.steps.refresh_status()
+        self.app.events.emit(Event.DRAFT_SAVED)
         bak = path.with_name(path.name + ".bak")
         self.app.notify(client, "Saved", str(path) + (f" (previous version: {bak.name})" if bak.exists() else ""))
 
@@ -177,7 +183,6 @@ class AssemblyPanel:
     def on_name(self, client) -> None:
         if self._syncing:
             return
-        from dataclasses import replace
 
         name = self.f_name.value.strip()
         if not name:
@@ -187,9 +192,8 @@ class AssemblyPanel:
     def on_units(self, client) -> None:
         if self._syncing or self.f_units.value == self.app.asm.units:
             return
-        from dataclasses import replace
 
-        self.app.steps.drop_meshes()
+        self.app.events.emit(Event.MESHES_CHANGED, pid=None)
         self.app.set_assembly(replace(self.app.asm, units=self.f_units.value), client)
         self.warn_units(client)
 
@@ -226,7 +230,7 @@ class AssemblyPanel:
             self.app.notify(client, "Parts added", ", ".join(added))
         if failed:
             self.app.notify(client, "Some meshes were not added", "\n".join(failed[:5]), error=True)
-        self.app.steps.frame_camera_on_assembly()
+        self.app.frame_camera_on_assembly()
 
     def on_upload(self, client) -> None:
         f = self.upload.value
@@ -276,7 +280,7 @@ class AssemblyPanel:
             return
         pid = self.f_part.value
         rgb = tuple(c / 255.0 for c in self.f_color.value)
-        self.app.steps.drop_meshes(pid)
+        self.app.events.emit(Event.MESHES_CHANGED, pid=pid)
         self.app.set_assembly(authoring.set_part_color(self.app.asm, pid, rgb), client)
 
     def on_remove_part(self, client) -> None:
@@ -284,7 +288,7 @@ class AssemblyPanel:
         if pid not in self.app.asm.parts:
             raise AposeError("choose a part to remove")
         asm = authoring.remove_part(self.app.asm, pid)
-        self.app.steps.drop_meshes(pid)
+        self.app.events.emit(Event.MESHES_CHANGED, pid=pid)
         self.app.set_assembly(asm, client)
 
     def refresh_files(self) -> None:

@@ -13,10 +13,13 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
-from apose_studio.geometry import se3
-from apose_studio.assembly.model import Assembly, Part, Step, assembly_from_dict, assembly_to_dict
+from apose_studio.assembly.mates import Approach, Mate, MateError, Ref, angle_axis, disagreement, in_base_frame
+from apose_studio.assembly.mesh import STEP_EXTENSIONS, step_solids
+from apose_studio.assembly.model import Assembly, Part, Step, assembly_from_dict, assembly_to_dict, solve_step_mates
 from apose_studio.errors import AposeError, AssemblyError, Problem
+from apose_studio.geometry import se3
 
 EULER_ORDER = "xyz"
 
@@ -52,8 +55,6 @@ def add_part(asm: Assembly, mesh_path: str | Path, part_id: str | None = None,
 def add_mesh_parts(asm: Assembly, mesh_path: str | Path) -> tuple[Assembly, list[str]]:
     """Add a mesh file as a part, or a STEP file with several solids as one part per solid (named after
     them). Reads STEP files (to list their solids); raises MeshError on a bad one."""
-    from apose_studio.assembly.mesh import STEP_EXTENSIONS, step_solids
-
     path = Path(mesh_path).expanduser().resolve()
     solids = list(step_solids(path)) if path.suffix.lower() in STEP_EXTENSIONS and path.is_file() else []
     if len(solids) <= 1:
@@ -167,8 +168,6 @@ def problem_steps(found: list[Problem]) -> set[int]:
 
 def typed_pose(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(translation in mm, extrinsic xyz Euler angles in degrees) of a 4x4 pose in metres."""
-    from scipy.spatial.transform import Rotation
-
     return T[:3, 3] * 1000.0, Rotation.from_matrix(T[:3, :3]).as_euler(EULER_ORDER, degrees=True)
 
 
@@ -247,9 +246,6 @@ def preview_poses(asm: Assembly, upto: int, diameters: dict[str, float], explode
 def set_mates(asm: Assembly, index: int, mates) -> Assembly:
     """Step `index` (0-based) with these mates (metres; base references in their base part's frame), its
     pose solved from them. Raises AposeError naming the mate that cannot hold."""
-    from apose_studio.assembly.model import solve_step_mates
-    from apose_studio.assembly.mates import MateError
-
     s = replace(asm.steps[index], mates=tuple(mates))
     if not s.mates:
         return _with_step(asm, index, replace(s, free=()))
@@ -267,8 +263,6 @@ def mate_from_picks(asm: Assembly, index: int, kind: str, base_part: str, base_f
     """A mate of `kind` between a picked feature of a base part and one of the step's part (each a
     `picking.Feature` in its own part's frame). A coaxial mate is flipped when that turns the part less
     (a fitted axis has no sign)."""
-    from apose_studio.assembly.mates import Mate, Ref
-
     s = asm.steps[index]
     bp = None if base_part == s.base[0] else base_part
     b = Ref(point=base_feature.point.copy(), direction=base_feature.direction.copy())
@@ -284,8 +278,6 @@ def mate_from_picks(asm: Assembly, index: int, kind: str, base_part: str, base_f
 
 def lock_turn(asm: Assembly, index: int) -> Assembly:
     """Add an angle mate that holds the part's present turn about its coaxial axis (or contact normal)."""
-    from apose_studio.assembly.mates import Mate, Ref, angle_axis, in_base_frame
-
     s = asm.steps[index]
     moved = in_base_frame(s.mates, s.base[0], asm.step_view(index + 1).T_base_members)
     axis = angle_axis(moved)
@@ -306,8 +298,6 @@ def edit_mate(asm: Assembly, index: int, k: int, **changes) -> Assembly:
 
 def broken_mates(asm: Assembly, index: int, T_base_part: np.ndarray) -> bool:
     """Whether a pose for step `index` breaks its mates (the pose the mates would solve to differs)."""
-    from apose_studio.assembly.mates import disagreement
-
     s = asm.steps[index]
     if not s.mates:
         return False
@@ -320,8 +310,6 @@ def broken_mates(asm: Assembly, index: int, T_base_part: np.ndarray) -> bool:
 
 def set_approach(asm: Assembly, index: int, direction, distance_m: float) -> Assembly:
     """Step `index` with an approach (a direction in base[0]'s frame and a length in metres), or none."""
-    from apose_studio.assembly.mates import Approach
-
     s = asm.steps[index]
     approach = None
     if direction is not None:

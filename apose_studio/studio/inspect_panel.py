@@ -1,6 +1,11 @@
 """The Inspect tab's Data and Estimate folders: datasets and captures, step and frame, the estimator's
 settings, the crop box, and estimates (fixed to the settings of the moment they are asked for, run
-without the studio lock, cached)."""
+without the studio lock, cached).
+
+The opened data, the inspected step and frame, its estimate and the Mask choice live in the studio's
+shared state (`state.inspect`), which this panel writes; a new frame is FRAME_CHANGED. The prompt
+comes from the shared state too (the Prompt panel writes it), and a mask source chosen elsewhere
+(MASK_SOURCE_CHOSEN) is shown in the Mask dropdown."""
 
 from __future__ import annotations
 
@@ -10,13 +15,23 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
-from apose_studio.studio import inspection
-from apose_studio.geometry import se3
 from apose_studio.assembly.model import Assembly
+from apose_studio.data.bop import BopScene
+from apose_studio.data.dataset import Dataset
+from apose_studio.data.sources import open_frames
 from apose_studio.errors import AposeError
-from apose_studio.studio.prompt_panel import PROMPT_SOURCE
-from apose_studio.studio.widgets import PRESETS, esc
+from apose_studio.estimation import MASK_SOURCES, StepContext, check_mask_source
+from apose_studio.evaluate import estimate_and_score
+from apose_studio.geometry import se3
+from apose_studio.masks.segment import depth_mask
+from apose_studio.params import PRESETS, resolve_params
+from apose_studio.registration import project_to_cloud
+from apose_studio.studio import inspection
+from apose_studio.studio.prompt_panel import PROMPT_SOURCE, prompt_of, prompted_mask
+from apose_studio.studio.state import Event, shared
+from apose_studio.studio.widgets import esc, scene_point_at_ray
 
 log = logging.getLogger(__name__)
 
@@ -40,8 +55,6 @@ class EstimateJob:
 
     def params(self):
         """The estimator's parameters for this job (Upright applies to the default preset)."""
-        from apose_studio.registration import resolve_params
-
         return resolve_params(self.preset, self.assembly.registration,
                               **({"upright": self.upright} if self.preset == "default" else {}))
 
@@ -56,16 +69,17 @@ class EstimateJob:
 
 
 class InspectPanel:
+    frames = shared("inspect.frames", "the opened data: a Dataset or a capture Frame (`state.inspect.frames`)")
+    frames_path = shared("inspect.frames_path")
+    frame = shared("inspect.frame", "the frame on show (`state.inspect.frame`)")
+    result = shared("inspect.result", "its estimate, or None (`state.inspect.result`)")
+    score = shared("inspect.score", "the estimate's score, or None (`state.inspect.score`)")
+
     def __init__(self, app):
         self.app = app
         self._syncing = False
-        self.frames = None  # a Dataset or a capture Frame
-        self.frames_path: str | None = None
-        self.frame = None
-        self.result = None
-        self.score = None
         self.contexts: dict = {}  # (assembly identity, step) -> StepContext
-        self._part_models: dict = {}  # id(assembly) -> its PartModels
+        app.events.on(Event.MASK_SOURCE_CHOSEN, self.on_mask_source_chosen)
 
     def build(self) -> None:
         gui = self.app.server.gui
@@ -78,13 +92,15 @@ class InspectPanel:
             self.i_frame = gui.add_slider("Frame", 0, 1, 1, 0)
             self.i_frame.on_update(self.app.guarded("Frame")(lambda c: self.on_frame_changed()))
         with gui.add_folder("Estimate") as self.estimate_folder:
-            self.i_preset = gui.add_dropdown("Preset", PRESETS, initial_value="default")
-            from apose_studio.evaluate import MASK_SOURCES
-
-            self.i_mask = gui.add_dropdown("Mask", MASK_SOURCES + (PROMPT_SOURCE,), initial_value=MASK_SOURCES[0],
+            self.i_preset = gui.add_dropdown("Preset", tuple(PRESETS), initial_value="default")
+            sources = tuple(MASK_SOURCES)
+            self.i_mask = gui.add_dropdown("Mask", sources + (PROMPT_SOURCE,), initial_value=sources[0],
                                            hint="gt: the dataset's masks; depth: table removal + 3D clustering; box: "
                                            "prompted by the truth's box; prompt: your box or click (Prompt folder); "
                                            "or a trained model")
+            self.app.state.inspect.mask_source = self.i_mask.value  # shared: the Prompt panel and the overlay read it
+            self.i_mask.on_update(self.app.guarded("Mask")(
+                lambda c: setattr(self.app.state.inspect, "mask_source", self.i_mask.value)))
             self.i_model = gui.add_text("Mask model (.pt)", "", hint="a model from `apose train-seg` for this assembly")
             b = gui.add_button("Use model")
             b.on_click(self.app.guarded("Mask model")(self.on_use_model))
@@ -119,11 +135,7 @@ class InspectPanel:
             raise
 
     def open_frames(self, text: str, client=None, confine: bool = True) -> None:
-        from apose_studio.data.dataset import Dataset, open_frames
-
         frames = open_frames(Path(text).expanduser())
-        from apose_studio.data.bop import BopScene
-
         if isinstance(frames, BopScene):
             raise AposeError(f"{text}: a BOP scene folder; the studio opens apose datasets and single captures "
                              "(run `apose estimate` on BOP scenes)")
@@ -154,7 +166,6 @@ class InspectPanel:
         fr = self.frame
         if fr is None:
             return
-        from apose_studio.registration import project_to_cloud
 
         mask = fr.base_mask()
         if not mask.any() and self.result is not None and len(self.result.target_cloud):
@@ -174,14 +185,17 @@ class InspectPanel:
         direction[2] = max(direction[2], 0.6 * np.linalg.norm(direction[:2]))  # from above the table
         self.app.look_at(centre, 1.3 * radius, direction)
 
-    def inspect_assembly(self) -> Assembly:
-        from apose_studio.data.dataset import Dataset
+    def on_mask_source_chosen(self, source: str) -> None:
+        if self.i_mask.value != source:
+            self.i_mask.value = source  # its callback redraws the frame, with the new mask
 
-        return self.frames.assembly if isinstance(self.frames, Dataset) else self.app.valid_asm
+    def inspect_assembly(self) -> Assembly:
+        """The assembly under inspection (`state.inspect_assembly`)."""
+        return self.app.state.inspect_assembly()
 
     def part_model(self):
-        """The PartModel of the part the inspected step places."""
-        return self.inspect_models()[self.inspect_assembly().steps[self.current_step() - 1].part]
+        """The PartModel of the part the inspected step places (`state.part_model`)."""
+        return self.app.state.part_model()
 
     def current_step(self) -> int:
         return int(str(self.i_step.value).split(".")[0])
@@ -195,7 +209,7 @@ class InspectPanel:
             crop = (se3.make_T(se3.quat_wxyz_to_matrix(np.asarray(g.wxyz)), np.asarray(g.position)),
                     np.asarray(self.i_crop_size.value, dtype=float) / 1000.0)
         asm = self.inspect_assembly()
-        prompt = self.app.prompt.prompt() if self.i_mask.value == PROMPT_SOURCE else None
+        prompt = prompt_of(self.app.state.inspect.prompt_text) if self.i_mask.value == PROMPT_SOURCE else None
         return EstimateJob(self.frames, self.frames_path, asm, self.inspect_models(), step, tuple(ids),
                            self.i_preset.value, bool(self.i_upright.value), self.i_mask.value, bool(self.i_prior.value),
                            crop, prompt)
@@ -207,17 +221,10 @@ class InspectPanel:
             return None
 
     def load_frame(self, step: int, im_id: int, frames=None, asm: Assembly | None = None):
-        from apose_studio.data.dataset import Dataset
-
-        frames = self.frames if frames is None else frames
-        if isinstance(frames, Dataset):
-            return frames.frame(step, im_id)
-        frames.base = (asm or self.app.valid_asm).steps[step - 1].base
-        return frames
+        """A frame of the opened data, or of `frames` (`state.load_frame`)."""
+        return self.app.state.load_frame(step, im_id, frames, asm)
 
     def on_frame_changed(self) -> None:
-        from apose_studio.data.dataset import Dataset
-
         if self._syncing or self.frames is None:
             return
         step = self.current_step()
@@ -234,23 +241,17 @@ class InspectPanel:
             im_id = ids[int(self.i_frame.value)]
         else:
             im_id = 0
+        self.app.state.inspect.step = step
         self.frame = self.load_frame(step, im_id)
         cached = self.app.cache.get(self.cache_key(step, im_id))
         self.result, self.score = cached if cached is not None else (None, None)
-        self.app.views.refresh()
-        self.app.results.draw_frame()
+        self.app.events.emit(Event.FRAME_CHANGED)
 
     def inspect_models(self) -> dict:
-        from apose_studio.assembly.mesh import load_parts
-
-        asm = self.inspect_assembly()
-        if id(asm) not in self._part_models:
-            self._part_models = {id(asm): load_parts(asm)}  # keep one assembly's meshes, not every draft's
-        return self._part_models[id(asm)]
+        """The inspected assembly's PartModels (`state.inspect_models`)."""
+        return self.app.state.inspect_models()
 
     def context(self, step: int):
-        from apose_studio.evaluate import StepContext
-
         asm = self.inspect_assembly()
         key = (id(asm), step)
         if key not in self.contexts:
@@ -259,19 +260,15 @@ class InspectPanel:
 
     def estimate(self, job: "EstimateJob", im_id: int):
         """Estimate one frame of `job` and cache it under the job's key (runs without the studio lock)."""
-        from apose_studio.evaluate import StepContext, estimate_and_score
-
         ctx = StepContext(job.assembly, job.models, job.step)
         frame = self.load_frame(job.step, im_id, job.frames, job.assembly)
         params = job.params()
         mask = None
         if job.crop is not None:
-            from apose_studio.masks.segment import depth_mask
-
             keep = inspection.pixels_in_box(frame.depth, frame.camera, frame.T_world_camera, *job.crop)
             mask = depth_mask(frame.depth, frame.camera, keep=keep)
         if job.prompt is not None:
-            mask = self.app.prompt.mask(frame, job.prompt)
+            mask = prompted_mask(self.app.state.inspect.prompt_masks, frame, job.prompt)
         result, score = estimate_and_score(frame, ctx, params, job.mask, job.prior, trace_iterations=True, mask=mask)
         self.app.cache.put(job.key(self.app.cache, im_id), (result, score))
         return result, score
@@ -298,7 +295,6 @@ class InspectPanel:
                 "/inspect/crop", scale=float(size.max()), position=tuple(centre)))
             g.on_update(lambda e: self.app.guarded("Crop box")(lambda c: self.on_crop_drag(e))(e))
             self.show_crop_centre()
-        import trimesh
 
         box = trimesh.creation.box(size)
         self.app.node("/inspect/crop/box", self.app.server.scene.add_mesh_simple(
@@ -339,48 +335,18 @@ class InspectPanel:
         if event.phase == "end":
             self.show_crop_centre()
 
-    def next_pointer(self, client, title: str, kind: str, handle, ask: str) -> None:
-        """The next click (kind "click") or dragged rectangle ("rect") in the 3D view of this tab goes to
-        handle(event, client), guarded like every callback; `ask` tells the user what to do."""
-        if self.frame is None:
-            raise AposeError("open a dataset or capture first")
-        if client is None:
-            raise AposeError("no browser to point in")
-        scene = client.scene
-        register, remove = ((scene.on_click, scene.remove_click_callback) if kind == "click"
-                            else (scene.on_rect_select, scene.remove_rect_select_callback))
-
-        def once(event) -> None:
-            remove(once)
-            self.app.guarded(title)(lambda c: handle(event, c))(event)
-
-        register()(once)
-        self.app.notify(client, title, ask)
-
-    def scene_point_at_ray(self, origin, direction) -> np.ndarray:
-        """The first depth point of the frame on a click's ray (world, metres)."""
-        fr = self.frame
-        pts, _ = inspection.scene_cloud(fr.depth, fr.rgb, fr.camera, fr.T_world_camera)
-        hit = inspection.point_on_ray(pts, np.asarray(origin, float), np.asarray(direction, float),
-                                      max_offset=0.01 * float(np.median(fr.depth[fr.depth > 0])))
-        if hit is None:
-            raise AposeError("the click hit no depth point; click on the object itself")
-        return hit
-
     def on_crop_around_click(self, client) -> None:
         """The next click in the 3D view (by this tab) centres the crop box on the scene point it hits."""
-        self.next_pointer(client, "Crop around click", "click",
+        self.app.next_pointer(client, "Crop around click", "click",
                           lambda e, c: self.crop_at_ray(e.ray_origin, e.ray_direction, c),
                           "click the base object in the 3D view")
 
     def crop_at_ray(self, origin, direction, client) -> None:
-        hit = self.scene_point_at_ray(origin, direction)
+        hit = scene_point_at_ray(self.frame, origin, direction)
         self.place_crop(hit)
         self.app.notify(client, "Crop box", "centred at ({:.0f}, {:.0f}, {:.0f}) mm".format(*(hit * 1000)))
 
     def on_use_model(self, client) -> None:
-        from apose_studio.evaluate import check_mask_source
-
         text = self.i_model.value.strip()
         if not text:
             raise AposeError("type the path of a model file (.pt) from `apose train-seg` into 'Mask model (.pt)'")
@@ -396,8 +362,6 @@ class InspectPanel:
         self.app.guarded(which)(lambda c: self.run_estimation(which == "Estimate step", c))(event)
 
     def run_estimation(self, whole_step: bool, client) -> None:
-        from apose_studio.data.dataset import Dataset
-
         if self.frames is None:
             raise AposeError("open a dataset or capture first")
         if not self.app.busy.acquire(blocking=False):

@@ -7,6 +7,7 @@ alternatives magenta. Everything is metres and world frame unless a name says ot
 
 from __future__ import annotations
 
+import html
 from dataclasses import dataclass, field
 
 import cv2
@@ -14,7 +15,7 @@ import numpy as np
 
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
-from apose_studio.registration import RegistrationResult
+from apose_studio.registration import RegistrationResult, doubts
 
 RED = (220, 40, 40)
 BLUE = (40, 90, 230)
@@ -182,8 +183,6 @@ def metrics_markdown(score, result: RegistrationResult | None) -> str:
     if result is None:
         return "_No estimate for this frame yet: press **Estimate frame**._"
     if not result.ok:
-        import html
-
         return f"**Estimation failed:** {html.escape(str(result.reason))}"
     rows = [("fitness", f"{result.fitness:.3f}"), ("inlier RMSE", f"{result.inlier_rmse * 1000:.2f} mm"),
             ("time", f"{result.seconds * 1000:.0f} ms"), ("coverage", f"{result.coverage:.0%}")]
@@ -197,8 +196,6 @@ def metrics_markdown(score, result: RegistrationResult | None) -> str:
         flags.append(f"ambiguous: {len(result.alternatives) + 1} placements fit the data equally (a (nearly) symmetric "
                      "base, and what tells them apart is not in view); the others are the magenta boxes")
     if not result.confident:
-        from apose_studio.registration import doubts
-
         flags.append(f"low confidence: {doubts(result)}")
     table = "| metric | value |\n|---|---|\n" + "\n".join(f"| {k} | {v} |" for k, v in rows)
     return table + ("\n\n" + "\n\n".join(f"⚠ {f}" for f in flags) if flags else "")

@@ -1,7 +1,11 @@
 """The Assembly tab's Mates and Approach folders: faces picked with a click in the 3D view become
 mates (two round faces snap coaxial at once; two flat faces offer Contact / Aligned with a gap), the
 step's mates listed and edited (offset, angle, flip, delete, lock the turn), and the step's approach
-drawn as an arrow on the part. Picking geometry is `picking` (pure), editing is `authoring` (pure)."""
+drawn as an arrow on the part. Picking geometry is `picking` (pure), editing is `authoring` (pure).
+
+The picks live in the studio's shared state (the Steps panel steps its gizmo aside while one waits:
+PICKS_CHANGED); the selected step, the preview poses and the drawn meshes are read from it. The list
+follows DRAFT_CHANGED and STEP_SELECTED."""
 
 from __future__ import annotations
 
@@ -10,10 +14,12 @@ import time
 
 import numpy as np
 
-from apose_studio.studio import authoring
-from apose_studio.geometry import se3
+from apose_studio.assembly.mates import angle_axis, in_base_frame
 from apose_studio.errors import AposeError
+from apose_studio.geometry import se3
+from apose_studio.studio import authoring
 from apose_studio.studio.picking import FacePicker, Feature
+from apose_studio.studio.state import Event
 from apose_studio.studio.widgets import esc, pos, wxyz
 
 PICK_COLOURS = {"part": (120, 255, 0), "base": (255, 0, 255)}  # lime and magenta: in no part palette
@@ -30,9 +36,23 @@ HELP = ("Click a face of the step's **part** and one of its **base** (picked fac
 class MatesPanel:
     def __init__(self, app):
         self.app = app
-        self.picks: dict[str, tuple[str, Feature]] = {}  # "part" / "base" -> (part id, feature in its frame)
         self.pickers: dict[int, tuple] = {}  # id(mesh) -> (mesh, FacePicker)
         self._warming: set = set()
+        app.events.on(Event.DRAFT_CHANGED, self.show_step)
+        app.events.on(Event.STEP_SELECTED, lambda index: self.show_step())
+
+    @property
+    def picks(self) -> dict[str, tuple[str, Feature]]:
+        """"part" / "base" -> (part id, feature in its frame) (`state.picks`)."""
+        return self.app.state.picks
+
+    def show_step(self) -> None:
+        """The selected step's mates listed; its parts' pickers built ahead of the first click."""
+        self.refresh()
+        i, asm = self.app.state.step_index, self.app.asm
+        if i is not None and i < len(asm.steps):
+            s = asm.steps[i]
+            self.warm_up([p for p in (s.part, *s.base) if p in asm.parts])
 
     def build(self) -> None:
         gui = self.app.server.gui
@@ -112,12 +132,12 @@ class MatesPanel:
 
     def on_click(self, event) -> None:
         """A click in the 3D view: the nearest shown part its ray meets is the one picked."""
-        if self.app.current_view != "Assembly" or self.app.steps.step_index is None:
+        if self.app.current_view != "Assembly" or self.app.state.step_index is None:
             return
         o, d = np.asarray(event.ray_origin, float), np.asarray(event.ray_direction, float)
         best = None
-        for pid in self.app.steps.mesh_handles:
-            T = self.app.steps.T_world_shown(pid)
+        for pid in self.app.state.meshes:
+            T = self.app.state.T_world_shown(pid)
             if T is None or pid not in self.app.asm.parts:
                 continue
             T_part_world = se3.inv(T)
@@ -130,8 +150,7 @@ class MatesPanel:
             self.on_pick(best[1], event)
 
     def on_pick(self, pid: str, event) -> None:
-        steps = self.app.steps
-        i = steps.step_index
+        i = self.app.state.step_index
         if self.app.current_view != "Assembly" or i is None or i >= len(self.app.asm.steps):
             return
         step = self.app.asm.steps[i]
@@ -139,7 +158,7 @@ class MatesPanel:
         if side is None:
             raise AposeError(f"{pid} is not in step {i + 1}; pick a face of {step.part} or of its base "
                              f"({', '.join(step.base)})")
-        T_world = steps.T_world_shown(pid)
+        T_world = self.app.state.T_world_shown(pid)
         if T_world is None:
             return
         T_part_world = se3.inv(T_world)
@@ -173,13 +192,12 @@ class MatesPanel:
         self.make_mate(kind.lower(), client)
 
     def make_mate(self, kind: str, client) -> None:
-        i = self.app.steps.step_index
+        i = self.app.state.step_index
         (_, fp), (bp, fb) = self.picks["part"], self.picks["base"]
         mate = authoring.mate_from_picks(self.app.asm, i, kind, bp, fb, fp, float(self.f_gap.value or 0.0) / 1000.0)
         asm = authoring.set_mates(self.app.asm, i, [*self.app.asm.steps[i].mates, mate])
         self.clear_picks()
-        self.app.set_assembly(asm, client)
-        self.app.steps.sync_typed_pose()
+        self.app.set_assembly(asm, client)  # the typed pose fields follow the draft
 
     def clear_picks(self) -> None:
         self.picks.clear()
@@ -192,7 +210,7 @@ class MatesPanel:
                     self.app.nodes.pop(name).remove()
         lines = []
         for side, (pid, f) in self.picks.items():
-            T = self.app.steps.T_world_shown(pid)
+            T = self.app.state.T_world_shown(pid)
             if T is None:
                 continue
             lines.append(f"- {side}: **{esc(pid)}**, {esc(f.describe())}")
@@ -212,13 +230,13 @@ class MatesPanel:
                     name, seg.astype(np.float32), PICK_COLOURS[side], thickness=0.004 * m.diameter,
                     position=pos(T), wxyz=wxyz(T)))
         self.picked_md.content = "\n".join(lines) if lines else "*nothing picked*"
-        self.app.steps.place_gizmo()  # hidden while a pick waits, so the faces under it can be clicked
+        self.app.events.emit(Event.PICKS_CHANGED)  # the gizmo hides while a pick waits, so the faces under it can be clicked
 
     # ------------------------------------------------------------------------------------ the list
 
     def refresh(self) -> None:
         """The selected step's mates, free degrees of freedom and approach arrow."""
-        i = self.app.steps.step_index
+        i = self.app.state.step_index
         asm = self.app.asm
         if i is None or i >= len(asm.steps):
             self.list_html.content = "<i>select a step</i>"
@@ -245,13 +263,13 @@ class MatesPanel:
         self.draw_approach()
 
     def selected_mate(self) -> int:
-        i = self.app.steps.step_index
+        i = self.app.state.step_index
         if i is None or not self.app.asm.steps[i].mates:
             raise AposeError("the selected step has no mates: pick faces to make one")
         return min(int(str(self.f_mate.value).split(".")[0]) - 1, len(self.app.asm.steps[i].mates) - 1)
 
     def on_set_value(self, client) -> None:
-        i, k = self.app.steps.step_index, self.selected_mate()
+        i, k = self.app.state.step_index, self.selected_mate()
         m = self.app.asm.steps[i].mates[k]
         v = float(self.f_value.value or 0.0)
         if m.type in ("contact", "aligned"):
@@ -260,11 +278,10 @@ class MatesPanel:
             asm = authoring.edit_mate(self.app.asm, i, k, degrees=v)
         else:
             raise AposeError(f"a {m.type} mate has no offset or angle to set")
-        self.app.set_assembly(asm, client)
-        self.app.steps.sync_typed_pose()
+        self.app.set_assembly(asm, client)  # the typed pose fields follow the draft
 
     def on_mate_action(self, action: str, client) -> None:
-        i = self.app.steps.step_index
+        i = self.app.state.step_index
         if action == "Lock turn":
             if i is None:
                 raise AposeError("select a step first")
@@ -280,20 +297,17 @@ class MatesPanel:
                 mates = list(self.app.asm.steps[i].mates)
                 del mates[k]
                 asm = authoring.set_mates(self.app.asm, i, mates)
-        self.app.set_assembly(asm, client)
-        self.app.steps.sync_typed_pose()
+        self.app.set_assembly(asm, client)  # the typed pose fields follow the draft
 
     # ------------------------------------------------------------------------------------ approach
 
     def on_set_approach(self, client) -> None:
-        i = self.app.steps.step_index
+        i = self.app.state.step_index
         if i is None:
             raise AposeError("select a step first")
         choice = DIRECTIONS[self.f_app_dir.value]
         s = self.app.asm.steps[i]
         if choice == "mate":
-            from apose_studio.assembly.mates import angle_axis, in_base_frame
-
             axis = angle_axis(in_base_frame(s.mates, s.base[0], self.app.asm.step_view(i + 1).T_base_members))
             if axis is None:
                 raise AposeError("no coaxial or contact mate to take the direction from; choose an axis")
@@ -307,13 +321,13 @@ class MatesPanel:
         name = "/assembly/approach"
         if name in self.app.nodes:
             self.app.nodes.pop(name).remove()
-        i = self.app.steps.step_index
+        i = self.app.state.step_index
         asm = self.app.asm
         if i is None or i >= len(asm.steps) or asm.steps[i].approach is None or self.app.current_view != "Assembly":
             return
         s = asm.steps[i]
-        T_world_part = self.app.steps.T_world_shown(s.part)
-        T_world_base = self.app.steps.T_world_shown(s.base[0])
+        T_world_part = self.app.state.T_world_shown(s.part)
+        T_world_base = self.app.state.T_world_shown(s.base[0])
         if T_world_part is None or T_world_base is None:
             return
         m = self.app.model(s.part)

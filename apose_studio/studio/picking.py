@@ -14,6 +14,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from apose_studio.geometry import se3
 
@@ -53,9 +55,6 @@ class FacePicker:
     """Ray casting and face grouping for one mesh (vertices in metres, part frame)."""
 
     def __init__(self, mesh):
-        from scipy.sparse import coo_matrix
-        from scipy.sparse.csgraph import connected_components
-
         self.vertices = np.asarray(mesh.vertices, dtype=np.float64)
         self.faces = np.asarray(mesh.faces, dtype=np.int64)
         self.normals = np.asarray(mesh.face_normals, dtype=np.float64)
@@ -72,7 +71,7 @@ class FacePicker:
 
     def _raycaster(self):
         if self._scene is None:
-            import open3d as o3d
+            import open3d as o3d  # heavy (~0.9 s to import): loaded where it is used
 
             scene = o3d.t.geometry.RaycastingScene()
             scene.add_triangles(o3d.core.Tensor(self.vertices.astype(np.float32)),
@@ -82,7 +81,7 @@ class FacePicker:
 
     def hit(self, origin, direction) -> tuple[int, np.ndarray] | None:
         """(triangle, point) where the ray first meets the mesh, or None."""
-        import open3d as o3d
+        import open3d as o3d  # heavy (~0.9 s to import): loaded where it is used
 
         o = np.asarray(origin, dtype=np.float64)
         d = np.asarray(direction, dtype=np.float64)

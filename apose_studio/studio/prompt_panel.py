@@ -1,21 +1,28 @@
 """The Inspect tab's prompt: a 2D box or a click on the base object, the mask it gives drawn over the
-RGB image, then the estimate with that mask (mask source "prompt")."""
+RGB image, then the estimate with that mask (mask source "prompt").
+
+The prompt text and the masks made from prompts live in the studio's shared state (`state.inspect`):
+the estimate and the RGB overlay use them through `prompt_of`, `prompted_mask` and `overlay_mask`.
+Showing a mask chooses mask source "prompt" (MASK_SOURCE_CHOSEN) and redraws the overlay
+(OVERLAY_CHANGED)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from apose_studio.studio import inspection
-from apose_studio.geometry import se3
 from apose_studio.errors import AposeError
+from apose_studio.geometry import se3
+from apose_studio.masks.prompt import parse_box, parse_point
+from apose_studio.masks.prompt import prompted_mask as segment
+from apose_studio.studio import inspection
+from apose_studio.studio.state import Event, InspectState
+from apose_studio.studio.widgets import scene_point_at_ray
 
 PROMPT_SOURCE = "prompt"
 
 
 def parse_prompt(text: str) -> tuple[tuple | None, tuple | None]:
     """'x0,y0,x1,y1' -> (box, None); 'u,v' -> (None, point); AposeError otherwise."""
-    from apose_studio.masks.prompt import parse_box, parse_point
-
     n = len([t for t in text.split(",") if t.strip()])
     if n == 4:
         return parse_box(text), None
@@ -24,16 +31,48 @@ def parse_prompt(text: str) -> tuple[tuple | None, tuple | None]:
     raise AposeError(f"prompt {text!r}: type a box x0,y0,x1,y1 or a point u,v (pixels), or press 'Prompt at click'")
 
 
+def prompt_of(text: str) -> tuple[tuple | None, tuple | None]:
+    """The prompt typed into 'Prompt (px)' as (box, point); AposeError when there is none or it is malformed."""
+    text = text.strip()
+    if not text:
+        raise AposeError("Mask is 'prompt': type a box x0,y0,x1,y1 or a point u,v into 'Prompt (px)', or press "
+                         "'Prompt at click'")
+    return parse_prompt(text)
+
+
+def prompted_mask(masks: dict, frame, prompt: tuple) -> np.ndarray:
+    """The mask `prompt` gives on `frame`, kept in `masks` (by frame source, im_id, step and prompt) so that
+    redrawing the overlay is instant and an estimate uses the mask on show."""
+    key = (frame.source, frame.im_id, frame.step, prompt)
+    if key not in masks:
+        if len(masks) > 32:
+            masks.clear()
+        box, point = prompt
+        masks[key] = segment(frame.rgb, frame.depth, frame.camera, box=box, point=point).mask
+    return masks[key]
+
+
+def overlay_mask(ins: InspectState, frame) -> np.ndarray | None:
+    """The prompted mask to draw over the RGB image: with Mask 'prompt' and a usable prompt, else None."""
+    if frame is None or ins.mask_source != PROMPT_SOURCE or not ins.prompt_text.strip():
+        return None
+    try:
+        return prompted_mask(ins.prompt_masks, frame, prompt_of(ins.prompt_text))
+    except AposeError:
+        return None
+
+
 class PromptPanel:
     def __init__(self, app):
         self.app = app
-        self._masks: dict = {}  # (frame source, im_id, prompt) -> mask: redrawing the overlay is instant
 
     def build(self) -> None:
         gui = self.app.server.gui
         with gui.add_folder("Prompt (cluttered scenes)"):
             self.i_prompt = gui.add_text("Prompt (px)", "", hint="a box x0,y0,x1,y1 or a point u,v on the base object, in "
                                          "image pixels; then Mask: prompt")
+            self.i_prompt.on_update(self.app.guarded("Prompt")(
+                lambda c: setattr(self.app.state.inspect, "prompt_text", self.i_prompt.value)))
             b = gui.add_button("Prompt at click", hint="then click the base object in the 3D view")
             b.on_click(self.app.guarded("Prompt at click")(self.on_prompt_at_click))
             b = gui.add_button("Drag a box", hint="then drag a rectangle around the base object in the 3D view")
@@ -42,49 +81,29 @@ class PromptPanel:
             b.on_click(self.app.guarded("Show mask")(lambda c: self.show_mask(c)))
 
     def prompt(self) -> tuple[tuple | None, tuple | None]:
-        text = self.i_prompt.value.strip()
-        if not text:
-            raise AposeError("Mask is 'prompt': type a box x0,y0,x1,y1 or a point u,v into 'Prompt (px)', or press "
-                             "'Prompt at click'")
-        return parse_prompt(text)
+        """The typed prompt as (box, point)."""
+        return prompt_of(self.i_prompt.value)
 
     def mask(self, frame, prompt=None) -> np.ndarray:
-        from apose_studio.masks.prompt import prompted_mask
-
-        prompt = prompt if prompt is not None else self.prompt()
-        key = (frame.source, frame.im_id, frame.step, prompt)
-        if key not in self._masks:
-            if len(self._masks) > 32:
-                self._masks.clear()
-            box, point = prompt
-            self._masks[key] = prompted_mask(frame.rgb, frame.depth, frame.camera, box=box, point=point).mask
-        return self._masks[key]
-
-    def overlay_mask(self, frame) -> np.ndarray | None:
-        """The prompted mask to draw over the RGB image: with Mask 'prompt' and a usable prompt, else None."""
-        if frame is None or self.app.inspect.i_mask.value != PROMPT_SOURCE or not self.i_prompt.value.strip():
-            return None
-        try:
-            return self.mask(frame)
-        except AposeError:
-            return None
+        """The mask of `prompt` (default: the typed one) on `frame`."""
+        return prompted_mask(self.app.state.inspect.prompt_masks, frame, prompt if prompt is not None else self.prompt())
 
     def show_mask(self, client) -> None:
         """Compute the prompt's mask (errors say what is wrong with the prompt) and draw it over the RGB."""
-        fr = self.app.inspect.frame
+        fr = self.app.state.inspect.frame
         if fr is None:
             raise AposeError("open a dataset or capture first")
         m = self.mask(fr)
-        if self.app.inspect.i_mask.value != PROMPT_SOURCE:
-            self.app.inspect.i_mask.value = PROMPT_SOURCE  # its callback redraws the frame, with the mask
-        self.app.results.draw_overlay()
+        if self.app.state.inspect.mask_source != PROMPT_SOURCE:
+            self.app.events.emit(Event.MASK_SOURCE_CHOSEN, source=PROMPT_SOURCE)  # the frame is redrawn, with the mask
+        self.app.events.emit(Event.OVERLAY_CHANGED)
         self.app.notify(client, "Mask", f"{int(m.sum())} pixels from the prompt; estimate with it (Mask: prompt)")
 
     def on_prompt_at_click(self, client) -> None:
         """The next click in the 3D view (by this tab) becomes the point prompt."""
-        self.app.inspect.next_pointer(client, "Prompt at click", "click",
-                                      lambda e, c: self.prompt_at_ray(e.ray_origin, e.ray_direction, c),
-                                      "click the base object in the 3D view")
+        self.app.next_pointer(client, "Prompt at click", "click",
+                              lambda e, c: self.prompt_at_ray(e.ray_origin, e.ray_direction, c),
+                              "click the base object in the 3D view")
 
     def on_drag_box(self, client) -> None:
         """The next rectangle dragged in the 3D view (by this tab) becomes the box prompt."""
@@ -93,11 +112,11 @@ class PromptPanel:
             view = se3.make_T(se3.quat_wxyz_to_matrix(np.asarray(cam.wxyz)), np.asarray(cam.position))
             self.prompt_from_rect(view, cam.fov, cam.aspect, event.screen_min, event.screen_max, c)
 
-        self.app.inspect.next_pointer(client, "Drag a box", "rect", dragged,
-                                      "drag a rectangle around the base object in the 3D view")
+        self.app.next_pointer(client, "Drag a box", "rect", dragged,
+                              "drag a rectangle around the base object in the 3D view")
 
     def prompt_from_rect(self, T_world_view, fov, aspect, rect_min, rect_max, client) -> None:
-        fr = self.app.inspect.frame
+        fr = self.app.state.inspect.frame
         pts, _ = inspection.scene_cloud(fr.depth, fr.rgb, fr.camera, fr.T_world_camera)
         box = inspection.box_from_view_rect(pts, T_world_view, fov, aspect, rect_min, rect_max, fr.T_world_camera, fr.camera)
         if box is None:
@@ -107,8 +126,8 @@ class PromptPanel:
 
     def prompt_at_ray(self, origin, direction, client) -> None:
         """The scene point the click's ray hits, as a pixel of the frame: the point prompt."""
-        fr = self.app.inspect.frame
-        hit = self.app.inspect.scene_point_at_ray(origin, direction)
+        fr = self.app.state.inspect.frame
+        hit = scene_point_at_ray(fr, origin, direction)
         u, v = fr.camera.project(se3.transform_points(se3.inv(fr.T_world_camera), hit[None]))
         self.i_prompt.value = f"{int(round(float(u[0])))},{int(round(float(v[0])))}"
         self.show_mask(client)

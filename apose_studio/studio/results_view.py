@@ -1,18 +1,24 @@
 """The Inspect tab's Registration replay, Result and Layers folders, and the frame in the 3D view: clouds,
 boxes (estimate, truth, alternatives) in their legend colours with labels, the ghost part, the RGB
-overlay cropped around the object, the pose as numbers and JSON."""
+overlay cropped around the object, the pose as numbers and JSON.
+
+It draws what the studio's shared state holds (`state.inspect`: frame, estimate, score, prompt) on
+FRAME_CHANGED and RESULT_READY, and redraws the overlay on OVERLAY_CHANGED."""
 
 from __future__ import annotations
 
+import json
 import logging
 import threading
 import time
 
 import numpy as np
 
-from apose_studio.studio import inspection
-from apose_studio.geometry import se3
 from apose_studio.errors import AposeError
+from apose_studio.geometry import se3
+from apose_studio.studio import inspection
+from apose_studio.studio.prompt_panel import overlay_mask
+from apose_studio.studio.state import Event
 from apose_studio.studio.widgets import LAYERS, legend_html, pos, wxyz
 
 log = logging.getLogger(__name__)
@@ -23,6 +29,9 @@ class ResultsView:
         self.app = app
         self._syncing = False
         self.stages: list = []
+        app.events.on(Event.FRAME_CHANGED, self.draw_frame)
+        app.events.on(Event.RESULT_READY, self.draw_frame)
+        app.events.on(Event.OVERLAY_CHANGED, self.draw_overlay)
 
     def build(self) -> None:
         gui = self.app.server.gui
@@ -49,10 +58,10 @@ class ResultsView:
     def draw_frame(self) -> None:
         """The frame and its estimate in the 3D view (each thing in its legend colour, labelled) and the
         RGB overlay in the panel."""
-        fr = self.app.inspect.frame
+        fr = self.app.state.inspect.frame
         scene = self.app.server.scene
         cam = fr.camera
-        part_model = self.app.inspect.part_model()
+        part_model = self.app.state.part_model()
         small = fr.rgb[::2, ::2] if fr.rgb.shape[1] > 400 else fr.rgb
         fov = 2.0 * np.arctan2(cam.height / 2.0, cam.fy)
         Tc = fr.T_world_camera
@@ -69,7 +78,7 @@ class ResultsView:
                 "/inspect/target", "/inspect/source"]:
             if name in self.app.nodes:
                 self.app.nodes.pop(name).remove()
-        r = self.app.inspect.result
+        r = self.app.state.inspect.result
         corners = part_model.box_corners()
         d = part_model.diameter
         labels = []
@@ -111,17 +120,17 @@ class ResultsView:
         finally:
             self._syncing = False
         self.show_stage()
-        self.i_metrics.content = inspection.metrics_markdown(self.app.inspect.score, r)
+        self.i_metrics.content = inspection.metrics_markdown(self.app.state.inspect.score, r)
         self.i_pose.content = inspection.pose_markdown(inspection.pose_report(r, Tc)) if (r is not None and r.ok) else ""
         self.draw_overlay()
         self.apply_layers()
 
     def draw_overlay(self) -> None:
         """The RGB image with the boxes drawn, cropped around the object unless 'Full image' is ticked."""
-        fr, r = self.app.inspect.frame, self.app.inspect.result
+        fr, r = self.app.state.inspect.frame, self.app.state.inspect.result
         if fr is None:
             return
-        corners = self.app.inspect.part_model().box_corners()
+        corners = self.app.state.part_model().box_corners()
         boxes = []  # earlier boxes are drawn thicker: truth under estimate
         if fr.T_world_part is not None:
             boxes.append((fr.T_world_part, inspection.AMBER))
@@ -129,7 +138,7 @@ class ResultsView:
             boxes.append((r.T_world_part, inspection.GREEN))
             boxes += [(c.T_world_part, inspection.MAGENTA) for c in r.alternatives]
         image = inspection.draw_boxes(fr.rgb, fr.camera, fr.T_world_camera, corners, boxes)
-        prompted = self.app.prompt.overlay_mask(fr)
+        prompted = overlay_mask(self.app.state.inspect, fr)
         what = "prompted mask"
         if prompted is not None and r is not None and r.ok and r.model_mask is not None:
             prompted, what = r.model_mask, "the estimate's mask: the prompted one cut to the model's view"
@@ -149,29 +158,27 @@ class ResultsView:
             f"; {what} (green tint), {int(prompted.sum())} pixels" if prompted is not None else "")
 
     def on_download_pose(self, client) -> None:
-        import json
-
-        r = self.app.inspect.result
-        if r is None or not r.ok or self.app.inspect.frame is None:
+        ins = self.app.state.inspect
+        r = ins.result
+        if r is None or not r.ok or ins.frame is None:
             raise AposeError("no estimate on this frame yet: press Estimate frame first")
-        report = inspection.pose_report(r, self.app.inspect.frame.T_world_camera)
-        ins = self.app.inspect
-        report.update({"source": ins.frames_path, "step": ins.current_step(), "frame": int(ins.frame.im_id),
+        report = inspection.pose_report(r, ins.frame.T_world_camera)
+        report.update({"source": ins.frames_path, "step": ins.step, "frame": int(ins.frame.im_id),
                        "units": "metres (matrices), mm (translation_mm)"})
         if client is None:
             raise AposeError("no browser to send the download to")
-        client.send_file_download(f"pose_step{self.app.inspect.current_step()}_frame{self.app.inspect.frame.im_id}.json",
+        client.send_file_download(f"pose_step{ins.step}_frame{ins.frame.im_id}.json",
                                   json.dumps(report, indent=1).encode("utf-8"))
 
     def show_stage(self) -> None:
         if self._syncing:
             return
         if not self.stages:
-            self.i_stage_md.content = "" if self.app.inspect.result is None else "_no registration trace (estimation failed)_"
+            self.i_stage_md.content = "" if self.app.state.inspect.result is None else "_no registration trace (estimation failed)_"
             return
         k = int(np.clip(self.i_stage.value, 0, len(self.stages) - 1))
         s = self.stages[k]
-        d = self.app.inspect.part_model().diameter
+        d = self.app.state.part_model().diameter
         self.app.node("/inspect/source", self.app.server.scene.add_point_cloud(
             "/inspect/source", s.source_world, inspection.BLUE, point_size=d / 120, point_shape="circle"),
             visible=bool(self.layers["source cloud"].value))

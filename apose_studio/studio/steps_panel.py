@@ -1,31 +1,59 @@
 """The Assembly tab's Steps and Preview folders, and the assembly in the 3D view: the steps table, the
 step's part, base and pose (typed, or dragged with the gizmo), the preview up to a step, exploded
-along insertion directions, and the sequence played for demos."""
+along insertion directions, and the sequence played for demos.
+
+The selected step, the preview poses and the part meshes live in the studio's shared state (the
+Mates panel picks faces on them); this panel writes them. It redraws on DRAFT_CHANGED, drops meshes
+on MESHES_CHANGED, shows an opened file assembled on DRAFT_OPENED, re-reads the saved path on
+DRAFT_SAVED and moves the gizmo aside on PICKS_CHANGED; a selection it makes is STEP_SELECTED."""
 
 from __future__ import annotations
 
 import logging
 import threading
 import time
+from dataclasses import replace
 
 import numpy as np
 
-from apose_studio.studio import authoring
-from apose_studio.geometry import se3
 from apose_studio.errors import AposeError
+from apose_studio.geometry import se3
+from apose_studio.studio import authoring
+from apose_studio.studio.state import Event, shared
 from apose_studio.studio.widgets import esc, pos, wxyz
 
 log = logging.getLogger(__name__)
 
 
 class StepsPanel:
+    step_index = shared("step_index", "the selected step, 0-based (`state.step_index`)")
+
     def __init__(self, app):
         self.app = app
         self._syncing = False
-        self.step_index: int | None = None  # selected step, 0-based
-        self.mesh_handles: dict[str, object] = {}
-        self._preview: dict = {}
         self._drag_before = None  # the draft when a gizmo drag started
+        app.events.on(Event.DRAFT_CHANGED, self.on_draft_changed)
+        app.events.on(Event.MESHES_CHANGED, lambda pid: self.drop_meshes(pid))
+        app.events.on(Event.DRAFT_OPENED, self.on_draft_opened)
+        app.events.on(Event.DRAFT_SAVED, self.refresh_status)
+        app.events.on(Event.PICKS_CHANGED, self.place_gizmo)
+
+    @property
+    def mesh_handles(self) -> dict[str, object]:
+        """The parts' meshes in the 3D view (`state.meshes`)."""
+        return self.app.state.meshes
+
+    @property
+    def _preview(self) -> dict[str, np.ndarray]:
+        """Each previewed part's T_world_part (`state.preview`)."""
+        return self.app.state.preview
+
+    def on_draft_changed(self) -> None:
+        self.refresh_steps()
+        self.refresh_assembly_scene()
+
+    def on_draft_opened(self) -> None:
+        self.f_upto.value = len(self.app.asm.steps)  # an opened file shows assembled
 
     def drop_meshes(self, pid: str | None = None) -> None:
         """Remove a part's mesh from the 3D view (every part's with None); the next refresh adds it anew."""
@@ -90,23 +118,19 @@ class StepsPanel:
             r_base, r_part = (self.app.model(p).diameter / 2 for p in (step.base[0], step.part))
         except AposeError:
             return step
-        from dataclasses import replace
 
         return replace(step, T_base_part=se3.make_T(t=np.array([1.3 * (r_base + r_part), 0.0, 0.0])))
 
     def T_world_shown(self, pid: str):
-        """Where a part is drawn now: the selected step's part at the draft's pose, the others at the preview's."""
-        i = self.step_index
-        asm = self.app.asm
-        if i is not None and i < len(asm.steps) and asm.steps[i].part == pid and asm.steps[i].base[0] in self._preview:
-            return self._preview[asm.steps[i].base[0]] @ asm.steps[i].T_base_part
-        return self._preview.get(pid)
+        """Where a part is drawn now (`state.T_world_shown`)."""
+        return self.app.state.T_world_shown(pid)
 
     def on_select_step(self, client) -> None:
         if self._syncing or not self.app.asm.steps:
             return
         self.step_index = int(self.f_step.value.split(".")[0]) - 1
-        self.app.refresh_assembly_widgets()
+        self.refresh_steps()
+        self.app.events.emit(Event.STEP_SELECTED, index=self.step_index)
         self.f_upto.value = self.step_index + 1
 
     def on_step_part(self, client) -> None:
@@ -256,10 +280,6 @@ class StepsPanel:
         finally:
             self._syncing = False
         self.refresh_status()
-        self.app.mates.refresh()
-        if self.step_index is not None and self.step_index < len(asm.steps):
-            s = asm.steps[self.step_index]
-            self.app.mates.warm_up([p for p in (s.part, *s.base) if p in asm.parts])
 
     def refresh_status(self) -> None:
         bad = authoring.problem_steps(self.app.problems)
@@ -275,7 +295,7 @@ class StepsPanel:
             "<table style='font-size:0.8em;width:100%;border-collapse:collapse'>"
             "<tr style='text-align:left'><th>#</th><th>part</th><th>on base</th><th>t (mm)</th></tr>" + body + "</table>")
         if not self.app.problems:
-            saved = f" Saved as {esc(self.app.files.saved_path)}." if self.app.files.saved_path else ""
+            saved = f" Saved as {esc(self.app.state.saved_path)}." if self.app.state.saved_path else ""
             self.status_md.content = f"✅ **Valid**: {len(self.app.asm.parts)} parts, {len(self.app.asm.steps)} steps.{saved}"
         else:
             lines = "\n".join(f"- {esc(p.key or 'file')}: {esc(p.what)}" for p in self.app.problems[:6])
@@ -293,7 +313,7 @@ class StepsPanel:
         upto = min(int(self.f_upto.value), len(asm.steps))
         explode = float(self.f_explode.value)
         centres = {p: self.app.model(p, asm).box_corners().mean(axis=0) for p in diam}
-        self._preview = authoring.preview_poses(asm, upto, diam, explode, centres)
+        self.app.state.preview = authoring.preview_poses(asm, upto, diam, explode, centres)
         show = self.app.current_view == "Assembly"
         for name in [n for n in self.app.nodes if n.startswith("/assembly/step_label")]:
             self.app.nodes.pop(name).remove()
@@ -335,14 +355,14 @@ class StepsPanel:
 
     def on_explode(self) -> None:
         self.refresh_assembly_scene()
-        self.frame_camera_on_assembly()  # the whole assembly stays in view as it spreads out
+        self.app.frame_camera_on_assembly()  # the whole assembly stays in view as it spreads out
 
     def place_gizmo(self) -> None:
         asm = self.app.valid_asm
         i = self.step_index
         editable = (i is not None and i < len(asm.steps) and asm.steps[i].part == self.app.asm.steps[i].part
                     and float(self.f_explode.value) == 0.0 and asm.steps[i].base[0] in self._preview
-                    and not self.app.mates.picks)  # a picked face waits for its partner: the gizmo steps aside
+                    and not self.app.state.picks)  # a picked face waits for its partner: the gizmo steps aside
         if not editable:
             for name in ("/assembly/gizmo", "/assembly/base_frame"):
                 if name in self.app.nodes:
@@ -372,19 +392,3 @@ class StepsPanel:
             h._apose_visible = True
             h.visible = self.app.current_view == "Assembly"
             h.position, h.wxyz = pos(T), wxyz(T)
-
-    def frame_camera_on_assembly(self) -> None:
-        """Frame every part shown in the preview (exploded or not)."""
-        spheres = []
-        for pid, T in self._preview.items():
-            try:
-                m = self.app.model(pid, self.app.valid_asm)
-            except (AposeError, KeyError):
-                continue
-            spheres.append((se3.transform_points(T, m.box_corners()).mean(axis=0), m.diameter / 2.0))
-        if not spheres:
-            return
-        centres = np.array([c for c, _ in spheres])
-        centre = (centres.min(axis=0) + centres.max(axis=0)) / 2.0
-        radius = max(float(np.linalg.norm(c - centre)) + r for c, r in spheres)
-        self.app.look_at(centre, radius, np.array([1.0, -1.0, 0.75]))

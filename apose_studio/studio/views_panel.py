@@ -1,14 +1,24 @@
 """Inspect tab, *Views (one placement)*: tick frames that show the base at one placement (a dataset
 rendered with `--views-per-scene`, or an eye-in-hand camera's looks) and estimate them together
 (registration.fusion). Where the result is ambiguous or not confident, the camera to look from next
-(registration.next_view) is drawn as an orange frustum labelled "look from here"."""
+(registration.next_view) is drawn as an orange frustum labelled "look from here".
+
+The frame on show comes from the studio's shared state (`state.inspect`): the ticks follow it on
+FRAME_CHANGED. A fused estimate goes into the state as the frame's result (RESULT_READY), with the
+Inspect panel's settings of the moment (`Studio.estimate_job`)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from apose_studio.geometry import se3
+from apose_studio.data.dataset import Dataset
 from apose_studio.errors import AposeError
+from apose_studio.estimation import estimate_frames, frame_mask
+from apose_studio.evaluate import score_frame
+from apose_studio.geometry import se3
+from apose_studio.registration.next_view import next_view
+from apose_studio.registration.types import View
+from apose_studio.studio.state import Event
 
 ORANGE = (255, 140, 0)
 
@@ -18,6 +28,7 @@ class ViewsPanel:
         self.app = app
         self.ticks: dict[int, object] = {}  # im_id -> checkbox
         self.advice = None
+        app.events.on(Event.FRAME_CHANGED, self.refresh)
 
     def build(self) -> None:
         gui = self.app.server.gui
@@ -30,18 +41,16 @@ class ViewsPanel:
 
     def refresh(self) -> None:
         """The checkboxes for the shown frame's placement (called when the frame changes)."""
-        from apose_studio.data.dataset import Dataset
-
         for h in self.ticks.values():
             h.remove()
         self.ticks = {}
         self.advice = None
         self.draw_advice()
-        ins = self.app.inspect
+        ins = self.app.state.inspect
         if not isinstance(ins.frames, Dataset) or ins.frame is None:
             self.i_info.content = "Open a dataset rendered with `--views-per-scene` to fuse its views."
             return
-        step = ins.current_step()
+        step = ins.step
         group = next((ids for ids in ins.frames.placements(step).values() if ins.frame.im_id in ids), [ins.frame.im_id])
         lo, hi = self.i_info.order, self.b_estimate.order  # the checkboxes go between the two
         with self.folder:
@@ -55,30 +64,24 @@ class ViewsPanel:
         return [i for i, h in self.ticks.items() if h.value]
 
     def on_estimate(self, client) -> None:
-        from apose_studio.evaluate import frame_mask, score_frame
-        from apose_studio.registration.fusion import View, estimate_views
-        from apose_studio.registration.next_view import next_view
-
-        ins = self.app.inspect
+        ins = self.app.state.inspect
         ids = self.ticked()
         if ins.frames is None or not ids:
             raise AposeError("open a dataset and tick at least one frame of the placement")
-        step = ins.current_step()
-        job = ins.job(step, ids)
+        step = ins.step
+        job = self.app.estimate_job(step, ids)
         if job.crop is not None or job.prompt is not None:
             raise AposeError("fusing views uses the Mask setting per frame; choose gt, depth or box (not a crop or prompt)")
-        ctx = ins.context(step)
+        ctx = self.app.step_context(step)
         params = job.params()
-        frames = [ins.load_frame(step, i) for i in ids]
+        frames = [self.app.state.load_frame(step, i) for i in ids]
         views = [View.of(f, frame_mask(f, job.mask)) for f in frames]
-        ctx.base.warm_up(params)
-        r = estimate_views(views, ctx.base, ctx.view.T_base_part, params, np.eye(4) if job.prior else None,
-                           ctx.part.symmetries)
+        r = estimate_frames(views, ctx, params, job.prior)
         ins.frame = frames[0]
         ins.result = r
         ins.score = score_frame(frames[0], r, ctx.part, None, ctx.base.symmetries) if frames[0].T_world_part is not None else None
-        self.advice = next_view(r, ctx.base, [v.T_world_camera for v in views], views[0].cam) if r.ok else None
-        self.app.results.draw_frame()
+        self.advice = next_view(r, ctx.base, [v.T_world_camera for v in views], views[0].camera) if r.ok else None
+        self.app.events.emit(Event.RESULT_READY)
         self.draw_advice()
         if not r.ok:
             self.app.notify(client, "Views not fused" if "not fused" in r.reason else "Estimation failed", r.reason,
@@ -94,12 +97,12 @@ class ViewsPanel:
         for name in ("/inspect/next_view", "/inspect/next_view_label"):
             if name in self.app.nodes:
                 self.app.nodes.pop(name).remove()
-        if self.advice is None or self.app.inspect.frame is None:
+        if self.advice is None or self.app.state.inspect.frame is None:
             return
-        T, cam = self.advice.T_world_camera, self.app.inspect.frame.camera
+        T_world_camera, cam = self.advice.T_world_camera, self.app.state.inspect.frame.camera
         scene = self.app.server.scene
-        wxyz = tuple(float(v) for v in se3.matrix_to_quat_wxyz(T[:3, :3]))
-        pos = tuple(float(v) for v in T[:3, 3])
+        wxyz = tuple(float(v) for v in se3.matrix_to_quat_wxyz(T_world_camera[:3, :3]))
+        pos = tuple(float(v) for v in T_world_camera[:3, 3])
         fov = 2 * np.arctan(cam.height / (2 * cam.fy))
         self.app.node("/inspect/next_view", scene.add_camera_frustum(
             "/inspect/next_view", fov=float(fov), aspect=cam.width / cam.height, scale=0.06, wxyz=wxyz, position=pos,

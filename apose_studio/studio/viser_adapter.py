@@ -24,7 +24,7 @@ def limit_uploads(server, max_bytes: int, notify) -> bool:
     """Install the limits; False (logged) when viser's internals changed and only the after-upload check
     in the upload callback remains."""
     try:
-        from viser import _messages
+        from viser import _messages  # viser's private message types: may move between viser versions
 
         gui = server.gui
         states = gui._current_file_upload_states

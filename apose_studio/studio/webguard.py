@@ -31,6 +31,7 @@ from pathlib import Path
 from urllib.parse import urlsplit
 
 from apose_studio.errors import AposeError
+from apose_studio.safeio import check_path_text
 
 _START_LOCK = threading.Lock()
 
@@ -109,8 +110,8 @@ def check_token(token: str) -> str:
 
 def start_viser(host: str, port: int, token: str | None, label: str = "apose studio"):
     """A viser server whose websockets and page go through `refusal` first."""
-    import viser
-    import websockets.asyncio.server as wss
+    import viser  # the studio's own dependency: loaded only when a studio starts
+    import websockets.asyncio.server as wss  # viser's transport: loaded only when a studio starts
 
     original = wss.serve
     bound_loopback = is_loopback_bind(host)
@@ -128,7 +129,7 @@ def start_viser(host: str, port: int, token: str | None, label: str = "apose stu
             if reason is not None:
                 return connection.respond(http.HTTPStatus.FORBIDDEN, reason + "\n")
             if token is not None and not websocket:  # the page lives under /t/<token>/
-                from websockets.http11 import Request
+                from websockets.http11 import Request  # viser's transport: loaded only when a studio starts
 
                 rest = request.path[len(f"/t/{token}"):] or "/"
                 request = Request(rest, request.headers)
@@ -136,7 +137,7 @@ def start_viser(host: str, port: int, token: str | None, label: str = "apose stu
 
         return original(handler, *args, process_request=guarded, **kwargs)
 
-    import rich
+    import rich  # viser's console: loaded only when a studio starts
 
     printer = rich.print
     with _START_LOCK:  # viser starts its server inside the constructor; only that call sees the wrapper
@@ -179,8 +180,6 @@ class Workspace:
 
     def resolve(self, text: str | Path, what: str = "file") -> Path:
         """The absolute path, or an AposeError naming the workspace when it lies outside."""
-        from apose_studio.safeio import check_path_text
-
         p = check_path_text(text, what).expanduser()
         if not p.is_absolute():
             p = self.roots[0] / p

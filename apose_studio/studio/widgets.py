@@ -1,4 +1,5 @@
-"""Small pieces every panel uses: constants, HTML escaping, colours, poses for viser (wxyz, position)."""
+"""Small pieces every panel uses: constants, HTML escaping, colours, poses for viser (wxyz, position), the
+scene point under a click."""
 
 from __future__ import annotations
 
@@ -6,12 +7,12 @@ import html
 
 import numpy as np
 
-from apose_studio.studio import inspection
+from apose_studio.errors import AposeError
 from apose_studio.geometry import se3
+from apose_studio.studio import inspection
 
 MAX_UPLOAD_BYTES = 200 * 1024 * 1024  # a CAD part above this is almost surely the wrong file
 UNITS = ("m", "cm", "mm", "in")
-PRESETS = ("default", "paper")
 VIEWS = ("Assembly", "Inspect")
 ACTIVE = "● "  # marks the 3D view on show in the button group
 LAYERS = ("scene cloud", "target cloud", "source cloud", "boxes", "part at estimate", "labels", "camera")
@@ -39,3 +40,13 @@ def wxyz(T: np.ndarray) -> tuple:
 
 def pos(T: np.ndarray) -> tuple:
     return tuple(float(v) for v in T[:3, 3])
+
+
+def scene_point_at_ray(frame, origin, direction) -> np.ndarray:
+    """The first depth point of `frame` on a click's ray (world, metres); AposeError when the ray meets none."""
+    pts, _ = inspection.scene_cloud(frame.depth, frame.rgb, frame.camera, frame.T_world_camera)
+    hit = inspection.point_on_ray(pts, np.asarray(origin, float), np.asarray(direction, float),
+                                  max_offset=0.01 * float(np.median(frame.depth[frame.depth > 0])))
+    if hit is None:
+        raise AposeError("the click hit no depth point; click on the object itself")
+    return hit

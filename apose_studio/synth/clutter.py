@@ -10,8 +10,8 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from apose_studio.geometry import se3
 from apose_studio.assembly.mesh import sample_surface
+from apose_studio.geometry import se3
 
 TOUCH_GAP_M = 0.0005  # a toucher stands this close to the base (surface to surface)
 

@@ -3,8 +3,12 @@ listed in the scene's JSON files in order once their images are on disk."""
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 from apose_studio.assembly.model import StepView
-from apose_studio.synth.render import RenderedFrame, RenderSettings, noisy_depth
+from apose_studio.data.dataset import AnnotatedObject
+from apose_studio.data.outdir import write_manifest
+from apose_studio.synth.frame import RenderedFrame, RenderSettings, noisy_depth
 
 
 class FrameQueue:
@@ -13,8 +17,6 @@ class FrameQueue:
     are on disk. An interrupt keeps every frame whose images made it."""
 
     def __init__(self, out, info: dict, settings: RenderSettings):
-        from concurrent.futures import ThreadPoolExecutor
-
         self.out, self.info, self.settings = out, info, settings
         self.pool = ThreadPoolExecutor(2)
         self.pending: list = []  # (writer, future of the images, what to record once they are on disk)
@@ -22,8 +24,6 @@ class FrameQueue:
 
     def submit(self, writer, im_id: int, fr: RenderedFrame, view: StepView, obj_ids: dict[str, int],
                placement: int) -> None:
-        from apose_studio.data.dataset import AnnotatedObject
-
         self.writer = writer
         annotated = [i for i, o in enumerate(fr.scene.objects) if o.part is not None]
         objects = [AnnotatedObject(obj_ids[fr.scene.objects[i].part], fr.scene.objects[i].T_world_obj,
@@ -42,15 +42,11 @@ class FrameQueue:
 
     def checkpoint(self, writer) -> None:
         """Every frame so far on disk and listed (scene JSON files and the manifest)."""
-        from apose_studio.data.outdir import write_manifest
-
         self._settle(keep=0)
         writer.flush()
         write_manifest(self.out, self.info)
 
     def close(self) -> None:
-        from apose_studio.data.outdir import write_manifest
-
         try:
             for w, fut, args in self.pending:  # an interrupt: keep every frame whose images made it to disk
                 try:

@@ -7,10 +7,11 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from apose_studio.geometry import se3
-from apose_studio.assembly.model import StepView
 from apose_studio.assembly.mesh import PartModel
-from apose_studio.synth.render import RayGrid, RenderedFrame, RenderSettings, sample_camera, sample_scene, view_of
+from apose_studio.assembly.model import StepView
+from apose_studio.geometry import se3
+from apose_studio.geometry.raycast import RayGrid
+from apose_studio.synth.frame import RenderedFrame, RenderSettings, sample_camera, sample_scene, view_of
 
 MIN_VIEW_SEPARATION_DEG = 30.0
 

@@ -2,9 +2,9 @@ import numpy as np
 import pytest
 import yaml
 
-from apose_studio.geometry import se3
 from apose_studio.assembly.model import Assembly, assembly_from_dict, load_assembly, save_assembly
 from apose_studio.errors import AssemblyError
+from apose_studio.geometry import se3
 
 from ..conftest import TINY_YAML
 
@@ -118,7 +118,7 @@ CASES = [
     (_set(["steps", 0, "pose_in_base", "rotation"], {"matrix": [[1, 0, 0], [0, 1, 0], [0, 0, 2]]}),
      "steps[0].pose_in_base.rotation.matrix: expected a rotation matrix"),
     (_set(["registration"], {"voxel": 0.01}), "registration.voxel: unknown parameter; known: preset, voxel_size_m"),
-    (_set(["registration"], {"voxel_size_m": -1}), "registration.voxel_size_m: expected a length in metres from 0.0001 to 0.5, got -1"),
+    (_set(["registration"], {"voxel_size_m": -1}), "registration.voxel_size_m: expected a length in metres from 0.0001 to 0.5 (or null), got -1"),
     (_set(["registration"], {"ransac_max_iterations": 1.5}), "registration.ransac_max_iterations: expected a whole number from 1 to 1000000, got 1.5"),
     (_set(["camera"], {"width": 640, "height": 480, "fx": 600, "fy": 600, "cx": 320}), "camera.cy: missing"),
     (_set(["camera"], {"width": 640.5, "height": 480, "fx": 600, "fy": 600, "cx": 320, "cy": 240}),

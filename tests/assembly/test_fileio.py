@@ -5,9 +5,9 @@ import stat
 
 import numpy as np
 
-from apose_studio.studio import authoring
-from apose_studio.assembly.model import load_assembly, save_assembly
 from apose_studio.assembly.fileio import atomic_write_text, current_umask, describe_path, roundtrip_yaml
+from apose_studio.assembly.model import load_assembly, save_assembly
+from apose_studio.studio import authoring
 
 
 def mode(p) -> int:

@@ -205,8 +205,8 @@ def test_save_writes_mates_and_solved_pose_and_round_trips(folder):
 def test_apose_show_lists_mates_and_free_degrees(folder):
     import json
 
-    from ..conftest import SAMPLES
     from ..cli.test_cli import run
+    from ..conftest import SAMPLES
 
     doc = json.loads(run("show", SAMPLES / "planetary_reducer" / "assembly.yaml", "--json").stdout)
     s = doc["steps"][0]
@@ -266,8 +266,8 @@ def test_refs_and_approaches_compare_every_field():
 
 
 def test_solve_directly_and_a_reference_along_the_axis(folder):
-    from apose_studio.errors import AposeError
     from apose_studio.assembly.mates import Mate, MateError, Ref, solve
+    from apose_studio.errors import AposeError
 
     # no guess: identity supplies what is free; the part's origin onto the axis through (1, 2, 0)
     coax_m = Mate("coaxial", Ref(np.array([0.001, 0.002, 0]), np.array([0.0, 0, 1])), Ref(np.zeros(3), np.array([0.0, 0, 1])))

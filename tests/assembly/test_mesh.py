@@ -5,10 +5,17 @@ import numpy as np
 import pytest
 import trimesh
 
+from apose_studio.assembly.mesh import (
+    build_part_model,
+    diameter,
+    load_mesh,
+    load_part,
+    load_parts,
+    sample_surface,
+    symmetry_transforms,
+)
 from apose_studio.assembly.model import Part, Symmetry, load_assembly
 from apose_studio.errors import MeshError
-from apose_studio.assembly.mesh import (build_part_model, diameter, load_mesh, load_part, load_parts, sample_surface,
-                               symmetry_transforms)
 from apose_studio.geometry.se3 import transform_points
 
 

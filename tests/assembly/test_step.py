@@ -10,13 +10,13 @@ import math
 import numpy as np
 import pytest
 
-from apose_studio.studio import authoring
+from apose_studio.assembly.mesh import load_mesh, load_parts, step_solids
 from apose_studio.assembly.model import load_assembly, save_assembly
 from apose_studio.errors import MeshError
-from apose_studio.assembly.mesh import load_mesh, load_parts, step_solids
+from apose_studio.studio import authoring
 
-from ..conftest import SAMPLES
 from ..cli.test_cli import run
+from ..conftest import SAMPLES
 
 BRACKET = SAMPLES / "step_bracket"
 

@@ -67,8 +67,8 @@ def test_a_hand_written_results_file_with_a_known_offset(gearbox_dataset, tmp_pa
     """Scored against truth read straight from the BOP files (not through the code under test): each
     image's base pose from scene_gt.json moved 10 mm along the camera's x gives an assembly pose 10 mm off
     (a pure translation: ADD = MSSD = te = 10 mm, re = 0); a higher-scored row wins over a lower one."""
-    from apose_studio.data.bop import score_results
     from apose_studio.data.dataset import Dataset
+    from apose_studio.evaluate import score_results
 
     ds_info = json.loads((gearbox_dataset / "dataset_info.json").read_text())
     sa = json.loads((gearbox_dataset / "test" / "000001" / "scene_assembly.json").read_text())

@@ -11,9 +11,17 @@ import time
 
 import pytest
 
+from apose_studio.data.outdir import (
+    JOURNAL,
+    LOCK,
+    MANIFEST,
+    OutputLock,
+    check_output_dir,
+    claim,
+    remove_previous_dataset,
+    write_manifest,
+)
 from apose_studio.errors import AposeError
-from apose_studio.data.outdir import (JOURNAL, LOCK, MANIFEST, OutputLock, check_output_dir, claim,
-                                 remove_previous_dataset, write_manifest)
 
 from ..conftest import REPO, SAMPLES
 

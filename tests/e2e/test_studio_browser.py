@@ -309,9 +309,9 @@ def test_markup_in_file_names_is_shown_not_run(browser, studio, tmp_path):
 def test_only_the_studios_own_page_may_connect(browser, studio):
     """A raw websocket client with a foreign Origin (any web page the user visits) is refused; so is a
     page that reached 127.0.0.1 through another host name (DNS rebinding). The studio's page works."""
+    import viser
     import websockets.exceptions
     import websockets.sync.client
-    import viser
 
     port = studio.server.get_port()
     proto = [f"viser-v{viser.__version__}"]
@@ -341,9 +341,9 @@ def test_token_guards_page_and_websocket(browser, tmp_path):
     import urllib.error
     import urllib.request
 
+    import viser
     import websockets.exceptions
     import websockets.sync.client
-    import viser
 
     from apose_studio.studio import serve
 
@@ -432,8 +432,8 @@ def test_an_estimate_is_cached_under_the_settings_it_ran_with(browser, studio, g
 def test_drag_a_box_prompt_in_the_3d_view_then_estimate(browser, studio, clutter_dataset):
     """A cluttered bench: press 'Drag a box', drag a rectangle around the base in the 3D view with the
     mouse; the box prompt, its mask over the RGB and an estimate with it follow."""
-    from apose_studio.registration import project_to_cloud
     from apose_studio.masks.segment import iou
+    from apose_studio.registration import project_to_cloud
 
     page = open_page(browser, studio)
     page.get_by_role("tab", name="Inspect").click()
@@ -473,7 +473,8 @@ def test_tick_the_views_of_a_placement_and_fuse_them(browser, studio, tmp_path_f
     the shown placement ticked, press 'Estimate views together' (one fused estimate of 2 views); untick
     frame 1 with the mouse and estimate again (1 view)."""
     from apose_studio.assembly.model import load_assembly
-    from apose_studio.synth.render import RenderSettings, render_dataset
+    from apose_studio.synth.frame import RenderSettings
+    from apose_studio.synth.render import render_dataset
 
     root = tmp_path_factory.mktemp("views") / "mv"
     render_dataset(load_assembly(REPO / "sample_assemblies" / "helical_gearbox" / "assembly.yaml"), root,

@@ -6,13 +6,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from apose_studio.geometry import se3
-from apose_studio.assembly.model import load_assembly
 from apose_studio.assembly.mesh import base_mesh, load_parts
-from apose_studio.registration import (
-    detect_symmetries,
-    prepare_base,
-)
+from apose_studio.assembly.model import load_assembly
+from apose_studio.geometry import se3
+from apose_studio.registration import detect_symmetries, prepare_base
 
 
 def test_symmetry_detection():
@@ -57,8 +54,8 @@ def test_a_small_feature_makes_a_turn_a_near_symmetry_not_an_exact_one():
     block with a 5 mm boss off-centre on one side: every half turn moves the boss, so they are
     near-symmetries (their twins are wrong placements), although the mean surface distance they leave
     is tiny. The metric forgives the exact twin of a part's placement and not the near one."""
-    from apose_studio.evaluate import FrameScore, truth_twins
     from apose_studio.assembly.mesh import PartModel
+    from apose_studio.evaluate import FrameScore, truth_twins
 
     block = trimesh.creation.box((0.06, 0.04, 0.03))
     boss = trimesh.creation.box((0.005, 0.005, 0.005)).apply_translation([0.02, 0.0225, 0.0])  # on the +y side

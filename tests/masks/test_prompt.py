@@ -5,7 +5,7 @@ import pytest
 import trimesh
 
 from apose_studio.data.dataset import Dataset
-from apose_studio.evaluate import truth_box
+from apose_studio.estimation import truth_box
 from apose_studio.masks.prompt import PromptError, check_box, prompted_mask
 from apose_studio.masks.segment import iou
 
@@ -18,11 +18,12 @@ def _frames(root):
 def test_clutter_render_stands_objects_against_the_base(clutter_dataset):
     """The clutter option is real clutter: in every frame something not of the assembly stands within
     2 mm of the base (trimesh's own proximity query on the scene the renderer drew)."""
+    from scipy.spatial import cKDTree
+
+    from apose_studio.assembly.mesh import base_mesh, load_parts
     from apose_studio.assembly.model import load_assembly
     from apose_studio.synth.clutter import clutter_around
-    from apose_studio.assembly.mesh import base_mesh, load_parts
-    from apose_studio.synth.render import _resting_pose
-    from scipy.spatial import cKDTree
+    from apose_studio.synth.frame import _resting_pose
 
     asm = load_assembly(clutter_dataset / "assembly.yaml")
     base = base_mesh(load_parts(asm), asm.step_view(2))
@@ -93,8 +94,8 @@ def test_the_estimate_cuts_the_prompted_mask_to_the_model(clutter_dataset):
     """The result's mask is the prompted one cut to what the model shows at the estimated pose: never
     more pixels, and closer to the renderer's own visible mask where an object stands in front of the
     base or clutter beside it got in. A dark base's sensor holes stay in the prompted mask."""
-    from apose_studio.evaluate import StepContext, estimate_frame
     from apose_studio.assembly.mesh import load_parts
+    from apose_studio.estimation import StepContext, estimate_frame
     from apose_studio.registration import resolve_params
 
     ds = Dataset(clutter_dataset)

@@ -11,9 +11,9 @@ import pytest
 from apose_studio.assembly.model import load_assembly
 from apose_studio.data.dataset import Dataset
 from apose_studio.errors import AposeError
-from apose_studio.synth.render import RenderSettings, render_dataset
-from apose_studio.masks.segment import (SegmentationError, depth_mask, iou, label_map, load_model, save_model,
-                                  split_frames, train)
+from apose_studio.masks.segment import SegmentationError, depth_mask, iou, label_map, load_model, save_model, split_frames, train
+from apose_studio.synth.frame import RenderSettings
+from apose_studio.synth.render import render_dataset
 
 from ..conftest import SAMPLES
 
@@ -111,7 +111,7 @@ def test_eval_with_depth_masks_reports_mask_iou(gearbox_dataset, tmp_path):
     st = doc["steps"][0]
     assert doc["mask"] == "depth" and 0.7 < st["mask_iou"] <= 1.0
     assert all(f["mask_iou"] is not None for f in st["frames"])
-    with pytest.raises(AposeError, match="expected gt, depth, or a model"):
+    with pytest.raises(AposeError, match="expected gt, depth, box, or a model"):
         evaluate(Dataset(gearbox_dataset), resolve_params("default"), mask_source="bogus", progress=False)
 
 

@@ -3,13 +3,11 @@
 import numpy as np
 import pytest
 
-from apose_studio.geometry import se3
-from apose_studio.assembly.model import load_assembly
-from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.assembly.mesh import base_mesh, load_parts
-from apose_studio.registration import (
-    prepare_base,
-)
+from apose_studio.assembly.model import load_assembly
+from apose_studio.geometry import se3
+from apose_studio.geometry.camera import CameraIntrinsics
+from apose_studio.registration import prepare_base
 
 from ..conftest import SAMPLES
 
@@ -40,7 +38,8 @@ def synthetic_view(base, T_world_base, T_world_camera):
 @pytest.fixture(scope="module")
 def gearbox_yaw(tmp_path_factory):
     from apose_studio.data.dataset import Dataset
-    from apose_studio.synth.render import RenderSettings, render_dataset
+    from apose_studio.synth.frame import RenderSettings
+    from apose_studio.synth.render import render_dataset
 
     out = tmp_path_factory.mktemp("yaw") / "ds"
     asm = load_assembly(SAMPLES / "helical_gearbox" / "assembly.yaml")
@@ -51,7 +50,8 @@ def gearbox_yaw(tmp_path_factory):
 @pytest.fixture(scope="module")
 def planetary_yaw(tmp_path_factory):
     from apose_studio.data.dataset import Dataset
-    from apose_studio.synth.render import RenderSettings, render_dataset
+    from apose_studio.synth.frame import RenderSettings
+    from apose_studio.synth.render import render_dataset
 
     out = tmp_path_factory.mktemp("planetary") / "ds"
     asm = load_assembly(SAMPLES / "planetary_reducer" / "assembly.yaml")

@@ -12,6 +12,7 @@ from ..conftest import SAMPLES, write_capture
 
 SCRIPT = r"""
 import hashlib, json, sys
+from apose_studio.registration.types import View
 from apose_studio.assembly.model import load_assembly
 from apose_studio.data.dataset import load_capture
 from apose_studio.evaluate import StepContext
@@ -27,7 +28,7 @@ out = []
 for b in (None, box):
     m = depth_mask(fr.depth, fr.camera, box=b)
     for prior, upright in ((None, True), (None, False), ("cad", True)):  # upright search, free RANSAC search, prior
-        r = estimate(fr.depth, m, fr.camera, fr.T_world_camera, ctx.base, ctx.view.T_base_part,
+        r = estimate(View(fr.depth, m, fr.camera, fr.T_world_camera), ctx.base, ctx.view.T_base_part,
                      resolve_params("default", upright=upright),
                      prior_T_world_base=None if prior is None else __import__("numpy").eye(4))
         out.append([hashlib.sha256(m.tobytes()).hexdigest(), int(m.sum()), r.ok,

@@ -10,8 +10,9 @@ import trimesh
 from apose_studio.geometry import se3
 from apose_studio.geometry.metrics import mssd
 from apose_studio.registration import prepare_base, resolve_params
-from apose_studio.registration.fusion import View, estimate_views
+from apose_studio.registration.fusion import estimate_views
 from apose_studio.registration.next_view import next_view
+from apose_studio.registration.types import View
 
 BLOCK_YAML = """\
 format: apose-assembly/1
@@ -33,9 +34,10 @@ def bossed(tmp_path_factory):
     """(assembly, models, base, scene, grid, settings): the block (80 x 50 x 40 mm, a notch 14 x 14 mm
     and 12 mm deep in its +x face, off-centre towards +y; the estimator's tolerance here is 4 mm, so
     the notch is a feature it can see) standing at the CAD's pose, no distractors."""
-    from apose_studio.assembly.model import load_assembly
     from apose_studio.assembly.mesh import base_mesh, load_parts
-    from apose_studio.synth.render import RayGrid, RenderSettings, sample_scene
+    from apose_studio.assembly.model import load_assembly
+    from apose_studio.synth.frame import RenderSettings, sample_scene
+    from apose_studio.synth.render import RayGrid
 
     d = tmp_path_factory.mktemp("bossed")
     block = trimesh.creation.box((80, 50, 40))
@@ -60,7 +62,7 @@ def _look(bossed, azimuth_deg: float, elevation_deg: float = 35.0, distance: flo
 
 
 def _look_from(bossed, T_world_camera: np.ndarray, name: str = "advised camera") -> View:
-    from apose_studio.synth.render import view_of
+    from apose_studio.synth.frame import view_of
 
     _, _, _, scene, grid, settings = bossed
     fr = view_of(scene, T_world_camera, grid, np.random.default_rng(1))
@@ -115,7 +117,7 @@ def test_the_advice_gives_a_view_that_settles_it(bossed):
     T_base_part = bossed[0].step_view(1).T_base_part
     v = _look(bossed, -90.0)
     r = estimate_views([v], base, T_base_part, resolve_params("default"))
-    advice = next_view(r, base, [v.T_world_camera], v.cam)
+    advice = next_view(r, base, [v.T_world_camera], v.camera)
     assert advice is not None and advice.pixels > 2 * max(advice.pixels_now, 1), advice
     fused = estimate_views([v, _look_from(bossed, advice.T_world_camera)], base, T_base_part, resolve_params("default"))
     assert fused.ok and fused.confident and not fused.ambiguous and _right(fused.T_world_part, bossed)
@@ -126,6 +128,6 @@ def test_views_whose_camera_poses_disagree_are_not_fused(bossed):
     T_base_part = bossed[0].step_view(1).T_base_part
     a, b = _look(bossed, -90.0), _look(bossed, 10.0)
     shifted = se3.make_T(np.eye(3), np.array([0.015, 0.0, 0.0])) @ b.T_world_camera  # the robot's pose 15 mm off
-    r = estimate_views([a, View(b.depth, b.mask, b.cam, shifted, "camera B")], base, T_base_part,
+    r = estimate_views([a, View(b.depth, b.mask, b.camera, shifted, "camera B")], base, T_base_part,
                        resolve_params("default"))
     assert not r.ok and "camera B disagrees" in r.reason and "not fused" in r.reason, r.reason

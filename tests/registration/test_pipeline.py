@@ -1,14 +1,17 @@
 """The whole estimate: poses recovered, degenerate and unit-error input refused with a reason, symmetric seats reported."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import trimesh
 
-from apose_studio.geometry import se3
-from apose_studio.assembly.model import load_assembly
 from apose_studio.assembly.mesh import load_parts
+from apose_studio.assembly.model import load_assembly
+from apose_studio.geometry import se3
 from apose_studio.geometry.metrics import mssd
 from apose_studio.registration import estimate, prepare_base, resolve_params
+from apose_studio.registration.types import View
 
 from ..conftest import SAMPLES
 from .conftest import CAM, synthetic_view
@@ -21,7 +24,7 @@ def test_pose_recovered_with_the_cad_orientation_known(gearbox_step2, preset):
     T_world_camera = se3.look_at([0.35, -0.25, 0.3], [0.05, 0.02, 0.01])
     depth, mask = synthetic_view(base, T_world_base, T_world_camera)
     p = resolve_params(preset, use_orientation_prior=True)
-    r = estimate(depth, mask, CAM, T_world_camera, base, view.T_base_part, p, prior_T_world_base=np.eye(4))
+    r = estimate(View(depth, mask, CAM, T_world_camera), base, view.T_base_part, p, prior_T_world_base=np.eye(4))
     assert r.ok, r.reason
     part = models[view.part]
     err = mssd(r.T_world_part, T_world_base @ view.T_base_part, part.samples, part.symmetries)
@@ -44,25 +47,25 @@ def test_degenerate_inputs_fail_with_reasons(gearbox_step2):
     T_wc = se3.look_at([0.3, 0, 0.3], [0, 0, 0])
     depth = np.full((480, 640), 0.4, np.float32)
     empty = np.zeros((480, 640), bool)
-    r = estimate(depth, empty, CAM, T_wc, base, view.T_base_part, p)
+    r = estimate(View(depth, empty, CAM, T_wc), base, view.T_base_part, p)
     assert not r.ok and "empty mask" in r.reason
     few = empty.copy()
     few[100, 100:102] = True
-    r = estimate(depth, few, CAM, T_wc, base, view.T_base_part, p)
+    r = estimate(View(depth, few, CAM, T_wc), base, view.T_base_part, p)
     assert not r.ok and "only 2 valid depth points" in r.reason
     nan_depth = np.full((480, 640), np.nan, np.float32)
-    r = estimate(nan_depth, ~empty, CAM, T_wc, base, view.T_base_part, p)
+    r = estimate(View(nan_depth, ~empty, CAM, T_wc), base, view.T_base_part, p)
     assert not r.ok and "only 0 valid depth points" in r.reason
     line = empty.copy()
     line[240, 100:500] = True  # a single row of pixels on a plane: a line in 3D
-    r = estimate(depth, line, CAM, T_wc, base, view.T_base_part, p)
+    r = estimate(View(depth, line, CAM, T_wc), base, view.T_base_part, p)
     assert not r.ok and "degenerate" in r.reason
     # a 4 cm blob of depth for a 0.35 mm base: a unit error, said as one (the paper preset would not
     # even see the mesh)
     speck = prepare_base(trimesh.creation.box((0.0002, 0.0002, 0.0002)), n_samples=500)
     blob = empty.copy()
     blob[200:260, 300:360] = True
-    r = estimate(depth, blob, CAM, T_wc, speck, view.T_base_part, resolve_params("paper"))
+    r = estimate(View(depth, blob, CAM, T_wc), speck, view.T_base_part, resolve_params("paper"))
     assert not r.ok and "depth looks about 100x too far" in r.reason
 
 
@@ -85,9 +88,11 @@ def test_a_symmetric_base_reports_both_seats(fidget_yaml, tmp_path):
     mm away, half a turn) as its one `equivalent` placement, and the truth is the estimate or that one;
     the metric that forgives exact twins scores it right, the strict one need not."""
     from apose_studio.data.dataset import Dataset
-    from apose_studio.evaluate import StepContext, estimate_frame, score_frame
+    from apose_studio.estimation import StepContext, estimate_frame
+    from apose_studio.evaluate import score_frame
     from apose_studio.registration import RegistrationResult
-    from apose_studio.synth.render import RenderSettings, render_dataset
+    from apose_studio.synth.frame import RenderSettings
+    from apose_studio.synth.render import render_dataset
 
     asm = load_assembly(fidget_yaml)
     render_dataset(asm, tmp_path / "ds", RenderSettings(frames=3, seed=11, base_pose="yaw"), steps=[1], progress=False)
@@ -105,7 +110,7 @@ def test_a_symmetric_base_reports_both_seats(fidget_yaml, tmp_path):
         assert sc.mssd_mod_base_sym < 1e-3 and sc.mssd == pytest.approx(errs[0])
         # scored by hand: the truth itself moved 10 mm along x, as if estimated so. Every point moves 10 mm, so
         # te = MSSD = 10 mm and the rotation error 0; the seat's twin (23 mm away, half a turn) is no nearer
-        shifted = RegistrationResult(True, T_world_part=se3.make_T(t=[0.01, 0, 0]) @ fr.T_world_part)
+        shifted = RegistrationResult(ok=True, T_world_part=se3.make_T(t=[0.01, 0, 0]) @ fr.T_world_part)
         sc = score_frame(fr, shifted, ctx.part, base_symmetries=ctx.base.symmetries)
         assert sc.te == pytest.approx(0.01) and sc.re_deg == pytest.approx(0.0, abs=1e-6)
         assert sc.mssd == pytest.approx(0.01) and sc.mssd_mod_base_sym == pytest.approx(0.01)
@@ -115,7 +120,7 @@ def test_a_symmetric_base_reports_both_seats(fidget_yaml, tmp_path):
 def test_junk_is_never_a_confident_pose(gearbox_dataset):
     """A box on empty table, the wrong object, 40 points of noise: ok=False or not confident, every time."""
     from apose_studio.data.dataset import Dataset
-    from apose_studio.evaluate import StepContext
+    from apose_studio.estimation import StepContext
 
     ds = Dataset(gearbox_dataset)
     ctx = StepContext(ds.assembly, load_parts(ds.assembly), 1)
@@ -137,7 +142,7 @@ def test_junk_is_never_a_confident_pose(gearbox_dataset):
         cases = {"empty table": (fr.depth, table), "the part lying beside it": (fr.depth, fr.masks[ctx.view.part]),
                  "40 points of noise": (noise_depth, noise_mask)}
         for what, (depth, mask) in cases.items():
-            r = estimate(depth, mask, fr.camera, fr.T_world_camera, ctx.base, ctx.view.T_base_part, p)
+            r = estimate(View(depth, mask, fr.camera, fr.T_world_camera), ctx.base, ctx.view.T_base_part, p)
             assert not (r.ok and r.confident), (what, im, r.coverage, r.reason)
 
 
@@ -161,7 +166,7 @@ def test_the_time_budget_through_a_fake_clock(gearbox_dataset, monkeypatch):
     from dataclasses import replace
 
     from apose_studio.data.dataset import Dataset
-    from apose_studio.evaluate import StepContext
+    from apose_studio.estimation import StepContext
     from apose_studio.registration import pipeline, task
     from apose_studio.registration.types import doubts
 
@@ -175,7 +180,7 @@ def test_the_time_budget_through_a_fake_clock(gearbox_dataset, monkeypatch):
         clock = FakeClock(step)
         monkeypatch.setattr(pipeline, "time", clock)
         monkeypatch.setattr(task, "time", clock)
-        return estimate(fr.depth, fr.base_mask(), fr.camera, fr.T_world_camera, ctx.base, ctx.view.T_base_part, params)
+        return estimate(View(fr.depth, fr.base_mask(), fr.camera, fr.T_world_camera), ctx.base, ctx.view.T_base_part, params)
 
     still = run(0.0, p)
     assert still.ok and still.confident and still.out_of_time == "" and still.seconds == 0.0
@@ -215,7 +220,7 @@ def judged_result(base, t, fitness=0.9, coverage=0.95, seen_world=None, voxel=0.
     T = se3.make_T(t=np.asarray(t, float) - base.centre)
     c = Candidate(T, T, fitness, 0.9, 0.001, 0.9, 0, coverage)
     seen = PLANE + [0, 0, 0.5] if seen_world is None else np.asarray(seen_world, float).reshape(-1, 3)
-    return RegistrationResult(True, "", T, T, T, fitness=fitness, coverage=coverage, candidates=[c],
+    return RegistrationResult(ok=True, T_world_base=T, T_world_part=T, T_world_source=T, fitness=fitness, coverage=coverage, candidates=[c],
                               source_cloud=se3.transform_points(se3.inv(T), seen), voxel=voxel,
                               target_cloud=np.zeros((0, 3)) if target is None else target)
 
@@ -235,11 +240,11 @@ def test_a_pose_the_camera_cannot_have_seen_is_not_ok(gearbox_step2):
     def result(t, seen_z=0.5, **kw):
         return judged_result(base, t, seen_world=PLANE + [0, 0, seen_z], **kw)
 
-    r = judge(result([0, 0, 0.5]), depth, mask, CAM, T_world_camera, base)
+    r = judge(result([0, 0, 0.5]), View(depth, mask, CAM, T_world_camera), base)
     assert r.ok and r.contradiction == 0.0 and r.confident
     # just above the 5 % floor on either share: supported (ok), if not confident (coverage < 80 %)
     for kw in ({"fitness": 0.06}, {"coverage": 0.06}, {"fitness": 0.06, "coverage": 0.06}):
-        r = judge(result([0, 0, 0.5], **kw), depth, mask, CAM, T_world_camera, base)
+        r = judge(result([0, 0, 0.5], **kw), View(depth, mask, CAM, T_world_camera), base)
         assert r.ok and r.reason == "", (kw, r.reason)
     # the base's centre may lie outside the image by up to the base's size in pixels (fx d / z), no more:
     # at z = 0.5 m, 0.8 of that past each edge is ok, 1.2 is outside
@@ -248,22 +253,22 @@ def test_a_pose_the_camera_cannot_have_seen_is_not_ok(gearbox_step2):
         for u, v in ((CAM.width + k * size_px, CAM.cy), (-k * size_px, CAM.cy), (CAM.cx, CAM.height + k * size_px),
                      (CAM.cx, -k * size_px)):
             t = [(u - CAM.cx) * z / CAM.fx, (v - CAM.cy) * z / CAM.fy, z]
-            r = judge(result(t), depth, mask, CAM, T_world_camera, base)
+            r = judge(result(t), View(depth, mask, CAM, T_world_camera), base)
             assert r.ok == ok and (ok or "outside the image" in r.reason), (k, u, v, r.reason)
     # beyond the farthest depth (0.5 m) by more than the base's diameter: not seen; by less: ok
-    assert judge(result([0, 0, 0.5 + 0.8 * base.diameter]), depth, mask, CAM, T_world_camera, base).ok
-    r = judge(result([0, 0, 0.5 + 1.2 * base.diameter]), depth, mask, CAM, T_world_camera, base)
+    assert judge(result([0, 0, 0.5 + 0.8 * base.diameter]), View(depth, mask, CAM, T_world_camera), base).ok
+    r = judge(result([0, 0, 0.5 + 1.2 * base.diameter]), View(depth, mask, CAM, T_world_camera), base)
     assert not r.ok and "beyond the farthest depth" in r.reason
     # a failed result passes through untouched
-    failed = RegistrationResult(False, "empty mask: test")
-    assert judge(failed, depth, mask, CAM, T_world_camera, base) is failed and failed.reason == "empty mask: test"
+    failed = RegistrationResult(ok=False, reason="empty mask: test")
+    assert judge(failed, View(depth, mask, CAM, T_world_camera), base) is failed and failed.reason == "empty mask: test"
     for t, kw, why in [([0, 0, -0.5], {}, "behind the camera"), ([5.0, 0, 0.5], {}, "outside the image"),
                        ([0, 0, 3.0], {}, "beyond the farthest depth"),
                        ([0, 0, 0.5], {"fitness": 0.0, "coverage": 0.0}, "explains almost none of the target"),
                        ([0, 0, 0.5], {"fitness": 0.04}, "explains almost none of the target"),  # fitness alone
                        ([0, 0, 0.5], {"coverage": 0.04}, "explains almost none of the target"),  # coverage alone
                        ([0, 0, 0.5], {"seen_z": 0.3}, "the depth contradicts 100% of what the model shows")]:
-        r = judge(result(t, **kw), depth, mask, CAM, T_world_camera, base)
+        r = judge(result(t, **kw), View(depth, mask, CAM, T_world_camera), base)
         assert not r.ok and why in r.reason and "no pose is reported" in r.reason, (t, kw, r.reason)
         assert not r.confident
 
@@ -284,7 +289,7 @@ def test_judge_edges_by_hand(gearbox_step2):
     centre = [0, 0, 0.5]
 
     def j(result, d=depth):
-        return judge(result, d, mask, CAM, I4, base)
+        return judge(result, View(d, mask, CAM, I4), base)
 
     # the model's square in front of the depth by more than 4 mm (but less than 2 x the scale voxel): the camera
     # sees past all of it; by less than 4 mm: confirmed
@@ -302,9 +307,7 @@ def test_judge_edges_by_hand(gearbox_step2):
     r = j(judged_result(base, centre, seen_world=PLANE + [0, 0, -1.0]))
     assert r.ok and r.contradiction == 0.0
     # no model view at all: the contradiction stays unknown (NaN), the pose ok
-    r = judged_result(base, centre)
-    r.source_cloud = np.zeros((0, 3))
-    r = j(r)
+    r = j(replace(judged_result(base, centre), source_cloud=np.zeros((0, 3))))
     assert r.ok and np.isnan(r.contradiction)
     # exactly at the 5 % floors: not below them, so ok
     assert j(judged_result(base, centre, fitness=0.05, coverage=0.05)).ok
@@ -332,14 +335,14 @@ def test_judge_edges_by_hand(gearbox_step2):
     moved[:100] += [0, 0, 0.05]  # a quarter of the target 5 cm behind the model: unexplained
     for tgt, cover in ((target, 1.0), (moved, 0.75)):
         r = judge(judged_result(base, centre, coverage=0.3, seen_world=seen, voxel=1.5 * scale_voxel, target=tgt),
-                  d_view, m_view, CAM, I4, base)
+                  View(d_view, m_view, CAM, I4), base)
         assert r.ok and r.coverage == pytest.approx(cover), r.coverage
     r = judge(judged_result(base, centre, coverage=0.3, seen_world=seen, voxel=1.5 * scale_voxel, target=np.zeros((0, 3))),
-              d_view, m_view, CAM, I4, base)
+              View(d_view, m_view, CAM, I4), base)
     assert r.ok and r.coverage == 0.3  # no target to measure: kept
     # a fine preset keeps the coverage it was given
     r = judge(judged_result(base, centre, coverage=0.3, seen_world=seen, voxel=0.9 * scale_voxel, target=moved),
-              d_view, m_view, CAM, I4, base)
+              View(d_view, m_view, CAM, I4), base)
     assert r.coverage == 0.3
 
 
@@ -351,8 +354,10 @@ def test_the_paper_preset_is_not_confident_about_wrong_poses(tmp_path):
     modulo the base's exact symmetries (its half turn is the same assembly)."""
     from apose_studio.assembly.model import load_assembly
     from apose_studio.data.dataset import Dataset
-    from apose_studio.evaluate import StepContext, estimate_frame, frame_mask, score_frame
-    from apose_studio.synth.render import RenderSettings, render_dataset
+    from apose_studio.estimation import StepContext, estimate_frame, frame_mask
+    from apose_studio.evaluate import score_frame
+    from apose_studio.synth.frame import RenderSettings
+    from apose_studio.synth.render import render_dataset
 
     asm = load_assembly(SAMPLES / "helical_gearbox" / "assembly.yaml")
     render_dataset(asm, tmp_path / "ds", RenderSettings(frames=4, seed=5, noise="kinect", clutter=True), steps=[1],
@@ -377,7 +382,7 @@ def test_second_look_cuts_clutter_from_the_mask(gearbox_dataset):
     from dataclasses import replace
 
     from apose_studio.data.dataset import Dataset
-    from apose_studio.evaluate import StepContext
+    from apose_studio.estimation import StepContext
 
     ds = Dataset(gearbox_dataset)
     ctx = StepContext(ds.assembly, load_parts(ds.assembly), 1)
@@ -389,9 +394,9 @@ def test_second_look_cuts_clutter_from_the_mask(gearbox_dataset):
     slab[ys.min():ys.max(), xs.max() + 1:xs.max() + 1 + w] = True  # beside the base, to its right
     mask = truth | slab
     p = resolve_params("default")
-    first = estimate(fr.depth, mask, fr.camera, fr.T_world_camera, ctx.base, ctx.view.T_base_part,
+    first = estimate(View(fr.depth, mask, fr.camera, fr.T_world_camera), ctx.base, ctx.view.T_base_part,
                      replace(p, second_look=False))
-    r = estimate(fr.depth, mask, fr.camera, fr.T_world_camera, ctx.base, ctx.view.T_base_part, p)
+    r = estimate(View(fr.depth, mask, fr.camera, fr.T_world_camera), ctx.base, ctx.view.T_base_part, p)
     d = ctx.part.diameter
     assert first.ok and not first.confident and mssd(first.T_world_part, fr.T_world_part, ctx.part.samples) < 0.1 * d
     assert r.confident and r.second_look is not None and not (r.second_look & ~mask).any()

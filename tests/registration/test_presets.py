@@ -4,11 +4,9 @@ from dataclasses import replace
 
 import pytest
 
-from apose_studio.geometry.camera import RegistrationConfig
 from apose_studio.errors import AposeError
-from apose_studio.registration import (
-    resolve_params,
-)
+from apose_studio.params import RegistrationConfig
+from apose_studio.registration import resolve_params
 
 
 def test_params_from_file_and_caller():

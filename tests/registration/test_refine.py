@@ -3,12 +3,7 @@
 import numpy as np
 
 from apose_studio.geometry import se3
-from apose_studio.registration import (
-    icp,
-    project_to_cloud,
-    raycast_source,
-    resolve_params,
-)
+from apose_studio.registration import icp, project_to_cloud, raycast_source, resolve_params
 from apose_studio.registration.stages import cloud
 
 from .conftest import CAM, synthetic_view
@@ -20,8 +15,8 @@ def test_polish_refines_a_noisy_view_onto_the_model(gearbox_step2):
     0.15 mm (ADI of the base), where the usual ICP (target normals) at the same start does clearly worse."""
     from apose_studio.geometry.metrics import adi
     from apose_studio.registration import Observation, mask_edge
-    from apose_studio.registration.task import prepare_task
     from apose_studio.registration.refine import polish
+    from apose_studio.registration.task import prepare_task
 
     _, base, _ = gearbox_step2
     T_world_camera = se3.look_at([0.25, -0.2, 0.3], [0, 0, 0.01])

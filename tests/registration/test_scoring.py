@@ -5,6 +5,7 @@ import numpy as np
 from apose_studio.assembly.mesh import load_parts
 from apose_studio.geometry.metrics import mssd
 from apose_studio.registration import resolve_params
+from apose_studio.registration.types import View
 
 from .conftest import CAM
 
@@ -48,7 +49,7 @@ def test_a_nearly_symmetric_base_is_told_apart_where_the_view_allows(planetary_y
     round housing. Each quarter turn of the best upright pose is refined, so the true yaw is always
     among the candidates; where the view tells the turns apart the estimate is right, and where it
     does not (the connector hidden at both) the result says `ambiguous` and lists the true pose."""
-    from apose_studio.evaluate import StepContext, estimate_frame
+    from apose_studio.estimation import StepContext, estimate_frame
 
     ds = planetary_yaw
     ctx = StepContext(ds.assembly, load_parts(ds.assembly), 3)
@@ -92,7 +93,8 @@ def _kinect_clutter(tmp_path_factory, name, step):
     """The frames benchmarks/captures.py measures (seed 5, six views, Kinect-like noise, cluttered bench), one step."""
     from apose_studio.assembly.model import load_assembly
     from apose_studio.data.dataset import Dataset
-    from apose_studio.synth.render import RenderSettings, render_dataset
+    from apose_studio.synth.frame import RenderSettings
+    from apose_studio.synth.render import render_dataset
 
     from ..conftest import SAMPLES
 
@@ -103,7 +105,7 @@ def _kinect_clutter(tmp_path_factory, name, step):
 
 
 def _box_prompted(fr):
-    from apose_studio.evaluate import truth_box
+    from apose_studio.estimation import truth_box
     from apose_studio.masks.prompt import prompted_mask
 
     return prompted_mask(fr.rgb, fr.depth, fr.camera, box=truth_box(fr.base_mask())).mask
@@ -116,7 +118,7 @@ def test_twins_are_told_apart_along_the_ray(tmp_path_factory):
     more than 5 mm away along the ray. Comparing the twins point by point in 3D (a point counted only
     when the other had none within the tolerance) left the result tied with the twin (ambiguous); along
     the ray it is confident and right."""
-    from apose_studio.evaluate import StepContext, estimate_frame
+    from apose_studio.estimation import StepContext, estimate_frame
     from apose_studio.geometry.raycast import raycast_depth
 
     ds = _kinect_clutter(tmp_path_factory, "helical_gearbox", 1)
@@ -141,7 +143,7 @@ def test_twins_that_place_the_part_alike_are_no_ambiguity(tmp_path_factory):
     them puts the housing in the same place, turned by one of its own declared symmetries: given the
     part's symmetries the result is one placement, confident and right; without them it is ambiguous
     among placements that differ only by those symmetries."""
-    from apose_studio.evaluate import StepContext
+    from apose_studio.estimation import StepContext
     from apose_studio.registration import estimate
 
     ds = _kinect_clutter(tmp_path_factory, "planetary_reducer", 2)
@@ -150,7 +152,7 @@ def test_twins_that_place_the_part_alike_are_no_ambiguity(tmp_path_factory):
     fr = ds.frame(2, 2)
     mask, p = _box_prompted(fr), resolve_params("default")
     ctx.base.warm_up(p)
-    args = (fr.depth, mask, fr.camera, fr.T_world_camera, ctx.base, ctx.view.T_base_part, p)
+    args = (View(fr.depth, mask, fr.camera, fr.T_world_camera), ctx.base, ctx.view.T_base_part, p)
     blind = estimate(*args)
     assert blind.ambiguous and blind.alternatives
     for alt in blind.alternatives:

@@ -2,11 +2,12 @@
 
 import numpy as np
 
-from apose_studio.geometry import se3
-from apose_studio.assembly.model import load_assembly
 from apose_studio.assembly.mesh import load_parts
+from apose_studio.assembly.model import load_assembly
+from apose_studio.geometry import se3
 from apose_studio.geometry.metrics import mssd
 from apose_studio.registration import estimate, prepare_base, resolve_params
+from apose_studio.registration.types import View
 
 from ..conftest import SAMPLES
 from .conftest import CAM, synthetic_view
@@ -20,7 +21,7 @@ def test_a_wrong_prior_falls_back_to_the_global_search(gearbox_step2):
     wrong = se3.make_T(se3.axis_angle_matrix([0, 0, 1], np.radians(90)))
     # no time budget (max_seconds 0): on a loaded machine the 1 s budget cuts the RANSAC retry, and a search cut
     # short is never confident; the budget itself is tested through a fake clock (test_pipeline.py)
-    r = estimate(depth, mask, CAM, T_world_camera, base, view.T_base_part, resolve_params("default", max_seconds=0.0),
+    r = estimate(View(depth, mask, CAM, T_world_camera), base, view.T_base_part, resolve_params("default", max_seconds=0.0),
                  prior_T_world_base=wrong)
     assert r.ok and r.stages[1].name == "global" and {"prior", "global", "icp"} <= set(r.timings)
     # and lands on the truth (the pose the view was ray-cast at), not near the wrong prior
@@ -35,7 +36,7 @@ def test_a_wrong_prior_falls_back_to_the_global_search(gearbox_step2):
 def test_upright_search_finds_the_yaw_without_ransac(gearbox_yaw):
     """--upright: the table's normal from the depth around the base, then every yaw about it (no
     RANSAC, so deterministic); both frames land within a millimetre."""
-    from apose_studio.evaluate import StepContext, estimate_frame
+    from apose_studio.estimation import StepContext, estimate_frame
     from apose_studio.registration import table_normal
 
     ds = gearbox_yaw
@@ -56,7 +57,7 @@ def test_a_base_not_standing_as_modelled_falls_back_to_the_free_search(gearbox_y
     normal (the same frames, with the base's model turned a quarter about x, as if it lay on its
     side): the upright yaws screen poorly (or end in a fit that is not confident), so the free search
     runs and still lands within 1 mm. Either guard alone passes this test; neither fails it."""
-    from apose_studio.evaluate import StepContext
+    from apose_studio.estimation import StepContext
 
     ds = gearbox_yaw
     ctx = StepContext(ds.assembly, load_parts(ds.assembly), 2)
@@ -69,7 +70,7 @@ def test_a_base_not_standing_as_modelled_falls_back_to_the_free_search(gearbox_y
     assert p.upright
     for im_id in ds.image_ids(2):
         fr = ds.frame(2, im_id)
-        r = estimate(fr.depth, fr.base_mask(), fr.camera, fr.T_world_camera, base, T_base_part, p, trace_iterations=False)
+        r = estimate(View(fr.depth, fr.base_mask(), fr.camera, fr.T_world_camera), base, T_base_part, p, trace_iterations=False)
         assert r.ok and r.confident, (im_id, r.reason, r.coverage)
         err = mssd(r.T_world_part, fr.T_world_part, ctx.part.samples, ctx.part.symmetries)
         assert err < 1e-3, (im_id, err)
@@ -80,8 +81,9 @@ def test_a_right_prior_is_accepted_on_noisy_depth(tmp_path):
     can neither confirm nor deny the model; left out of the prior's check, a right prior is taken
     at once (no global search), and the pose is within 0.5 mm."""
     from apose_studio.data.dataset import Dataset
-    from apose_studio.evaluate import StepContext, estimate_frame
-    from apose_studio.synth.render import RenderSettings, render_dataset
+    from apose_studio.estimation import StepContext, estimate_frame
+    from apose_studio.synth.frame import RenderSettings
+    from apose_studio.synth.render import render_dataset
 
     asm = load_assembly(SAMPLES / "helical_gearbox" / "assembly.yaml")
     render_dataset(asm, tmp_path / "ds", RenderSettings(frames=3, seed=11, noise="realsense", base_pose="fixed"),
@@ -104,9 +106,10 @@ def test_a_base_seen_only_on_its_top_still_stands_on_the_table(tmp_path):
     among the tied placements: the view hides the connector). Refusing that table sent the frame to
     the free search, which ended 25 mm and 93 degrees off."""
     from apose_studio.data.dataset import Dataset
-    from apose_studio.evaluate import StepContext, estimate_frame
+    from apose_studio.estimation import StepContext, estimate_frame
     from apose_studio.registration import table_normal
-    from apose_studio.synth.render import RenderSettings, render_dataset
+    from apose_studio.synth.frame import RenderSettings
+    from apose_studio.synth.render import render_dataset
 
     asm = load_assembly(SAMPLES / "planetary_reducer" / "assembly.yaml")
     render_dataset(asm, tmp_path / "ds", RenderSettings(frames=2, noise="kinect", clutter=True, seed=0), steps=[1],

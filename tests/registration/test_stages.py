@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from apose_studio.geometry import se3
 from apose_studio.errors import AposeError
+from apose_studio.geometry import se3
 from apose_studio.registration import icp, project_to_cloud, raycast_source
 from apose_studio.registration.stages import cloud
 

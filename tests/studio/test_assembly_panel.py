@@ -6,8 +6,8 @@ import numpy as np
 import trimesh
 import yaml
 
-from apose_studio.geometry import se3
 from apose_studio.assembly.model import load_assembly
+from apose_studio.geometry import se3
 from apose_studio.studio import MAX_UPLOAD_BYTES
 
 from .conftest import act, errors

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from apose_studio.studio import authoring
-from apose_studio.geometry import se3
 from apose_studio.assembly.model import load_assembly, save_assembly
 from apose_studio.errors import AposeError
+from apose_studio.geometry import se3
+from apose_studio.studio import authoring
 
 
 def test_build_an_assembly_from_nothing_and_save_it(tmp_path):

@@ -125,8 +125,8 @@ def test_a_failed_open_says_what_stays_on_screen(studio, gearbox_dataset, tmp_pa
 
 
 def test_crop_box_typed_or_centred_on_a_click(studio, gearbox_dataset):
-    from apose_studio.geometry import se3
     from apose_studio.data.dataset import Dataset
+    from apose_studio.geometry import se3
 
     st = studio(SAMPLES / "helical_gearbox" / "assembly.yaml", gearbox_dataset)
     fr = Dataset(gearbox_dataset).frame(1, 0)
@@ -151,9 +151,9 @@ def test_crop_box_typed_or_centred_on_a_click(studio, gearbox_dataset):
 def test_prompted_mask_on_a_cluttered_capture(studio, clutter_dataset, tmp_path):
     """A capture of a cluttered bench: the prompt (typed box, then a click in the 3D view) gives a mask
     drawn over the RGB, and the estimate with it lands on the renderer's pose."""
-    from apose_studio.geometry import se3
     from apose_studio.data.dataset import Dataset
-    from apose_studio.evaluate import truth_box
+    from apose_studio.estimation import truth_box
+    from apose_studio.geometry import se3
     from apose_studio.masks.segment import iou
 
     from ..conftest import write_capture
@@ -192,10 +192,11 @@ def test_views_of_one_placement_are_ticked_and_fused(studio, tmp_path):
     (frames 0 and 1), both ticked; Estimate views together gives one fused result (2 views) that lands
     on the renderer's pose. Advice is drawn as a frustum labelled "look from here" and removed when
     the frame changes."""
-    from apose_studio.geometry import se3
     from apose_studio.assembly.model import load_assembly
+    from apose_studio.geometry import se3
     from apose_studio.registration.next_view import NextView
-    from apose_studio.synth.render import RenderSettings, render_dataset
+    from apose_studio.synth.frame import RenderSettings
+    from apose_studio.synth.render import render_dataset
 
     asm_path = SAMPLES / "helical_gearbox" / "assembly.yaml"
     render_dataset(load_assembly(asm_path), tmp_path / "mv", RenderSettings(frames=4, views_per_scene=2, seed=3),

@@ -2,10 +2,10 @@
 
 import numpy as np
 
-from apose_studio.studio import inspection
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.registration import RegistrationResult, Stage
+from apose_studio.studio import inspection
 
 CAM = CameraIntrinsics(640, 480, 500.0, 500.0, 320.0, 240.0)
 

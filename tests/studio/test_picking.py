@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from apose_studio.studio import authoring
-from apose_studio.assembly.model import Step, load_assembly
 from apose_studio.assembly.mesh import load_mesh
+from apose_studio.assembly.model import Step, load_assembly
+from apose_studio.studio import authoring
 from apose_studio.studio.picking import FacePicker
 
 from ..conftest import SAMPLES

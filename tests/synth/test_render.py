@@ -7,14 +7,16 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from apose_studio.geometry import se3
-from apose_studio.assembly.model import load_assembly
-from apose_studio.geometry.camera import CameraIntrinsics
-from apose_studio.data.dataset import Dataset, load_capture, open_frames
-from apose_studio.errors import AposeError, DatasetError, RenderError
 from apose_studio.assembly.mesh import load_parts
+from apose_studio.assembly.model import load_assembly
+from apose_studio.data.dataset import Dataset, load_capture
+from apose_studio.data.sources import open_frames
+from apose_studio.errors import AposeError, DatasetError, RenderError
+from apose_studio.geometry import se3
+from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.geometry.noise import add_depth_noise
-from apose_studio.synth.render import RenderSettings, render_dataset
+from apose_studio.synth.frame import RenderSettings
+from apose_studio.synth.render import render_dataset
 
 from ..conftest import SAMPLES
 

@@ -1,0 +1,24 @@
+"""What a folder of frames is: a rendered dataset, a real capture or a BOP scene, opened as such."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from apose_studio.data.bop import BopScene, is_bop_scene
+from apose_studio.data.dataset import Dataset, DatasetError, load_capture
+
+
+def open_frames(path: str | Path):
+    """A Dataset for a rendered folder, a BopScene for a BOP scene folder, or a single Frame for a
+    real-capture folder."""
+    path = Path(path)
+    if (path / "dataset_info.json").is_file():
+        return Dataset(path)
+    if (path / "rgb.png").is_file():
+        return load_capture(path)
+    if is_bop_scene(path):
+        return BopScene(path)
+    if not path.exists():
+        raise DatasetError(f"{path}: no such folder")
+    raise DatasetError(f"{path}: neither a dataset (dataset_info.json), a capture (rgb.png, depth.png, camera.json) "
+                       "nor a BOP scene (scene_camera.json, rgb/, depth/)")

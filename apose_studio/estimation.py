@@ -1,0 +1,197 @@
+"""The use cases: estimate step K of an assembly in one frame, or in several views of one placement,
+with the base object's mask from a named source.
+
+Every caller comes through here: the Python API (`api.estimate_pose`), `apose estimate` and `apose eval`,
+BOP scoring and the studio. `registration/` is the method; this module turns "this frame, this step,
+this mask source, these settings" into the method's inputs (a `View`, the prepared base, the part).
+
+Mask sources (`MASK_SOURCES`, a name -> function of the frame): `gt` the renderer's or the scene's own
+masks, `depth` depth alone (the object nearest the image centre), `box` a box prompt drawn around the
+ground truth's visible mask (what a user or detector would give). Besides those, `find_mask` takes a
+model from `apose train-seg` (a .pt path), a mask image file, or a box / point prompt.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from apose_studio.assembly.mesh import PartModel, base_mesh, load_parts
+from apose_studio.assembly.model import Assembly, load_assembly
+from apose_studio.data.dataset import Frame, read_image
+from apose_studio.errors import AposeError
+from apose_studio.geometry.camera import CameraIntrinsics
+from apose_studio.masks.prompt import prompted_mask
+from apose_studio.masks.segment import depth_mask, load_model
+from apose_studio.registration import BaseObject, Params, RegistrationResult, estimate, prepare_base
+from apose_studio.registration.fusion import estimate_views
+from apose_studio.registration.types import View
+
+BOX_MARGIN = 0.04  # the `box` source: the ground truth's visible box, this much wider on each side
+
+
+class StepContext:
+    """What a step's frames share: its base object (prepared once) and the part to place."""
+
+    def __init__(self, asm: Assembly, models: dict[str, PartModel], step: int):
+        self.view = asm.step_view(step)
+        self.base: BaseObject = prepare_base(base_mesh(models, self.view))
+        self.part = models[self.view.part]
+
+
+_CONTEXTS: dict = {}
+
+
+def step_context(assembly: Assembly | str | Path, step: int) -> tuple[Assembly, StepContext]:
+    """(Assembly, StepContext) for an assembly (path or Assembly) and a 1-based step, cached per file."""
+    asm = assembly if isinstance(assembly, Assembly) else load_assembly(assembly)
+    if not 1 <= step <= len(asm.steps):
+        raise AposeError(f"{asm.path}: step {step} does not exist; the assembly has steps 1..{len(asm.steps)}"
+                         if asm.steps else f"{asm.path}: the assembly has no steps")
+    key = (str(asm.path), Path(asm.path).stat().st_mtime if Path(str(asm.path)).exists() else id(asm), step)
+    if key not in _CONTEXTS:
+        if len(_CONTEXTS) > 8:
+            _CONTEXTS.clear()
+        _CONTEXTS[key] = StepContext(asm, load_parts(asm), step)
+    return asm, _CONTEXTS[key]
+
+
+# ---- mask sources -------------------------------------------------------------------------------------
+
+def truth_box(mask: np.ndarray, margin: float = BOX_MARGIN) -> tuple[int, int, int, int] | None:
+    """The box a user or detector would draw: the visible mask's box, `margin` of its size wider per side."""
+    if not mask.any():
+        return None
+    ys, xs = np.nonzero(mask)
+    mx, my = margin * (np.ptp(xs) + 1), margin * (np.ptp(ys) + 1)
+    h, w = mask.shape
+    return (max(int(xs.min() - mx), 0), max(int(ys.min() - my), 0), min(int(xs.max() + 1 + mx), w),
+            min(int(ys.max() + 1 + my), h))
+
+
+def _truth_box_prompt(frame: Frame) -> np.ndarray:
+    box = truth_box(frame.base_mask())
+    return prompted_mask(frame.rgb, frame.depth, frame.camera, box=box).mask if box else frame.base_mask()
+
+
+MASK_SOURCES: dict[str, Callable[[Frame], np.ndarray]] = {
+    "gt": lambda frame: frame.base_mask(),
+    "depth": lambda frame: depth_mask(frame.depth, frame.camera),
+    "box": _truth_box_prompt,
+}
+IMAGE_SUFFIXES = (".png", ".jpg", ".bmp", ".tif", ".tiff")
+
+_SEGMENTERS: dict = {}
+
+
+def _is_model(source: str) -> bool:
+    return source.endswith(".pt") or Path(source).exists()
+
+
+def _segmenter(path: str, asm: Assembly | None = None):
+    key = (path, Path(path).stat().st_mtime if Path(path).exists() else 0)
+    if key not in _SEGMENTERS:
+        _SEGMENTERS[key] = load_model(path, asm)
+    elif asm is not None and list(asm.parts) != _SEGMENTERS[key].part_ids:
+        load_model(path, asm)  # raises with the explanation
+    return _SEGMENTERS[key]
+
+
+def check_mask_source(source: str, asm: Assembly) -> str:
+    """A name of MASK_SOURCES, or a model file trained for this assembly (loaded once here, so a wrong
+    one is refused before any work; returned as its absolute path). Raises AposeError naming the fix."""
+    if source in MASK_SOURCES:
+        return source
+    if _is_model(source):
+        _segmenter(str(Path(source).resolve()), asm)
+        return str(Path(source).resolve())
+    raise AposeError(f"--mask {source}: expected {', '.join(MASK_SOURCES)}, or a model file (.pt) from `apose train-seg`")
+
+
+def frame_mask(frame: Frame, source: str) -> np.ndarray:
+    """The base object's mask in a frame from a source that check_mask_source accepted."""
+    if source in MASK_SOURCES:
+        return MASK_SOURCES[source](frame)
+    if _is_model(source):
+        return _segmenter(str(Path(source).resolve())).mask(frame.rgb, frame.depth, frame.base, frame.camera)
+    raise ValueError(f"unknown mask source {source!r}; available: {', '.join(MASK_SOURCES)} or a .pt model")
+
+
+def check_mask(mask: np.ndarray, shape: tuple[int, int], what: str = "mask") -> np.ndarray:
+    """A caller's mask as (H, W) bool of the depth's size; AposeError naming both sizes otherwise."""
+    mask = np.asarray(mask)
+    if mask.ndim == 3:
+        mask = mask[..., 0]
+    if mask.shape != shape:
+        raise AposeError(f"{what} is {mask.shape[1] if mask.ndim > 1 else '?'}x{mask.shape[0]} but the depth is "
+                         f"{shape[1]}x{shape[0]}; give a mask of the same size as the image")
+    return mask > 0
+
+
+def array_mask(rgb, depth, cam: CameraIntrinsics, mask=None, box=None, point=None) -> tuple[np.ndarray, str]:
+    """The base's mask for frames held in arrays, and where it came from: the caller's `mask`, else a
+    box / point prompt, else depth alone."""
+    if mask is not None:
+        return check_mask(mask, depth.shape), "given"
+    if box is not None or point is not None:
+        return prompted_mask(rgb, depth, cam, box=box, point=point).mask, "box" if box is not None else "point"
+    return depth_mask(depth, cam), "depth"
+
+
+@dataclass(frozen=True)
+class MaskRequest:
+    """How a command-line user asked for the mask: `source` (a MASK_SOURCES name, a .pt model or a mask
+    image; None: the ground truth where the frame has one, else depth), or a box / point prompt."""
+
+    source: str | None = None
+    box: tuple[int, int, int, int] | None = None
+    point: tuple[int, int] | None = None
+
+
+def find_mask(frame: Frame, request: MaskRequest, asm: Assembly, name: str = "") -> tuple[np.ndarray, str]:
+    """The base's mask in `frame` as `request` asks, and its source's name. `name` says in errors which
+    input the frame came from."""
+    if request.box is not None or request.point is not None:
+        if request.source not in (None, "depth"):
+            raise AposeError(f"--mask {request.source} and --box/--point: give one way to find the object")
+        return array_mask(frame.rgb, frame.depth, frame.camera, box=request.box, point=request.point)
+    source = request.source or ("gt" if frame.masks else "depth")
+    if source.lower().endswith(IMAGE_SUFFIXES):
+        return check_mask(read_image(Path(source), cv2.IMREAD_GRAYSCALE), frame.depth.shape, source), source
+    if source == "gt" and not frame.masks:
+        raise AposeError(f"{name or 'this frame'}: no ground-truth masks here; use --box x0,y0,x1,y1, --point u,v, "
+                         "--mask depth or --mask MASK.png")
+    return frame_mask(frame, check_mask_source(source, asm)), source
+
+
+# ---- estimates ----------------------------------------------------------------------------------------
+
+def estimate_view(view: View, ctx: StepContext, params: Params, orientation_prior: bool = False,
+                  trace_iterations: bool = False) -> RegistrationResult:
+    """Step `ctx`'s assembly pose in one view. With orientation_prior the CAD's orientation is taken as
+    the base's orientation in the world (what `--base-pose fixed` renders, and the paper assumes)."""
+    ctx.base.warm_up(params)
+    return estimate(view, ctx.base, ctx.view.T_base_part, params,
+                    prior_T_world_base=np.eye(4) if orientation_prior else None, trace_iterations=trace_iterations,
+                    part_symmetries=ctx.part.symmetries)
+
+
+def estimate_frame(frame: Frame, ctx: StepContext, params: Params, mask_source: str = "gt",
+                   orientation_prior: bool = False, trace_iterations: bool = False,
+                   mask: np.ndarray | None = None) -> RegistrationResult:
+    """Step `ctx`'s assembly pose in one frame, its mask from `mask_source` unless `mask` is given."""
+    if mask is None:
+        mask = frame_mask(frame, mask_source)
+    return estimate_view(View.of(frame, mask), ctx, params, orientation_prior, trace_iterations)
+
+
+def estimate_frames(views: list[View], ctx: StepContext, params: Params,
+                    orientation_prior: bool = False) -> RegistrationResult:
+    """One fused estimate from several views of one placement (registration.fusion)."""
+    ctx.base.warm_up(params)
+    return estimate_views(views, ctx.base, ctx.view.T_base_part, params, np.eye(4) if orientation_prior else None,
+                          ctx.part.symmetries)

@@ -1,0 +1,167 @@
+"""What the studio's panels share, and how they tell each other that it changed.
+
+`StudioState` holds the data more than one panel reads: the draft assembly, the selected step, the
+preview poses and part meshes in the 3D view, the faces picked for a mate, and (in `InspectState`)
+the inspected data, frame, estimate, mask source and prompt. The app owns it; each field names the
+panel that writes it, the others only read it.
+
+`Events` is a small synchronous hub: `on(event, fn)` subscribes, `emit(event, **payload)` calls the
+subscribers in the order they subscribed, in the emitting thread. Every studio callback already
+runs under the studio lock (`Studio.guarded`), so subscribers do too. The events are the fixed set
+in `Event`, each with the payload keys in `PAYLOAD`; a panel that must react to another panel's
+action subscribes to its event instead of being called by it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import Enum
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from apose_studio.assembly.mesh import PartModel, load_parts
+from apose_studio.assembly.model import Assembly
+from apose_studio.data.dataset import Dataset, Frame
+from apose_studio.studio import authoring
+
+
+class Event(str, Enum):
+    """What happened, for the panels that show it. Payload keys: `PAYLOAD`."""
+
+    DRAFT_CHANGED = "draft changed"  # the draft (and with it maybe the selected step) was adopted: widgets and preview refresh
+    STEP_SELECTED = "step selected"  # the user selected step `index` (0-based) in the Steps folder; the draft is the same
+    MESHES_CHANGED = "meshes changed"  # part `pid`'s mesh (every part's when None) must be drawn anew: colour, units, file
+    DRAFT_OPENED = "draft opened"  # an assembly file was opened and adopted: the preview shows it assembled
+    DRAFT_SAVED = "draft saved"  # the draft was written to `state.saved_path`
+    PICKS_CHANGED = "picks changed"  # `state.picks` changed (a face picked, a pick dropped, picks cleared)
+    FRAME_CHANGED = "frame changed"  # `state.inspect.frame` (and its cached result and score) changed
+    RESULT_READY = "result ready"  # a new estimate is in `state.inspect.result` / `score` for `state.inspect.frame`
+    MASK_SOURCE_CHOSEN = "mask source chosen"  # the user chose mask source `source` outside the Mask dropdown
+    OVERLAY_CHANGED = "overlay changed"  # what the RGB overlay shows changed (a prompt's mask): redraw it
+
+
+PAYLOAD: dict[Event, tuple[str, ...]] = {
+    Event.DRAFT_CHANGED: (),
+    Event.STEP_SELECTED: ("index",),
+    Event.MESHES_CHANGED: ("pid",),
+    Event.DRAFT_OPENED: (),
+    Event.DRAFT_SAVED: (),
+    Event.PICKS_CHANGED: (),
+    Event.FRAME_CHANGED: (),
+    Event.RESULT_READY: (),
+    Event.MASK_SOURCE_CHOSEN: ("source",),
+    Event.OVERLAY_CHANGED: (),
+}
+
+
+class Events:
+    """Subscribers by event; `emit` calls them in subscription order, synchronously. An event outside
+    `Event`, or a payload without exactly the keys `PAYLOAD` lists, is a programming error (TypeError)."""
+
+    def __init__(self) -> None:
+        self._subscribers: dict[Event, list[Callable[..., None]]] = {e: [] for e in Event}
+
+    def on(self, event: Event, fn: Callable[..., None]) -> None:
+        if not isinstance(event, Event):
+            raise TypeError(f"{event!r} is not a studio Event")
+        self._subscribers[event].append(fn)
+
+    def subscribers(self, event: Event) -> tuple[Callable[..., None], ...]:
+        return tuple(self._subscribers[event])
+
+    def emit(self, event: Event, **payload) -> None:
+        if not isinstance(event, Event):
+            raise TypeError(f"{event!r} is not a studio Event")
+        if set(payload) != set(PAYLOAD[event]):
+            raise TypeError(f"{event.name} carries {PAYLOAD[event]}, not {tuple(payload)}")
+        for fn in list(self._subscribers[event]):
+            fn(**payload)
+
+
+@dataclass
+class InspectState:
+    """The Inspect tab's data. Written by the Inspect panel (data, step, frame, estimate, mask source),
+    the Views panel (a fused estimate) and the Prompt panel (prompt text); read by the others."""
+
+    frames: Dataset | Frame | None = None  # the opened dataset, or a capture (one Frame)
+    frames_path: str | None = None  # where it was opened from (results are cached under it)
+    step: int | None = None  # the inspected step, 1-based
+    frame: Frame | None = None  # the frame on show
+    result: object | None = None  # the registration result for `frame` (None: not estimated)
+    score: object | None = None  # its score against the truth (None: no truth or no result)
+    mask_source: str = ""  # the Mask dropdown's choice (gt, depth, box, prompt, or a model path)
+    prompt_text: str = ""  # the Prompt field: a box x0,y0,x1,y1 or a point u,v, in pixels
+    prompt_masks: dict = field(default_factory=dict)  # (frame source, im_id, step, prompt) -> mask
+    part_models: dict = field(default_factory=dict)  # id(assembly) -> its PartModels (one assembly's)
+
+
+@dataclass
+class StudioState:
+    """The studio's shared data; see the module docstring. `asm`, `valid_asm`, `problems` are written
+    by the app (`Studio.set_assembly`) and the Steps panel (a gizmo drag), `step_index` by the Steps
+    panel and the app, `preview` and `meshes` by the Steps panel, `picks` by the Mates panel,
+    `saved_path` by the Assembly panel."""
+
+    asm: Assembly  # the draft
+    valid_asm: Assembly  # the last draft without problems: what the preview shows
+    problems: list  # the draft's problems (an empty draft has one: no steps)
+    step_index: int | None = None  # the selected step, 0-based
+    preview: dict[str, np.ndarray] = field(default_factory=dict)  # part id -> T_world_part in the preview
+    meshes: dict[str, object] = field(default_factory=dict)  # part id -> its mesh handle in the 3D view
+    picks: dict[str, tuple] = field(default_factory=dict)  # "part" / "base" -> (part id, Feature in its frame)
+    saved_path: Path | None = None  # the file the draft was opened from or last saved to
+    inspect: InspectState = field(default_factory=InspectState)
+
+    @classmethod
+    def empty(cls) -> "StudioState":
+        asm = authoring.new_assembly()
+        return cls(asm=asm, valid_asm=asm, problems=authoring.problems(asm))
+
+    def T_world_shown(self, pid: str) -> np.ndarray | None:
+        """Where a part is drawn now: the selected step's part at the draft's pose, the others at the preview's."""
+        i, asm = self.step_index, self.asm
+        if i is not None and i < len(asm.steps) and asm.steps[i].part == pid and asm.steps[i].base[0] in self.preview:
+            return self.preview[asm.steps[i].base[0]] @ asm.steps[i].T_base_part
+        return self.preview.get(pid)
+
+    def inspect_assembly(self) -> Assembly:
+        """The assembly under inspection: a dataset's own, else (a capture) the last valid draft."""
+        frames = self.inspect.frames
+        return frames.assembly if isinstance(frames, Dataset) else self.valid_asm
+
+    def inspect_models(self) -> dict[str, PartModel]:
+        """The PartModels of the inspected assembly (kept for one assembly at a time, not every draft's)."""
+        asm = self.inspect_assembly()
+        if id(asm) not in self.inspect.part_models:
+            self.inspect.part_models = {id(asm): load_parts(asm)}
+        return self.inspect.part_models[id(asm)]
+
+    def part_model(self) -> PartModel:
+        """The PartModel of the part the inspected step places."""
+        return self.inspect_models()[self.inspect_assembly().steps[self.inspect.step - 1].part]
+
+    def load_frame(self, step: int, im_id: int, frames=None, asm: Assembly | None = None) -> Frame:
+        """Frame `im_id` of `step` from `frames` (default: the opened data); a capture is the one frame,
+        its base parts set from `asm` (default: the last valid draft)."""
+        frames = self.inspect.frames if frames is None else frames
+        if isinstance(frames, Dataset):
+            return frames.frame(step, im_id)
+        frames.base = (asm or self.valid_asm).steps[step - 1].base
+        return frames
+
+
+def shared(name: str, doc: str = "") -> property:
+    """A panel attribute kept in the studio's shared state: `name` is its path in `app.state` ("step_index",
+    "inspect.frame"). The panel that writes it keeps its old name for it; the others read the state."""
+    *parents, leaf = name.split(".")
+
+    def owner(panel):
+        obj = panel.app.state
+        for p in parents:
+            obj = getattr(obj, p)
+        return obj
+
+    return property(lambda panel: getattr(owner(panel), leaf), lambda panel, v: setattr(owner(panel), leaf, v),
+                    doc=doc or f"`state.{name}`")
