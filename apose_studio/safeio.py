@@ -12,7 +12,7 @@ Every read of an input file goes through here. The rules, and why:
 - **Paths are checked as text first**: a NUL byte or a name longer than the system allows gets a
   message, not a ValueError from deep inside.
 
-The limits (`LIMITS`) are listed in the README's reliability section; each error names the file, the
+The limits (`LIMITS`) are listed in docs/RELIABILITY.md; each error names the file, the
 limit and the fix.
 """
 

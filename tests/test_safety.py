@@ -251,7 +251,7 @@ def test_system_errors_are_one_line_exit_2(tiny_dir, monkeypatch, capsys):
         assert err.startswith("error: /data/out.json: ") and fix in err and len(err.strip().splitlines()) == 1, err
 
 
-# ------------------------------------------------- found by the outside attack on this round's fixes
+# ------------------------------------------------- cases an outside attack on the safety fixes found
 
 
 def test_a_jpeg_size_hidden_behind_fill_bytes_is_still_seen(tmp_path):

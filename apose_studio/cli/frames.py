@@ -69,7 +69,7 @@ def cmd_estimate(args) -> int:
                             "inlier_rmse": st.inlier_rmse} for st in r.stages],
                    voxel_m=r.voxel, fitness=r.fitness, contradiction=finite(r.contradiction), out_of_time=r.out_of_time,
                    alternatives_scores=[c.score for c in r.alternatives])
-        if sc is not None:  # against the ground truth; also at the top level, as before (mask_iou, adi, mssd, ...)
+        if sc is not None:  # against the ground truth; also at the top level (mask_iou, adi, mssd, ...), where scripts read them
             doc["truth"] = sc.to_json()
             doc.update({k: v for k, v in doc["truth"].items() if k not in doc})
         print(json.dumps(doc, indent=1))

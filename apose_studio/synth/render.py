@@ -73,7 +73,7 @@ def _render_into(asm: Assembly, out, settings: RenderSettings, numbers: list[int
             k, group = settings.views_per_scene, []
             for im_id in range(settings.frames):
                 placement, j = divmod(im_id, k)
-                if k == 1:  # one view per placement: the renders of every earlier version, bit for bit
+                if k == 1:  # one view per placement: seeded per frame, so a dataset re-renders bit for bit
                     rng = np.random.default_rng([settings.seed, number, im_id])
                     fr = render_frame(models, view, settings, grid, rng, base, noise=False)
                 else:
