@@ -109,3 +109,23 @@ def clutter_dataset(tmp_path_factory) -> Path:
     asm = load_assembly(SAMPLES / "helical_gearbox" / "assembly.yaml")
     render_dataset(asm, out, RenderSettings(frames=3, noise="kinect", clutter=True, seed=3), steps=[2], progress=False)
     return out
+
+
+_PART_MODELS: dict = {}
+
+
+def mssd_to_truth(T_est, T_true, assembly: Path, part: str) -> float:
+    """MSSD (metres) of an estimated T_*_part against the renderer's, modulo the part's own symmetries
+    (tests/geometry/test_metrics.py pins the metric to hand-computed values). Unlike a translation check
+    it catches a pose that is turned: its surface points move by the rotation error times their lever."""
+    import numpy as np
+
+    from apose_studio.assembly.mesh import load_parts
+    from apose_studio.assembly.model import load_assembly
+    from apose_studio.geometry.metrics import mssd
+
+    key = str(Path(assembly).resolve())
+    if key not in _PART_MODELS:
+        _PART_MODELS[key] = load_parts(load_assembly(assembly))
+    model = _PART_MODELS[key][part]
+    return float(mssd(np.asarray(T_est, float), np.asarray(T_true, float), model.samples, model.symmetries))

@@ -14,7 +14,7 @@ import pytest
 from apose_studio.data.dataset import Dataset
 from apose_studio.estimation import truth_box
 
-from .conftest import write_capture
+from .conftest import mssd_to_truth, write_capture
 
 APOSE = [sys.executable, "-m", "apose_studio.cli.commands"]
 
@@ -50,6 +50,7 @@ def test_capture_both_camera_forms_give_the_true_pose(capture):
             assert key in doc
         T = np.asarray(doc["T_camera_part"])
         assert np.linalg.norm(T[:3, 3] - truth[:3, 3]) < 0.005, form  # within 5 mm of the renderer's pose
+        assert mssd_to_truth(T, truth, capture["asm"], capture["frame"].part) < 0.005, form  # and not turned
 
 
 def test_bop_scene_folder_with_ground_truth(clutter_dataset):
@@ -169,6 +170,7 @@ def test_several_captures_are_fused_and_disagreeing_poses_refused(two_views, tmp
     doc = json.loads(r.stdout)
     T = np.asarray(doc["T_world_part"])
     assert doc["ok"] and np.linalg.norm(T[:3, 3] - a.T_world_part[:3, 3]) < 0.005
+    assert mssd_to_truth(T, a.T_world_part, asm, a.part) < 0.005
     shifted = write_capture(b, tmp_path / "b_off", _bop_camera(b, shift_mm=20.0))  # the robot's pose 20 mm off
     r = run("estimate", ca, shifted, "--assembly", asm, "--step", 1, "--box", ",".join(map(str, truth_box(a.base_mask()))),
             "--box", ",".join(map(str, truth_box(b.base_mask()))))

@@ -77,9 +77,11 @@ def estimate(view: View, base: BaseObject, T_base_part: np.ndarray, params: Para
             result = estimate_paper(target_pts, cam, T_world_camera, base, T_base_part, params, voxel,
                                     prior_T_world_base, trace_iterations, timings, preset=params.preset)
         else:
-            result = estimate_default(target_pts, cam, T_world_camera, base, T_base_part, params, voxel,
-                                      prior_T_world_base, trace_iterations, timings, observation, deadline,
-                                      part_symmetries)
+            t = time.perf_counter()
+            pb = prepare_task(target_pts, cam, T_world_camera, base, T_base_part, params, voxel, observation, deadline,
+                              part_symmetries=part_symmetries)
+            timings["features"] = time.perf_counter() - t
+            result = estimate_default(pb, prior_T_world_base, trace_iterations, timings)
     except Degenerate as e:
         return failed(str(e), target_cloud=target_pts, timings=timings, preset=params.preset, voxel=voxel)
     result = judge(replace(result, depth_noise=noise), view, base)  # ok only when the data supports the pose
@@ -147,19 +149,15 @@ def frame_noise(depth: np.ndarray, mask: np.ndarray) -> float:
     return sigma if np.isfinite(sigma) else 0.0
 
 
-def estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Params, voxel, prior, trace_iterations,
-                     timings: dict, observation: Observation, deadline: float = float("inf"),
-                     part_symmetries: np.ndarray | None = None) -> RegistrationResult:
-    """Ours after PROJ3D: the prior fast path, else search -> refine -> choose -> polish -> compose."""
-    t = time.perf_counter()
-    pb = prepare_task(target_pts, cam, T_world_camera, base, T_base_part, p, voxel, observation, deadline,
-                         part_symmetries=part_symmetries)
+def estimate_default(pb: Task, prior: np.ndarray | None, trace_iterations: bool, timings: dict) -> RegistrationResult:
+    """Ours on the prepared frame (PROJ3D done): the prior fast path, else search -> refine -> choose ->
+    polish -> compose. `timings` (seconds by stage) is added to."""
+    p, base, voxel = pb.params, pb.base, pb.voxel
     if prior is not None and p.prior_fast_path:  # the caller knows the orientation: ICP from it, kept if it fits
-        timings["features"] = time.perf_counter() - t
         quick = try_prior(pb, prior, trace_iterations, timings, preset=p.preset)
         if quick is not None:
             return quick
-        t = time.perf_counter()
+    t = time.perf_counter()
     ms = ModelSearch(pb)  # the whole model against the target: no assumption about the side seen
     timings["features"] = timings.get("features", 0.0) + time.perf_counter() - t
     t = time.perf_counter()
@@ -181,7 +179,7 @@ def estimate_default(target_pts, cam, T_world_camera, base, T_base_part, p: Para
         timings["icp"] += time.perf_counter() - t
     result = compose(pb, refined, chosen, close, T_world_source, timings)  # T_world_part = T_world_base @ T_base_part
     if found.upright and not result.fits and not pb.out_of_time("the free search after the upright one"):
-        return better_of_free_search(result, target_pts, pb, prior, trace_iterations, timings)  # not upright
+        return better_of_free_search(result, pb, prior, trace_iterations, timings)  # not upright
     return replace(result, out_of_time="; ".join(pb.notes), problem=pb)
 
 
@@ -206,14 +204,14 @@ def compose(pb: Task, refined: list, chosen: int, close: list[int], T_world_sour
                               coverage=float(c.coverage), preset=pb.params.preset)
 
 
-def better_of_free_search(result: RegistrationResult, target_pts, pb: Task, prior, trace_iterations,
+def better_of_free_search(result: RegistrationResult, pb: Task, prior, trace_iterations,
                           timings: dict) -> RegistrationResult:
-    """The base lies on its side, is held in a hand or sits on a fixture: search freely too, keep the
-    better of the two, and count the time of both."""
+    """The base lies on its side, is held in a hand or sits on a fixture: search freely too (on the same
+    prepared frame, with its own notes of what the time budget cut), keep the better of the two, and
+    count the time of both."""
     free_timings: dict[str, float] = {}
-    free = estimate_default(target_pts, pb.cam, pb.T_world_camera, pb.base, pb.T_base_part,
-                            replace(pb.params, upright=False), pb.voxel, prior, trace_iterations, free_timings,
-                            pb.observation, pb.deadline, pb.part_symmetries)
+    free = estimate_default(replace(pb, params=replace(pb.params, upright=False), notes=[]), prior, trace_iterations,
+                            free_timings)
     for k, v in timings.items():
         free_timings[k] = free_timings.get(k, 0.0) + v
     if free.coverage > result.coverage:

@@ -12,7 +12,7 @@ import pytest
 import trimesh
 import yaml
 
-from ..conftest import REPO, SAMPLES, free_port
+from ..conftest import REPO, SAMPLES, free_port, mssd_to_truth
 
 CHROMIUM = Path("/usr/bin/chromium")
 ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
@@ -491,7 +491,10 @@ def test_tick_the_views_of_a_placement_and_fuse_them(browser, studio, tmp_path_f
     wait_until(lambda: studio.inspect.result is not None and studio.inspect.result.views == 2, "the fused estimate",
                timeout=120)
     r = studio.inspect.result
-    assert r.ok and np.linalg.norm(r.T_world_part[:3, 3] - studio.inspect.frame.T_world_part[:3, 3]) < 0.003
+    fr = studio.inspect.frame
+    assert r.ok and np.linalg.norm(r.T_world_part[:3, 3] - fr.T_world_part[:3, 3]) < 0.003
+    assert mssd_to_truth(r.T_world_part, fr.T_world_part, REPO / "sample_assemblies" / "helical_gearbox" / "assembly.yaml",
+                         fr.part) < 0.003
     row = page.locator("div").filter(has=page.get_by_text("frame 1", exact=True)).filter(has=page.locator("input"))
     row.last.locator("input").first.click()
     wait_until(lambda: studio.views.ticked() == [0], "frame 1 unticked")

@@ -5,7 +5,7 @@ import numpy as np
 
 from apose_studio.studio import serve
 
-from ..conftest import SAMPLES, free_port
+from ..conftest import SAMPLES, free_port, mssd_to_truth
 from .conftest import act, errors, open_capture
 
 
@@ -66,11 +66,20 @@ def test_capture_without_a_mask_fails_cleanly(studio, capture):
     assert "empty mask" in errors(st)[-1][1] and "failed" in st.results.i_metrics.content.lower()
 
 
-def test_capture_with_depth_masks_and_model_choice(studio, capture, tmp_path):
+def test_capture_with_depth_masks_and_model_choice(studio, capture, gearbox_dataset, tmp_path):
+    from apose_studio.data.dataset import Dataset
+    from apose_studio.geometry import se3
+
     st = open_capture(studio, capture)
     st.inspect.i_mask.value = "depth"
     act(st, st.inspect.run_estimation, False)
-    assert st.inspect.result is not None and st.inspect.result.ok, st.notes
+    r = st.inspect.result
+    assert r is not None and r.ok, st.notes
+    # the capture's frame as rendered: the estimate (its camera frame) lands on the renderer's pose
+    fr = Dataset(gearbox_dataset).frame(1, 1)
+    T_camera_part = se3.inv(st.inspect.frame.T_world_camera) @ r.T_world_part
+    truth = se3.inv(fr.T_world_camera) @ fr.T_world_part
+    assert mssd_to_truth(T_camera_part, truth, SAMPLES / "helical_gearbox" / "assembly.yaml", fr.part) < 0.005
     assert {"/inspect/target", "/inspect/source", "/inspect/box_est"} <= set(st.nodes)
     # a model file that is not one: refused with the reason, the mask choice unchanged
     (tmp_path / "junk.pt").write_bytes(b"junk")
@@ -176,6 +185,7 @@ def test_prompted_mask_on_a_cluttered_capture(studio, clutter_dataset, tmp_path)
     T_camera_part = se3.inv(st.inspect.frame.T_world_camera) @ r.T_world_part
     truth = se3.inv(fr.T_world_camera) @ fr.T_world_part
     assert np.linalg.norm(T_camera_part[:3, 3] - truth[:3, 3]) < 0.005
+    assert mssd_to_truth(T_camera_part, truth, SAMPLES / "helical_gearbox" / "assembly.yaml", fr.part) < 0.005
     # a click: the ray through the base's centre pixel from the frame's camera picks the point prompt
     vs, us = np.nonzero(fr.base_mask())
     k = np.argmin((us - us.mean()) ** 2 + (vs - vs.mean()) ** 2)
@@ -208,6 +218,7 @@ def test_views_of_one_placement_are_ticked_and_fused(studio, tmp_path):
     assert r is not None and r.ok and r.views == 2, st.notes
     fr = st.inspect.frame
     assert np.linalg.norm(r.T_world_part[:3, 3] - fr.T_world_part[:3, 3]) < 0.003
+    assert mssd_to_truth(r.T_world_part, fr.T_world_part, asm_path, fr.part) < 0.003
     st.views.ticks[1].value = False
     act(st, st.views.on_estimate)
     assert st.inspect.result.views == 1
