@@ -83,7 +83,13 @@ MASK_SOURCES: dict[str, Callable[[Frame], np.ndarray]] = {
     "depth": lambda frame: depth_mask(frame.depth, frame.camera),
     "box": _truth_box_prompt,
 }
+TRUTH_MASK_SOURCES = ("gt", "box")  # the sources that read the frame's ground-truth masks (a capture has none)
 IMAGE_SUFFIXES = (".png", ".jpg", ".bmp", ".tif", ".tiff")
+
+
+def mask_sources_for(frame_masks: bool) -> tuple[str, ...]:
+    """The MASK_SOURCES names that work on frames with (or without) ground-truth masks."""
+    return tuple(s for s in MASK_SOURCES if frame_masks or s not in TRUTH_MASK_SOURCES)
 
 _SEGMENTERS: dict = {}
 
@@ -162,9 +168,9 @@ def find_mask(frame: Frame, request: MaskRequest, asm: Assembly, name: str = "")
     source = request.source or ("gt" if frame.masks else "depth")
     if source.lower().endswith(IMAGE_SUFFIXES):
         return check_mask(read_image(Path(source), cv2.IMREAD_GRAYSCALE), frame.depth.shape, source), source
-    if source == "gt" and not frame.masks:
-        raise AposeError(f"{name or 'this frame'}: no ground-truth masks here; use --box x0,y0,x1,y1, --point u,v, "
-                         "--mask depth or --mask MASK.png")
+    if source in TRUTH_MASK_SOURCES and not frame.masks:
+        raise AposeError(f"{name or 'this frame'}: no ground-truth masks here (--mask {source} reads them); use "
+                         "--box x0,y0,x1,y1, --point u,v, --mask depth or --mask MASK.png")
     return frame_mask(frame, check_mask_source(source, asm)), source
 
 

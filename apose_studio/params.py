@@ -80,8 +80,10 @@ class Params:
     seed: int = _p(0, "int", "seeds every random choice: the same seed, the same answer", 0, 2 ** 32 - 1)
     deterministic: bool = _p(True, "bool", "numpy's seeded ICP and RANSAC (the same pose in any process) instead of "
                              "Open3D's multi-threaded ones")
-    max_seconds: float = _p(1.0, "float", "a time budget for the searches (0: none); a search that runs out stops "
-                            "and says so, and its result is never confident", 0, 3600, unit="s")
+    max_seconds: float = _p(0.0, "float", "a wall-clock limit for the searches (0: none, the default: the searches "
+                            "are bounded by the counts above, so the same input gives the same answer however busy "
+                            "the machine is); past it a search stops, says so, and the result is never confident",
+                            0, 3600, unit="s")
     second_look: bool = _p(True, "bool", "a result that is not confident is estimated again on its mask cut to the "
                            "model's view at that pose; kept only if that one is confident")
 

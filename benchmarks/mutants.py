@@ -42,14 +42,14 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 
 DEFAULT_MODULES = ["apose_studio/geometry/metrics.py", "apose_studio/geometry/se3.py", "apose_studio/assembly/mates.py",
-                   "apose_studio/registration/results.py", "apose_studio/registration/pipeline.py::judge",
+                   "apose_studio/registration/types.py", "apose_studio/registration/pipeline.py::judge",
                    "apose_studio/studio/webguard.py", "apose_studio/data/outdir.py"]
 # the tests that target each module directly (used when --tests is not given)
 DEFAULT_TESTS = {
     "apose_studio/geometry/metrics.py": ["tests/geometry/test_metrics.py"],
     "apose_studio/geometry/se3.py": ["tests/geometry/test_se3.py"],
     "apose_studio/assembly/mates.py": ["tests/assembly/test_mates.py"],
-    "apose_studio/registration/results.py": ["tests/registration/test_scoring.py", "tests/test_evaluate.py"],
+    "apose_studio/registration/types.py": ["tests/registration/test_types.py"],
     "apose_studio/registration/pipeline.py": [  # judge()
         "tests/registration/test_pipeline.py::test_a_pose_the_camera_cannot_have_seen_is_not_ok",
         "tests/registration/test_pipeline.py::test_judge_edges_by_hand"],

@@ -105,7 +105,7 @@ def test_the_presets_hold_the_published_and_our_values():
     assert paper.use_orientation_prior and not paper.downsample and not paper.second_look and paper.max_seconds == 0
     ours = PRESET_PARAMS["default"]
     assert ours == Params()  # the schema's defaults are ours
-    assert (ours.voxel_size_m, ours.voxels_per_diameter, ours.global_source, ours.max_seconds) == (None, 50.0, "model", 1.0)
+    assert (ours.voxel_size_m, ours.voxels_per_diameter, ours.global_source, ours.max_seconds) == (None, 50.0, "model", 0.0)
     assert ours.upright and ours.second_look and ours.use_symmetries and not ours.use_orientation_prior
     assert dataclasses.is_dataclass(Params) and Params.__dataclass_params__.frozen
 

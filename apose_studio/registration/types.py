@@ -123,6 +123,7 @@ def failed(reason: str, **kw) -> RegistrationResult:
 class Degenerate(Exception):
     """Input the estimator cannot work with (raised inside, returned as ok=False with the reason)."""
 
+
 class Observation(NamedTuple):
     """What a frame shows of the base: its mask, the depth (metres) and the mask's outline (`mask_edge`)."""
 

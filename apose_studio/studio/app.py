@@ -217,12 +217,31 @@ class Studio:
         """Every tab's camera (and a new tab's) looking at a sphere from `direction`, the sphere filling
         most of the view."""
         direction = np.asarray(direction, float) / max(np.linalg.norm(direction), 1e-9)
-        clients = list(self.server.get_clients().values())
-        for c in clients + [None]:
-            cam = c.camera if c is not None else self.server.initial_camera
+        for cam in self._cameras():
             fov = float(getattr(cam, "fov", 0.0) or np.radians(50.0))
             eye = centre + direction * (radius / np.sin(fov / 2.0)) * 1.1
-            cam.position, cam.look_at = tuple(float(v) for v in eye), tuple(float(v) for v in centre)
+            self._place(cam, (0.0, 0.0, 1.0), eye, centre)  # the world's up (a sensor's view may have turned it)
+
+    def view_from(self, T_world_camera: np.ndarray, centre: np.ndarray, fov: float | None = None) -> None:
+        """Every tab's camera (and a new tab's) at a sensor's pose looking at `centre`, the image's up as
+        the view's up and its vertical field of view `fov` (radians): the scene as that camera saw it, each
+        point about a pixel on screen."""
+        for cam in self._cameras():
+            self._place(cam, -np.asarray(T_world_camera)[:3, 1], T_world_camera[:3, 3], centre)  # OpenCV's y: down
+            if fov is not None:
+                cam.fov = float(fov)
+
+    def _cameras(self) -> list:
+        """Every tab's camera, and the one a new tab starts with."""
+        return [c.camera for c in self.server.get_clients().values()] + [self.server.initial_camera]
+
+    def _place(self, cam, up, position, look_at) -> None:
+        up = tuple(float(v) for v in up)
+        if cam is self.server.initial_camera:
+            cam.up = up
+        else:
+            cam.up_direction = up
+        cam.position, cam.look_at = tuple(float(v) for v in position), tuple(float(v) for v in look_at)
 
     def frame_camera_on_assembly(self) -> None:
         """Frame every part shown in the preview (exploded or not)."""

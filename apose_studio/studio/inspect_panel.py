@@ -22,7 +22,7 @@ from apose_studio.data.bop import BopScene
 from apose_studio.data.dataset import Dataset
 from apose_studio.data.sources import open_frames
 from apose_studio.errors import AposeError
-from apose_studio.estimation import MASK_SOURCES, StepContext, check_mask_source
+from apose_studio.estimation import MASK_SOURCES, StepContext, check_mask_source, mask_sources_for
 from apose_studio.evaluate import estimate_and_score
 from apose_studio.geometry import se3
 from apose_studio.masks.segment import depth_mask
@@ -79,6 +79,7 @@ class InspectPanel:
         self.app = app
         self._syncing = False
         self.contexts: dict = {}  # (assembly identity, step) -> StepContext
+        self.job_contexts: dict = {}  # (assembly, models identity, step) -> (assembly, models, StepContext)
         app.events.on(Event.MASK_SOURCE_CHOSEN, self.on_mask_source_chosen)
 
     def build(self) -> None:
@@ -147,6 +148,7 @@ class InspectPanel:
             if not self.app.valid_asm.steps:
                 raise AposeError("a capture needs an assembly: open one in the Assembly tab first")
             steps = [f"{i + 1}. {s.part}" for i, s in enumerate(self.app.valid_asm.steps)]
+        self.offer_mask_sources(isinstance(frames, Dataset) or bool(frames.masks))
         self.frames, self.frames_path = frames, str(Path(text).expanduser().resolve())
         self.result = self.score = None
         self.i_path.value = self.frames_path
@@ -160,9 +162,24 @@ class InspectPanel:
         self.on_frame_changed()
         self.frame_camera_on_frame()
 
+    def offer_mask_sources(self, truth: bool) -> None:
+        """The Mask choices that work on the data opened: without ground truth (a capture) neither `gt` nor
+        `box` (both read the truth's masks); a capture starts on the typed prompt when there is one, else
+        on depth. Models added with 'Use model' stay."""
+        models = [o for o in self.i_mask.options if o not in MASK_SOURCES and o != PROMPT_SOURCE]
+        options = list(mask_sources_for(truth)) + [PROMPT_SOURCE] + models
+        if list(self.i_mask.options) != options:
+            self.i_mask.options = options
+        if self.i_mask.value not in options or (not truth and self.i_mask.value == "depth"):
+            typed = self.app.state.inspect.prompt_text.strip()
+            self.i_mask.value = PROMPT_SOURCE if typed else ("gt" if truth else "depth")
+        self.app.state.inspect.mask_source = self.i_mask.value
+
     def frame_camera_on_frame(self) -> None:
         """Frame the object under inspection (its mask, else the estimate's points, else the middle of the
-        depth image), seen from beside and above the dataset's camera so its frustum does not block the view."""
+        depth image). A capture is seen from its sensor's pose, as the camera saw it (a real scene seen from
+        elsewhere is a wall of points in front of the object); a rendered frame from beside and above its
+        camera, so that the frustum does not block the view."""
         fr = self.frame
         if fr is None:
             return
@@ -179,6 +196,9 @@ class InspectPanel:
         if not len(pts):
             return
         centre = np.median(pts, axis=0)
+        if not fr.masks:
+            self.app.view_from(fr.T_world_camera, centre, 2.0 * np.arctan2(fr.camera.height / 2.0, fr.camera.fy))
+            return
         radius = max(float(np.percentile(np.linalg.norm(pts - centre, axis=1), 95)), 0.02)
         to_camera = fr.T_world_camera[:3, 3] - centre
         direction = se3.axis_angle_matrix([0.0, 0.0, 1.0], np.radians(35.0)) @ to_camera
@@ -258,9 +278,21 @@ class InspectPanel:
             self.contexts[key] = StepContext(asm, self.inspect_models(), step)
         return self.contexts[key]
 
+    def job_context(self, job: "EstimateJob") -> StepContext:
+        """The step's prepared base for a job, kept while its assembly and models are the same objects:
+        the second estimate of a step costs only its own work (preparing a base takes seconds)."""
+        key = (id(job.assembly), id(job.models), job.step)
+        hit = self.job_contexts.get(key)
+        if hit is None or hit[0] is not job.assembly or hit[1] is not job.models:
+            if len(self.job_contexts) >= 8:
+                self.job_contexts.clear()
+            hit = (job.assembly, job.models, StepContext(job.assembly, job.models, job.step))
+            self.job_contexts[key] = hit
+        return hit[2]
+
     def estimate(self, job: "EstimateJob", im_id: int):
         """Estimate one frame of `job` and cache it under the job's key (runs without the studio lock)."""
-        ctx = StepContext(job.assembly, job.models, job.step)
+        ctx = self.job_context(job)
         frame = self.load_frame(job.step, im_id, job.frames, job.assembly)
         params = job.params()
         mask = None

@@ -15,12 +15,14 @@ import numpy as np
 
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
+from apose_studio.geometry.raycast import raycast_depth
 from apose_studio.registration import RegistrationResult, doubts
 
 RED = (220, 40, 40)
 BLUE = (40, 90, 230)
 GREEN = (30, 190, 60)
 AMBER = (255, 160, 0)  # ground truth
+CYAN = (0, 200, 255)  # the mask on the RGB overlay
 MAGENTA = (220, 60, 220)  # other placements that fit as well as the estimate (an ambiguous result)
 LEGEND = (("target cloud", RED), ("source cloud", BLUE), ("estimate", GREEN), ("truth (dashed)", AMBER),
           ("alternatives", MAGENTA))
@@ -113,6 +115,26 @@ def draw_boxes(rgb: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarra
                 b = tuple(int(round(v)) for v in uv[k + 1])
                 cv2.line(out, a, b, colour, width, cv2.LINE_AA)
     return out
+
+
+def draw_outline(image: np.ndarray, mask: np.ndarray, colour: tuple[int, int, int], thickness: int = 1) -> np.ndarray:
+    """`mask`'s outer and inner outlines drawn onto `image` (in place, returned): a mask shown as its edge
+    keeps the pixels under it visible, so the fit can be judged by eye."""
+    contours, _ = cv2.findContours(np.ascontiguousarray(mask, dtype=np.uint8), cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
+    cv2.drawContours(image, contours, -1, colour, thickness, cv2.LINE_8)
+    return image
+
+
+def silhouette(mesh, T_world_mesh: np.ndarray, T_world_camera: np.ndarray, cam: CameraIntrinsics) -> np.ndarray:
+    """(H, W) bool: the pixels the mesh at T_world_mesh covers in the camera (one ray per pixel centre)."""
+    return np.isfinite(raycast_depth(mesh, T_world_mesh, T_world_camera, cam))
+
+
+def enlarge(image: np.ndarray, min_width: int = 360) -> np.ndarray:
+    """An image narrower than `min_width` scaled up by a whole factor (nearest pixel: each sensor pixel
+    stays a visible square), so a crop around a small object is still read at pixel level."""
+    k = int(np.ceil(min_width / max(image.shape[1], 1)))
+    return image if k <= 1 else cv2.resize(image, None, fx=k, fy=k, interpolation=cv2.INTER_NEAREST)
 
 
 def scene_cloud(depth: np.ndarray, rgb: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray,

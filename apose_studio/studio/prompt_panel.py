@@ -71,14 +71,23 @@ class PromptPanel:
         with gui.add_folder("Prompt (cluttered scenes)"):
             self.i_prompt = gui.add_text("Prompt (px)", "", hint="a box x0,y0,x1,y1 or a point u,v on the base object, in "
                                          "image pixels; then Mask: prompt")
-            self.i_prompt.on_update(self.app.guarded("Prompt")(
-                lambda c: setattr(self.app.state.inspect, "prompt_text", self.i_prompt.value)))
+            self.i_prompt.on_update(self.app.guarded("Prompt")(lambda c: self.on_prompt_typed()))
             b = gui.add_button("Prompt at click", hint="then click the base object in the 3D view")
             b.on_click(self.app.guarded("Prompt at click")(self.on_prompt_at_click))
             b = gui.add_button("Drag a box", hint="then drag a rectangle around the base object in the 3D view")
             b.on_click(self.app.guarded("Drag a box")(self.on_drag_box))
             b = gui.add_button("Show mask", hint="the mask the prompt gives, drawn over the RGB image")
             b.on_click(self.app.guarded("Show mask")(lambda c: self.show_mask(c)))
+
+    def on_prompt_typed(self) -> None:
+        """A prompt typed (and sent with Enter) is the one to estimate with: Mask switches to prompt. A
+        malformed one says what is wrong and leaves the Mask choice alone."""
+        self.app.state.inspect.prompt_text = self.i_prompt.value
+        if not self.i_prompt.value.strip():
+            return
+        prompt_of(self.i_prompt.value)  # raises with the expected form
+        if self.app.state.inspect.mask_source != PROMPT_SOURCE:
+            self.app.events.emit(Event.MASK_SOURCE_CHOSEN, source=PROMPT_SOURCE)
 
     def prompt(self) -> tuple[tuple | None, tuple | None]:
         """The typed prompt as (box, point)."""

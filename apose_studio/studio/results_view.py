@@ -14,6 +14,7 @@ import time
 
 import numpy as np
 
+from apose_studio.assembly.mesh import base_mesh
 from apose_studio.errors import AposeError
 from apose_studio.geometry import se3
 from apose_studio.studio import inspection
@@ -29,6 +30,8 @@ class ResultsView:
         self.app = app
         self._syncing = False
         self.stages: list = []
+        self._seen_from_sensor = None  # the capture whose camera layer was turned off (its view is the sensor's)
+        self._base_mesh: tuple = (None, None)  # ((assembly identity, step), its base mesh)
         app.events.on(Event.FRAME_CHANGED, self.draw_frame)
         app.events.on(Event.RESULT_READY, self.draw_frame)
         app.events.on(Event.OVERLAY_CHANGED, self.draw_overlay)
@@ -68,13 +71,17 @@ class ResultsView:
         self.app.node("/inspect/camera", scene.add_camera_frustum("/inspect/camera", fov=float(fov), aspect=cam.width / cam.height,
                                                                scale=0.03, image=small, format="jpeg", jpeg_quality=80,
                                                                wxyz=wxyz(Tc), position=pos(Tc), color=(60, 60, 60)))
+        if not fr.masks and self._seen_from_sensor != fr.source:  # a capture is seen from its sensor: its own
+            self._seen_from_sensor = fr.source  # frustum would sit at the eye and hide the scene (tick it back in Layers)
+            self.layers["camera"].value = False
         pts, cols = inspection.scene_cloud(fr.depth, fr.rgb, cam, Tc)
         stride = max(1, int(np.ceil(np.sqrt(fr.depth.size / 60000))))
         # about one pixel's footprint at the scene's depth: dense, but never blobs that hide the boxes
         footprint = 0.5 * float(np.median(se3.transform_points(se3.inv(Tc), pts)[:, 2])) / cam.fx * stride if len(pts) else 0.001
         self.app.node("/inspect/scene", scene.add_point_cloud("/inspect/scene", pts, cols, point_size=footprint,
                                                            point_shape="circle"))
-        for name in [n for n in self.app.nodes if n.startswith(("/inspect/box_", "/inspect/label_", "/inspect/ghost"))] + [
+        for name in [n for n in self.app.nodes if n.startswith(("/inspect/box_", "/inspect/label_", "/inspect/ghost",
+                                                                "/inspect/base_"))] + [
                 "/inspect/target", "/inspect/source"]:
             if name in self.app.nodes:
                 self.app.nodes.pop(name).remove()
@@ -98,6 +105,10 @@ class ResultsView:
                 self.app.node("/inspect/box_alt", scene.add_line_segments("/inspect/box_alt", seg.astype(np.float32),
                                                                        inspection.MAGENTA, thickness=2.0, thickness_units="screen"))
                 labels.append(("alternative", se3.transform_points(alts[0], corners).max(axis=0), "bottom-left"))
+            base = self.base_mesh()  # the base object's model where the estimate puts it: does it fit the cloud?
+            self.app.node("/inspect/base_est", scene.add_mesh_simple(
+                "/inspect/base_est", base.vertices.astype(np.float32), base.faces.astype(np.uint32), color=inspection.GREEN,
+                wireframe=True, wxyz=wxyz(r.T_world_base), position=pos(r.T_world_base)))
             mesh = part_model.mesh
             self.app.node("/inspect/ghost", scene.add_mesh_simple(
                 "/inspect/ghost", mesh.vertices.astype(np.float32), mesh.faces.astype(np.uint32), color=inspection.GREEN,
@@ -125,8 +136,18 @@ class ResultsView:
         self.draw_overlay()
         self.apply_layers()
 
+    def base_mesh(self):
+        """The inspected step's base object as one mesh (frame of base[0]), kept per assembly and step."""
+        asm, step = self.app.state.inspect_assembly(), self.app.state.inspect.step
+        key = (id(asm), step)
+        if self._base_mesh[0] != key:
+            self._base_mesh = (key, base_mesh(self.app.state.inspect_models(), asm.step_view(step)))
+        return self._base_mesh[1]
+
     def draw_overlay(self) -> None:
-        """The RGB image with the boxes drawn, cropped around the object unless 'Full image' is ticked."""
+        """The RGB image cropped around the object (unless 'Full image' is ticked) and enlarged to be read at
+        pixel level: the mask as a cyan outline, the base's model outline where the estimate puts it (green)
+        and where the truth does (amber), and the placed part's boxes."""
         fr, r = self.app.state.inspect.frame, self.app.state.inspect.result
         if fr is None:
             return
@@ -142,20 +163,32 @@ class ResultsView:
         what = "prompted mask"
         if prompted is not None and r is not None and r.ok and r.model_mask is not None:
             prompted, what = r.model_mask, "the estimate's mask: the prompted one cut to the model's view"
-        if prompted is not None:  # the prompt's mask (or the estimate's), tinted green under the boxes
-            image[prompted] = (0.45 * image[prompted] + 0.55 * np.array([40, 220, 60])).astype(np.uint8)
+        outlines = []  # the base's model: truth under estimate
+        if fr.T_world_base is not None:
+            outlines.append((fr.T_world_base, inspection.AMBER))
+        if r is not None and r.ok and r.T_world_base is not None:
+            outlines.append((r.T_world_base, inspection.GREEN))
+        if prompted is not None:  # the prompt's mask (or the estimate's) as its outline, under the model's
+            inspection.draw_outline(image, prompted, inspection.CYAN)
+        shapes = []  # the base's silhouettes: the crop shows all of them
+        for T, colour in outlines:
+            shapes.append(inspection.silhouette(self.base_mesh(), T, fr.T_world_camera, fr.camera))
+            inspection.draw_outline(image, shapes[-1], colour)
         if not self.i_full.value:
             uv = np.concatenate([inspection.project_points(se3.transform_points(T, corners), fr.T_world_camera, fr.camera)[0]
                                  for T, _ in boxes]) if boxes else np.zeros((0, 2))
             if not boxes:  # no boxes: around the base object, if its mask is known
                 vs, us = np.nonzero(prompted if prompted is not None else fr.base_mask())
                 uv = np.stack([us, vs], axis=1)[:: max(1, len(us) // 500)]
+            for shape in shapes:
+                vs, us = np.nonzero(shape)
+                uv = np.concatenate([uv, np.stack([us, vs], axis=1)[:: max(1, len(us) // 500)]])
             x0, y0, x1, y1 = inspection.crop_window(fr.rgb.shape[:2], uv)
             image = image[y0:y1, x0:x1]
-        self.i_image.image = image
+        self.i_image.image = inspection.enlarge(image)
         truth = ", truth (amber)" if fr.T_world_part is not None else ""
-        self.i_image.label = (f"RGB: estimate (green){truth}" if boxes else "RGB") + (
-            f"; {what} (green tint), {int(prompted.sum())} pixels" if prompted is not None else "")
+        self.i_image.label = (f"RGB: estimate (green: the base's outline, the part's box){truth}" if boxes else "RGB") + (
+            f"; {what} (cyan outline), {int(prompted.sum())} pixels" if prompted is not None else "")
 
     def on_download_pose(self, client) -> None:
         ins = self.app.state.inspect
@@ -200,7 +233,7 @@ class ResultsView:
     def apply_layers(self) -> None:
         which = {"/inspect/scene": "scene cloud", "/inspect/target": "target cloud", "/inspect/source": "source cloud",
                  "/inspect/box_gt": "boxes", "/inspect/box_est": "boxes", "/inspect/box_alt": "boxes",
-                 "/inspect/ghost": "part at estimate", "/inspect/camera": "camera"}
+                 "/inspect/ghost": "part at estimate", "/inspect/base_est": "base at estimate", "/inspect/camera": "camera"}
         which.update({n: "labels" for n in self.app.nodes if n.startswith("/inspect/label_")})
         for name, layer in which.items():
             if name in self.app.nodes:

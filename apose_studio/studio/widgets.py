@@ -15,7 +15,8 @@ MAX_UPLOAD_BYTES = 200 * 1024 * 1024  # a CAD part above this is almost surely t
 UNITS = ("m", "cm", "mm", "in")
 VIEWS = ("Assembly", "Inspect")
 ACTIVE = "● "  # marks the 3D view on show in the button group
-LAYERS = ("scene cloud", "target cloud", "source cloud", "boxes", "part at estimate", "labels", "camera")
+LAYERS = ("scene cloud", "target cloud", "source cloud", "boxes", "part at estimate", "base at estimate", "labels",
+          "camera")
 
 
 def esc(text) -> str:

@@ -202,7 +202,8 @@ def test_inspect_estimate_a_frame(browser, studio, gearbox_dataset):
     cropped = studio.results.i_image.image.shape
     field(page, "Full image").first.check()
     wait_until(lambda: studio.results.i_image.image.shape[:2] == studio.inspect.frame.rgb.shape[:2], "the full image")
-    assert cropped[1] < studio.inspect.frame.rgb.shape[1] / 2  # the overlay was cropped around the object
+    # the overlay was cropped around the object and enlarged to be read at pixel level
+    assert cropped[:2] != studio.inspect.frame.rgb.shape[:2] and cropped[1] >= 360
     page.close()
 
 
@@ -212,6 +213,58 @@ def _sample_copy(tmp_path) -> Path:
     asm_path.write_text("# our gearbox: hand-written notes stay\n" + asm_path.read_text())
     asm_path.chmod(0o640)
     return asm_path
+
+
+def test_inspect_a_capture_with_a_typed_box(browser, studio, tmp_path):
+    """A real-capture folder (made from a cluttered Kinect-like render, with a BOP camera.json): the Mask
+    offers no ground-truth source and starts on depth; a box typed into Prompt (px) and sent with Enter
+    switches it to prompt; Estimate frame gives a pose on the renderer's; the RGB overlay is shown at
+    least 300 px wide with the model's outline; the 3D view opens at the sensor's pose."""
+    from apose_studio.assembly.model import load_assembly
+    from apose_studio.data.dataset import Dataset
+    from apose_studio.estimation import truth_box
+    from apose_studio.studio import inspection
+    from apose_studio.synth.frame import RenderSettings
+    from apose_studio.synth.render import render_dataset
+
+    from ..conftest import write_capture
+
+    asm_path = _sample_copy(tmp_path)
+    render_dataset(load_assembly(asm_path), tmp_path / "ds", RenderSettings(frames=1, noise="kinect", clutter=True, seed=5),
+                   steps=[1], progress=False)
+    fr = Dataset(tmp_path / "ds").frame(1, 0)
+    cap = write_capture(fr, tmp_path / "bench", {"cam_K": fr.camera.K.reshape(-1).tolist(), "depth_scale": 1.0})
+    page = open_page(browser, studio)
+    type_into(page, "Assembly file", str(asm_path))
+    page.get_by_role("button", name="Open").click()
+    wait_until(lambda: len(studio.asm.steps) == 3, "the sample to open")
+    page.get_by_role("tab", name="Inspect").click()
+    type_into(page, "Dataset or capture", str(cap))
+    page.get_by_role("button", name="Open data").click()
+    wait_until(lambda: "/inspect/scene" in studio.nodes, "the capture to be shown")
+    assert "gt" not in studio.inspect.i_mask.options and studio.inspect.i_mask.value == "depth"
+    cam = client_of(studio, page).camera
+    T = studio.inspect.frame.T_world_camera
+    wait_until(lambda: np.linalg.norm(np.asarray(cam.position) - T[:3, 3]) < 1e-3, "the view at the sensor's pose")
+    type_into(page, "Prompt (px)", ",".join(map(str, truth_box(fr.base_mask()))))
+    wait_until(lambda: studio.inspect.i_mask.value == "prompt", "Mask to switch to prompt")
+    page.get_by_role("button", name="Estimate frame").click()
+    wait_until(lambda: studio.inspect.result is not None, "the estimate", timeout=120)
+    r = studio.inspect.result
+    assert r.ok, r.reason  # no "empty mask"
+    T_camera_part = np.linalg.inv(studio.inspect.frame.T_world_camera) @ r.T_world_part
+    truth = np.linalg.inv(fr.T_world_camera) @ fr.T_world_part
+    assert mssd_to_truth(T_camera_part, truth, asm_path, fr.part) < 0.1 * studio.inspect.part_model().diameter
+    green = np.array(inspection.GREEN, np.uint8)
+    wait_until(lambda: (np.asarray(studio.results.i_image.image) == green).all(axis=-1).sum() > 50,
+               "the model's outline on the RGB overlay")  # drawn once the result is shown
+    shown = page.locator("img").evaluate_all(
+        "els => els.map(e => e.getBoundingClientRect().width)")
+    assert max(shown) >= 300, shown  # the overlay as the page draws it
+    page.get_by_text("Full image").first.scroll_into_view_if_needed()  # the panel at the overlay, for the screenshot
+    time.sleep(1.0)  # let the software renderer draw
+    shot(page, "capture_inspect.png")
+    page.close()
 
 
 def test_drag_the_gizmo_with_the_mouse_and_save(browser, studio, tmp_path):

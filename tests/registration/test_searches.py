@@ -19,7 +19,7 @@ def test_a_wrong_prior_falls_back_to_the_global_search(gearbox_step2):
     T_world_camera = se3.look_at([0.35, -0.25, 0.3], [0.05, 0.02, 0.01])
     depth, mask = synthetic_view(base, T_world_base, T_world_camera)
     wrong = se3.make_T(se3.axis_angle_matrix([0, 0, 1], np.radians(90)))
-    # no time budget (max_seconds 0): on a loaded machine the 1 s budget cuts the RANSAC retry, and a search cut
+    # no wall-clock limit (max_seconds 0, the default): a limit would cut the RANSAC retry on a loaded machine, and a search cut
     # short is never confident; the budget itself is tested through a fake clock (test_pipeline.py)
     r = estimate(View(depth, mask, CAM, T_world_camera), base, view.T_base_part, resolve_params("default", max_seconds=0.0),
                  prior_T_world_base=wrong)

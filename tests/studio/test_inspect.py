@@ -60,10 +60,52 @@ def test_an_ambiguous_result_shows_the_other_placements_in_magenta(studio, gearb
 
 
 def test_capture_without_a_mask_fails_cleanly(studio, capture):
+    """`gt` is not offered on a capture (it has no ground truth); forced anyway, the estimate fails with
+    the reason instead of breaking the studio."""
     st = open_capture(studio, capture)
     assert "/inspect/scene" in st.nodes and "/inspect/box_gt" not in st.nodes
+    st.inspect.i_mask.options = ["gt"] + list(st.inspect.i_mask.options)
+    st.inspect.i_mask.value = "gt"
+    st.state.inspect.mask_source = "gt"
     act(st, st.inspect.run_estimation, False)
     assert "empty mask" in errors(st)[-1][1] and "failed" in st.results.i_metrics.content.lower()
+
+
+def test_a_capture_offers_the_masks_that_work_and_a_typed_prompt_is_used(studio, capture, gearbox_dataset):
+    """A capture (no ground truth) offers neither gt nor box and starts on depth; a box typed into Prompt (px)
+    and sent switches Mask to prompt (a malformed one says why and changes nothing); Estimate frame then
+    gives a pose, and the RGB overlay is shown large with the mask's and the model's outlines. Opening a
+    dataset again offers gt and box."""
+    from apose_studio.data.dataset import Dataset
+    from apose_studio.estimation import truth_box
+    from apose_studio.studio import inspection
+
+    st = open_capture(studio, capture)
+    options = list(st.inspect.i_mask.options)
+    assert "gt" not in options and "box" not in options and {"depth", "prompt"} <= set(options)
+    assert st.inspect.i_mask.value == "depth" and st.state.inspect.mask_source == "depth"
+    st.prompt.i_prompt.value = "10,20,30"
+    act(st, lambda c: st.prompt.on_prompt_typed())
+    assert "x0,y0,x1,y1" in errors(st)[-1][1] and st.inspect.i_mask.value == "depth"
+    fr = Dataset(gearbox_dataset).frame(1, 1)  # the frame the capture was made from
+    st.prompt.i_prompt.value = ",".join(map(str, truth_box(fr.base_mask())))
+    act(st, lambda c: st.prompt.on_prompt_typed())
+    assert st.inspect.i_mask.value == "prompt" and st.state.inspect.mask_source == "prompt"
+    n_errors = len(errors(st))
+    act(st, st.inspect.run_estimation, False)
+    r = st.inspect.result
+    assert r is not None and r.ok and len(errors(st)) == n_errors, st.notes
+    image = np.asarray(st.results.i_image.image)
+    assert image.shape[1] >= 300
+    for colour in (inspection.CYAN, inspection.GREEN):  # the mask's outline, the base model's outline at the estimate
+        assert (image == np.array(colour, np.uint8)).all(axis=-1).sum() > 50, colour
+    assert "cyan outline" in st.results.i_image.label
+    assert "/inspect/base_est" in st.nodes  # the base object's model drawn where the estimate puts it
+    T = st.inspect.frame.T_world_camera  # a capture opens at its sensor's pose, the image's up as the view's up
+    cam = st.server.initial_camera
+    assert np.allclose(cam.position, T[:3, 3]) and np.allclose(cam.up, -T[:3, 1])
+    act(st, lambda c: st.inspect.open_frames(str(gearbox_dataset), c, confine=False))  # as if named at start
+    assert {"gt", "box"} <= set(st.inspect.i_mask.options), st.notes[-1]
 
 
 def test_capture_with_depth_masks_and_model_choice(studio, capture, gearbox_dataset, tmp_path):
