@@ -80,7 +80,7 @@ def refusal(*, path: str, host_header: str | None, origin: str | None, port: int
     """Why a request must be refused, or None to let it through (pure; the rules of the module doc)."""
     if token is not None and not _has_token(path, token):
         return "this studio needs its token: open the address that `apose studio` printed (it ends in /t/<token>/)"
-    host, host_port = _host_port(host_header or "", 80)
+    host, _ = _host_port(host_header or "", 80)  # the Host header's port is not checked: the socket's is
     if bound_loopback and not is_loopback_name(host):
         return f"refused: the studio listens on this machine only, and Host {host_header!r} is not a loopback name"
     if not websocket:

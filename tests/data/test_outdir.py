@@ -132,3 +132,78 @@ def test_overwrite_after_kill_9_recovers_the_render_s_own_files(tmp_path):
     files = json.loads((out / MANIFEST).read_text())["files"]
     assert not (out / JOURNAL).exists()
     assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file()) == sorted(files + [MANIFEST])
+
+
+def test_a_held_lock_names_the_pid_and_a_finished_one_leaves_nothing(tmp_path):
+    """While held, the lock file holds the PID that the refusal names; after a clean exit neither the lock
+    nor the journal is left (a kill leaves the journal: test_overwrite_after_kill_9...); a lock that ended
+    by an error keeps the journal unless a manifest lists the files."""
+    out = tmp_path / "ds"
+    out.mkdir()
+    with OutputLock(out) as lock:
+        assert lock.held and (out / LOCK).read_text() == str(os.getpid())
+        claim(out / "a.png")
+        (out / "a.png").write_bytes(b"x")
+        with pytest.raises(AposeError, match=rf"in use by PID {os.getpid()} \(another apose render"):
+            with OutputLock(out):
+                pass
+        assert (out / JOURNAL).read_text() == "a.png\n"
+    assert not lock.held and lock.fd is None
+    assert not (out / LOCK).exists() and not (out / JOURNAL).exists()
+    (out / LOCK).write_text("not a pid")  # a stale lock file of another kind: taken over, its text replaced
+    with pytest.raises(RuntimeError):
+        with OutputLock(out):
+            claim(out / "b.png")
+            raise RuntimeError("a render that failed")
+    assert (out / JOURNAL).read_text() == "b.png\n" and not (out / LOCK).exists()
+
+
+def test_the_refusal_lists_five_foreign_files_and_counts_the_rest(tmp_path):
+    out = tmp_path / "ds"
+    out.mkdir()
+    for k in range(7):
+        (out / f"note{k}.txt").write_text("mine")
+    with pytest.raises(AposeError) as e:
+        check_output_dir(out, overwrite=True)
+    text = str(e.value)
+    assert "note0.txt, note1.txt, note2.txt, note3.txt, note4.txt and 2 more)" in text and "note5" not in text
+    for k in range(2, 7):
+        (out / f"note{k}.txt").unlink()
+    with pytest.raises(AposeError) as e:
+        check_output_dir(out, overwrite=True)
+    assert "(note0.txt, note1.txt);" in str(e.value)  # two: no "more"
+    with pytest.raises(AposeError, match="folder is not empty; choose another --out, or pass --overwrite"):
+        check_output_dir(out, overwrite=False)
+
+
+def test_only_the_render_s_own_temporary_files_count_as_its_leftovers(tmp_path):
+    """`.NAME.xxxx.tmp` beside a file the manifest lists is a kill's leftover (removed by --overwrite);
+    `NAME.tmp`, `.other.xxxx.tmp` (no such file listed) and `.NAME.tmp.bak` are someone else's."""
+    out = tmp_path / "ds"
+    (out / "rgb").mkdir(parents=True)
+    (out / "rgb" / "000000.png").write_bytes(b"x")
+    (out / MANIFEST).write_text(json.dumps({"files": ["rgb/000000.png"]}))
+    (out / "rgb" / ".000000.png.k3j2.tmp").write_bytes(b"half")
+    (out / f".{MANIFEST}.q9.tmp").write_text("half")
+    check_output_dir(out, overwrite=True)  # only ours: accepted
+    for foreign in ("rgb/000000.png.tmp", "rgb/.other.png.k3j2.tmp", "rgb/.000000.png.k3j2.tmp.bak"):
+        (out / foreign).write_bytes(b"someone's")
+        with pytest.raises(AposeError, match="holds files that no apose render wrote"):
+            check_output_dir(out, overwrite=True)
+        (out / foreign).unlink()
+    remove_previous_dataset(out)
+    assert not out.exists() or not any(out.rglob("*"))
+
+
+def test_the_manifest_lists_what_was_claimed_and_is_on_disk(tmp_path):
+    out = tmp_path / "ds"
+    out.mkdir()
+    with OutputLock(out):
+        for name in ("a.png", "b.png"):
+            claim(out / name)
+        (out / "a.png").write_bytes(b"x")  # b.png was claimed, never written
+        (out / "c.png").write_bytes(b"y")  # put there by someone else meanwhile
+        write_manifest(out, {"format": "test"})
+    doc = json.loads((out / MANIFEST).read_text())
+    assert doc == {"format": "test", "files": ["a.png"]}
+    assert (out / MANIFEST).read_text().startswith('{\n "format"')  # indented one space, as readers diff it

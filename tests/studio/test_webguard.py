@@ -101,6 +101,8 @@ def test_rule_edges_pinned_by_mutation_testing():
 
     assert is_loopback_bind("127.0.0.1") and is_loopback_bind("localhost") and is_loopback_bind("::1")
     assert not is_loopback_name("[::1") and not is_loopback_name("::1]")  # half a bracket pair is not a literal
+    assert not is_loopback_name("x127.0.0.1]") and not is_loopback_name("[127.0.0.1x")  # nor a name wrapped in one
+    assert len(new_token()) == 32  # 24 random bytes (192 bits), URL-safe base64
     tok = "b" * 20
     assert ws("http://127.0.0.1:8080", path=f"/t/{tok}/assets/x.js?v=1", token=tok) is None  # '/' before '?'
     assert "needs its token" in ws("http://127.0.0.1:8080", path=f"/t/{tok}?x=/t/{tok}/", token=tok[:-1] + "c")
