@@ -107,7 +107,8 @@ def model_cut_mask(result: RegistrationResult, view: View, base: BaseObject) -> 
     from 0.85 to 0.93; pixels the prompt missed stay missed."""
     depth, mask, cam, T_world_camera = view.depth, view.mask, view.camera, view.T_world_camera
     seen, _ = raycast_source(base, result.T_world_base, T_world_camera, cam)
-    zbuf = cv2.erode(depth_buffer(seen, T_world_camera, cam).astype(np.float32), np.ones((5, 5), np.uint8))  # 2 px wider, the nearer surface winning
+    # 2 px wider, the nearer surface winning
+    zbuf = cv2.erode(depth_buffer(seen, T_world_camera, cam).astype(np.float32), np.ones((5, 5), np.uint8))
     tol = agreement_tolerance(result.voxel, result.depth_noise)
     in_front = (depth > 0) & (depth < zbuf - tol)
     return mask & np.isfinite(zbuf) & ~in_front

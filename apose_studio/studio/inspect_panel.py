@@ -224,7 +224,8 @@ class InspectPanel:
         """Everything an estimate depends on, read from the widgets now: a later click in any tab (another
         dataset, another preset) cannot change what a running estimate is computed with or cached under."""
         crop = None
-        if self.i_mask.value == "depth" and self.i_crop.value and "/inspect/crop" in self.app.nodes:  # the box is part of the mask
+        # the box is part of the mask
+        if self.i_mask.value == "depth" and self.i_crop.value and "/inspect/crop" in self.app.nodes:
             g = self.app.nodes["/inspect/crop"]
             crop = (se3.make_T(se3.quat_wxyz_to_matrix(np.asarray(g.wxyz)), np.asarray(g.position)),
                     np.asarray(self.i_crop_size.value, dtype=float) / 1000.0)
@@ -259,7 +260,12 @@ class InspectPanel:
             finally:
                 self._syncing = False
             im_id = ids[int(self.i_frame.value)]
-        else:
+        else:  # a capture is one frame: nothing to slide through
+            self._syncing = True
+            try:
+                self.i_frame.value, self.i_frame.disabled = 0, True
+            finally:
+                self._syncing = False
             im_id = 0
         self.app.state.inspect.step = step
         self.frame = self.load_frame(step, im_id)
@@ -422,10 +428,17 @@ class InspectPanel:
                     unsure.append(f"frame {im_id}: coverage {result.coverage:.0%}")
                 self.i_progress.value = 100.0 * (k + 1) / len(ids)
             dt = time.perf_counter() - t0
-        finally:
+        except BaseException:
             self.app.lock.acquire()
             self.app.busy.release()
             self.i_progress.visible = False
+            # what stays on screen is what is cached for these settings: never an older estimate that looks
+            # like the answer to the prompt that just failed
+            self.on_frame_changed()
+            raise
+        self.app.lock.acquire()
+        self.app.busy.release()
+        self.i_progress.visible = False
         self.on_frame_changed()
         self.frame_camera_on_frame()
         if failed:

@@ -220,7 +220,9 @@ def metrics_markdown(score, result: RegistrationResult | None) -> str:
     if not result.confident:
         flags.append(f"low confidence: {doubts(result)}")
     table = "| metric | value |\n|---|---|\n" + "\n".join(f"| {k} | {v} |" for k, v in rows)
-    return table + ("\n\n" + "\n\n".join(f"⚠ {f}" for f in flags) if flags else "")
+    verdict = ("**✔ ok and confident**: one placement that the data supports" if result.confident else
+               "**⚠ ok, not confident**: do not act on this pose without a second look")
+    return verdict + "\n\n" + table + ("\n\n" + "\n\n".join(f"⚠ {f}" for f in flags) if flags else "")
 
 
 @dataclass

@@ -207,3 +207,44 @@ def test_the_manifest_lists_what_was_claimed_and_is_on_disk(tmp_path):
     doc = json.loads((out / MANIFEST).read_text())
     assert doc == {"format": "test", "files": ["a.png"]}
     assert (out / MANIFEST).read_text().startswith('{\n "format"')  # indented one space, as readers diff it
+
+
+def test_a_lock_without_claims_and_claims_made_twice(tmp_path):
+    """A render that wrote nothing leaves neither lock nor journal; a file claimed twice is journaled once,
+    and the folder's own files (the manifest) are never journaled, so the manifest never lists itself."""
+    out = tmp_path / "ds"
+    out.mkdir()
+    with OutputLock(out):
+        pass
+    assert sorted(p.name for p in out.iterdir()) == []
+    with OutputLock(out):
+        for _ in range(2):
+            claim(out / "a.png")
+        claim(out / MANIFEST)
+        (out / "a.png").write_bytes(b"x")
+        write_manifest(out, {})
+        assert (out / JOURNAL).read_text() == "a.png\n"
+    assert json.loads((out / MANIFEST).read_text())["files"] == ["a.png"]
+
+
+def test_overwrite_never_deletes_outside_the_folder(tmp_path):
+    """A manifest that lists a path leading out of the folder (hand-edited, or planted) deletes nothing there."""
+    out = tmp_path / "ds"
+    out.mkdir()
+    victim = tmp_path / "victim.txt"
+    victim.write_text("the user's")
+    (out / "a.png").write_bytes(b"x")
+    (out / MANIFEST).write_text(json.dumps({"files": ["a.png", "../victim.txt", str(victim)]}))
+    remove_previous_dataset(out)
+    assert victim.read_text() == "the user's" and not (out / "a.png").exists()
+
+
+@pytest.mark.parametrize("n,tail", [(5, ")"), (6, " and 1 more)")])
+def test_the_refusal_counts_past_five(tmp_path, n, tail):
+    out = tmp_path / "ds"
+    out.mkdir()
+    for k in range(n):
+        (out / f"note{k}.txt").write_text("mine")
+    with pytest.raises(AposeError) as e:
+        check_output_dir(out, overwrite=True)
+    assert f"note4.txt{tail};" in str(e.value) and "note5" not in str(e.value)

@@ -89,7 +89,8 @@ def wait_until(cond, what, timeout: float = 60.0) -> None:
 def open_page(browser, st, url: str | None = None):
     page = browser.new_page(viewport={"width": 1400, "height": 900})
     page.goto(url or st.url)
-    page.get_by_role("button", name="Add part(s)").wait_for(timeout=90000)  # a second tab beside a drawn assembly: ~30 s in SwiftShader
+    # a second tab beside a drawn assembly: ~30 s in SwiftShader
+    page.get_by_role("button", name="Add part(s)").wait_for(timeout=90000)
     return page
 
 

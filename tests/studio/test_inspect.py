@@ -104,6 +104,13 @@ def test_a_capture_offers_the_masks_that_work_and_a_typed_prompt_is_used(studio,
     T = st.inspect.frame.T_world_camera  # a capture opens at its sensor's pose, the image's up as the view's up
     cam = st.server.initial_camera
     assert np.allclose(cam.position, T[:3, 3]) and np.allclose(cam.up, -T[:3, 1])
+    assert st.results.i_metrics.content.startswith("**✔ ok and confident**") == r.confident
+    # a prompt that fails: the earlier estimate does not stay on screen as if it were the answer to it
+    st.prompt.i_prompt.value = "2,2,40,40"  # a corner of bare table
+    act(st, lambda c: st.prompt.on_prompt_typed())
+    act(st, st.inspect.run_estimation, False)
+    assert "holds nothing standing on the table" in errors(st)[-1][1]
+    assert st.inspect.result is None and "No estimate for this frame yet" in st.results.i_metrics.content
     act(st, lambda c: st.inspect.open_frames(str(gearbox_dataset), c, confine=False))  # as if named at start
     assert {"gt", "box"} <= set(st.inspect.i_mask.options), st.notes[-1]
 
