@@ -319,3 +319,34 @@ def test_save_writes_a_fixed_mate_and_unit_directions(folder):
     again = load_assembly(folder / "saved.yaml")
     assert again == asm
     np.testing.assert_allclose(again.steps[1].T_base_part[:3, :3], Rz(90), atol=1e-12)
+
+
+def test_bad_offsets_degrees_and_fixed_references_name_their_keys(folder):
+    """Numbers of a mate are checked where they are: a gap that is text or NaN, a turn that is missing or
+    text (booleans are not numbers either), a fixed reference whose rotation is bad; each problem names its
+    key, nothing raises on the way."""
+    good = contact([0, 0, 0], [0, 0, 1], [0, 0, 0], [0, 0, -1])
+    problems = _problem(folder, [{**good, "offset": "2mm"}, {**good, "type": "aligned", "offset": float("nan")},
+                                 {**angle([0, 0, 1], [0, 0, 1], 30), "degrees": True},
+                                 {"type": "angle", "base": {"direction": [1, 0, 0]}, "part": {"direction": [1, 0, 0]}},
+                                 {"type": "fixed", "base": {"translation": [0, 0, 0], "rotation": {"euler_deg": "x"}},
+                                  "part": {"translation": [0, 0, 0]}}])
+    by_key = {p.key: p.what for p in problems}
+    assert by_key["steps[0].mates[0].offset"].startswith("expected a gap in the file's units, got")
+    assert by_key["steps[0].mates[1].offset"].startswith("expected a gap in the file's units, got")
+    assert by_key["steps[0].mates[2].degrees"].startswith("expected the turn in degrees, got")
+    assert by_key["steps[0].mates[3].degrees"].startswith("expected the turn in degrees, got")
+    assert any(k.startswith("steps[0].mates[4].base.rotation") for k in by_key), by_key
+    assert len(_asm(folder, [good]).steps[0].mates) == 1  # and a good one alone is accepted
+
+
+def test_solve_without_mates_or_a_guess():
+    from apose_studio.assembly.mates import Mate, Ref, solve
+
+    s = solve([])
+    assert np.array_equal(s.T_base_part, np.eye(4)) and s.n_free == 6
+    assert s.free == ("every degree of freedom is free (no mates)",)
+    up, down = np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, -1.0])
+    m = Mate("contact", Ref(point=np.zeros(3), direction=up), Ref(point=np.zeros(3), direction=down))
+    s = solve([m])  # no guess: identity for what the mate leaves free
+    assert s.T_base_part.shape == (4, 4) and np.allclose(s.T_base_part, np.eye(4)) and s.n_free == 3
