@@ -78,6 +78,7 @@ class Studio:
         self.events = Events()
         self.models: dict[tuple, PartModel] = {}  # (mesh path, units, colour, index) -> PartModel
         self.nodes: dict[str, object] = {}  # scene nodes by name (tests look here)
+        self._errors_shown: dict[int, list] = {}  # client id -> its error notifications still on screen
         self.cache = cache if cache is not None else inspection.ResultCache()
         self.current_view = "Assembly"
         self._notice_timer: threading.Timer | None = None
@@ -127,13 +128,18 @@ class Studio:
         self.state.problems = problems
 
     def notify(self, client, title: str, body: str, error: bool = False) -> None:
-        """Tell the tab that acted (or every tab when no one did)."""
+        """Tell the tab that acted (or every tab when no one did). An error stays until closed, but only until
+        the tab's next message: an old error beside a newer success reads as if the success had failed."""
         (log.warning if error else log.info)("%s: %s", title, body)
         clients = [client] if client is not None else list(self.server.get_clients().values())
         for c in clients:
             try:
-                c.add_notification(title, body, auto_close_seconds=None if error else 4.0,
-                                   color="red" if error else "green")
+                for old in self._errors_shown.pop(c.client_id, []):
+                    old.remove()
+                handle = c.add_notification(title, body, auto_close_seconds=None if error else 4.0,
+                                            color="red" if error else "green")
+                if error:
+                    self._errors_shown.setdefault(c.client_id, []).append(handle)
             except Exception:  # a tab that just closed
                 pass
 

@@ -93,3 +93,31 @@ def test_an_assembly_naming_a_mesh_outside_the_workspace_is_refused(studio, tmp_
         assert errors(st)[-1:] and "parts.plate.mesh" in errors(st)[-1][1] and "outside the studio's workspace" in errors(st)[-1][1]
         assert len(st.notes) > before and "plate" not in st.asm.parts
         assert not any(str(outside) in str(k[0]) for k in st.models)  # the outside mesh was never loaded
+
+
+def test_a_tab_s_next_message_closes_its_older_error():
+    """An error notification stays until closed or until that tab's next message (here: a success), and
+    never closes another tab's."""
+    from types import SimpleNamespace
+
+    from apose_studio.studio.app import Studio
+
+    class Handle:
+        def __init__(self, log, title):
+            self.log, self.title = log, title
+
+        def remove(self):
+            self.log.append(("removed", self.title))
+
+    def tab(cid, log):
+        return SimpleNamespace(client_id=cid, add_notification=lambda t, b, **k: (log.append(("shown", t)), Handle(log, t))[1])
+
+    st = Studio.__new__(Studio)  # only notify's own state
+    st._errors_shown = {}
+    a_log, b_log = [], []
+    a, b = tab(1, a_log), tab(2, b_log)
+    st.notify(a, "Prompt", "malformed", error=True)
+    st.notify(b, "Save", "refused", error=True)
+    st.notify(a, "Estimated", "1 frame(s) in 0.5 s")
+    assert a_log == [("shown", "Prompt"), ("removed", "Prompt"), ("shown", "Estimated")]
+    assert b_log == [("shown", "Save")]  # the other tab's error is left alone
