@@ -107,8 +107,8 @@ def run_registration(view: View, source: str, ctx: StepContext, params: Params, 
     """The registration step of estimate_pose (and of `apose estimate`) on a view whose mask is found, as
     the robot-facing record. Seconds: `t0` when the call began; `t_load` what reading the files, the
     step's base and its warm-up took (the first call in a process also pays its imports there: 0 once
-    warm); `t_mask` what the mask took."""
-    ctx.base.warm_up(params)  # done already by the callers that time it as load
+    warm); `t_mask` what the mask took. Callers warm the step's base up first (estimate_view would
+    otherwise do it inside the registration's time)."""
     t1 = time.perf_counter()
     r = estimate_view(view, ctx, params, orientation_prior, trace_iterations)
     t2 = time.perf_counter()

@@ -142,8 +142,8 @@ def check_value(name: str, v, file: str, key: str) -> tuple[Any, list[Problem]]:
             return v, []
         cam, problems = camera_from_dict(v, file, key)
         return cam, problems
-    ok = {"str": isinstance(v, str), "bool": isinstance(v, bool),
-          "int": isinstance(v, int) and not isinstance(v, bool), "float": is_number(v)}[kind]
+    ok = {"str": lambda: isinstance(v, str), "bool": lambda: isinstance(v, bool),
+          "int": lambda: isinstance(v, int) and not isinstance(v, bool), "float": lambda: is_number(v)}[kind]()
     if ok and m["choices"]:
         ok = v in m["choices"]
     elif ok and kind in ("int", "float"):
@@ -183,6 +183,13 @@ class RegistrationConfig(Mapping):
             raise AposeError("; ".join(str(p) for p in problems))
         self._values = checked
 
+    @classmethod
+    def _checked(cls, values: dict) -> "RegistrationConfig":
+        """One from values check_overrides already accepted (not checked again)."""
+        out = cls.__new__(cls)
+        out._values = dict(values)
+        return out
+
     def __getitem__(self, name):
         return self._values[name]
 
@@ -201,7 +208,7 @@ class RegistrationConfig(Mapping):
 
 def registration_from_dict(data, file: str, key: str = "registration") -> tuple[RegistrationConfig, list[Problem]]:
     values, problems = check_overrides(data, file, key)
-    return RegistrationConfig(**values), problems
+    return RegistrationConfig._checked(values), problems
 
 
 def registration_to_dict(reg: RegistrationConfig) -> dict:

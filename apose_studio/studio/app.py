@@ -38,7 +38,7 @@ from apose_studio.studio.inspect_panel import EstimateJob, InspectPanel
 from apose_studio.studio.mates_panel import MatesPanel
 from apose_studio.studio.prompt_panel import PromptPanel
 from apose_studio.studio.results_view import ResultsView
-from apose_studio.studio.state import Event, Events, StudioState
+from apose_studio.studio.state import Event, Events, StudioState, shared
 from apose_studio.studio.steps_panel import StepsPanel
 from apose_studio.studio.views_panel import ViewsPanel
 from apose_studio.studio.viser_adapter import limit_uploads
@@ -100,32 +100,9 @@ class Studio:
             if dataset is not None:
                 self.inspect.open_frames(str(dataset), confine=False)
 
-    @property
-    def asm(self) -> Assembly:
-        """The draft (`state.asm`)."""
-        return self.state.asm
-
-    @asm.setter
-    def asm(self, asm: Assembly) -> None:
-        self.state.asm = asm
-
-    @property
-    def valid_asm(self) -> Assembly:
-        """The last draft without problems, what the preview shows (`state.valid_asm`)."""
-        return self.state.valid_asm
-
-    @valid_asm.setter
-    def valid_asm(self, asm: Assembly) -> None:
-        self.state.valid_asm = asm
-
-    @property
-    def problems(self) -> list:
-        """The draft's problems (`state.problems`)."""
-        return self.state.problems
-
-    @problems.setter
-    def problems(self, problems: list) -> None:
-        self.state.problems = problems
+    asm = shared("asm", "the draft (`state.asm`)")
+    valid_asm = shared("valid_asm", "the last draft without problems, what the preview shows (`state.valid_asm`)")
+    problems = shared("problems", "the draft's problems (`state.problems`)")
 
     def notify(self, client, title: str, body: str, error: bool = False) -> None:
         """Tell the tab that acted (or every tab when no one did). An error stays until closed, but only until

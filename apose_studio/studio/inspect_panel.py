@@ -78,8 +78,7 @@ class InspectPanel:
     def __init__(self, app):
         self.app = app
         self._syncing = False
-        self.contexts: dict = {}  # (assembly identity, step) -> StepContext
-        self.job_contexts: dict = {}  # (assembly, models identity, step) -> (assembly, models, StepContext)
+        self.contexts: dict = {}  # (assembly, models identity, step) -> (assembly, models, StepContext)
         app.events.on(Event.MASK_SOURCE_CHOSEN, self.on_mask_source_chosen)
 
     def build(self) -> None:
@@ -277,28 +276,24 @@ class InspectPanel:
         """The inspected assembly's PartModels (`state.inspect_models`)."""
         return self.app.state.inspect_models()
 
-    def context(self, step: int):
-        asm = self.inspect_assembly()
-        key = (id(asm), step)
-        if key not in self.contexts:
-            self.contexts[key] = StepContext(asm, self.inspect_models(), step)
-        return self.contexts[key]
-
-    def job_context(self, job: "EstimateJob") -> StepContext:
-        """The step's prepared base for a job, kept while its assembly and models are the same objects:
-        the second estimate of a step costs only its own work (preparing a base takes seconds)."""
-        key = (id(job.assembly), id(job.models), job.step)
-        hit = self.job_contexts.get(key)
-        if hit is None or hit[0] is not job.assembly or hit[1] is not job.models:
-            if len(self.job_contexts) >= 8:
-                self.job_contexts.clear()
-            hit = (job.assembly, job.models, StepContext(job.assembly, job.models, job.step))
-            self.job_contexts[key] = hit
+    def context(self, step: int, asm: Assembly | None = None, models: dict | None = None) -> StepContext:
+        """A step's prepared base (default: of the inspected assembly), kept while the assembly and its models
+        are the same objects: the second estimate of a step costs only its own work (preparing a base takes
+        seconds). Estimates running on a job's snapshot read the same cache."""
+        asm = self.inspect_assembly() if asm is None else asm
+        models = self.inspect_models() if models is None else models
+        key = (id(asm), id(models), step)
+        hit = self.contexts.get(key)
+        if hit is None or hit[0] is not asm or hit[1] is not models:
+            if len(self.contexts) >= 8:
+                self.contexts.clear()
+            hit = (asm, models, StepContext(asm, models, step))
+            self.contexts[key] = hit
         return hit[2]
 
     def estimate(self, job: "EstimateJob", im_id: int):
         """Estimate one frame of `job` and cache it under the job's key (runs without the studio lock)."""
-        ctx = self.job_context(job)
+        ctx = self.context(job.step, job.assembly, job.models)
         frame = self.load_frame(job.step, im_id, job.frames, job.assembly)
         params = job.params()
         mask = None

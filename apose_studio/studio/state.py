@@ -14,7 +14,7 @@ action subscribes to its event instead of being called by it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import Enum
 from pathlib import Path
 from typing import Callable
@@ -148,17 +148,18 @@ class StudioState:
         frames = self.inspect.frames if frames is None else frames
         if isinstance(frames, Dataset):
             return frames.frame(step, im_id)
-        frames.base = (asm or self.valid_asm).steps[step - 1].base
-        return frames
+        view = (asm or self.valid_asm).steps[step - 1]  # a copy: the opened capture is shared by every tab and job
+        return replace(frames, base=tuple(view.base), part=view.part, step=step)
 
 
 def shared(name: str, doc: str = "") -> property:
     """A panel attribute kept in the studio's shared state: `name` is its path in `app.state` ("step_index",
-    "inspect.frame"). The panel that writes it keeps its old name for it; the others read the state."""
+    "inspect.frame"). The panel that writes it keeps its old name for it; the others read the state. On
+    the Studio itself (no `.app`) it reads its own `state`."""
     *parents, leaf = name.split(".")
 
     def owner(panel):
-        obj = panel.app.state
+        obj = getattr(panel, "app", panel).state
         for p in parents:
             obj = getattr(obj, p)
         return obj
