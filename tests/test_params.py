@@ -146,3 +146,20 @@ def test_the_docs_table_is_the_schema():
     table = text.split("<!-- parameter table -->\n", 1)[1].split("\n<!-- end of parameter table -->", 1)[0]
     assert table == parameter_table(), "regenerate the table in docs/ASSEMBLY_FILES.md from params.parameter_table()"
     assert all(f"| `{n}` |" in table for n in FIELDS if n != "preset")
+
+
+def test_numbers_too_big_for_a_float_are_refused_at_their_key(tiny_dir):
+    """An int of 400 digits (YAML and JSON read any size) is refused with the range, in a file, on the
+    command line and in a camera section; it once reached numpy and came back as a TypeError."""
+    from apose_studio.geometry.camera import is_number
+
+    huge = int("9" * 400)
+    assert not is_number(huge) and is_number(10 ** 300) and not is_number(True) and not is_number("1")
+    for name in ("ransac_max_iterations", "voxel_size_m", "max_seconds"):
+        with pytest.raises(AssemblyError, match=f"registration.{name}: expected"):
+            load_assembly(with_registration(tiny_dir, {name: huge}))
+        with pytest.raises(AposeError, match=f"--param {name}: expected"):
+            parse_param(f"{name}={huge}")
+    cam = {"width": 640, "height": 480, "fx": huge, "fy": 500, "cx": 320, "cy": 240}
+    with pytest.raises(AssemblyError, match="registration.source_camera.fx: expected a positive number"):
+        load_assembly(with_registration(tiny_dir, {"source_camera": cam}))

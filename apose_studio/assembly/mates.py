@@ -20,6 +20,7 @@ from scipy.spatial.transform import Rotation
 from apose_studio.assembly.fileio import yaml_number as _num
 from apose_studio.assembly.yamlcheck import Checker, kind, rotation
 from apose_studio.geometry import se3
+from apose_studio.geometry.camera import is_number
 
 MATE_TYPES = ("coaxial", "contact", "aligned", "angle", "fixed")
 LENGTH_TOL_M = 1e-6  # the format's tolerances for contradictions and a disagreeing pose_in_base
@@ -370,8 +371,7 @@ def parse_mates(c: Checker, raw, key: str, base: tuple[str, ...] | None, scale: 
     return tuple(out) if len(c.problems) == n0 else None
 
 
-def _finite(v) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and bool(np.isfinite(v))
+_finite = is_number  # a gap or a turn: a finite number, not a bool
 
 
 def parse_approach(c: Checker, raw, key: str, scale: float) -> Approach | None:

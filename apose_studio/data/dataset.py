@@ -35,7 +35,7 @@ from apose_studio.assembly.model import Assembly, load_assembly, save_assembly
 from apose_studio.data.outdir import claim
 from apose_studio.errors import AposeError, DatasetError
 from apose_studio.geometry import se3
-from apose_studio.geometry.camera import CameraIntrinsics
+from apose_studio.geometry.camera import CameraIntrinsics, is_number
 from apose_studio.geometry.plane import table_frame
 
 FORMAT = "apose-bop/1"
@@ -299,7 +299,7 @@ def check_camera_entry(cam, where: str, width: int, height: int) -> tuple[Camera
 
     def number(key, value=None):
         v = cam.get(key) if value is None else value
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+        if not is_number(v):
             raise DatasetError(f"{where}: {key} must be a finite number, got {v!r}"[:200])
         return float(v)
 

@@ -4,6 +4,7 @@ with every problem reported at its key path."""
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -44,7 +45,14 @@ class CameraIntrinsics:
 
 
 def is_number(v) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and bool(np.isfinite(v))
+    """A number as a file gives it (an int or a float, not a bool, not text) that is finite as a float: so
+    `float(v)` is safe after it (an int of 400 digits is not one)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return False
+    try:
+        return math.isfinite(float(v))
+    except OverflowError:
+        return False
 
 
 _CAMERA_KEYS = {"width": "int", "height": "int", "fx": "float", "fy": "float", "cx": "float", "cy": "float"}
