@@ -4,6 +4,7 @@ BOP19 results file on one of our datasets. The estimates themselves come from `e
 
 from __future__ import annotations
 
+import math
 import multiprocessing as mp
 import time
 from dataclasses import dataclass, field
@@ -14,7 +15,7 @@ from tqdm import tqdm
 
 from apose_studio.assembly.mesh import PartModel, load_parts
 from apose_studio.data.bop import BopResult, BopScene, best_per_image, scene_folders, step_truth
-from apose_studio.data.dataset import Dataset, DatasetError, Frame
+from apose_studio.data.dataset import Dataset, DatasetError, Frame, pose_entry
 from apose_studio.errors import AposeError
 from apose_studio.estimation import StepContext, check_mask_source, estimate_frame, estimate_frames, frame_mask, step_context
 from apose_studio.geometry import metrics, se3
@@ -299,11 +300,38 @@ def format_table(doc: dict) -> str:
 
 # ---- BOP results files and splits ---------------------------------------------------------------------
 
+UNMEASURED_TIME = -1.0  # BOP19's time of an image whose time was not measured
+MAX_RESULT_SECONDS = 1e6  # one image's time in a results file (11 days): beyond it, a unit or column mistake
+
+
+def check_results(rows: list[BopResult]) -> None:
+    """Every row of a BOP19 results file is a pose and a time that can be scored, else a DatasetError
+    naming the row (counted after the header: row 1 is line 2 of a file without blank lines), its ids,
+    the value and the fix: a finite score; R a rotation (orthonormal, determinant +1: a reflection or a
+    scaled matrix is refused, as the camera path refuses them, not scored as a miss); t in mm within
+    10 km; time in seconds, 0 or more, or -1 for "not measured" (BOP's convention)."""
+    for n, r in enumerate(rows, start=1):
+        where = f"--score-results: row {n} after the header (scene_id {r.scene_id}, im_id {r.im_id}, obj_id {r.obj_id})"
+        if not math.isfinite(r.score):
+            raise DatasetError(f"{where}: score is {r.score:g}; write a finite number (the highest score per image is "
+                               "the estimate that counts)")
+        T = np.asarray(r.T_camera_obj, float)
+        with np.errstate(all="ignore"):  # a t of 1e308 mm is refused below, not warned about
+            t_mm = T[:3, 3] * 1000.0
+        pose_entry(T[:3, :3].ravel().tolist(), t_mm.tolist(), where, "R", "t")
+        time_s = float(r.time)
+        if time_s != UNMEASURED_TIME and not (math.isfinite(time_s) and 0.0 <= time_s <= MAX_RESULT_SECONDS):
+            raise DatasetError(f"{where}: time is {time_s:g}; write the seconds the method took for the image (0 to "
+                               f"{MAX_RESULT_SECONDS:g}), or -1 when it was not measured (BOP's convention)")
+
+
 def score_results(ds, rows: list[BopResult], steps: list[int] | None = None, models=None) -> dict:
     """Score any method's BOP19 results on one of our datasets with our metrics and tables: per step,
     the highest-scoring estimate of base[0] per image, composed with the step's T_base_part into the
-    assembly pose; an image without an estimate counts as failed. Exact symmetries of the base are
-    forgiven in `mssd_mod_base_sym`, as for our own estimates."""
+    assembly pose; an image without an estimate counts as failed (time -1, "not measured", counts as 0 s).
+    Exact symmetries of the base are forgiven in `mssd_mod_base_sym`, as for our own estimates. Every row
+    is checked first (`check_results`): a row that cannot be scored is refused, never scored as a miss."""
+    check_results(rows)
     models = models or load_parts(ds.assembly)
     doc = {"preset": "results file", "dataset": str(ds.root), "mask": "-", "orientation_prior": False, "steps": [],
            "missing_steps": ds.missing_steps}

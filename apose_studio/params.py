@@ -225,7 +225,7 @@ def parse_param(text: str) -> tuple[str, Any]:
         raise AposeError(f"--param {text}: expected NAME=VALUE with NAME one of {', '.join(FIELDS)}")
     try:
         v = yaml.safe_load(raw) if raw.strip() else None
-    except yaml.YAMLError:
+    except (yaml.YAMLError, ValueError):  # ValueError: an integer of more digits than Python converts
         v = raw
     value, problems = check_value(name, v, "--param", name)
     if problems:

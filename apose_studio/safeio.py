@@ -8,7 +8,14 @@ Every read of an input file goes through here. The rules, and why:
 - **A size cap per kind of file, checked on the bytes read**, not on what a header or `stat` claims: a
   sparse file or a lying header reads at most cap + 1 bytes before it is refused.
 - **Images are measured from their header before they are decoded**: a 3 MB PNG can declare
-  30000 x 30000 pixels (5 GB decoded). Only PNG, JPEG and TIFF (BOP's gray images) are read.
+  30000 x 30000 pixels (5 GB decoded), a 66 KB TIFF 8192 x 8192 pixels of 4 x float64 (2 GB). The
+  header's sides, channels, bits and sample type are checked and the decoded bytes capped; a depth
+  image must say one 16-bit channel; a TIFF whose tags repeat or contradict each other is refused
+  (our reader and libtiff would see different sizes). Only PNG, JPEG and TIFF (BOP's gray images).
+- **Work whose cost no header bounds runs in a child process with limits** (`run_bounded`): CPU
+  seconds, memory and a wall-clock deadline. A 3 KB STEP file can keep OpenCASCADE busy for minutes,
+  and a 62 MB OBJ costs 2.6 GB to parse; the child is killed at its limit and the caller gets one line
+  naming the file and the limit. The calling process (and the studio's lock) waits at most that long.
 - **Paths are checked as text first**: a NUL byte or a name longer than the system allows gets a
   message, not a ValueError from deep inside.
 
@@ -18,13 +25,22 @@ limit and the fix.
 
 from __future__ import annotations
 
+import ctypes
 import errno
 import json
+import logging
 import os
+import pickle
+import resource
+import select
+import signal
 import stat
 import struct
+import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -32,6 +48,7 @@ import numpy as np
 from apose_studio.errors import AposeError
 
 MB = 2 ** 20
+GB = 2 ** 30
 
 
 @dataclass(frozen=True)
@@ -41,9 +58,14 @@ class Limits:
     csv_bytes: int = 256 * MB  # a BOP19 results file
     image_bytes: int = 256 * MB  # one rgb/depth/mask file
     image_side: int = 8192  # pixels, either side
+    image_decoded_bytes: int = 256 * MB  # what decoding may allocate: 8192 x 8192 RGBA, 8-bit
     mesh_bytes: int = 512 * MB  # one mesh file (a 10M-triangle binary STL is 500 MB)
-    mesh_triangles: int = 10_000_000  # one mesh
-    assembly_triangles: int = 40_000_000  # all distinct meshes of an assembly together
+    mesh_triangles: int = 2_000_000  # one mesh (a 100 MB binary STL: ~1 GB and ~12 s to read and prepare)
+    assembly_triangles: int = 8_000_000  # all distinct meshes of an assembly together
+    parse_cpu_seconds: float = 30.0  # CPU time reading one mesh file may take (in a child process)
+    parse_wall_seconds: float = 60.0  # and wall-clock time (a busy machine; a child that sleeps)
+    parse_memory_bytes: int = 2 * GB  # memory reading one mesh file may map beyond what the process has
+    assembly_parse_seconds: float = 120.0  # reading all the mesh files of one assembly (load_parts)
     path_chars: int = 4096  # Linux PATH_MAX
 
 
@@ -88,6 +110,21 @@ def open_regular(path: str | os.PathLike, what: str = "a file") -> tuple[int, os
     return fd, st
 
 
+def not_a_regular_file(path: str | os.PathLike) -> str | None:
+    """What `path` is when it exists (or is a link) but is no regular file ("a pipe, device or socket",
+    "a folder", "a broken link"), without opening it; None for a regular file or nothing there."""
+    p = Path(path)
+    try:
+        st = os.stat(p)
+    except FileNotFoundError:
+        return "a broken link" if p.is_symlink() else None
+    except OSError as e:
+        return f"not readable ({e.strerror})"
+    if stat.S_ISREG(st.st_mode):
+        return None
+    return "a folder, not a file" if stat.S_ISDIR(st.st_mode) else "not a regular file (a pipe, device or socket)"
+
+
 def _size_text(n: int) -> str:
     return f"{n / MB:.1f} MB" if n >= MB // 10 else f"{n} bytes"
 
@@ -101,7 +138,11 @@ def read_bytes(path: str | os.PathLike, what: str = "a file", limit: int = LIMIT
                              "is it the right file?")
         chunks, total = [], 0
         while total <= limit:
-            chunk = os.read(fd, min(limit + 1 - total, 16 * MB))
+            try:
+                chunk = os.read(fd, min(limit + 1 - total, 16 * MB))
+            except OSError as e:  # /proc/self/mem (EIO), a file on a failing disk or a vanished share
+                raise AposeError(f"{path}: cannot be read ({e.strerror}); choose {what} that is a plain file on a "
+                                 "working disk") from None
             if not chunk:
                 break
             chunks.append(chunk)
@@ -158,13 +199,37 @@ def read_json(path: str | os.PathLike, what: str = "a JSON file", limit: int = L
 # ------------------------------------------------------------------------------------- images
 
 
-def image_header(data: bytes) -> tuple[str, int, int, int, int] | None:
-    """(format, width, height, channels, bits per channel) from a PNG's IHDR or a JPEG's SOF marker,
-    without decoding; None when the bytes are neither."""
+class ImageHeader(NamedTuple):
+    """What an image file's header declares, read without decoding it."""
+
+    format: str  # PNG, JPEG, TIFF
+    width: int
+    height: int
+    channels: int  # samples per pixel as stored (a palette PNG: 1)
+    bits: int  # per sample
+    sample: str = "uint"  # uint, int or float
+    decoded_channels: int = 0  # what the decoder makes of it (a palette: 3, gray + alpha: 4); 0: channels
+    extra_bytes_per_pixel: int = 0  # what the decoder holds besides (a progressive JPEG's coefficients)
+
+    def decoded_bytes(self, out_channels: int = 0) -> int:
+        """The most decoding may allocate: the decoded image at its own depth, or the converted one."""
+        per_sample = (self.bits + 7) // 8
+        decoded = (self.decoded_channels or self.channels) * per_sample + self.extra_bytes_per_pixel
+        return self.width * self.height * max(decoded, out_channels)
+
+
+class _Crafted(ValueError):
+    """A header that contradicts itself: refused whatever the decoder would make of it."""
+
+
+def image_header(data: bytes) -> ImageHeader | None:
+    """What a PNG's IHDR, a JPEG's SOF marker or a TIFF's first directory declare, without decoding;
+    None when the bytes are none of them. Raises _Crafted for a TIFF whose tags repeat or disagree."""
     if data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) >= 26 and data[12:16] == b"IHDR":
         w, h, bits, colour = struct.unpack(">IIBB", data[16:26])
         channels = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}.get(colour, 0)
-        return "PNG", w, h, channels, bits
+        decoded = {3: 4, 4: 4}.get(colour, channels)  # OpenCV expands a palette (with tRNS: BGRA) and gray + alpha
+        return ImageHeader("PNG", w, h, channels, bits, "uint", decoded)
     if data[:4] in (b"II*\x00", b"MM\x00*") and len(data) >= 8:
         return _tiff_header(data)
     if data[:2] == b"\xff\xd8":
@@ -172,7 +237,7 @@ def image_header(data: bytes) -> tuple[str, int, int, int, int] | None:
     return None
 
 
-def _jpeg_header(data: bytes):
+def _jpeg_header(data: bytes) -> ImageHeader | None:
     """The first frame header (SOFn) of a JPEG, walked as libjpeg walks it: markers start with one or
     more 0xFF fill bytes; a scan (SOS) or the end before any frame header means no size (refused)."""
     i = 2
@@ -194,50 +259,288 @@ def _jpeg_header(data: bytes):
             if i + 8 > len(data):
                 return None
             bits, h, w, channels = struct.unpack(">BHHB", data[i + 2:i + 8])
-            return "JPEG", w, h, channels, bits
+            progressive = marker in (0xC2, 0xC6, 0xCA, 0xCE)  # libjpeg keeps every coefficient (2 bytes) in memory
+            return ImageHeader("JPEG", w, h, channels, bits, "uint", max(channels, 3),
+                               2 * channels if progressive else 0)
         if seg < 2:
             return None
         i += seg
     return None
 
 
-def _tiff_header(data: bytes):
-    """(TIFF, width, height, channels, bits) from the first IFD (tags 256, 257, 258, 277)."""
+_TIFF_TAG_NAMES = {256: "width", 257: "height", 258: "bits per sample", 259: "compression", 262: "photometric",
+                   273: "strip offsets", 277: "samples per pixel", 278: "rows per strip", 279: "strip byte counts",
+                   284: "planar configuration", 322: "tile width", 323: "tile length", 339: "sample format"}
+
+
+def _tiff_header(data: bytes) -> ImageHeader | None:
+    """The first directory of a TIFF: width, height, samples per pixel, bits and sample format. A tag
+    that appears twice is refused: libtiff keeps the first, a reader that keeps the last sees another size."""
     end = "<" if data[:2] == b"II" else ">"
+    sizes = {1: 1, 3: 2, 4: 4, 8: 2, 9: 4}  # BYTE, SHORT, LONG, SSHORT, SLONG
+
+    def values(typ: int, count: int, at: int) -> list[int]:
+        size = sizes.get(typ)
+        if size is None or count < 1 or count > 64:
+            raise _Crafted(f"a TIFF tag of type {typ} with {count} values")
+        if size * count > 4:
+            (at,) = struct.unpack(end + "I", data[at:at + 4])
+        code = {1: "B", 3: "H", 4: "I", 8: "h", 9: "i"}[typ]
+        return list(struct.unpack(end + code * count, data[at:at + size * count]))
+
     try:
         (ifd,) = struct.unpack(end + "I", data[4:8])
         (n,) = struct.unpack(end + "H", data[ifd:ifd + 2])
-        tags = {}
-        for k in range(min(n, 512)):
+        if n == 0 or n > 1000:
+            return None
+        seen: dict[int, list[int]] = {}
+        for k in range(n):
             e = ifd + 2 + 12 * k
-            tag, typ, _count = struct.unpack(end + "HHI", data[e:e + 8])
-            value = struct.unpack(end + ("H" if typ == 3 else "I"), data[e + 8:e + (10 if typ == 3 else 12)])[0]
-            tags[tag] = value
+            tag, typ, count = struct.unpack(end + "HHI", data[e:e + 8])
+            if tag in seen:
+                raise _Crafted(f"its TIFF header gives tag {tag} ({_TIFF_TAG_NAMES.get(tag, 'tag')}) twice")
+            seen[tag] = values(typ, count, e + 8) if tag in _TIFF_TAG_NAMES and tag not in (273, 279) else []
     except struct.error:
         return None
-    if 256 not in tags or 257 not in tags:
+    if 256 not in seen or 257 not in seen:
         return None
-    return "TIFF", tags[256], tags[257], tags.get(277, 1), tags.get(258, 8) if tags.get(277, 1) == 1 else 8
+    for tag in (256, 257, 277, 262, 284):
+        if tag in seen and len(seen[tag]) != 1:
+            raise _Crafted(f"its TIFF header gives {len(seen[tag])} values for the {_TIFF_TAG_NAMES[tag]}")
+    spp = seen.get(277, [1])[0]
+    bits, fmt = seen.get(258, [1]), seen.get(339, [1])
+    if len(set(bits)) != 1 or len(set(fmt)) != 1 or len(bits) not in (1, spp) or len(fmt) not in (1, spp):
+        raise _Crafted(f"its TIFF header's bits per sample {bits} and sample format {fmt} disagree with its "
+                       f"{spp} samples per pixel")
+    sample = {1: "uint", 2: "int", 3: "float"}.get(fmt[0], "unknown")
+    # libtiff's RGBA path (palette, YCbCr, CMYK, odd bit depths) decodes into 4 bytes per pixel
+    return ImageHeader("TIFF", seen[256][0], seen[257][0], spp, bits[0], sample, max(spp, 4 if spp > 1 else 1))
 
 
-def read_image(path: str | os.PathLike, flags: int, what: str = "an image"):
-    """A PNG, JPEG or TIFF decoded by OpenCV (`flags` as cv2.imread), after its header has been checked against
-    `LIMITS.image_side`; returns (array, header)."""
-    data = read_bytes(path, what, LIMITS.image_bytes)
-    head = image_header(data)
+def check_image_header(path, head: ImageHeader | None, what: str, depth: bool = False, out_channels: int = 0) -> None:
+    """Refuse from the header alone what decoding would make too large or wrong: a side over
+    LIMITS.image_side, more decoded bytes than LIMITS.image_decoded_bytes, float or deep samples, and for
+    a depth image anything but one 16-bit unsigned channel."""
     if head is None:
         raise AposeError(f"{path}: not a PNG, JPEG or TIFF image (or its header is damaged); save {what} as PNG")
-    fmt, w, h, _, _ = head
+    fmt, w, h = head.format, head.width, head.height
     side = LIMITS.image_side
     if w == 0 or h == 0:
         raise AposeError(f"{path}: its {fmt} header says {w} x {h} pixels; the image is empty or damaged")
     if w > side or h > side:
         raise AposeError(f"{path}: its {fmt} header says {w} x {h} pixels, over the {side} x {side} an image may "
                          "have; is it the right file? (depth cameras give at most a few thousand pixels a side)")
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)  # OpenCV's own pixel cap: set in __init__.py
+    kind = f"{head.bits}-bit {'' if head.sample == 'uint' else head.sample + ' '}{fmt} with {head.channels} channels"
+    dtype = {"uint": "uint", "int": "int", "float": "float"}.get(head.sample, "?") + str(head.bits)
+    if depth and head.channels != 1:  # said from the header: nothing is decoded
+        raise AposeError(f"{path}: a {kind}; depth is one channel of 16-bit integers (depth in mm = value x "
+                         "depth_scale), as RealSense, Kinect and BOP write it")
+    if depth and (head.bits != 16 or head.sample != "uint"):
+        raise AposeError(f"{path}: a {dtype} depth image; expected 16-bit integers (depth in mm = value x "
+                         "depth_scale), as RealSense, Kinect and BOP write them")
+    if not depth and (head.channels not in (1, 2, 3, 4) or head.bits not in (1, 2, 4, 8, 16) or head.sample != "uint"):
+        raise AposeError(f"{path}: a {kind} ({dtype}); {what} must have 1 to 4 channels of 8-bit (or 16-bit) "
+                         "integers: save it as an 8-bit PNG")
+    need, cap = head.decoded_bytes(out_channels), LIMITS.image_decoded_bytes
+    if need > cap:
+        raise AposeError(f"{path}: a {w} x {h} {kind}, {_size_text(need)} once decoded, over the "
+                         f"{_size_text(cap)} an image may take; save {what} smaller, or as an 8-bit PNG")
+
+
+def read_image(path: str | os.PathLike, flags: int, what: str = "an image", depth: bool = False):
+    """A PNG, JPEG or TIFF decoded by OpenCV (`flags` as cv2.imread), after its header has been checked
+    (`check_image_header`; `depth`: one 16-bit channel); returns (array, header)."""
+    data = read_bytes(path, what, LIMITS.image_bytes)
+    try:
+        head = image_header(data)
+    except _Crafted as e:
+        raise AposeError(f"{path}: {e}; the file is damaged or crafted: save {what} again as PNG") from None
+    out = {cv2.IMREAD_COLOR: 3, cv2.IMREAD_GRAYSCALE: 1}.get(flags, 0)
+    check_image_header(path, head, what, depth, out)
+    fmt, w, h = head.format, head.width, head.height
+    try:
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)  # OpenCV's own pixel cap: set in __init__.py
+    except cv2.error as e:  # a decoder's own refusal (e.g. its pixel cap) is bad input, not a bug
+        raise AposeError(f"{path}: not a readable {fmt} image ({str(e).strip().splitlines()[-1][:120]}); "
+                         f"save {what} again as PNG") from None
     if img is None:
-        raise AposeError(f"{path}: not a readable {fmt} image (corrupt, truncated, or over {side} x {side} pixels)")
+        raise AposeError(f"{path}: not a readable {fmt} image (corrupt, truncated, or over "
+                         f"{LIMITS.image_side} x {LIMITS.image_side} pixels)")
     if img.shape[0] != h or img.shape[1] != w:  # the header read here and the decoder's disagree: refuse
         raise AposeError(f"{path}: its {fmt} header says {w} x {h} pixels but it decodes to {img.shape[1]} x "
                          f"{img.shape[0]}; the file is damaged or crafted: save {what} again")
     return img, head
+
+
+# ------------------------------------------------------------------------- bounded work in a child
+
+
+class LimitExceeded(AposeError):
+    """Work run by `run_bounded` passed one of its limits (or its process died); `kind` says which:
+    "cpu", "wall", "memory", "output", "crashed"."""
+
+    def __init__(self, message: str, kind: str):
+        super().__init__(message)
+        self.kind = kind
+
+
+try:  # loaded here, never in a child (an import there could wait on a lock a thread of the parent held)
+    _prctl = ctypes.CDLL(None, use_errno=True).prctl
+except (OSError, AttributeError):
+    _prctl = None
+
+
+def _vm_size() -> int:
+    try:
+        with open("/proc/self/status", "rb") as f:
+            for line in f:
+                if line.startswith(b"VmSize:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return 0
+
+
+def _limit_child(cpu_s: float, memory: int, file_bytes: int) -> None:
+    """In the child, before any work: die on Ctrl-C as the parent does, no core dumps, and the limits."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    if _prctl is not None:  # die with the thread that forked us, should it be killed while we work
+        _prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
+    cpu = max(1, int(np.ceil(cpu_s)))
+    resource.setrlimit(resource.RLIMIT_CPU, (cpu, cpu + 2))  # SIGXCPU at the soft limit, SIGKILL 2 s later
+    mapped = _vm_size()  # what the fork already maps is shared with the parent, not new
+    if memory and mapped:  # (without /proc the CPU and wall-clock limits still hold)
+        _, hard = resource.getrlimit(resource.RLIMIT_AS)
+        want = mapped + memory
+        resource.setrlimit(resource.RLIMIT_AS, (want if hard == resource.RLIM_INFINITY else min(want, hard), hard))
+    if file_bytes:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (file_bytes, file_bytes))
+    logging.disable(logging.CRITICAL)  # never take a handler's lock another thread of the parent may hold
+    warnings.simplefilter("ignore")
+
+
+def _write_all(fd: int, data: bytes) -> None:
+    view = memoryview(data)
+    while view:
+        view = view[os.write(fd, view):]
+
+
+def run_bounded(fn, *args, where: str, doing: str, fix: str, cpu_s: float | None = None,
+                wall_s: float | None = None, memory: int | None = None, output_bytes: int = GB,
+                file_bytes: int = 0):
+    """`fn(*args)` run in a forked child under limits: `cpu_s` of CPU time, `memory` bytes of new
+    address space, `wall_s` seconds in all (defaults: LIMITS.parse_*), `file_bytes` per file written.
+    Returns what fn returns (pickled back, at most `output_bytes`). An AposeError raised in the child is
+    raised here as the same kind with its message; a limit passed is a LimitExceeded, one line:
+    "{where}: {doing} took more than 30 s of CPU time ...; {fix}".
+
+    Why a fork: it costs milliseconds (the child has every module the parent imported and sees its
+    state), works in the worker processes of `apose eval --workers` (which may not start processes
+    of their own through multiprocessing), and the child touches no lock another thread may hold:
+    it logs nothing and only parses. Any hang is cut by the wall-clock deadline all the same."""
+    cpu_s = LIMITS.parse_cpu_seconds if cpu_s is None else cpu_s
+    wall_s = LIMITS.parse_wall_seconds if wall_s is None else wall_s
+    memory = LIMITS.parse_memory_bytes if memory is None else memory
+    r, w = os.pipe()
+    try:
+        pid = os.fork()
+    except OSError as e:  # out of processes or memory: the machine's state, said as such
+        os.close(r)
+        os.close(w)
+        raise AposeError(f"{where}: cannot start the process that reads it ({e.strerror}); close other programs "
+                         "and try again") from None
+    if pid == 0:  # the child: never returns, never runs the parent's exit handlers
+        code = 0
+        try:
+            os.close(r)
+            _limit_child(cpu_s, memory, file_bytes)
+            try:
+                result = ("ok", fn(*args))
+            except AposeError as e:
+                result = ("error", type(e), str(e))
+            except MemoryError:
+                result = ("memory",)
+            blob = pickle.dumps(result, protocol=pickle.HIGHEST_PROTOCOL)
+            _write_all(w, struct.pack("<Q", len(blob)))
+            _write_all(w, blob)
+        except MemoryError:
+            try:
+                blob = pickle.dumps(("memory",))
+                _write_all(w, struct.pack("<Q", len(blob)) + blob)
+            except BaseException:
+                code = 3
+        except BaseException as e:  # a bug in fn: say what it was
+            try:
+                blob = pickle.dumps(("bug", f"{type(e).__name__}: {str(e)[:300]}"))
+                _write_all(w, struct.pack("<Q", len(blob)) + blob)
+            except BaseException:
+                code = 4
+        finally:
+            os._exit(code)
+    os.close(w)
+    reaped, status, usage = False, 0, None
+    buf, too_much, timed_out = bytearray(), False, False
+    deadline = time.monotonic() + wall_s
+    poller = select.poll()  # not select(): a studio may hold more than 1024 descriptors
+    poller.register(r, select.POLLIN | select.POLLHUP)
+    try:
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                timed_out = True
+                break
+            if not poller.poll(min(left, 3600.0) * 1000):
+                continue
+            chunk = os.read(r, 4 * MB)
+            if not chunk:
+                break
+            buf += chunk
+            if len(buf) > output_bytes + 8:
+                too_much = True
+                break
+        if timed_out or too_much:
+            os.kill(pid, signal.SIGKILL)
+        _, status, usage = os.wait4(pid, 0)
+        reaped = True
+    finally:
+        os.close(r)
+        if not reaped:  # interrupted (Ctrl-C) while waiting: the child goes too
+            try:
+                os.kill(pid, signal.SIGKILL)
+                os.waitpid(pid, 0)
+            except ChildProcessError:
+                pass
+    cpu_used = usage.ru_utime + usage.ru_stime if usage is not None else 0.0
+    mem_text = f"{memory / GB:g} GB" if memory >= GB else _size_text(memory)
+
+    def limit(kind: str, text: str) -> LimitExceeded:
+        return LimitExceeded(f"{where}: {doing} {text}; {fix}", kind)
+
+    if timed_out:
+        raise limit("wall", f"took more than {wall_s:g} s (the most it may take)")
+    if too_much:
+        raise limit("output", f"made more than {_size_text(output_bytes)} of data (the most it may)")
+    if os.WIFSIGNALED(status):
+        sig = os.WTERMSIG(status)
+        if sig == signal.SIGXCPU or (sig == signal.SIGKILL and cpu_used >= cpu_s - 0.5):
+            raise limit("cpu", f"took more than {cpu_s:g} s of CPU time (the most it may take)")
+        if sig == signal.SIGXFSZ:
+            raise limit("output", f"wrote a file of more than {_size_text(file_bytes)} (the most it may)")
+        name = signal.Signals(sig).name if sig in signal.Signals._value2member_map_ else str(sig)
+        raise limit("crashed", f"stopped with {name} (out of the {mem_text} of memory it may use, or a crash "
+                               "in the reader)")
+    if len(buf) < 8 or len(buf) != 8 + struct.unpack("<Q", bytes(buf[:8]))[0]:
+        raise limit("crashed", f"stopped without an answer (exit status {os.WEXITSTATUS(status)}; out of the "
+                               f"{mem_text} of memory it may use?)")
+    result = pickle.loads(memoryview(buf)[8:])
+    buf = None
+    if result[0] == "ok":
+        return result[1]
+    if result[0] == "memory":
+        raise limit("memory", f"needed more than {mem_text} of memory (the most it may use)")
+    if result[0] == "error":
+        cls, message = result[1], result[2]  # the same kind, where it takes just a message (MeshError, ...)
+        raise cls(message) if cls.__init__ is AposeError.__init__ else AposeError(message)
+    raise RuntimeError(f"{where}: {doing} failed in its child process: {result[1]}")

@@ -102,3 +102,48 @@ def test_confidence_flag_follows_coverage():
     ok = RegistrationResult(ok=True, fitness=0.7, coverage=0.95)
     poor = RegistrationResult(ok=True, fitness=0.9, coverage=0.5)
     assert ok.confident and not poor.confident and not RegistrationResult(ok=False).confident
+
+
+# ---------------------------------------------------------- results files: every column checked (#24 M-f)
+
+
+def test_results_rows_that_cannot_be_scored_are_refused_with_the_row_and_the_fix(gearbox_fixed):
+    """Only `score` was checked: a NaN, infinite or negative time printed nan with exit 0, t = 1e308 gave
+    overflow warnings and inf, and a reflected or scaled R was scored silently as a miss."""
+    from apose_studio.data.bop import BopResult
+    from apose_studio.errors import DatasetError
+    from apose_studio.evaluate import check_results, score_results
+
+    def row(R=np.eye(3), t_mm=(0.0, 0.0, 500.0), time=0.25, score=1.0):
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, np.asarray(t_mm) / 1000.0
+        return BopResult(2, 0, 1, score, T, time)
+
+    good = row()
+    check_results([good, row(time=-1.0), row(time=0.0)])  # -1: BOP's "not measured"
+    cases = [(row(time=float("nan")), "time is nan"), (row(time=float("inf")), "time is inf"),
+             (row(time=-5.0), "time is -5"), (row(time=1e9), "time is 1e+09"),
+             (row(t_mm=(1e308, 0.0, 0.0)), "t is 1e+308 mm away"),
+             (row(R=np.diag([1.0, 1.0, -1.0])), "R is a reflection"), (row(R=2 * np.eye(3)), "R is not a rotation"),
+             (row(score=float("nan")), "score is nan")]
+    for bad, message in cases:
+        with pytest.raises(DatasetError) as e:
+            check_results([good, good, bad])
+        text = str(e.value)
+        assert "row 3 after the header (scene_id 2, im_id 0, obj_id 1)" in text and message in text, text
+    assert "-1 when it was not measured" in str(pytest.raises(DatasetError, check_results, [row(time=-5.0)]).value)
+    with pytest.raises(DatasetError, match="R is a reflection"):  # scoring refuses, never scores it as a miss
+        score_results(gearbox_fixed, [row(R=np.diag([1.0, 1.0, -1.0]))])
+
+
+def test_score_results_command_refuses_a_bad_column_with_exit_2(gearbox_fixed, tmp_path):
+    header = "scene_id,im_id,obj_id,score,R,t,time\n"
+    cli = [sys.executable, "-m", "apose_studio.cli.commands", "eval", str(gearbox_fixed.root), "--score-results"]
+    for name, line, message in (("huge_t", "2,0,1,1.0,1 0 0 0 1 0 0 0 1,1e308 0 0,0.1\n", "t is 1e+308 mm away"),
+                                ("nan_time", "2,0,1,1.0,1 0 0 0 1 0 0 0 1,0 0 500,nan\n", "time is nan"),
+                                ("mirror", "2,0,1,1.0,1 0 0 0 1 0 0 0 -1,0 0 500,0.1\n", "R is a reflection")):
+        path = tmp_path / f"{name}.csv"
+        path.write_text(header + line)
+        r = subprocess.run(cli + [str(path)], capture_output=True, text=True, timeout=300)
+        assert r.returncode == 2 and message in r.stderr and "row 1 after the header" in r.stderr, r.stderr
+        assert "RuntimeWarning" not in r.stderr and "nan" not in r.stdout

@@ -163,3 +163,13 @@ def test_numbers_too_big_for_a_float_are_refused_at_their_key(tiny_dir):
     cam = {"width": 640, "height": 480, "fx": huge, "fy": 500, "cx": 320, "cy": 240}
     with pytest.raises(AssemblyError, match="registration.source_camera.fx: expected a positive number"):
         load_assembly(with_registration(tiny_dir, {"source_camera": cam}))
+
+
+def test_integers_longer_than_python_converts_are_named_at_their_line(tiny_dir):
+    """5000 digits: more than Python turns into an int (4300); once an "unexpected ValueError" exit 1."""
+    path = tiny_dir / "long.yaml"
+    path.write_text(TINY_YAML + "registration: {seed: " + "9" * 5000 + "}\n")
+    with pytest.raises(AssemblyError, match=r"line \d+, column \d+: YAML error: a whole number of 5000 digits"):
+        load_assembly(path)
+    with pytest.raises(AposeError, match="--param seed: expected"):
+        parse_param("seed=" + "9" * 5000)

@@ -128,8 +128,18 @@ class _StrictLoader(yaml.SafeLoader):
                 pass
         return super().construct_mapping(node, deep)
 
+    def construct_yaml_int(self, node):
+        """An integer; one of more digits than Python converts (4300) is named at its line, not a ValueError."""
+        try:
+            return super().construct_yaml_int(node)
+        except ValueError:
+            raise yaml.constructor.ConstructorError(
+                None, None, f"a whole number of {len(str(node.value))} digits: far too long to be a value of this file",
+                node.start_mark) from None
+
 
 _StrictLoader.add_constructor("tag:yaml.org,2002:map", _StrictLoader.construct_yaml_map)
+_StrictLoader.add_constructor("tag:yaml.org,2002:int", _StrictLoader.construct_yaml_int)
 # YAML 1.1 (PyYAML) reads 1e308 and 2E-3 (no dot) as text; YAML 1.2 and every user read them as numbers
 _StrictLoader.add_implicit_resolver(
     "tag:yaml.org,2002:float", re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"), list("-+0123456789"))

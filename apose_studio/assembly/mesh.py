@@ -6,8 +6,13 @@ Meshes are read with trimesh and scaled to metres here; nothing past this module
 from __future__ import annotations
 
 import io
+import json
 import logging
 import os
+import struct
+import tempfile
+import threading
+import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -51,8 +56,13 @@ def merge_vertices(vertices: np.ndarray, faces: np.ndarray, bits: int = 21) -> t
     """
     lo = vertices.min(axis=0)
     span = float((vertices.max(axis=0) - lo).max()) or 1.0
-    q = np.round((vertices - lo) * ((2 ** bits - 1) / span)).astype(np.int64)
+    t = np.subtract(vertices, lo, dtype=float)  # in place from here: two arrays of the vertices' size at most
+    t *= (2 ** bits - 1) / span
+    np.rint(t, out=t)
+    q = t.astype(np.int64)
+    t = None
     key = (q[:, 0] << (2 * bits)) | (q[:, 1] << bits) | q[:, 2]
+    q = None
     used = np.zeros(len(vertices), bool)
     used[faces.ravel()] = True
     key = np.where(used, key, -1)
@@ -68,7 +78,13 @@ def load_mesh(path: str | Path, unit: str = "m", solid: str | None = None) -> tr
     """Read a surface mesh and scale it to metres. Raises MeshError naming the file and the fix.
 
     STEP files carry their own length unit and are read in metres whatever `unit` says; `solid` picks
-    one named solid of a STEP file (None: all of them as one part)."""
+    one named solid of a STEP file (None: all of them as one part).
+
+    What a file declares (triangles, vertices, a glTF's placed copies) is checked before it is parsed.
+    The parse then runs in a child process under `safeio.run_bounded`'s limits (CPU time, memory, wall
+    clock): no header bounds what OpenCASCADE's tessellation, an OBJ's text or a glTF's buffers cost,
+    so the work itself is bounded; what comes back is the checked, welded mesh. A binary STL or a plain
+    binary PLY costs what its checked counts say, and is read here (`_fixed_cost`)."""
     path = Path(path)
     ext = path.suffix.lower()
     try:
@@ -91,79 +107,181 @@ def load_mesh(path: str | Path, unit: str = "m", solid: str | None = None) -> tr
     wrong = _not_a(path, ext)
     if wrong:
         raise MeshError(f"{path}: {wrong}, not a {ext[1:].upper()} mesh; export the part's surface as a mesh file")
+    head = _head(path, 2 ** 20)
+    _check_declared_size(path, ext, head, st.st_size)  # before a byte more is read
     if solid is not None and ext not in STEP_EXTENSIONS:
         raise MeshError(f"{path}: `solid: {solid}` names a solid of a STEP file, but this is a {ext[1:].upper()} mesh; "
                         "remove `solid`")
+    key = _file_key(path, unit, solid)
+    if key is not None and key in _FAILED:  # a file that ran into a limit is not parsed again until it changes
+        raise MeshError(_FAILED[key])
+    try:
+        if ext in STEP_EXTENSIONS:
+            vertices, faces = _finish(path, *_step_solid(path, solid), "m")  # counted in the child: bounded here
+        elif _fixed_cost(path, ext, head, st.st_size):
+            _budget_left(path)
+            vertices, faces = _parse_mesh_file(path, ext, unit, fixed=True)  # its cost is its checked counts
+        else:
+            vertices, faces = _bounded(_parse_mesh_file, path, ext, unit, where=path,
+                                       doing=f"reading this {ext[1:].upper()} file", fix=_fix_for(ext))
+    except safeio.LimitExceeded as e:
+        _remember_failure(key, e)
+        raise MeshError(str(e)) from None
+    return trimesh.Trimesh(vertices, faces, process=False)
+
+
+MAX_COORDINATE_M = 1e4  # 10 km: a vertex further out is a unit or export mistake (and overflows the geometry)
+_FAILED: dict = {}  # file identity -> the limit it ran into
+_FIX_DECIMATE = "decimate the part (a few hundred thousand triangles are plenty for registration)"
+
+
+def _fix_for(ext: str) -> str:
     if ext in STEP_EXTENSIONS:
-        loaded, unit = _step_solid(path, solid), "m"
-    else:
-        try:
-            data = safeio.read_bytes(path, "a mesh file", cap)  # the bytes read are what is parsed
-        except AposeError as e:
-            raise MeshError(str(e)) from None
-        _check_declared_size(path, ext, data)
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                loaded = trimesh.load(io.BytesIO(data), file_type=ext[1:], force="mesh", process=False,
-                                      resolver=_ConfinedResolver(str(path), [cap - len(data)]))
-        except AposeError as e:  # from the resolver: a buffer or material file that may not be read
-            raise MeshError(f"{path}: {e}") from None
-        except (Exception, RecursionError) as e:  # trimesh raises many types on corrupt input
-            raise MeshError(f"{path}: could not be read as a {ext[1:].upper()} mesh (corrupt or truncated?): "
-                            f"{type(e).__name__}: {str(e)[:200]}") from None
-        finally:
-            data = None
+        return ("export the part from CAD as a mesh (binary STL, PLY or GLB) at a coarser tolerance, or split the "
+                "STEP file into its parts")
+    if ext in (".obj", ".off", ".stl"):
+        return f"{_FIX_DECIMATE}; as binary STL, PLY or GLB it also reads several times faster than as text"
+    return _FIX_DECIMATE
+
+
+_BUDGET = threading.local()  # .deadline: when the meshes of the assembly being loaded (load_parts) must be read
+
+
+def _bounded(fn, *args, where, doing: str, fix: str, **limits):
+    """fn(*args) in a limited child process (safeio.run_bounded); what it returns is pickled back, at
+    most the arrays of a mesh of LIMITS.mesh_triangles triangles. Inside load_parts, the limits are cut
+    to the assembly's time left."""
+    out = 64 * safeio.LIMITS.mesh_triangles + 2 ** 26
+    left = _budget_left(where)
+    if left is not None and left < safeio.LIMITS.parse_wall_seconds:
+        limits["wall_s"] = left
+        limits["cpu_s"] = min(safeio.LIMITS.parse_cpu_seconds, left)
+    try:
+        return safeio.run_bounded(fn, *args, where=str(where), doing=doing, fix=fix, output_bytes=out, **limits)
+    except safeio.LimitExceeded as e:
+        e.lasting = e.kind != "wall" and "wall_s" not in limits  # the file's own doing, not a busy machine's
+        raise
+
+
+def _budget_left(where) -> float | None:
+    """Seconds left to the assembly being loaded (None outside load_parts); a MeshError when none are."""
+    deadline = getattr(_BUDGET, "deadline", None)
+    if deadline is None:
+        return None
+    left = deadline - time.monotonic()
+    if left <= 0:
+        raise MeshError(f"{where}: not read: the assembly's mesh files took more than "
+                        f"{safeio.LIMITS.assembly_parse_seconds:g} s in all (the most they may take); {_FIX_DECIMATE}, "
+                        "or export the slow ones as binary STL/PLY/GLB")
+    return left
+
+
+def _remember_failure(key, e: safeio.LimitExceeded) -> None:
+    """A file that ran into its own CPU, memory or output limit is not parsed again until it changes (the
+    studio opens an assembly again and again)."""
+    if key is not None and getattr(e, "lasting", False):
+        if len(_FAILED) > 256:
+            _FAILED.clear()
+        _FAILED[key] = str(e)
+
+
+def _parse_mesh_file(path: Path, ext: str, unit: str, fixed: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """In the child: the bytes read through safeio, what the file declares counted before it is parsed,
+    trimesh's parse (geometry only: no materials, textures or .mtl files), then `_finish`. `fixed`: in
+    this process, for a file `_fixed_cost` accepted; the bytes read must still be such a file."""
+    cap = safeio.LIMITS.mesh_bytes
+    try:
+        data = safeio.read_bytes(path, "a mesh file", cap)  # the bytes read are what is parsed
+    except AposeError as e:
+        raise MeshError(str(e)) from None
+    _check_declared_size(path, ext, data)
+    if fixed and not _fixed_cost(path, ext, data[:2 ** 20], len(data)):
+        raise MeshError(f"{path}: changed while it was being read; save it again, then open it")
+    if ext == ".stl" and _binary_stl_count(data) is not None:  # the common big format: read here, without copies
+        vertices, faces = _read_binary_stl(path, data)
+        data = None
+        return _finish(path, vertices, faces, unit)
+    kwargs = {}
+    if ext in (".gltf", ".glb"):
+        data = _gltf_geometry_only(path, ext, data)
+    elif ext == ".obj":
+        kwargs["skip_materials"] = True  # colours come from the assembly; a .mtl or texture is never read
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            loaded = trimesh.load(io.BytesIO(data), file_type=ext[1:], force="mesh", process=False,
+                                  resolver=_ConfinedResolver(str(path), [cap - len(data)]), **kwargs)
+    except MemoryError:
+        raise
+    except AposeError as e:  # from the resolver: a buffer that may not be read
+        raise MeshError(f"{path}: {e}") from None
+    except (Exception, RecursionError) as e:  # trimesh raises many types on corrupt input
+        raise MeshError(f"{path}: could not be read as a {ext[1:].upper()} mesh (corrupt or truncated?): "
+                        f"{type(e).__name__}: {str(e)[:200]}") from None
+    finally:
+        data = None
     if not isinstance(loaded, trimesh.Trimesh):
         kind = type(loaded).__name__
         raise MeshError(f"{path}: holds a {kind} with no triangles, not a surface mesh; export the part's surface")
-    if len(loaded.faces) == 0:
+    return _finish(path, loaded.vertices, loaded.faces, unit)
+
+
+def _finish(path: Path, vertices, faces, unit: str) -> tuple[np.ndarray, np.ndarray]:
+    """The checks every mesh passes, then its vertices welded: (vertices in metres, faces as int32)."""
+    cap = safeio.LIMITS.mesh_triangles
+    faces_raw = np.asarray(faces)
+    vertices = np.asarray(vertices, dtype=float)
+    if len(faces_raw) == 0:
         raise MeshError(f"{path}: has no triangles (a point cloud or empty mesh); export the part's surface")
-    if len(loaded.faces) > safeio.LIMITS.mesh_triangles:
-        raise MeshError(f"{path}: {len(loaded.faces)} triangles, over the {safeio.LIMITS.mesh_triangles} a part may have; "
-                        "decimate it (a few hundred thousand triangles are plenty for registration)")
-    faces_raw = np.asarray(loaded.faces)
-    if faces_raw.min() < 0 or faces_raw.max() >= len(loaded.vertices):
-        raise MeshError(f"{path}: a triangle names vertex {int(faces_raw.max()) if faces_raw.max() >= len(loaded.vertices) else int(faces_raw.min())}"
-                        f" but the file has {len(loaded.vertices)} vertices (corrupt or truncated); re-export the mesh")
-    if not np.all(np.isfinite(loaded.vertices)):
+    if len(faces_raw) > cap:
+        raise MeshError(f"{path}: {len(faces_raw)} triangles, over the {cap} a part may have; {_FIX_DECIMATE}")
+    if faces_raw.min() < 0 or faces_raw.max() >= len(vertices):
+        raise MeshError(f"{path}: a triangle names vertex {int(faces_raw.max()) if faces_raw.max() >= len(vertices) else int(faces_raw.min())}"
+                        f" but the file has {len(vertices)} vertices (corrupt or truncated); re-export the mesh")
+    if not np.all(np.isfinite(vertices)):
         raise MeshError(f"{path}: has NaN or infinite vertex coordinates; re-export the mesh")
-    far = float(np.abs(np.asarray(loaded.vertices, float)).max()) * UNIT_TO_M[unit]
+    far = float(np.abs(vertices).max()) * UNIT_TO_M[unit]
     if far > MAX_COORDINATE_M:
         raise MeshError(f"{path}: a vertex lies {far:.3g} m from the part's origin when read as {unit} (at most "
                         f"{MAX_COORDINATE_M:g} m); check the units, or re-export the part near its origin")
-    vertices, faces = merge_vertices(np.asarray(loaded.vertices, dtype=float) * UNIT_TO_M[unit], np.asarray(loaded.faces))
-    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    v, f = merge_vertices(vertices * UNIT_TO_M[unit], faces_raw)
+    vertices = faces_raw = None
+    mesh = trimesh.Trimesh(v, f, process=False)
     if len(mesh.faces) == 0 or float(np.max(mesh.extents)) <= 0 or float(mesh.area) <= 1e-18:
         raise MeshError(f"{path}: all triangles are degenerate (zero area); export the part's surface")
     if np.linalg.matrix_rank(mesh.vertices - mesh.vertices.mean(axis=0), tol=1e-9 * float(np.max(mesh.extents))) < 3:
         raise MeshError(f"{path}: the mesh is flat (all vertices in one plane); a part needs a 3D surface")
-    return mesh
-
-
-MAX_COORDINATE_M = 1e4  # 10 km: a vertex further out is a unit or export mistake (and overflows the geometry)
+    return np.ascontiguousarray(v, dtype=float), np.ascontiguousarray(f, dtype=np.int32)
 
 
 class _ConfinedResolver(trimesh.resolvers.FilePathResolver):
-    """The files a glTF or OBJ names (buffers, textures, .mtl), read as every input file is: inside the
-    mesh's folder, regular files only (a FIFO there would otherwise hang the load), and all of them
-    together within one mesh file's byte cap: a glTF that names one big buffer a hundred times is
-    refused after the cap, not read a hundred times."""
+    """The files a glTF names (its buffers), read as every input file is: inside the mesh's folder,
+    regular files only (a FIFO there would otherwise hang the load), and all of them together within
+    one mesh file's byte cap: a glTF that names one big buffer a hundred times is refused after the
+    cap, not read a hundred times. A refusal says, in our words, what was refused and why."""
 
     def __init__(self, source: str, budget: list | None = None):
         super().__init__(source)
 
         self.budget = budget if budget is not None else [safeio.LIMITS.mesh_bytes]  # shared with namespaced copies
 
+    def keys(self):  # never walk the folder (trimesh may, to guess a texture's name)
+        return iter(())
+
     def get(self, name: str):
         too_much = AposeError(f"the files it refers to add up to more than the {safeio.LIMITS.mesh_bytes // 2**20} MB "
                               f"a mesh may have (at {name[:80]!r}); is a buffer named many times?")
+        folder = Path(self.parent).resolve()
+        target = (folder / name.strip()).resolve()  # links followed: a link inside pointing out is outside
+        if not target.is_relative_to(folder):
+            raise AposeError(f"it names the file {name[:120]!r}, which lies outside the mesh's folder {folder}; a "
+                             "glTF's buffers are read only from its own folder: copy them beside it (or export a GLB)")
         try:
-            data = safeio.read_bytes(self.absolute(name), "a file the mesh refers to", max(self.budget[0], 0))
+            data = safeio.read_bytes(target, "a file the mesh refers to", max(self.budget[0], 0))
         except AposeError as e:
             if "over the" in str(e) and self.budget[0] < safeio.LIMITS.mesh_bytes:
                 raise too_much from None
-            raise
+            raise AposeError(f"it names the file {name[:120]!r}, which cannot be used: {e}") from None
         self.budget[0] -= len(data)
         if self.budget[0] < 0:
             raise too_much
@@ -173,71 +291,363 @@ class _ConfinedResolver(trimesh.resolvers.FilePathResolver):
         return _ConfinedResolver(os.path.join(self.parent, namespace), self.budget)
 
 
-def _check_declared_size(path: Path, ext: str, data: bytes) -> None:
-    """Refuse a PLY or binary STL whose header declares more triangles than a part may have, before
-    the parser allocates for them."""
+def _binary_stl_count(data: bytes, size: int | None = None) -> int | None:
+    """A binary STL's triangle count, or None for an ASCII STL (a binary header may start with `solid`
+    too: then the file's size tells). `data`: the file, or its first bytes and `size` the file's."""
+    size = len(data) if size is None else size
+    if len(data) < 84:
+        return None
+    n = int.from_bytes(data[80:84], "little")
+    return n if data[:5].lower() != b"solid" or size == 84 + 50 * n else None
+
+
+def _fixed_cost(path: Path, ext: str, head: bytes, size: int) -> bool:
+    """Whether reading the file costs what its (already checked) counts say, so that it may be read in
+    this process (a child costs ~20 ms to fork and exit; the samples are STL and PLY): a binary STL whose
+    size is its header's count (one numpy view, welded in time and memory linear in it), a binary PLY of
+    vertices and triangles whose size says every face is one. Anything else is read in a child."""
+    if ext == ".stl":
+        n = _binary_stl_count(head, size)
+        return n is not None and 84 + 50 * n <= size <= 84 + 50 * n + 4096
+    return ext == ".ply" and _ply_triangles(path, head, size)[2]
+
+
+_STL_RECORD = np.dtype([("normal", "<f4", (3,)), ("corners", "<f4", (3, 3)), ("attribute", "<u2")])
+
+
+def _read_binary_stl(path: Path, data: bytes) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices, faces) of a binary STL: three corners per triangle, welded later (`merge_vertices`)."""
+    n = _binary_stl_count(data)
+    if len(data) < 84 + 50 * n:
+        raise MeshError(f"{path}: its header declares {n} triangles but it holds {(len(data) - 84) // 50} "
+                        "(truncated?); re-export the mesh")
+    records = np.frombuffer(data, _STL_RECORD, count=n, offset=84)
+    return records["corners"].reshape(-1, 3), np.arange(3 * n, dtype=np.int32).reshape(-1, 3)
+
+
+# --------------------------------------------------------------- what a file declares, before parsing
+
+
+def _check_declared_size(path: Path, ext: str, data: bytes, size: int | None = None) -> None:
+    """Refuse a mesh whose file declares (or plainly holds) more triangles than a part may have, before
+    the parser allocates for them: a binary STL's count (also behind a header that starts with `solid`),
+    an ASCII STL's facets, a PLY's or OFF's element counts and a binary PLY's polygon corners, an OBJ's
+    face corners (a polygon of n corners is n - 2 triangles). glTF: `_gltf_geometry_only`.
+    `data`: the whole file, or its first bytes and `size` the file's (what headers declare is checked
+    before the file is read; what only the whole text tells, when it is read)."""
     cap = safeio.LIMITS.mesh_triangles
-    n = None
-    if ext == ".stl" and len(data) >= 84 and not data[:5].lower() == b"solid":
-        n = int.from_bytes(data[80:84], "little")
+    size = len(data) if size is None else size
+    whole = len(data) == size
+    n, vertices, how = None, 0, "its header declares"
+    if ext == ".stl":
+        n = _binary_stl_count(data, size)
+        if n is None and whole:
+            n, how = data.count(b"endloop"), "it holds"
     elif ext == ".ply":
-        head = data[:4096].split(b"end_header", 1)[0]
-        for line in head.splitlines():
-            words = line.split()
-            if len(words) == 3 and words[0] == b"element" and words[1] in (b"face", b"vertex") and words[2].isdigit():
-                n = max(n or 0, int(words[2]) // (1 if words[1] == b"face" else 3))
+        n, vertices, _ = _ply_triangles(path, data, size)
+    elif ext == ".off":
+        words = b" ".join(line.split(b"#")[0] for line in data[:4096].splitlines()[:8]).split()
+        counts = [int(w) for w in words[1:3] if w.isdigit()] if words[:1] and words[0].upper().endswith(b"OFF") else []
+        if len(counts) == 2:
+            vertices, n = counts
+    elif ext == ".obj" and whole:
+        vertices = data.count(b"\nv ") + data.count(b"\nv\t") + (data[:2] in (b"v ", b"v\t"))
+        if vertices > 3 * cap:
+            raise MeshError(f"{path}: its vertex lines hold {vertices} vertices, over the {3 * cap} a part's mesh may "
+                            f"have; {_FIX_DECIMATE}")
+        n, how = _obj_triangles(data), "its face lines hold"
+    if vertices > 3 * cap:
+        raise MeshError(f"{path}: its header declares {vertices} vertices, over the {3 * cap} a part's mesh may have; "
+                        f"{_FIX_DECIMATE}")
     if n is not None and n > cap:
-        raise MeshError(f"{path}: its header declares {n} triangles, over the {cap} a part may have; decimate it")
+        raise MeshError(f"{path}: {how} {n} triangles, over the {cap} a part may have; {_FIX_DECIMATE}")
 
 
+_PLY_SIZES = {b"char": 1, b"uchar": 1, b"int8": 1, b"uint8": 1, b"short": 2, b"ushort": 2, b"int16": 2,
+              b"uint16": 2, b"int": 4, b"uint": 4, b"int32": 4, b"uint32": 4, b"float": 4, b"float32": 4,
+              b"double": 8, b"float64": 8}
+
+
+def _ply_triangles(path: Path, data: bytes, size: int) -> tuple[int | None, int, bool]:
+    """(triangles, vertices, plain) as a PLY's header and size say: its face count, and for a binary PLY
+    of vertices then faces (one list each) the corners its bytes hold, fan-triangulated (n - 2 each);
+    `plain`: such a PLY whose every face is a triangle (its size says so), parsed in time linear in its counts."""
+    end = data.find(b"end_header", 0, 2 ** 20)
+    if end < 0:
+        if len(data) >= 2 ** 20:
+            raise MeshError(f"{path}: no end_header in its first MB; a PLY header is a few hundred bytes: the file is "
+                            "damaged or crafted, re-export it")
+        return None, 0, False
+    lines = data[:end].splitlines()
+    elements: list[list] = []  # [name, count, [property sizes or ("list", count size, item size)]]
+    binary = any(line.startswith(b"format binary") for line in lines)
+    for line in lines:
+        w = line.split()
+        if len(w) == 3 and w[0] == b"element":
+            elements.append([w[1], int(w[2]) if w[2].isdigit() else -1, []])
+        elif len(w) >= 3 and w[0] == b"property" and elements:
+            if w[1] == b"list" and len(w) >= 5:
+                elements[-1][2].append(("list", _PLY_SIZES.get(w[2], 0), _PLY_SIZES.get(w[3], 0)))
+            else:
+                elements[-1][2].append(_PLY_SIZES.get(w[1], 0))
+    counts = {e[0]: e[1] for e in elements}
+    n, plain = counts.get(b"face", 0), False
+    if binary and [e[0] for e in elements] == [b"vertex", b"face"] and all(isinstance(p, int) and p for p in elements[0][2]):
+        (_, nv, vprops), (_, nf, fprops) = elements
+        if len(fprops) == 1 and isinstance(fprops[0], tuple) and fprops[0][1] and fprops[0][2] and nf >= 0 and nv >= 0:
+            body = size - (data.find(b"\n", end) + 1) - nv * sum(vprops)
+            corners = (body - nf * fprops[0][1]) // fprops[0][2]
+            n = max(n, corners - 2 * nf)
+            plain = corners == 3 * nf and body == nf * (fprops[0][1] + 3 * fprops[0][2]) and len(vprops) <= 12
+    return n, counts.get(b"vertex", 0), plain
+
+
+def _obj_triangles(data: bytes, chunk: int = 2 ** 24) -> int:
+    """The triangles an OBJ's `f` lines make (corners - 2 per line), counted with numpy a chunk of whole
+    lines at a time (16 MB of text: about 100 MB of arrays)."""
+    arr = np.frombuffer(data, np.uint8)
+    total, start = 0, 0
+    while start < len(arr):
+        stop = min(start + chunk, len(arr))
+        if stop < len(arr):
+            nl = data.find(b"\n", stop)
+            stop = len(arr) if nl < 0 else nl + 1
+        a = arr[start:stop]
+        start = stop
+        space = (a == 32) | (a == 9) | (a == 13) | (a == 10) | (a == 11) | (a == 12)
+        token = ~space
+        token[1:] &= space[:-1]  # a token starts where a non-space follows a space
+        line_end = np.flatnonzero(a == 10)
+        if len(line_end) == 0 or line_end[-1] != len(a) - 1:
+            line_end = np.append(line_end, len(a) - 1)
+        line_start = np.concatenate([[0], line_end[:-1] + 1])
+        nxt = np.minimum(line_start + 1, len(a) - 1)
+        is_face = (a[line_start] == ord("f")) & space[nxt]
+        if not is_face.any():
+            continue
+        c = np.cumsum(token, dtype=np.int32)
+        tokens = c[line_end] - np.where(line_start > 0, c[line_start - 1], 0)
+        total += int(np.maximum(tokens[is_face] - 3, 0).sum())  # "f" and n corners: n - 2 triangles
+    return total
+
+
+def _gltf_document(path: Path, ext: str, data: bytes) -> tuple[dict, bytes | None]:
+    """(the glTF JSON, a GLB's binary chunk or None)."""
+    if ext == ".glb":
+        try:
+            magic, _version, _length, json_len, json_type = struct.unpack("<4sIIII", data[:20])
+        except struct.error:
+            raise MeshError(f"{path}: too short for a GLB file (corrupt or truncated?); re-export it") from None
+        if magic != b"glTF" or json_type != 0x4E4F534A or 20 + json_len > len(data):
+            raise MeshError(f"{path}: not a GLB file (no glTF header and JSON chunk); re-export it")
+        text, rest = data[20:20 + json_len], data[20 + json_len:]
+        binary = None
+        if len(rest) >= 8:
+            bin_len, bin_type = struct.unpack("<II", rest[:8])
+            if bin_type == 0x004E4942:
+                binary = rest[8:8 + bin_len]
+    else:
+        text, binary = data, None
+    try:
+        doc = safeio.parse_json(text.decode("utf-8-sig"), str(path))
+    except UnicodeDecodeError:
+        raise MeshError(f"{path}: its glTF JSON is not UTF-8 text; re-export it") from None
+    except AposeError as e:
+        raise MeshError(str(e)) from None
+    if not isinstance(doc, dict):
+        raise MeshError(f"{path}: its glTF JSON is a {type(doc).__name__}, not an object; re-export it")
+    return doc, binary
+
+
+def _gltf_geometry_only(path: Path, ext: str, data: bytes) -> bytes:
+    """The glTF (or GLB) checked against the triangle cap as its JSON declares it, every node that shows a
+    mesh counted (a 1 MB file can place one mesh 3000 times: 61 M triangles once copied into one mesh),
+    and re-written without materials, textures and images: only geometry is read."""
+    doc, binary = _gltf_document(path, ext, data)
+    try:
+        _gltf_count(path, doc)
+    except (TypeError, KeyError, IndexError, AttributeError, ValueError) as e:
+        raise MeshError(f"{path}: its glTF JSON is malformed ({type(e).__name__}: {str(e)[:80]}); re-export it") from None
+    prims = [p for m in doc.get("meshes") or [] for p in (m.get("primitives") or []) if isinstance(p, dict)]
+    if not any(key in doc for key in ("materials", "textures", "images", "samplers")) and not any(
+            "material" in p for p in prims):
+        return data  # geometry only already: parsed as read
+    for key in ("materials", "textures", "images", "samplers"):
+        doc.pop(key, None)
+    for prim in prims:
+        prim.pop("material", None)
+    text = json.dumps(doc).encode()
+    if ext != ".glb":
+        return text
+    text += b" " * (-len(text) % 4)
+    chunks = struct.pack("<II", len(text), 0x4E4F534A) + text
+    if binary is not None:
+        binary += b"\0" * (-len(binary) % 4)
+        chunks += struct.pack("<II", len(binary), 0x004E4942) + binary
+    return struct.pack("<4sII", b"glTF", 2, 12 + len(chunks)) + chunks
+
+
+def _gltf_count(path: Path, doc: dict) -> None:
+    cap = safeio.LIMITS.mesh_triangles
+    accessors = doc.get("accessors") or []
+    for i, acc in enumerate(accessors):
+        count = acc.get("count", 0)
+        if not isinstance(count, int) or count < 0 or count > 3 * cap:
+            raise MeshError(f"{path}: its glTF accessor {i} declares {count} elements, over the {3 * cap} a part's mesh "
+                            f"may have; {_FIX_DECIMATE}")
+
+    def triangles(prim: dict) -> int:
+        if "indices" in prim:
+            n = accessors[prim["indices"]].get("count", 0)
+        else:
+            n = accessors[prim["attributes"]["POSITION"]].get("count", 0)
+        mode = prim.get("mode", 4)
+        return n // 3 if mode == 4 else max(n - 2, 0) if mode in (5, 6) else 0
+
+    per_mesh = [sum(triangles(p) for p in m.get("primitives") or []) for m in doc.get("meshes") or []]
+    nodes = doc.get("nodes") or []
+    roots = [r for sc in doc.get("scenes") or [] for r in (sc.get("nodes") or [])]
+    seen, stack, shown, copies = set(), list(roots), 0, 0
+    while stack:  # every node reachable from a scene, once (trimesh keys its graph by node)
+        k = stack.pop()
+        if not isinstance(k, int) or k in seen:
+            continue
+        seen.add(k)
+        node = nodes[k]
+        if "mesh" in node:
+            shown += per_mesh[node["mesh"]]
+            copies += 1
+        stack.extend(node.get("children") or [])
+    if not roots:
+        shown = sum(per_mesh)
+    stored = sum(per_mesh)
+    if max(shown, stored) > cap:
+        what = (f"places its meshes {copies} times, {shown} triangles in all" if shown > stored else
+                f"declares {stored} triangles")
+        raise MeshError(f"{path}: its glTF scene {what}, over the {cap} a part may have (each placed copy becomes "
+                        f"triangles of its own); {_FIX_DECIMATE}, or export the part as one mesh")
+
+
+# --------------------------------------------------------------------------------------- STEP
+
+
+STEP_TOLERANCE_MM = 0.01  # OpenCASCADE's linear deflection (cascadio's default) for parts up to 10 cm
+STEP_TOLERANCE_FRACTION = 1e-4  # of the part's size above that: the tessellation's cost no longer grows with it
 _STEP_CACHE: dict = {}
 
 
 def step_solids(path: str | Path) -> dict[str, trimesh.Trimesh]:
-    """The named solids of a STEP file, each a triangle mesh in metres (OpenCASCADE through cascadio).
-    Cached per file and modification time: several parts of one file read it once."""
+    """The named solids of a STEP file, each a triangle mesh in metres (OpenCASCADE through cascadio),
+    tessellated in a limited child process (`safeio.run_bounded`). Cached per file and modification
+    time: several parts of one file read it once."""
     path = Path(path)
-    key = (str(path.resolve()), path.stat().st_mtime_ns, path.stat().st_size)
-    if key not in _STEP_CACHE:
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                scene = trimesh.load(str(path), file_type="step")
-        except Exception as e:
-            raise MeshError(f"{path}: could not be read as STEP (corrupt, truncated, or not a solid model?): "
-                            f"{type(e).__name__}: {e}") from None
-        solids = {path.stem: scene} if isinstance(scene, trimesh.Trimesh) else {}
-        if isinstance(scene, trimesh.Scene):  # a node per solid, named as in the STEP file
-            for node in scene.graph.nodes_geometry:
-                T, name = scene.graph[node]
-                g = scene.geometry[name]
-                if isinstance(g, trimesh.Trimesh) and len(g.faces):
-                    solids[node] = g.copy().apply_transform(T)
-        if not solids:
-            raise MeshError(f"{path}: the STEP file holds no solid with faces; export the parts as solids")
+    try:
+        fd, _ = safeio.open_regular(path, "a STEP file")
+        os.close(fd)
+    except AposeError as e:
+        raise MeshError(str(e)) from None
+    key = _file_key(path, "m", None)
+    if key is not None and key in _FAILED:
+        raise MeshError(_FAILED[key])
+    if key is None or key not in _STEP_CACHE:
+        with tempfile.TemporaryDirectory(prefix="apose-step-") as folder:  # removed even when the child is killed
+            try:
+                raw = _bounded(_read_step, path, folder, where=path, doing="tessellating this STEP file "
+                               "(OpenCASCADE)", fix=_fix_for(".step"), file_bytes=safeio.LIMITS.mesh_bytes)
+            except safeio.LimitExceeded as e:
+                _remember_failure(key, e)
+                raise MeshError(str(e)) from None
+        solids = {name: trimesh.Trimesh(v, f, process=False) for name, (v, f) in raw.items()}
         if len(_STEP_CACHE) > 16:
             _STEP_CACHE.clear()
+        if key is None:
+            return solids
         _STEP_CACHE[key] = solids
     return _STEP_CACHE[key]
 
 
-def _step_solid(path: Path, solid: str | None) -> trimesh.Trimesh:
+def _read_step(path: Path, folder: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """In the child: the STEP file read through safeio, tessellated twice: coarsely (relative to each
+    edge, fast whatever the size) to measure the part, then at STEP_TOLERANCE_MM or, for a part over
+    10 cm, STEP_TOLERANCE_FRACTION of its size (a 2 km disc at 0.01 mm took OpenCASCADE 8 minutes)."""
+    import cascadio
+
+    try:
+        data = safeio.read_bytes(path, "a STEP file", safeio.LIMITS.mesh_bytes)
+    except AposeError as e:
+        raise MeshError(str(e)) from None
+    src, glb = os.path.join(folder, "part.step"), os.path.join(folder, "part.glb")
+    with open(src, "wb") as f:
+        f.write(data)
+    data = None
+
+    def tessellate(**tolerance) -> trimesh.Scene:
+        if os.path.exists(glb):
+            os.unlink(glb)
+        try:
+            cascadio.step_to_glb(src, glb, tol_angular=0.5, **tolerance)
+            blob = safeio.read_bytes(glb, "the tessellated STEP file", safeio.LIMITS.mesh_bytes)
+            blob = _gltf_geometry_only(path, ".glb", blob)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                return trimesh.load(io.BytesIO(blob), file_type="glb")
+        except MemoryError:
+            raise
+        except MeshError as e:
+            raise MeshError(f"{e}".replace("its glTF scene", "its tessellation")) from None
+        except (Exception, RecursionError) as e:
+            raise MeshError(f"{path}: could not be read as STEP (corrupt, truncated, or not a solid model?): "
+                            f"{type(e).__name__}: {str(e)[:200]}") from None
+
+    coarse = tessellate(tol_linear=0.1, tol_relative=True)
+    bounds = getattr(coarse, "bounds", None)
+    size_mm = float(np.max(bounds[1] - bounds[0])) * 1000.0 if bounds is not None else 0.0
+    scene = tessellate(tol_linear=max(STEP_TOLERANCE_MM, STEP_TOLERANCE_FRACTION * size_mm))
+    solids = {path.stem: scene} if isinstance(scene, trimesh.Trimesh) else {}
+    if isinstance(scene, trimesh.Scene):  # a node per solid, named as in the STEP file
+        for node in scene.graph.nodes_geometry:
+            T, name = scene.graph[node]
+            g = scene.geometry[name]
+            if isinstance(g, trimesh.Trimesh) and len(g.faces):
+                solids[node] = g.copy().apply_transform(T)
+    if not solids:
+        raise MeshError(f"{path}: the STEP file holds no solid with faces; export the parts as solids")
+    return {name: (np.asarray(m.vertices, dtype=float), np.asarray(m.faces, dtype=np.int32)) for name, m in solids.items()}
+
+
+def _step_solid(path: Path, solid: str | None) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices, faces) of one named solid of a STEP file, or of all of them together."""
     solids = step_solids(path)
     if solid is None:
-        return next(iter(solids.values())) if len(solids) == 1 else trimesh.util.concatenate(list(solids.values()))
+        meshes = list(solids.values())
+        if len(meshes) == 1:
+            return meshes[0].vertices, meshes[0].faces
+        offsets = np.cumsum([0] + [len(m.vertices) for m in meshes[:-1]])
+        return (np.concatenate([m.vertices for m in meshes]),
+                np.concatenate([np.asarray(m.faces) + o for m, o in zip(meshes, offsets)]))
     if solid not in solids:
         raise MeshError(f"{path}: has no solid named {solid!r}; its solids are {', '.join(solids)} "
                         "(set the part's `solid` to one of them)")
-    return solids[solid]
+    return solids[solid].vertices, solids[solid].faces
+
+
+def _head(path: Path, n: int) -> bytes:
+    """The first n bytes of a (regular) file."""
+    try:
+        fd, _ = safeio.open_regular(path, "a mesh file")
+    except AposeError as e:
+        raise MeshError(str(e)) from None
+    try:
+        return os.read(fd, n)
+    except OSError as e:
+        raise MeshError(f"{path}: cannot be read ({e.strerror}); choose a mesh file on a working disk") from None
+    finally:
+        os.close(fd)
 
 
 def _not_a(path: Path, ext: str) -> str | None:
     """What a file really is when its first bytes contradict its extension ("a text file", "a PNG image")."""
-    fd, _ = safeio.open_regular(path, "a mesh file")
-    try:
-        head = os.read(fd, 512)
-    finally:
-        os.close(fd)
+    head = _head(path, 512)
     magic = {b"\x89PNG": "a PNG image", b"\xff\xd8\xff": "a JPEG image", b"%PDF": "a PDF document",
              b"PK\x03\x04": "a ZIP archive", b"\x7fELF": "a program"}
     for m, what in magic.items():
@@ -297,8 +707,9 @@ def _max_pairwise(pts: np.ndarray) -> tuple[float, int, int]:
     pts = pts - pts.mean(axis=0)
     sq = np.einsum("ij,ij->i", pts, pts)
     best, pair = -1.0, (0, 0)
-    for i in range(0, len(pts), 2048):  # |a-b|^2 = |a|^2 + |b|^2 - 2ab, a block of rows at a time
-        d2 = sq[i:i + 2048, None] + sq[None, :] - 2.0 * pts[i:i + 2048] @ pts.T
+    rows = max(1, 2 ** 22 // len(pts))  # blocks of 4 M distances (32 MB each; 2048 rows of 20 000 took 1 GB)
+    for i in range(0, len(pts), rows):  # |a-b|^2 = |a|^2 + |b|^2 - 2ab, a block of rows at a time
+        d2 = sq[i:i + rows, None] + sq[None, :] - 2.0 * pts[i:i + rows] @ pts.T
         k = int(d2.argmax())
         if d2.flat[k] > best:
             best, pair = float(d2.flat[k]), (i + k // len(pts), k % len(pts))
@@ -465,20 +876,34 @@ def load_part(part: Part, unit: str, index: int = 0) -> PartModel:
 
 
 def load_parts(asm: Assembly) -> dict[str, PartModel]:
-    """Every part of an assembly, in file order. Raises MeshError naming the part on the first bad mesh."""
+    """Every part of an assembly, in file order. Raises MeshError naming the part on the first bad mesh.
+    Reading all of its mesh files may take LIMITS.assembly_parse_seconds in all (each file's own limits
+    are cut to what is left): fifty files that each take just under the limit cannot hold a caller for
+    fifty times as long."""
     out, triangles, seen = {}, 0, set()
-    for i, (pid, part) in enumerate(asm.parts.items()):
-        try:
-            out[pid] = load_part(part, asm.units, i)
-        except MeshError as e:
-            raise MeshError(f"part {pid!r}: {e}") from None
-        if id(out[pid].mesh) not in seen:  # a mesh shared by several parts counts once
-            seen.add(id(out[pid].mesh))
-            triangles += len(out[pid].mesh.faces)
-        if triangles > safeio.LIMITS.assembly_triangles:
-            raise MeshError(f"part {pid!r}: the assembly's meshes hold {triangles} triangles by this part, over the "
-                            f"{safeio.LIMITS.assembly_triangles} an assembly may have; decimate the largest parts")
+    total = safeio.LIMITS.assembly_parse_seconds
+    outer = getattr(_BUDGET, "deadline", None)
+    _BUDGET.deadline = time.monotonic() + total if outer is None else outer
+    try:
+        for i, (pid, part) in enumerate(asm.parts.items()):
+            try:
+                out[pid] = load_part(part, asm.units, i)
+            except MeshError as e:
+                raise MeshError(f"part {pid!r}: {e}") from None
+            triangles = _count_new(out[pid], seen, triangles, pid)
+    finally:
+        _BUDGET.deadline = outer
     return out
+
+
+def _count_new(model: PartModel, seen: set, triangles: int, pid: str) -> int:
+    if id(model.mesh) not in seen:  # a mesh shared by several parts counts once
+        seen.add(id(model.mesh))
+        triangles += len(model.mesh.faces)
+    if triangles > safeio.LIMITS.assembly_triangles:
+        raise MeshError(f"part {pid!r}: the assembly's meshes hold {triangles} triangles by this part, over the "
+                        f"{safeio.LIMITS.assembly_triangles} an assembly may have; decimate the largest parts")
+    return triangles
 
 
 def merged_mesh(models: dict[str, PartModel], poses: dict[str, np.ndarray]) -> trimesh.Trimesh:

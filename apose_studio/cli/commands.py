@@ -14,7 +14,7 @@ from pathlib import Path
 
 from apose_studio import __version__
 from apose_studio.assembly.summary import show_json, show_text
-from apose_studio.cli.common import check_output_file, estimator_args
+from apose_studio.cli.common import Printable, check_output_file, estimator_args, shorten_values
 from apose_studio.errors import AposeError
 from apose_studio.safeio import check_path_text
 
@@ -393,25 +393,9 @@ def _add_studio(sub) -> None:
     p.set_defaults(func=cmd_studio)
 
 
-class _Printable:
-    """stdout/stderr with control characters shown as escapes (\\x1b): a part or file name holding ESC
-    sequences cannot retitle or clear the user's terminal. Newlines, tabs and the progress bars' \\r pass."""
-
-    _TABLE = {c: f"\\x{c:02x}" for c in [*range(0x20), 0x7f, *range(0x80, 0xa0)] if c not in (9, 10, 13)}
-
-    def __init__(self, stream):
-        self._stream = stream
-
-    def write(self, text: str) -> int:
-        return self._stream.write(text.translate(self._TABLE))
-
-    def __getattr__(self, name):
-        return getattr(self._stream, name)
-
-
 def main(argv=None) -> int:
     out, err = sys.stdout, sys.stderr
-    sys.stdout, sys.stderr = _Printable(out), _Printable(err)
+    sys.stdout, sys.stderr = Printable(out), Printable(err)
     try:
         return _main(argv)
     finally:
@@ -431,7 +415,7 @@ def _main(argv=None) -> int:
         return args.func(args)
     except AposeError as e:  # bad input: the message names the thing and the fix
         for line in str(e).splitlines():
-            print(f"error: {line}", file=sys.stderr)
+            print(f"error: {shorten_values(line)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
@@ -448,7 +432,8 @@ def _main(argv=None) -> int:
     except Exception as e:  # a bug: one line, plus the traceback with --verbose
         if args.verbose:
             raise
-        print(f"error: unexpected {type(e).__name__}: {e} (run with -v for the traceback, and please report it)",
+        print(f"error: unexpected {type(e).__name__}: {shorten_values(str(e))} (run with -v for the traceback, and please "
+              "report it)",
               file=sys.stderr)
         return 1
 

@@ -1,9 +1,11 @@
 """What the command line's commands share: the estimator's flags and the Params they ask for, output
-path checks, and printing poses."""
+path checks, printing poses, and what may reach the terminal (control characters escaped, long values
+shortened)."""
 
 from __future__ import annotations
 
 import argparse
+import re
 from pathlib import Path
 
 import numpy as np
@@ -91,3 +93,42 @@ def parse_prompt(args, flag: str, k: int | None = None, views: int = 1):
                          "in the order of the views")
     text = given[k or 0] if given else None
     return None if text is None else (parse_box(text) if flag == "box" else parse_point(text))
+
+
+# --------------------------------------------------------------------------------------- the terminal
+
+# C0 and C1 controls and DEL (ESC sequences retitle or clear a terminal), and the Unicode controls that
+# reorder or break text (bidi embeddings, overrides and isolates, marks, the line and paragraph
+# separators): a file named "\u202ecod.exe" would print as "exe.doc". Newlines, tabs and the progress
+# bars' \r pass.
+_CONTROLS = [c for c in [*range(0x20), 0x7F, *range(0x80, 0xA0)] if c not in (9, 10, 13)]
+_UNICODE_CONTROLS = [0x061C, 0x200E, 0x200F, 0x2028, 0x2029, *range(0x202A, 0x202F), *range(0x2066, 0x206A)]
+ESCAPES = {c: f"\\x{c:02x}" for c in _CONTROLS} | {c: f"\\u{c:04x}" for c in _UNICODE_CONTROLS}
+LONG_VALUE = 200  # characters without a space: a value longer than this is shortened in error messages
+_LONG = re.compile(r"\S{%d,}" % (LONG_VALUE + 1))
+
+
+def printable(text: str) -> str:
+    """`text` with every control character shown as an escape (\\x1b, \\u202e)."""
+    return text.translate(ESCAPES)
+
+
+def shorten_values(text: str) -> str:
+    """`text` with each run of more than LONG_VALUE non-space characters (a 5000-digit number, a pasted
+    blob) cut to its start and end and its length: a value in a message is quoted only when short."""
+    return _LONG.sub(lambda m: f"{m[0][:80]}…({len(m[0])} characters)…{m[0][-40:]}", text)
+
+
+class Printable:
+    """A text stream (stdout, stderr) that escapes control characters in everything written through it
+    (`printable`): a part or file name holding ESC sequences or a bidi override cannot retitle or clear
+    the user's terminal, nor reorder what it shows."""
+
+    def __init__(self, stream):
+        self._stream = stream
+
+    def write(self, text: str) -> int:
+        return self._stream.write(printable(text))
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)

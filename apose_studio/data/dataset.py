@@ -99,12 +99,13 @@ class Frame:
         return out
 
 
-def read_image(path: Path, flags: int, what: str = "an image", header: bool = False):
-    """An image through safeio (regular file, size and pixel caps checked before decoding)."""
+def read_image(path: Path, flags: int, what: str = "an image", header: bool = False, depth: bool = False):
+    """An image through safeio (regular file; size, pixels, channels, bits and decoded bytes checked
+    from the header before decoding; `depth`: one 16-bit channel)."""
     if not path.exists() and not path.is_symlink():
         raise DatasetError(f"{path}: missing")
     try:
-        img, head = safeio.read_image(path, flags, what)
+        img, head = safeio.read_image(path, flags, what, depth=depth)
     except AposeError as e:
         raise DatasetError(str(e)) from None
     return (img, head) if header else img
@@ -117,10 +118,10 @@ def read_rgb(path: Path) -> np.ndarray:
 
 def read_depth(path: Path, depth_scale_mm: float) -> np.ndarray:
     """uint16 depth PNG -> metres (float32); NaN, negative and missing become 0."""
-    raw, (fmt, _, _, channels, bits) = read_image(path, cv2.IMREAD_UNCHANGED, "the depth image", header=True)
-    if channels != 1 or raw.ndim != 2:
-        raise DatasetError(f"{path}: a {bits}-bit {fmt} with {channels} channels; depth is one channel of 16-bit "
-                           "integers (depth in mm = value x depth_scale), as RealSense, Kinect and BOP write it")
+    raw, head = read_image(path, cv2.IMREAD_UNCHANGED, "the depth image", header=True, depth=True)
+    if raw.ndim != 2:  # the header said one channel (checked before decoding); the decoder disagrees
+        raise DatasetError(f"{path}: its {head.format} header says one channel but it decodes to {raw.shape[2]}; "
+                           "the file is damaged or crafted: save the depth image again as a 16-bit PNG")
     if raw.dtype != np.uint16:
         raise DatasetError(f"{path}: a {raw.dtype} depth image; expected 16-bit integers (depth in mm = value x "
                            "depth_scale), as RealSense, Kinect and BOP write them")
@@ -147,7 +148,7 @@ class Dataset:
     def __init__(self, root: str | Path):
         self.root = Path(root)
         info_path = self.root / "dataset_info.json"
-        if not info_path.is_file():
+        if not info_path.exists() and not info_path.is_symlink():  # a FIFO or device there: named by read_json
             hint = " (a real capture folder? open it with load_capture)" if (self.root / "rgb.png").exists() else ""
             raise DatasetError(f"{self.root}: not an apose dataset, dataset_info.json is missing{hint}; "
                                "make one with `apose render`")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 from apose_studio.data.bop import BopScene, is_bop_scene
@@ -12,9 +13,9 @@ def open_frames(path: str | Path):
     """A Dataset for a rendered folder, a BopScene for a BOP scene folder, or a single Frame for a
     real-capture folder."""
     path = Path(path)
-    if (path / "dataset_info.json").is_file():
+    if os.path.lexists(path / "dataset_info.json"):  # a FIFO or folder there too: Dataset says what it is
         return Dataset(path)
-    if (path / "rgb.png").is_file():
+    if os.path.lexists(path / "rgb.png"):
         return load_capture(path)
     if is_bop_scene(path):
         return BopScene(path)

@@ -47,7 +47,7 @@ def parse_box(text: str) -> tuple[int, int, int, int]:
     """'x0,y0,x1,y1' (pixels) -> a box; PromptError naming the flag otherwise."""
     try:
         x0, y0, x1, y1 = (int(round(float(t))) for t in text.split(","))
-    except ValueError:
+    except (ValueError, OverflowError):  # OverflowError: inf, 1e309
         raise PromptError(f"--box {text}: expected four pixel numbers x0,y0,x1,y1 (left, top, right, bottom)") from None
     return x0, y0, x1, y1
 
@@ -55,7 +55,7 @@ def parse_box(text: str) -> tuple[int, int, int, int]:
 def parse_point(text: str) -> tuple[int, int]:
     try:
         u, v = (int(round(float(t))) for t in text.split(","))
-    except ValueError:
+    except (ValueError, OverflowError):  # OverflowError: inf, 1e309
         raise PromptError(f"--point {text}: expected two pixel numbers u,v (column, row)") from None
     return u, v
 

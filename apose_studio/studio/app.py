@@ -41,7 +41,7 @@ from apose_studio.studio.results_view import ResultsView
 from apose_studio.studio.state import Event, Events, StudioState, shared
 from apose_studio.studio.steps_panel import StepsPanel
 from apose_studio.studio.views_panel import ViewsPanel
-from apose_studio.studio.viser_adapter import limit_uploads
+from apose_studio.studio.viser_adapter import limit_uploads, screen_messages
 from apose_studio.studio.webguard import Workspace, check_token, new_token, start_viser, studio_url
 from apose_studio.studio.widgets import ACTIVE, MAX_UPLOAD_BYTES, VIEWS
 
@@ -92,6 +92,7 @@ class Studio:
         self.views = ViewsPanel(self)  # before results: a frame change refreshes the views, then draws
         self.results = ResultsView(self)
         with self.lock:  # a page that connects while the start-up files load waits for them
+            screen_messages(server, lambda *a, **k: self.notify(*a, **k))  # before any page's message is handled
             self.build_gui()
             server.on_client_connect(self.on_connect)
             limit_uploads(server, MAX_UPLOAD_BYTES, lambda *a, **k: self.notify(*a, **k))
@@ -143,7 +144,10 @@ class Studio:
         return wrap
 
     def on_connect(self, client) -> None:
-        client.camera.up_direction = (0.0, 0.0, 1.0)
+        try:
+            client.camera.up_direction = (0.0, 0.0, 1.0)
+        except Exception as e:  # one tab's camera never stops the others' (nor this tab's clicks)
+            log.info("tab %s: camera not turned upright (%s)", client.client_id, e)
         self.mates.listen(client)
 
     def build_gui(self) -> None:
@@ -201,7 +205,12 @@ class Studio:
         most of the view."""
         direction = np.asarray(direction, float) / max(np.linalg.norm(direction), 1e-9)
         for cam in self._cameras():
-            fov = float(getattr(cam, "fov", 0.0) or np.radians(50.0))
+            try:
+                fov = float(cam.fov)
+            except Exception:
+                fov = 0.0
+            if not 0.05 < fov < 3.0:  # none yet, or a tab's report beyond belief: never trusted for arithmetic
+                fov = np.radians(50.0)
             eye = centre + direction * (radius / np.sin(fov / 2.0)) * 1.1
             self._place(cam, (0.0, 0.0, 1.0), eye, centre)  # the world's up (a sensor's view may have turned it)
 
@@ -210,21 +219,26 @@ class Studio:
         the view's up and its vertical field of view `fov` (radians): the scene as that camera saw it, each
         point about a pixel on screen."""
         for cam in self._cameras():
-            self._place(cam, -np.asarray(T_world_camera)[:3, 1], T_world_camera[:3, 3], centre)  # OpenCV's y: down
-            if fov is not None:
-                cam.fov = float(fov)
+            self._place(cam, -np.asarray(T_world_camera)[:3, 1], T_world_camera[:3, 3], centre, fov)  # OpenCV's y: down
 
     def _cameras(self) -> list:
         """Every tab's camera, and the one a new tab starts with."""
         return [c.camera for c in self.server.get_clients().values()] + [self.server.initial_camera]
 
-    def _place(self, cam, up, position, look_at) -> None:
-        up = tuple(float(v) for v in up)
-        if cam is self.server.initial_camera:
-            cam.up = up
-        else:
-            cam.up_direction = up
-        cam.position, cam.look_at = tuple(float(v) for v in position), tuple(float(v) for v in look_at)
+    def _place(self, cam, up, position, look_at, fov: float | None = None) -> None:
+        """Move one camera. One that cannot be moved keeps its view: a tab's camera, whatever it reported,
+        never breaks another tab's action."""
+        try:
+            up = tuple(float(v) for v in up)
+            if cam is self.server.initial_camera:
+                cam.up = up
+            else:
+                cam.up_direction = up
+            cam.position, cam.look_at = tuple(float(v) for v in position), tuple(float(v) for v in look_at)
+            if fov is not None:
+                cam.fov = float(fov)
+        except Exception as e:
+            log.info("a camera was not moved (%s: %s)", type(e).__name__, e)
 
     def frame_camera_on_assembly(self) -> None:
         """Frame every part shown in the preview (exploded or not)."""
@@ -349,11 +363,13 @@ def serve(assembly=None, dataset=None, host: str = "127.0.0.1", port: int = 8080
     if not 0 < int(port) < 65536:
         raise AposeError(f"--port {port}: expected a port number from 1 to 65535")
     token = new_token() if token is None else check_token(token)
-    server = start_viser(host, port, token)
+    ready = threading.Event()  # pages may connect once the studio (and its screen of their messages) is built
+    server = start_viser(host, port, token, ready=ready)
     try:
         studio = Studio(server, assembly, dataset, cache, default_workspace(assembly, dataset, root))
     except BaseException:
         server.stop()
         raise
     studio.url = studio_url(host, server.get_port(), token)
+    ready.set()
     return server, studio

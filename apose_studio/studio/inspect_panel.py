@@ -31,7 +31,7 @@ from apose_studio.registration import project_to_cloud
 from apose_studio.studio import inspection
 from apose_studio.studio.prompt_panel import PROMPT_SOURCE, prompt_of, prompted_mask
 from apose_studio.studio.state import Event, shared
-from apose_studio.studio.widgets import esc, scene_point_at_ray
+from apose_studio.studio.widgets import VECTOR_MM, esc, scene_point_at_ray
 
 log = logging.getLogger(__name__)
 
@@ -105,8 +105,8 @@ class InspectPanel:
             b = gui.add_button("Use model")
             b.on_click(self.app.guarded("Mask model")(self.on_use_model))
             self.i_crop = gui.add_checkbox("Crop box", False, hint="limit depth masks to a box you drag around the base object")
-            self.i_crop_size = gui.add_vector3("Crop size (mm)", (150.0, 150.0, 100.0), min=(1.0, 1.0, 1.0), step=5.0)
-            self.i_crop_centre = gui.add_vector3("Crop centre (mm)", (0.0, 0.0, 0.0), step=1.0,
+            self.i_crop_size = gui.add_vector3("Crop size (mm)", (150.0, 150.0, 100.0), min=(1.0, 1.0, 1.0), max=(1e5,) * 3, step=5.0)
+            self.i_crop_centre = gui.add_vector3("Crop centre (mm)", (0.0, 0.0, 0.0), step=1.0, **VECTOR_MM,
                                                  hint="world frame; typed, dragged with the box's gizmo, or clicked")
             b = gui.add_button("Crop around click", hint="then click the base object in the 3D view")
             b.on_click(self.app.guarded("Crop around click")(self.on_crop_around_click))
@@ -231,8 +231,17 @@ class InspectPanel:
         asm = self.inspect_assembly()
         prompt = prompt_of(self.app.state.inspect.prompt_text) if self.i_mask.value == PROMPT_SOURCE else None
         return EstimateJob(self.frames, self.frames_path, asm, self.inspect_models(), step, tuple(ids),
-                           self.i_preset.value, bool(self.i_upright.value), self.i_mask.value, bool(self.i_prior.value),
-                           crop, prompt)
+                           self.i_preset.value, bool(self.i_upright.value), self.confined_mask(self.i_mask.value),
+                           bool(self.i_prior.value), crop, prompt)
+
+    def confined_mask(self, source: str) -> str:
+        """The Mask choice as the estimator is given it: a built-in source by name, a model file (any other
+        choice) through the workspace again, here where it is used. The page can only choose among the
+        options (the studio's screen of page input), and 'Use model' adds only confined files; this holds
+        even if either ever changes."""
+        if source in MASK_SOURCES or source == PROMPT_SOURCE:
+            return source
+        return str(self.app.workspace.resolve(source, "mask model"))
 
     def cache_key(self, step: int, im_id: int) -> tuple | None:
         try:
@@ -346,7 +355,7 @@ class InspectPanel:
         self.i_crop_centre.remove()
         with self.estimate_folder:
             self.i_crop_centre = self.app.server.gui.add_vector3(
-                "Crop centre (mm)", value, step=1.0, order=order, hint="world frame; typed, dragged with the box's gizmo, or clicked")
+                "Crop centre (mm)", value, step=1.0, order=order, **VECTOR_MM, hint="world frame; typed, dragged with the box's gizmo, or clicked")
         self.i_crop_centre.on_update(self.app.guarded("Crop box")(lambda c: self.on_crop_centre()))
 
     def on_crop_centre(self) -> None:

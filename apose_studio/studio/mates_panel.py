@@ -20,7 +20,7 @@ from apose_studio.geometry import se3
 from apose_studio.studio import authoring
 from apose_studio.studio.picking import FacePicker, Feature
 from apose_studio.studio.state import Event
-from apose_studio.studio.widgets import esc, pos, wxyz
+from apose_studio.studio.widgets import MM_RANGE, esc, pos, wxyz
 
 PICK_COLOURS = {"part": (120, 255, 0), "base": (255, 0, 255)}  # lime and magenta: in no part palette
 APPROACH_COLOUR = (255, 110, 0)
@@ -59,21 +59,21 @@ class MatesPanel:
         with gui.add_folder("Mates") as self.folder:
             gui.add_markdown(HELP)
             self.picked_md = gui.add_markdown("*nothing picked*")
-            self.f_gap = gui.add_number("Gap (mm)", 0.0, step=0.1, hint="contact/aligned: distance along the base's normal")
+            self.f_gap = gui.add_number("Gap (mm)", 0.0, step=0.1, **MM_RANGE, hint="contact/aligned: distance along the base's normal")
             self.b_planes = gui.add_button_group("Mate flat faces", ("Contact", "Aligned"))
             self.b_planes.on_click(lambda e: self.app.guarded("Mate")(lambda c: self.on_plane_mate(e.target.value, c))(e))
             b = gui.add_button("Clear picks")
             b.on_click(self.app.guarded("Clear picks")(lambda c: self.clear_picks()))
             self.list_html = gui.add_html("")
             self.f_mate = gui.add_dropdown("Mate", ("—",))
-            self.f_value = gui.add_number("Offset (mm) / angle (°)", 0.0, step=0.1)
+            self.f_value = gui.add_number("Offset (mm) / angle (°)", 0.0, step=0.1, **MM_RANGE)
             self.b_value = gui.add_button("Set offset / angle")
             self.b_value.on_click(self.app.guarded("Set")(self.on_set_value))
             row = gui.add_button_group("Mate actions", ("Flip", "Delete", "Lock turn"))
             row.on_click(lambda e: self.app.guarded(e.target.value)(lambda c: self.on_mate_action(e.target.value, c))(e))
         with gui.add_folder("Approach"):
             self.f_app_dir = gui.add_dropdown("Direction", tuple(DIRECTIONS), initial_value="none")
-            self.f_app_len = gui.add_number("Length (mm)", 30.0, min=0.0, step=1.0)
+            self.f_app_len = gui.add_number("Length (mm)", 30.0, min=0.0, max=MM_RANGE["max"], step=1.0)
             b = gui.add_button("Set approach")
             b.on_click(self.app.guarded("Approach")(self.on_set_approach))
 

@@ -28,7 +28,7 @@ def parse_prompt(text: str) -> tuple[tuple | None, tuple | None]:
         return parse_box(text), None
     if n == 2:
         return None, parse_point(text)
-    raise AposeError(f"prompt {text!r}: type a box x0,y0,x1,y1 or a point u,v (pixels), or press 'Prompt at click'")
+    raise AposeError(f"prompt {text[:60]!r}: type a box x0,y0,x1,y1 or a point u,v (pixels), or press 'Prompt at click'")
 
 
 def prompt_of(text: str) -> tuple[tuple | None, tuple | None]:

@@ -20,7 +20,7 @@ from apose_studio.errors import AposeError
 from apose_studio.geometry import se3
 from apose_studio.studio import authoring
 from apose_studio.studio.state import Event, shared
-from apose_studio.studio.widgets import esc, pos, wxyz
+from apose_studio.studio.widgets import VECTOR_DEG, VECTOR_MM, esc, pos, wxyz
 
 log = logging.getLogger(__name__)
 
@@ -73,12 +73,12 @@ class StepsPanel:
             self.f_step_part.on_update(self.app.guarded("Part to place")(self.on_step_part))
             self.f_base = gui.add_text("Base parts", "", hint="comma-separated part ids; the first is the frame of the pose")
             self.f_base.on_update(self.app.guarded("Base parts")(self.on_base))
-            self.f_t = gui.add_vector3("Translation (mm)", (0.0, 0.0, 0.0), step=0.1)
-            self.f_r = gui.add_vector3("Rotation xyz (°)", (0.0, 0.0, 0.0), step=0.1)
+            self.f_t = gui.add_vector3("Translation (mm)", (0.0, 0.0, 0.0), step=0.1, **VECTOR_MM)
+            self.f_r = gui.add_vector3("Rotation xyz (°)", (0.0, 0.0, 0.0), step=0.1, **VECTOR_DEG)
             self.f_t.on_update(self.app.guarded("Translation")(self.on_typed_pose))
             self.f_r.on_update(self.app.guarded("Rotation")(self.on_typed_pose))
-            self.f_snap_mm = gui.add_number("Snap (mm)", 0.5, min=0.0, step=0.1, hint="0 = off")
-            self.f_snap_deg = gui.add_number("Snap (°)", 5.0, min=0.0, step=1.0, hint="0 = off")
+            self.f_snap_mm = gui.add_number("Snap (mm)", 0.5, min=0.0, max=1000.0, step=0.1, hint="0 = off")
+            self.f_snap_deg = gui.add_number("Snap (°)", 5.0, min=0.0, max=360.0, step=1.0, hint="0 = off")
         with gui.add_folder("Preview"):
             self.f_upto = gui.add_slider("Assembled up to step", 0, 1, 1, 0)
             self.f_upto.on_update(self.app.guarded("Preview")(lambda c: self.refresh_assembly_scene()))
@@ -230,8 +230,8 @@ class StepsPanel:
         self.f_t.remove()
         self.f_r.remove()
         with self.steps_folder:
-            self.f_t = gui.add_vector3("Translation (mm)", t, step=0.1, order=orders[0])
-            self.f_r = gui.add_vector3("Rotation xyz (°)", e, step=0.1, order=orders[1])
+            self.f_t = gui.add_vector3("Translation (mm)", t, step=0.1, order=orders[0], **VECTOR_MM)
+            self.f_r = gui.add_vector3("Rotation xyz (°)", e, step=0.1, order=orders[1], **VECTOR_DEG)
         self.f_t.on_update(self.app.guarded("Translation")(self.on_typed_pose))
         self.f_r.on_update(self.app.guarded("Rotation")(self.on_typed_pose))
 

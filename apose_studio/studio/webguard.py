@@ -14,9 +14,14 @@ module closes that hole the way Jupyter does:
   Jupyter does: any local process (another user's, a sandboxed app's) can forge an Origin header,
   but cannot guess 192 random bits. `--token` picks a fixed one (a bookmark, a scripted demo).
 - **Workspace**: file paths typed into the page resolve inside a few root folders (`--root`).
+- **Memory**: at most `MAX_CONNECTIONS` websockets at once (the next gets 503 with the reason), a
+  message over `MAX_MESSAGE_BYTES` closes its connection from its header (viser's own limit is 50 MB;
+  the page sends 512 KiB at most), `MAX_QUEUED_FRAMES` read ahead per connection; and no websocket until
+  the studio is built (`ready`).
 
-viser offers no hook for the first two, so `start_viser` wraps the request hook of the websockets
-server while viser starts it (the one place that touches viser's internals for this).
+viser offers no hook for these, so `start_viser` wraps the request hook (and the size limits) of the
+websockets server while viser starts it (the one place that touches viser's internals for this). What a
+connected page sends is checked in viser_adapter.py.
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ from __future__ import annotations
 import hmac
 import http
 import ipaddress
+import logging
 import secrets
 import threading
 from dataclasses import dataclass
@@ -34,6 +40,7 @@ from apose_studio.errors import AposeError
 from apose_studio.safeio import check_path_text
 
 _START_LOCK = threading.Lock()
+log = logging.getLogger(__name__)
 
 
 def is_loopback_name(name: str) -> bool:
@@ -108,13 +115,24 @@ def check_token(token: str) -> str:
     return token
 
 
-def start_viser(host: str, port: int, token: str | None, label: str = "apose studio"):
-    """A viser server whose websockets and page go through `refusal` first."""
+MAX_MESSAGE_BYTES = 2**20  # what a page sends at most: an upload part is 512 KiB, everything else far less
+MAX_QUEUED_FRAMES = 4  # frames a connection may have read but not yet handled (then TCP pushes back)
+MAX_CONNECTIONS = 16  # websockets at once (tabs open, and handshakes under way)
+
+
+def start_viser(host: str, port: int, token: str | None, label: str = "apose studio",
+                ready: threading.Event | None = None):
+    """A viser server whose websockets and page go through `refusal` first. A websocket is also refused
+    (503, with the reason) until `ready` is set (the studio is still being built) and while
+    `MAX_CONNECTIONS` are open; a message over `MAX_MESSAGE_BYTES` closes its connection (viser's own
+    limit is 50 MB, and a half-sent 49 MB frame per tab held 4.75 GB in 60 tabs)."""
     import viser  # the studio's own dependency: loaded only when a studio starts
     import websockets.asyncio.server as wss  # viser's transport: loaded only when a studio starts
+    from websockets.protocol import State  # viser's transport: loaded only when a studio starts
 
     original = wss.serve
     bound_loopback = is_loopback_bind(host)
+    live: set = set()  # the websockets let through and not yet closed (only the server's event loop touches it)
 
     def serve(handler, *args, process_request=None, **kwargs):
         def guarded(connection, request):
@@ -128,6 +146,17 @@ def start_viser(host: str, port: int, token: str | None, label: str = "apose stu
                              websocket=websocket)
             if reason is not None:
                 return connection.respond(http.HTTPStatus.FORBIDDEN, reason + "\n")
+            if websocket:
+                if ready is not None and not ready.is_set():
+                    return connection.respond(http.HTTPStatus.SERVICE_UNAVAILABLE,
+                                              "the studio is starting; the page connects again by itself\n")
+                live.difference_update([c for c in live if c.state is State.CLOSED])
+                if len(live) >= MAX_CONNECTIONS:
+                    log.warning("refused a websocket: %d are open, the limit", len(live))
+                    return connection.respond(http.HTTPStatus.SERVICE_UNAVAILABLE,
+                                              f"the studio has {MAX_CONNECTIONS} tabs connected, its limit: close "
+                                              "one, and this page connects by itself\n")
+                live.add(connection)
             if token is not None and not websocket:  # the page lives under /t/<token>/
                 from websockets.http11 import Request  # viser's transport: loaded only when a studio starts
 
@@ -135,6 +164,8 @@ def start_viser(host: str, port: int, token: str | None, label: str = "apose stu
                 request = Request(rest, request.headers)
             return process_request(connection, request) if process_request is not None else None
 
+        kwargs["max_size"] = MAX_MESSAGE_BYTES
+        kwargs["max_queue"] = MAX_QUEUED_FRAMES
         return original(handler, *args, process_request=guarded, **kwargs)
 
     import rich  # viser's console: loaded only when a studio starts

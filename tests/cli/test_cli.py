@@ -133,7 +133,8 @@ def test_malformed_inputs_get_one_clear_line(tiny_dir, gearbox_dataset, tmp_path
                           (("train-seg", gearbox_dataset, "--out", tmp_path / "no" / "m.pt"), "does not exist"),
                           (("train-seg", gearbox_dataset, "--out", "m.pt", "--epochs", "0"), "at least 1, got '0'"),
                           (("train-seg", gearbox_dataset, "--out", "m.pt", "--batch", "0"), "at least 1, got '0'"),
-                          (("studio", "--port", "70000"), "port number from 1 to 65535")]:
+                          (("studio", "--port", "70000"), "port number from 1 to 65535"),
+                          (("estimate", gearbox_dataset, "--step", "1", "--box", "1e309,0,10,10"), "expected four pixel numbers")]:
         r = run(*args)
         assert r.returncode != 0 and message in r.stderr and "unexpected" not in r.stderr, (args, r.stderr)
 
@@ -164,3 +165,22 @@ def test_demo_refuses_a_folder_it_did_not_make(tmp_path):
     r = run("demo", "--out", out, "--frames", "1", "--no-studio")
     assert r.returncode == 2 and "holds files that no apose render wrote (models/my_model.bin)" in r.stderr
     assert (out / "models" / "my_model.bin").read_text() == "checkpoint"
+
+
+def test_bidi_controls_are_escaped_and_long_values_shortened(tmp_path):
+    """#24 minors: a right-to-left override in a path was printed raw (the terminal shows 'x\\u202elmay.yaml'
+    as 'xyaml.yml'), and a 5000-character value was echoed whole in an error."""
+    from apose_studio.cli.common import printable, shorten_values
+
+    r = run("show", tmp_path / "x\u202elmay.yaml")
+    assert r.returncode == 2 and "\u202e" not in r.stderr and "x\\u202elmay.yaml" in r.stderr, r.stderr
+    for c in "\u202a\u202b\u202c\u202d\u202e\u2066\u2067\u2068\u2069\u200e\u200f\u061c\u2028\u2029\x1b\x9b":
+        assert c not in printable(f"a{c}b")
+    assert printable("tab\tnew\nline é ü 字") == "tab\tnew\nline é ü 字"
+    long_name = "d" * 300  # a name too long for the file system: the message names the path
+    r = run("show", tmp_path / f"{long_name}.yaml")
+    assert r.returncode == 2 and long_name not in r.stderr and "characters)" in r.stderr, r.stderr
+    assert max(map(len, r.stderr.splitlines())) < 400
+    text = shorten_values("score is " + "9" * 5000 + " ; write a finite number")
+    assert text.startswith("score is 9999") and "(5000 characters)" in text and text.endswith(" ; write a finite number")
+    assert shorten_values("a normal /path/to/file.yaml: 12 problems") == "a normal /path/to/file.yaml: 12 problems"

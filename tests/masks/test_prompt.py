@@ -133,3 +133,17 @@ def test_a_dark_base_keeps_its_sensor_holes(clutter_dataset):
         depth[truth & lower & (rng.random(truth.shape) < 0.85)] = 0.0
         m = prompted_mask(rgb, depth, f.camera, box=truth_box(truth)).mask
         assert (m & truth).sum() > 0.8 * truth.sum(), (f.im_id, (m & truth).sum() / truth.sum())
+
+
+def test_prompts_that_are_no_pixels_are_refused_by_the_parser():
+    """inf, 1e309 and NaN are no pixel numbers: refused as a PromptError naming the flag (the studio's typed
+    prompt and the API reach the parser without the CLI's own check)."""
+    from apose_studio.masks.prompt import PromptError, parse_box, parse_point
+
+    for text in ("1e309,1,2,3", "inf,1,2,3", "nan,1,2,3", "1,2,3"):
+        with pytest.raises(PromptError, match="--box .*: expected four pixel numbers"):
+            parse_box(text)
+    for text in ("-inf,2", "1e400,3", "nan,nan"):
+        with pytest.raises(PromptError, match="--point .*: expected two pixel numbers"):
+            parse_point(text)
+    assert parse_box("1.4,2.6,30,40") == (1, 3, 30, 40)

@@ -37,18 +37,21 @@ def _wait(cond, timeout=10.0):
 
 
 def test_an_upload_that_sends_more_than_it_declared_is_dropped(studio, tmp_path):
+    from .test_page_input import CAMERA
+
     st = studio()
     button = st.files.upload._impl.uuid
     with _page_socket(st) as ws:
-        _wait(lambda: st.server.get_clients())
+        _send(ws, **CAMERA)  # a page reports its camera first: until then nothing else it sends counts
+        assert _wait(lambda: st.server.get_clients())
         tid = str(uuid.uuid4())
         _send(ws, type="FileTransferStartUpload", source_component_uuid=button, transfer_uuid=tid, filename="x.stl",
               mime_type="model/stl", part_count=2, size_bytes=1024)  # declares 1 KB in two parts
         assert _wait(lambda: tid in _states(st))
         _send(ws, type="FileTransferPart", source_component_uuid=button, transfer_uuid=tid, part_index=0,
-              content=b"\0" * (4 * 2 ** 20))  # then sends 4 MB
-        assert _wait(lambda: tid not in _states(st)), "the transfer (and its 4 MB) is still buffered"
-        assert any("sent 4194304 bytes but declared 1024" in body for _, body, _ in st.notes)
+              content=b"\0" * 2 ** 19)  # then sends a 512 KiB part (a bigger message ends the connection)
+        assert _wait(lambda: tid not in _states(st)), "the transfer (and its 512 KiB) is still buffered"
+        assert any("sent 524288 bytes but declared 1024" in body for _, body, _ in st.notes)
         # a declared size over the limit, and a part count that does not fit the size, are refused at the start
         for size, parts in ((10 * 2 ** 30, 20480), (1024, 100000)):
             t2 = str(uuid.uuid4())
@@ -72,6 +75,32 @@ def test_an_upload_that_sends_more_than_it_declared_is_dropped(studio, tmp_path)
         _send(ws, type="FileTransferPart", source_component_uuid=button, transfer_uuid=t3, part_index=0, content=data)
         assert _wait(lambda: st.files.upload.value is not None and st.files.upload.value.content == data)
         assert t3 not in _states(st)
+
+
+def test_a_connection_that_ends_takes_its_unfinished_uploads_with_it(studio):
+    """Found attacking the fix: viser drops a closed tab's unfinished uploads only when the tab had reported
+    its camera; a socket that never did kept its buffered parts (up to the 400 MB in-flight cap, after
+    which every upload was refused). Now any connection's unfinished uploads go when it ends."""
+    from .test_page_input import CAMERA
+
+    st = studio()
+    button = st.files.upload._impl.uuid
+    start = dict(type="FileTransferStartUpload", source_component_uuid=button, filename="x.stl", mime_type="model/stl",
+                 part_count=2, size_bytes=2 ** 20)
+    with _page_socket(st) as ws:  # no camera: viser never counts it as a tab
+        _send(ws, **start, transfer_uuid="silent")
+        _send(ws, type="FileTransferPart", source_component_uuid=button, transfer_uuid="silent", part_index=0,
+              content=b"\0" * 2 ** 19)
+        assert _wait(lambda: "silent" in _states(st) and _states(st)["silent"]["transferred_bytes"] == 2 ** 19)
+    assert _wait(lambda: "silent" not in _states(st))
+    with _page_socket(st) as ws:
+        _send(ws, **CAMERA)
+        assert _wait(lambda: st.server.get_clients())
+        _send(ws, **start, transfer_uuid="tab")
+        _send(ws, type="FileTransferPart", source_component_uuid=button, transfer_uuid="tab", part_index=0,
+              content=b"\0" * 2 ** 19)
+        assert _wait(lambda: "tab" in _states(st) and _states(st)["tab"]["transferred_bytes"] == 2 ** 19)
+    assert _wait(lambda: "tab" not in _states(st))
 
 
 def test_an_assembly_naming_a_mesh_outside_the_workspace_is_refused(studio, tmp_path):

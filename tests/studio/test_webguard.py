@@ -1,4 +1,7 @@
-"""Who may connect (pure rules; tests/e2e drives them through a real server and browser) and the workspace."""
+"""Who may connect (pure rules; tests/e2e drives them through a real server and browser), the workspace, and
+how much a connection may hold."""
+
+import time
 
 import pytest
 
@@ -116,3 +119,84 @@ def test_rule_edges_pinned_by_mutation_testing():
     a, b = new_token(), new_token()
     assert a != b and len(a) >= 32 and check_token(a) == a  # 24 random bytes
     assert check_token("x" * 16) == "x" * 16  # 16 characters are enough, 15 are not (above)
+
+
+# ------------------------------------------------------------------ memory and connections (#24 M-e)
+
+
+def test_a_message_bigger_than_the_page_ever_sends_closes_its_connection_at_once(studio):
+    """viser took frames of up to 50 MB: 60 tabs each holding a half-sent 49 MB frame held 4.75 GB. The
+    page's biggest message is an upload part of 512 KiB: a frame that declares more is refused from its
+    header, before its payload is buffered, and only that connection ends."""
+    import websockets
+
+    from .test_page_input import Tab
+
+    st = studio()
+    other, tab = Tab(st), Tab(st)
+    n = 49 * 2 ** 20
+    tab.ws.socket.sendall(bytes([0x82, 0x80 | 127]) + n.to_bytes(8, "big") + b"\0\0\0\0" + b"\0" * 65536)
+    t0 = time.time()
+    with pytest.raises(websockets.ConnectionClosed) as e:
+        while time.time() - t0 < 5:
+            tab.ws.recv(timeout=5)  # what the studio sends meanwhile, then its close
+    assert e.value.rcvd is not None and e.value.rcvd.code == 1009  # "message too big", sent by the studio
+    button = st.files.upload._impl.uuid
+    other.send(type="FileTransferStartUpload", source_component_uuid=button, transfer_uuid="t", filename="a.stl",
+               mime_type="model/stl", part_count=2, size_bytes=2 ** 20)
+    other.send(type="FileTransferPart", source_component_uuid=button, transfer_uuid="t", part_index=0,
+               content=b"\0" * 2 ** 19)  # a part as the page sends it still arrives
+    other.settle()
+    assert st.server.gui._current_file_upload_states["t"]["transferred_bytes"] == 2 ** 19
+    other.close()
+
+
+def test_websockets_at_once_are_capped_with_a_clear_refusal(studio, monkeypatch):
+    import websockets
+
+    from apose_studio.studio import webguard
+
+    from .test_page_input import Tab
+
+    monkeypatch.setattr(webguard, "MAX_CONNECTIONS", 3)
+    st = studio()
+    tabs = [Tab(st) for _ in range(3)]
+    with pytest.raises(websockets.InvalidStatus) as e:
+        Tab(st)
+    assert e.value.response.status_code == 503 and b"3 tabs connected, its limit" in e.value.response.body
+    tabs.pop().close()
+    for _ in range(50):  # the slot frees once the server has seen the close
+        try:
+            tabs.append(Tab(st))
+            break
+        except websockets.InvalidStatus:
+            time.sleep(0.05)
+    assert len(tabs) == 3
+    for t in tabs:
+        t.close()
+
+
+def test_no_websocket_before_the_studio_is_ready():
+    """A page that connects while the studio is still being built (its screen of page input not yet in
+    place) is asked to come back, and it does by itself."""
+    import threading
+
+    import viser
+    import websockets.sync.client
+
+    from apose_studio.studio.webguard import start_viser
+
+    from ..conftest import free_port
+
+    ready = threading.Event()
+    server = start_viser("127.0.0.1", free_port(), "t" * 24, ready=ready)
+    url = f"ws://127.0.0.1:{server.get_port()}/t/{'t' * 24}/"
+    kw = dict(origin=f"http://127.0.0.1:{server.get_port()}", subprotocols=[f"viser-v{viser.__version__}"])
+    try:
+        with pytest.raises(websockets.InvalidStatus) as e:
+            websockets.sync.client.connect(url, **kw)
+        assert e.value.response.status_code == 503 and b"starting" in e.value.response.body
+        ready.set()
+        websockets.sync.client.connect(url, **kw).close()
+    finally:
+        server.stop()
