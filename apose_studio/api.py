@@ -98,7 +98,7 @@ def estimate_pose(rgb: np.ndarray, depth: np.ndarray, K, assembly, step: int, *,
         T_world_camera = table_frame(depth, cam)
         T_world_camera = np.eye(4) if T_world_camera is None else T_world_camera
     m, source = array_mask(rgb, depth, cam, mask, box, point)
-    view = View(depth, m, cam, np.asarray(T_world_camera, float))
+    view = View(depth, m, cam, np.asarray(T_world_camera, float), rgb=rgb, box=box)
     return run_registration(view, source, ctx, p, orientation_prior, t0, time.perf_counter() - t1, t_load=t_load)
 
 
@@ -113,6 +113,8 @@ def run_registration(view: View, source: str, ctx: StepContext, params: Params, 
     r = estimate_view(view, ctx, params, orientation_prior, trace_iterations)
     t2 = time.perf_counter()
     mask = view.mask
+    if r.reading:  # the estimate came from another reading of the mask (registration/hypotheses.py)
+        source = f"{source}, {r.reading}"
     if r.model_mask is not None:  # what the model shows at the pose: occluders in front and clutter beside it cut
         mask, source = r.model_mask, f"{source}, cut to the model's view"
     return pose_estimate(r, view.T_world_camera, ctx.view, mask, source,

@@ -14,7 +14,7 @@ model from `apose train-seg` (a .pt path), a mask image file, or a box / point p
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -188,11 +188,12 @@ def estimate_view(view: View, ctx: StepContext, params: Params, orientation_prio
 
 def estimate_frame(frame: Frame, ctx: StepContext, params: Params, mask_source: str = "gt",
                    orientation_prior: bool = False, trace_iterations: bool = False,
-                   mask: np.ndarray | None = None) -> RegistrationResult:
-    """Step `ctx`'s assembly pose in one frame, its mask from `mask_source` unless `mask` is given."""
+                   mask: np.ndarray | None = None, box: tuple[int, int, int, int] | None = None) -> RegistrationResult:
+    """Step `ctx`'s assembly pose in one frame, its mask from `mask_source` unless `mask` is given (`box`: the
+    prompt's box that gave it, View.box)."""
     if mask is None:
         mask = frame_mask(frame, mask_source)
-    return estimate_view(View.of(frame, mask), ctx, params, orientation_prior, trace_iterations)
+    return estimate_view(replace(View.of(frame, mask), box=box), ctx, params, orientation_prior, trace_iterations)
 
 
 def estimate_frames(views: list[View], ctx: StepContext, params: Params,

@@ -143,13 +143,15 @@ def summarise_step(step: int, scores: list[FrameScore], part: PartModel) -> dict
 
 def estimate_and_score(frame: Frame, ctx: StepContext, params: Params, mask_source: str = "gt",
                        orientation_prior: bool = False, trace_iterations: bool = False,
-                       mask: np.ndarray | None = None) -> tuple[RegistrationResult, FrameScore | None]:
+                       mask: np.ndarray | None = None,
+                       box: tuple[int, int, int, int] | None = None) -> tuple[RegistrationResult, FrameScore | None]:
     """Estimate one frame and score it against its ground truth (None for a capture without one).
-    The mask comes from `mask_source` unless given; a mask that is not the ground truth is scored too."""
+    The mask comes from `mask_source` unless given (`box`: the prompt's box that gave it); a mask that is
+    not the ground truth is scored too."""
     if mask is None:
         mask = frame_mask(frame, mask_source)
     result = estimate_frame(frame, ctx, params, orientation_prior=orientation_prior,
-                            trace_iterations=trace_iterations, mask=mask)
+                            trace_iterations=trace_iterations, mask=mask, box=box)
     if frame.T_world_part is None:
         return result, None
     return result, score_frame(frame, result, ctx.part, None if mask_source == "gt" else mask, ctx.base.symmetries)

@@ -65,6 +65,9 @@ class Params:
     retry_below: float = _p(0.95, "float", "retry RANSAC when the best start explains less than this share", 0, 1)
     upright: bool = _p(True, "bool", "where a table is seen, first search the yaw of the base standing on it as "
                        "modelled (CAD +z along the table's normal), then freely if that fits poorly")
+    free_after_upright: bool = _p(True, "bool", "when the upright search's pose fits poorly, search freely too and "
+                                  "keep the better (off for the mask's other readings: a reading that does not fit "
+                                  "upright is the wrong reading)")
     # --- priors and symmetry
     use_orientation_prior: bool = _p(False, "bool", "with no prior from the caller, take the CAD's orientation as "
                                      "one (the paper does)")
@@ -86,6 +89,9 @@ class Params:
                             0, 3600, unit="s")
     second_look: bool = _p(True, "bool", "a result that is not confident is estimated again on its mask cut to the "
                            "model's view at that pose; kept only if that one is confident")
+    mask_hypotheses: bool = _p(True, "bool", "a result that is not confident is estimated again on other readings of "
+                               "the mask (without what lies on the base or stands in front of it); the one whose model "
+                               "explains the frame best is kept")
 
     def voxel(self, diameter: float) -> float:
         return self.voxel_size_m if self.voxel_size_m else diameter / self.voxels_per_diameter
@@ -105,7 +111,8 @@ PRESETS: dict[str, dict[str, Any]] = {
                   icp_threshold_factor=0.4, icp_max_iterations=30, global_source="raycast",
                   source_camera=fov_camera(1280, 720, 60.0), use_symmetries=False, use_orientation_prior=True,
                   deterministic=False, global_voxel_factor=1.0, ransac_retry_iterations=0, use_flips=False,
-                  prior_fast_path=False, upright=False, polish_voxel_factor=0.0, max_seconds=0.0, second_look=False),
+                  prior_fast_path=False, upright=False, polish_voxel_factor=0.0, max_seconds=0.0, second_look=False,
+                  mask_hypotheses=False),
 }
 PRESET_PARAMS: dict[str, Params] = {name: Params(**over) for name, over in PRESETS.items()}
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from pathlib import Path
 
@@ -129,3 +130,39 @@ def mssd_to_truth(T_est, T_true, assembly: Path, part: str) -> float:
         _PART_MODELS[key] = load_parts(load_assembly(assembly))
     model = _PART_MODELS[key][part]
     return float(mssd(np.asarray(T_est, float), np.asarray(T_true, float), model.samples, model.symmetries))
+
+
+def rendered_frame(assembly: Path, step: int, im_id: int, **settings):
+    """Frame `im_id` of step `step` exactly as `apose render --seed S ...` writes it into a dataset (each frame is
+    seeded on its own, so it renders alone): its depth noise, depth in 0.1 mm steps, JPEG colour (quality 95),
+    the renderer's own visible masks and poses. `settings`: RenderSettings fields (seed, noise, clutter, ...)."""
+    import cv2
+    import numpy as np
+
+    from apose_studio.assembly.mesh import base_mesh, load_parts
+    from apose_studio.assembly.model import load_assembly
+    from apose_studio.data.dataset import Frame
+    from apose_studio.geometry import se3
+    from apose_studio.geometry.raycast import RayGrid
+    from apose_studio.synth.frame import RenderSettings, render_frame
+
+    asm = load_assembly(assembly)
+    models = load_parts(asm)
+    s = RenderSettings(**settings)
+    if asm.camera is not None:
+        s = dataclasses.replace(s, camera=asm.camera)
+    view = asm.step_view(step)
+    fr = render_frame(models, view, s, RayGrid(s.camera), np.random.default_rng([s.seed, step, im_id]),
+                      base_mesh(models, view))
+    depth_u16 = np.clip(np.round(fr.depth * 10000.0), 0, 65535).astype(np.uint16)  # as the dataset writes and reads it
+    depth = depth_u16.astype(np.float32) * np.float32(0.1 / 1000.0)
+    jpeg = cv2.imencode(".jpg", cv2.cvtColor(fr.rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 95])[1]
+    rgb = cv2.cvtColor(cv2.imdecode(jpeg, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    masks = {o.part: fr.labels == i for i, o in enumerate(fr.scene.objects) if o.part in view.T_base_members}
+    T_world_base = fr.scene.T_world_base
+    T_cam_world = se3.inv(fr.T_world_camera)  # the camera pose as scene_camera.json keeps it (R, t in mm) and reads it
+    R, t = T_cam_world[:3, :3].reshape(-1).tolist(), (T_cam_world[:3, 3] * 1000.0).tolist()
+    T_world_camera = se3.inv(se3.make_T(np.asarray(R, float).reshape(3, 3), np.asarray(t, float).reshape(3) / 1000.0))
+    return Frame(rgb=rgb, depth=depth, camera=s.camera, T_world_camera=T_world_camera, masks=masks,
+                 poses={}, step=step, part=view.part, base=tuple(view.base), T_base_part=view.T_base_part,
+                 T_world_base=T_world_base, T_world_part=T_world_base @ view.T_base_part, im_id=im_id)

@@ -26,7 +26,8 @@ def regenerated(tmp_path_factory):
     return out
 
 
-@pytest.mark.parametrize("name,n_parts,n_steps", [("helical_gearbox", 4, 3), ("planetary_reducer", 5, 4)])
+@pytest.mark.parametrize("name,n_parts,n_steps", [("helical_gearbox", 4, 3), ("planetary_reducer", 5, 4),
+                                                  ("desk_objects", 8, 4)])
 def test_committed_samples_are_what_the_script_makes(regenerated, name, n_parts, n_steps):
     committed, fresh = SAMPLES / name, regenerated / name
     assert (committed / "assembly.yaml").read_text() == (fresh / "assembly.yaml").read_text()
@@ -57,3 +58,15 @@ def test_planetary_sun_gear_sits_inside_the_housing():
     sun_centre = done["sun_gear"][:3, 3]
     lo, hi = housing.bounds
     assert np.all(sun_centre > lo) and np.all(sun_centre < hi)
+
+
+def test_desk_objects_are_household_sized_and_seen_by_a_kinect():
+    """The desk objects stand for LINEMOD-like captures: 10-25 cm roots, each the base of one step, and the
+    assembly carries the Kinect v1's intrinsics, so renders of it see them as that sensor would."""
+    asm = load_assembly(SAMPLES / "desk_objects" / "assembly.yaml")
+    models = load_parts(asm)
+    roots = [pid for pid in asm.parts if all(s.part != pid for s in asm.steps)]
+    assert sorted(roots) == ["hole_punch", "tin_box", "toy_duck", "watering_can"]
+    assert all(0.1 < models[pid].diameter < 0.25 for pid in roots), {pid: models[pid].diameter for pid in roots}
+    assert [asm.step_view(k).base[0] for k in range(1, 5)] == ["tin_box", "watering_can", "hole_punch", "toy_duck"]
+    assert asm.camera is not None and abs(asm.camera.fx - 572.4114) < 1e-6 and asm.camera.width == 640

@@ -210,7 +210,8 @@ def cmd_render(args) -> int:
     asm = load_assembly(args.assembly)
     settings = RenderSettings(frames=args.frames, seed=args.seed, noise=args.noise, noise_sigma_at_05m=args.noise_sigma,
                               base_pose=args.base_pose, distractors=args.distractors, clutter=args.clutter,
-                              views_per_scene=args.views_per_scene)
+                              views_per_scene=args.views_per_scene, depth_bias_m=args.depth_bias / 1000.0,
+                              misregistration_px=args.misregistration, base_fill=args.base_fill)
     if asm.camera is not None:
         settings = replace(settings, camera=asm.camera)
     for name, attr in (("yaw_range", "yaw_range_deg"), ("pitch_range", "pitch_range_deg"),
@@ -306,9 +307,19 @@ def _add_render(sub) -> None:
     p.add_argument("--distance-range", type=lambda t: _pair(t, "--distance-range"), metavar="MIN,MAX",
                    help="camera distance to the base centre, metres (default: the base fills 25-50%% of the image)")
     p.add_argument("--distractors", type=_count(0, 50), default=2, help="random boxes, cylinders and balls on the table (default 2)")
-    p.add_argument("--clutter", action="store_true",
-                   help="a cluttered bench: objects of the base's height standing against it and around it, the base "
-                   "off-centre in the image (tests prompted masks: --box / --point)")
+    p.add_argument("--clutter", nargs="?", const="bench", default="", metavar="KINDS",
+                   help="what a real bench adds, comma-separated (alone: bench): bench (objects of the base's height "
+                   "standing against it and around it, the base off-centre in the image), stacked (a flat object "
+                   "lying on top of the base), hidden (an object in front leaves 20-35%% of the base visible), "
+                   "textured (printed patterns on the table, the clutter and the base); tests prompted masks")
+    p.add_argument("--depth-bias", type=float, default=0.0, metavar="MM",
+                   help="added to every depth reading, millimetres (a Kinect reads a few mm off; default 0)")
+    p.add_argument("--misregistration", type=float, default=0.0, metavar="PX",
+                   help="the depth image shifted against the colour image by this many pixels, in a direction drawn "
+                   "per frame (masks and poses agree with the colour image; default 0)")
+    p.add_argument("--base-fill", type=lambda t: _pair(t, "--base-fill"), default=(0.25, 0.5), metavar="MIN,MAX",
+                   help="the share of the image's short side the base spans, which sets the camera distance unless "
+                   "--distance-range is given (default 0.25,0.5; a far, small base: 0.1,0.2)")
     p.add_argument("--overwrite", action="store_true", help="replace a dataset already in --out")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_render)

@@ -59,7 +59,7 @@ def cmd_estimate(args) -> int:
     ctx.base.warm_up(params)
     t1 = time.perf_counter()
     mask, source = find_mask(frame, request, asm, args.input[0])
-    est = run_registration(View.of(frame, mask), source, ctx, params, args.orientation_prior, t0,
+    est = run_registration(replace(View.of(frame, mask), box=request.box), source, ctx, params, args.orientation_prior, t0,
                            time.perf_counter() - t1, trace_iterations=True, t_load=t1 - t0)
     r = est.result
     sc = (score_frame(frame, r, ctx.part, None if source == "gt" else mask, ctx.base.symmetries)

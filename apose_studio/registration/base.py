@@ -57,6 +57,12 @@ class BaseObject:
             self._features[key] = NearGrid.around(np.asarray(self.model_features(voxel, p)[0].points), 2 * voxel)
         return self._features[key]
 
+    def samples_tree(self):
+        """k-d tree of the surface samples (base frame): a model point's normal is its nearest sample's."""
+        if "samples_tree" not in self._features:
+            self._features["samples_tree"] = quick_tree(self.samples)
+        return self._features["samples_tree"]
+
     def warm_up(self, p: "Params") -> None:
         """Compute the per-step pieces (model features, flips) now, so per-frame timings are per frame."""
         if p.global_source == "model":

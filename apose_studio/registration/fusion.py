@@ -62,9 +62,19 @@ def estimate_views(views: list[View], base: BaseObject, T_base_part: np.ndarray,
             problems[i] = _problem(views[i], base, T_base_part, params, first.voxel)
         except Degenerate as e:
             return failed(f"{_name(views[i], i)}: {e}", preset=params.preset, timings=first.timings)
-    at_first = {i: score_pose(problems[i], first.T_world_base) for i in order}  # each view at the first's pose
-    disagreement = _disagreement(problems, order, first.T_world_base, first.voxel, views, at_first)
-    if disagreement:
+    # the camera poses must agree at one of the first view's placements: its chosen one, or (when it is not
+    # confident: a coin flip between twins) one of its rivals; the other views then weigh them all (_weigh)
+    disagreement, at_first = "", None
+    for T in _placements(first, base):
+        at = {i: score_pose(problems[i], T) for i in order}  # each view at this pose of the first
+        why = _disagreement(problems, order, T, first.voxel, views, at)
+        if not why:
+            if T is not first.T_world_base:
+                first = replace(first, T_world_base=T, T_world_part=T @ T_base_part)
+            at_first = at
+            break
+        disagreement = disagreement or why
+    if at_first is None:
         return failed(disagreement + "; the views are not fused", preset=params.preset, timings=first.timings,
                       T_world_base=first.T_world_base, T_world_part=first.T_world_part)
     result = _weigh(first, problems, order, base, at_first, part_symmetries)
@@ -111,19 +121,27 @@ WEIGH_MARGIN = 0.15  # the first view's placements scoring within this of its be
 WEIGH_MAX = 6
 
 
+def _placements(first: RegistrationResult, base: BaseObject) -> list[np.ndarray]:
+    """The first view's placements (T_world_base) that every view weighs: its chosen one first; when it is
+    not confident, also its rivals within WEIGH_MARGIN (at most WEIGH_MAX) and every twin of the chosen
+    (the paper's pipeline keeps no candidates: its one pose is weighed)."""
+    voxel = first.voxel
+    poses = [first.T_world_base]
+    if not first.confident and first.candidates:  # a confident first view stands (one placement fits it)
+        top = max(c.score for c in first.candidates)
+        placements = [c for c in distinct_placements(first.candidates, voxel) if c.score >= top - WEIGH_MARGIN]
+        for T in [c.T_world_base for c in placements[:WEIGH_MAX]] + [
+                first.T_world_base @ S for S in list(base.symmetries[1:]) + list(base.close_twins)]:
+            if not any(poses_within(T, P, voxel, 2.0) for P in poses):
+                poses.append(T)
+    return poses
+
+
 def _weigh(first: RegistrationResult, problems: dict[int, Task], order: list[int],
            base: BaseObject, at_first: dict, part_symmetries: np.ndarray | None = None) -> RegistrationResult:
     """The first view's placements scored in every view; the chosen one polished on the fused cloud."""
     voxel = first.voxel
-    poses = [first.T_world_base]
-    if not first.confident and first.candidates:  # a confident first view stands (one placement fits it); else
-        # weigh its rivals (the paper's pipeline keeps no candidates: its one pose is weighed)
-        top = max(c.score for c in first.candidates)
-        placements = [c for c in distinct_placements(first.candidates, voxel) if c.score >= top - WEIGH_MARGIN]
-        for T in [c.T_world_base for c in placements[:WEIGH_MAX]] + [  # and every twin of the best
-                first.T_world_base @ S for S in list(base.symmetries[1:]) + list(base.close_twins)]:
-            if not any(poses_within(T, P, voxel, 2.0) for P in poses):
-                poses.append(T)
+    poses = _placements(first, base)
     weights = {i: len(problems[i].fine_pts) for i in order}
     total = float(sum(weights.values()))
     per_view = {i: [at_first[i] if k == 0 else score_pose(problems[i], T) for k, T in enumerate(poses)]

@@ -16,23 +16,34 @@ import numpy as np
 from apose_studio.geometry import se3
 from apose_studio.geometry.metrics import quick_tree
 from apose_studio.geometry.noise import estimate_depth_noise
+from apose_studio.geometry.sensor import quantisation_step
 from apose_studio.params import Params
 from apose_studio.registration.base import BaseObject, place_source, raycast_source
+from apose_studio.registration.hypotheses import explained, readings
 from apose_studio.registration.paper import estimate_paper
-from apose_studio.registration.refine import add_symmetric_twins, choose, polish_chosen, refine_candidates, select_starts
+from apose_studio.registration.refine import (
+    add_symmetric_twins,
+    choose,
+    polish_chosen,
+    polish_contenders,
+    refine_candidates,
+    select_starts,
+)
 from apose_studio.registration.scoring import (
     agreement_tolerance,
     depth_buffer,
     distinct_placements,
     evidence,
     mask_edge,
+    pose_spread,
     twin_placements,
 )
-from apose_studio.registration.searches import ModelSearch, search_poses, try_prior
+from apose_studio.registration.searches import ModelSearch, search_poses, table_plane, try_prior
 from apose_studio.registration.stages import project_to_cloud, trace_stages
 from apose_studio.registration.task import Task, prepare_task, scale_problem
 from apose_studio.registration.types import (
     CONFIDENT_COVERAGE,
+    CONFIDENT_SPREAD,
     MIN_POINTS,
     Degenerate,
     Observation,
@@ -48,7 +59,42 @@ def estimate(view: View, base: BaseObject, T_base_part: np.ndarray, params: Para
     """T_world_part for one view (its depth, the base's mask, the camera and its pose). Never raises on bad
     data: a degenerate input gives ok=False and a reason. `part_symmetries`: the part's own (T_part_part,
     identity first; PartModel.symmetries): placements of the part that differ by one of them are the same
-    placement, so they make no ambiguity."""
+    placement, so they make no ambiguity.
+
+    The mask as given first; when that estimate does not fit (and `params.mask_hypotheses`), the
+    mask's other readings too (hypotheses.readings: without what lies on the base, without what stands
+    in front), and the estimate whose model explains the frame best is returned (its `reading` names
+    the mask it came from)."""
+    first = estimate_mask(view, base, T_base_part, params, prior_T_world_base, trace_iterations, part_symmetries)
+    if first.fits or not params.mask_hypotheses or params.global_source == "raycast":
+        return first  # confident, or only ambiguous: a view problem that no reading of the mask can settle
+    t = time.perf_counter()
+    table = table_plane(view.depth, view.mask, view.camera, view.T_world_camera, seed=params.seed,
+                        base_size=base.diameter) if params.upright else None
+    tol = agreement_tolerance(params.voxel(base.diameter), first.depth_noise)
+    first_score = explained(first, view, base)
+    best, best_score, best_mask = first, first_score, view.mask
+    # each reading once, upright where a table is seen; the chosen one gets the second look below
+    quick = replace(params, second_look=False, free_after_upright=table is None)
+    for name, mask in readings(view, base, table, tol):
+        other = estimate_mask(replace(view, mask=mask), base, T_base_part, quick, prior_T_world_base,
+                              trace_iterations, part_symmetries)
+        score = explained(other, view, base)
+        if score > best_score or (not best.ok and other.ok):
+            best, best_score, best_mask = replace(other, reading=name), score, mask
+        if best.confident and best_score >= first_score:
+            break  # a confident reading that explains the frame at least as well: the others cannot do better
+    if best is not first and best.ok and not best.confident and params.second_look:
+        best = replace(second_look(best, replace(view, mask=best_mask), base, T_base_part, params, prior_T_world_base,
+                                   trace_iterations, part_symmetries), reading=best.reading)
+    seconds = time.perf_counter() - t
+    return replace(best, timings={**best.timings, "other readings": seconds})
+
+
+def estimate_mask(view: View, base: BaseObject, T_base_part: np.ndarray, params: Params,
+                  prior_T_world_base: np.ndarray | None = None, trace_iterations: bool = True,
+                  part_symmetries: np.ndarray | None = None) -> RegistrationResult:
+    """`estimate` on the view's mask as it is: PROJ3D, the searches, the judge, the second look."""
     depth, mask, cam, T_world_camera = view.depth, view.mask, view.camera, view.T_world_camera
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -125,8 +171,8 @@ def second_look(result: RegistrationResult, view: View, base: BaseObject, T_base
     cut = model_cut_mask(result, view, base)
     if cut.sum() < MIN_POINTS or cut.sum() >= view.mask.sum():
         return result
-    again = estimate(replace(view, mask=cut), base, T_base_part, replace(params, second_look=False), prior,
-                     trace_iterations, part_symmetries)
+    again = estimate_mask(replace(view, mask=cut), base, T_base_part, replace(params, second_look=False), prior,
+                          trace_iterations, part_symmetries)
     seconds = time.perf_counter() - t
     if not again.confident:
         return replace(result, timings={**result.timings, "second look": seconds})
@@ -139,15 +185,20 @@ def observe(depth: np.ndarray, mask: np.ndarray) -> Observation:
 
 
 def frame_noise(depth: np.ndarray, mask: np.ndarray) -> float:
-    """The depth noise (metres, one sigma) around the object: in its mask's box, twice as large. 0 when
-    it cannot be measured (too few pixels)."""
+    """The depth's error around the object (metres, one sigma): its noise in the mask's box, twice as
+    large (second differences), and the sensor's quantisation step q there (a uniform error of
+    sigma q / sqrt(12)): sqrt(noise^2 + q^2 / 12). A Kinect's steps (3 mm at 1 m, 7 mm at 1.6 m) leave
+    most second differences at zero, so the noise alone reads far too small. 0 when it cannot be
+    measured (too few pixels)."""
     ys, xs = np.nonzero(mask)
     h, w = mask.shape
     cy, cx, hy, hx = (ys.min() + ys.max()) / 2, (xs.min() + xs.max()) / 2, np.ptp(ys) + 1, np.ptp(xs) + 1
     region = np.zeros_like(mask, dtype=bool)
     region[max(int(cy - hy), 0):min(int(cy + hy) + 1, h), max(int(cx - hx), 0):min(int(cx + hx) + 1, w)] = True
     sigma = estimate_depth_noise(depth, region)
-    return sigma if np.isfinite(sigma) else 0.0
+    sigma = sigma if np.isfinite(sigma) else 0.0
+    q = quantisation_step(depth, mask)
+    return float(np.sqrt(sigma ** 2 + q ** 2 / 12.0))
 
 
 def estimate_default(pb: Task, prior: np.ndarray | None, trace_iterations: bool, timings: dict) -> RegistrationResult:
@@ -168,18 +219,20 @@ def estimate_default(pb: Task, prior: np.ndarray | None, trace_iterations: bool,
     timings["global"] = time.perf_counter() - t
     t = time.perf_counter()
     refined = refine_candidates(pb, select_starts(found, voxel, p.use_symmetries), trace_iterations)  # RCAST + ICP
+    polished = polish_contenders(pb, refined)  # the ones that could win, each at its best and on its own view
     if p.use_symmetries and refined:
-        add_symmetric_twins(pb, refined)
+        add_symmetric_twins(pb, refined)  # the best's twins (close twins fitted too)
     timings["icp"] = time.perf_counter() - t
     if not refined:
         raise Degenerate("the camera cannot see the base mesh at any candidate pose")
     chosen, close = choose(pb, refined, R_prior)  # scored; near-ties looked at where the placements differ
-    if p.polish_voxel_factor > 0:
+    if p.polish_voxel_factor > 0 and chosen not in polished:
         t = time.perf_counter()
         polish_chosen(pb, refined, chosen)
         timings["icp"] += time.perf_counter() - t
     result = compose(pb, refined, chosen, close, T_world_source, timings)  # T_world_part = T_world_base @ T_base_part
-    if found.upright and not result.fits and not pb.out_of_time("the free search after the upright one"):
+    if found.upright and not result.fits and p.free_after_upright and \
+            not pb.out_of_time("the free search after the upright one"):
         return better_of_free_search(result, pb, prior, trace_iterations, timings)  # not upright
     return replace(result, out_of_time="; ".join(pb.notes), problem=pb)
 
@@ -225,6 +278,56 @@ UNSUPPORTED_SHARE = 0.05  # fitness or coverage below this: the model explains (
 UNSUPPORTED_CONTRADICTION = 0.5  # the camera sees past more than this share of what the model shows
 
 
+TABLE_SLACK = 0.05  # the base's lowest point may lie this share of its diameter (or 3 tolerances) off the table
+
+
+def off_table(result: RegistrationResult, view: View, base: BaseObject, tol: float,
+              plane: tuple[np.ndarray, float] | None) -> float:
+    """How far the base at the result's pose lies above (+) or in (-) the table it stands on (`plane`, from
+    `searches.table_plane`), beyond TABLE_SLACK of its diameter or 3 tolerances: 0 when it rests on it, NaN
+    when no table is seen. A wrong pose fitted to an object in front of the base hangs in the air; a twin
+    turned over may sink into the table."""
+    if plane is None:
+        return float("nan")
+    normal, offset = plane
+    lowest = float(np.min(se3.transform_points(result.T_world_base, base.samples) @ normal + offset))
+    slack = max(TABLE_SLACK * base.diameter, 3 * tol)
+    return 0.0 if abs(lowest) <= slack else lowest - np.sign(lowest) * slack
+
+
+OUTLINE_RING_PX = (2, 5)  # the ring around the model's silhouette that outline_continuation looks at
+
+
+def outline_continuation(seen: np.ndarray, view: View, tol: float, plane: tuple[np.ndarray, float] | None,
+                         slack: float) -> float:
+    """The share of the ring just outside the model's silhouette (OUTLINE_RING_PX) where the depth goes on at
+    the depth of the model's edge beside it (within `tol`), leaving out the table around the base's foot
+    (within `slack` of `plane`). A real object's outline is mostly a depth step (background behind, an
+    occluder in front); a model laid onto part of a larger surface (a box face in front of the base) has
+    that surface running on past its outline all round. The table at the base's foot (within `slack` of
+    `plane`) does not count as running on. NaN when the ring has too few pixels with depth."""
+    zbuf = depth_buffer(seen, view.T_world_camera, view.camera).astype(np.float32)
+    shown = np.isfinite(zbuf)
+    if shown.sum() < MIN_POINTS:
+        return float("nan")
+    near_px, far_px = OUTLINE_RING_PX
+    inner = cv2.dilate(shown.astype(np.uint8), np.ones((2 * near_px + 1,) * 2, np.uint8)) > 0
+    outer = cv2.dilate(shown.astype(np.uint8), np.ones((2 * far_px + 1,) * 2, np.uint8)) > 0
+    ring = outer & ~inner
+    edge_depth = cv2.erode(np.where(shown, zbuf, np.float32(1e6)), np.ones((2 * far_px + 3,) * 2, np.uint8))
+    d = view.depth
+    valid = ring & np.isfinite(d) & (d > 0) & (edge_depth < 1e5)
+    if valid.sum() < MIN_POINTS:
+        return float("nan")
+    runs_on = valid & (np.abs(d - edge_depth) < tol)
+    if plane is not None:  # the table at the base's foot runs on past its outline by nature
+        vs, us = np.nonzero(runs_on)
+        pts = se3.transform_points(view.T_world_camera, view.camera.backproject(us, vs, d[vs, us]))
+        foot = pts @ plane[0] + plane[1] < slack
+        runs_on[vs[foot], us[foot]] = False
+    return float(runs_on.sum()) / float(valid.sum())
+
+
 def judge(result: RegistrationResult, view: View, base: BaseObject) -> RegistrationResult:
     """`ok` means a pose that the data supports. A result whose model explains (almost) none of the
     target, that the depth contradicts on most of what it shows (the camera sees past it: a part placed
@@ -249,7 +352,8 @@ def judge(result: RegistrationResult, view: View, base: BaseObject) -> Registrat
             d = quick_tree(seen).query(result.target_cloud, distance_upper_bound=tol)[0]
             coverage = float(np.mean(d < tol))
     if seen is not None and len(seen):
-        confirmed, contradicted = evidence(seen, T_world_camera, cam, depth, mask, ~(mask | mask_edge(mask)), tol)
+        confirmed, contradicted = evidence(seen, T_world_camera, cam, depth, mask, ~(mask | mask_edge(mask)), tol,
+                                           view.outside_box())
         contradiction = contradicted / max(confirmed + contradicted, 1)
     reason = None
     centre = se3.transform_points(se3.inv(T_world_camera) @ result.T_world_base, base.centre[None])[0]
@@ -270,5 +374,13 @@ def judge(result: RegistrationResult, view: View, base: BaseObject) -> Registrat
     if reason is None and contradiction > UNSUPPORTED_CONTRADICTION:
         reason = (f"the depth contradicts {contradiction:.0%} of what the model shows at this pose (the camera "
                   "sees past it): the mask holds something else")
-    judged = replace(result, coverage=coverage, contradiction=contradiction)
+    # the points' error: the frame's depth error, or the fit's own residual where larger (the model is not the
+    # object to the last millimetre), at least the tolerance's own scale (quantised or noise-free depth)
+    sigma = max(result.depth_noise, result.inlier_rmse, 0.25 * tol)
+    spread = pose_spread(result.target_cloud, result.T_world_base, base, sigma, tol)
+    plane = table_plane(depth, mask, cam, T_world_camera, base_size=base.diameter)
+    judged = replace(result, coverage=coverage, contradiction=contradiction, spread=spread,
+                     spread_allowed=CONFIDENT_SPREAD * base.diameter, off_table=off_table(result, view, base, tol, plane),
+                     continuation=outline_continuation(seen, view, tol, plane, max(TABLE_SLACK * base.diameter, 3 * tol))
+                     if seen is not None and len(seen) else float("nan"))
     return judged if reason is None else replace(judged, ok=False, reason=reason + "; no pose is reported")

@@ -93,6 +93,33 @@ def score_seen(pb: "Task", T_world_base: np.ndarray, src_w: np.ndarray, symmetry
                      coverage), src_w
 
 
+def pose_spread(target_world: np.ndarray, T_world_base: np.ndarray, base, sigma: float, tol: float) -> float:
+    """How far the data lets the pose move (metres): three sigmas of the least constrained rigid motion,
+    measured at the base's rim (rotations times its radius), from point-to-plane ICP's information matrix
+    over the target points within `tol` of the model, with the target's own normals (a plane fitted to each
+    point's 12 nearest: what the depth shows, not what the model has beyond it), each with depth noise
+    `sigma`. A target that is only a plane, or a cylinder's side, leaves the model free to slide or turn
+    over it. inf when fewer than 12 points match; NaN without a target (nothing to judge). Gelfand et al.
+    2003 ("geometrically stable sampling") use the same matrix to find the motions a point cloud cannot pin
+    down."""
+    if len(target_world) == 0:
+        return float("nan")
+    if len(target_world) < 12:
+        return float("inf")
+    pts = se3.transform_points(se3.inv(T_world_base), target_world)
+    d = base.samples_tree().query(pts, distance_upper_bound=tol)[0]
+    p = pts[d < tol]
+    if len(p) < 12:
+        return float("inf")
+    _, nb = quick_tree(p).query(p, k=12)
+    local = p[nb] - p[nb].mean(axis=1, keepdims=True)
+    n = np.linalg.eigh(np.einsum("nki,nkj->nij", local, local))[1][:, :, 0]  # each point's smallest spread direction
+    radius = base.diameter / 2
+    J = np.hstack([np.cross(p - p.mean(axis=0), n) / radius, n])  # (rim displacement of a turn, translation)
+    weakest = float(np.linalg.eigvalsh(J.T @ J)[0])
+    return 3.0 * sigma / np.sqrt(max(weakest, 1e-12))
+
+
 def depth_buffer(points_world: np.ndarray, T_world_camera: np.ndarray, cam: CameraIntrinsics) -> np.ndarray:
     """(H, W) the nearest depth of the points per pixel (inf where none): a model's depth image from the
     points a ray cast gave."""
@@ -103,11 +130,14 @@ def depth_buffer(points_world: np.ndarray, T_world_camera: np.ndarray, cam: Came
 
 
 def evidence(points_world: np.ndarray, T_world_camera, cam: CameraIntrinsics, depth_obs: np.ndarray,
-              mask: np.ndarray, outside: np.ndarray, tol: float) -> tuple[int, int]:
+              mask: np.ndarray, outside: np.ndarray, tol: float,
+              outside_box: np.ndarray | None = None) -> tuple[int, int]:
     """(confirmed, contradicted) among model points a candidate pose shows: confirmed where the mask
     holds the observed surface at that depth; contradicted where the camera sees past the claimed
-    surface (farther depth, or background outside the mask by more than MASK_MARGIN_PX). Points
-    behind something nearer are neither: an occluder hides them."""
+    surface (farther depth, or background outside the mask by more than MASK_MARGIN_PX), and, with a
+    prompt's `outside_box` (View.outside_box), where the model shows itself far outside the box the user
+    drew around all they see of the base (unless something nearer stands there). Points behind something
+    nearer are neither: an occluder hides them."""
     if len(points_world) == 0:
         return 0, 0
     v, u, z, inside = pixels(points_world, T_world_camera, cam)
@@ -117,6 +147,8 @@ def evidence(points_world: np.ndarray, T_world_camera, cam: CameraIntrinsics, de
     m = mask[v, u]
     confirmed = m & valid & (np.abs(d - z) < tol)
     contradicted = valid & (d > z + tol) & (m | outside[v, u])
+    if outside_box is not None:
+        contradicted |= outside_box[v, u] & ~(valid & (d < z - tol))
     return int(confirmed.sum()), int(contradicted.sum())
 
 

@@ -311,7 +311,9 @@ class InspectPanel:
             mask = depth_mask(frame.depth, frame.camera, keep=keep)
         if job.prompt is not None:
             mask = prompted_mask(self.app.state.inspect.prompt_masks, frame, job.prompt)
-        result, score = estimate_and_score(frame, ctx, params, job.mask, job.prior, trace_iterations=True, mask=mask)
+        box = job.prompt[0] if job.prompt is not None else None
+        result, score = estimate_and_score(frame, ctx, params, job.mask, job.prior, trace_iterations=True, mask=mask,
+                                           box=box)
         self.app.cache.put(job.key(self.app.cache, im_id), (result, score))
         return result, score
 

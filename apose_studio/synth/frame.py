@@ -21,9 +21,10 @@ from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.geometry.noise import NOISE_MODELS, add_depth_noise, noise_texture
 from apose_studio.geometry.raycast import RayGrid, body, pixel_window
-from apose_studio.synth.clutter import clutter_around
+from apose_studio.synth.clutter import Pattern, clutter_around, hide_base, stack_on
 
 BASE_POSES = ("yaw", "fixed")
+CLUTTER_KINDS = ("bench", "stacked", "hidden", "textured")  # what `--clutter` may combine (synth/clutter.py)
 
 
 @dataclass(frozen=True)
@@ -39,9 +40,25 @@ class RenderSettings:
     distance_range_m: tuple[float, float] | None = None  # None: chosen so the base fills 25-50 % of the image
     base_pose: str = "yaw"
     distractors: int = 2
-    clutter: bool = False  # a cluttered bench: objects of the base's height touching it and around it, base off-centre
+    # what a real bench and sensor add (any of CLUTTER_KINDS; True means ("bench",)): bench: objects of the base's
+    # height touching it and around it, the base off-centre; stacked: a flat object lying on top of the base;
+    # hidden: an object in front that hides 65-80 % of the base; textured: patterned table, clutter and base
+    clutter: tuple[str, ...] = ()
     views_per_scene: int = 1  # camera poses per placement of the base (an eye-in-hand camera's looks), >= 30 deg apart
     camera: CameraIntrinsics = field(default_factory=CameraIntrinsics)
+    depth_bias_m: float = 0.0  # added to every depth reading (a Kinect reads a few mm off)
+    misregistration_px: float = 0.0  # depth registered to the colour image this many pixels off, per frame in a
+    # random direction (the colour image, the masks and the poses agree; the depth is shifted)
+    base_fill: tuple[float, float] = (0.25, 0.5)  # share of the image's short side the base's diameter spans (sets the
+    # camera distance when distance_range_m is None)
+
+    def __post_init__(self):
+        if isinstance(self.clutter, bool):
+            object.__setattr__(self, "clutter", ("bench",) if self.clutter else ())
+        elif isinstance(self.clutter, str):
+            object.__setattr__(self, "clutter", tuple(k.strip() for k in self.clutter.split(",") if k.strip()))
+        else:
+            object.__setattr__(self, "clutter", tuple(self.clutter))
 
     def validate(self) -> None:
         def rng_ok(r, lo, hi, name, unit):
@@ -68,6 +85,21 @@ class RenderSettings:
                               "on the table around the base)")
         rng_ok(self.yaw_range_deg, -360, 720, "yaw", "degrees")
         rng_ok(self.pitch_range_deg, 1, 90, "pitch", "degrees")
+        unknown = [k for k in self.clutter if k not in CLUTTER_KINDS]
+        if unknown:
+            raise RenderError(f"--clutter {','.join(self.clutter)}: {unknown[0]!r} is not a kind of clutter; expected any of "
+                              f"{', '.join(CLUTTER_KINDS)}, comma-separated")
+        if "hidden" in self.clutter and self.views_per_scene > 1:
+            raise RenderError("--clutter hidden with --views-per-scene > 1: the object that hides the base stands in front "
+                              "of one camera; render the views of a placement without it")
+        if not -0.05 <= self.depth_bias_m <= 0.05:
+            raise RenderError(f"--depth-bias {self.depth_bias_m * 1000:g}: expected millimetres from -50 to 50")
+        if not 0 <= self.misregistration_px <= 20:
+            raise RenderError(f"--misregistration {self.misregistration_px:g}: expected pixels from 0 to 20")
+        a, b = self.base_fill
+        if not 0.02 <= a <= b <= 1.0:
+            raise RenderError(f"--base-fill {a:g},{b:g}: expected min,max with 0.02 <= min <= max <= 1 (the share of the "
+                              "image's short side the base spans)")
         if self.distance_range_m is not None and self.distance_range_m[0] <= 0:
             raise RenderError("--distance-range: expected positive distances in metres")
         rng_ok(self.distance_range_m, 1e-3, 100, "distance", "m")
@@ -85,6 +117,7 @@ class SceneObject:
     mesh: trimesh.Trimesh  # in the object's own frame
     T_world_obj: np.ndarray
     color: tuple[float, float, float]
+    pattern: Pattern | None = None  # printed on it (`--clutter textured`)
 
 
 @dataclass
@@ -95,6 +128,8 @@ class Scene:
     base_diameter: float
     table_color: tuple[float, float, float] = (0.6, 0.58, 0.55)
     table_radius: float = 2.0  # the table is a disc of this radius around the base
+    n_base: int = 1  # objects[:n_base] are the base object's members
+    table_pattern: Pattern | None = None  # printed on the table (`--clutter textured`)
 
     @property
     def table_label(self) -> int:
@@ -196,13 +231,48 @@ def sample_scene(models: dict[str, PartModel], view: StepView, settings: RenderS
         color = tuple(float(c) for c in rng.uniform(0.15, 0.95, 3))
         objects.append(SceneObject(None, mesh, _resting_pose(mesh, rng.uniform(0, 2 * np.pi), free_spot(r)), color))
     grey = float(rng.uniform(0.45, 0.75))
-    return Scene(objects, T_world_base, look, base_d, (grey, grey * 0.97, grey * 0.92), max(2.0, 20 * base_d))
+    scene = Scene(objects, T_world_base, look, base_d, (grey, grey * 0.97, grey * 0.92), max(2.0, 20 * base_d),
+                  n_base=len(view.T_base_members))
+    if "stacked" in settings.clutter:  # drawn after the objects above: they stay where they were (the camera, drawn
+        # next, moves)
+        on_top = stack_on(base.copy().apply_transform(T_world_base), rng)
+        if on_top is not None:
+            mesh, T = on_top
+            objects.append(SceneObject(None, mesh, T, tuple(float(c) for c in rng.uniform(0.15, 0.95, 3))))
+    if "textured" in settings.clutter:
+        for o in objects:
+            o.pattern = Pattern.draw(rng, base_d) if rng.random() < 0.7 else None
+        scene.table_pattern = Pattern.draw(rng, base_d, table=True)
+    return scene
 
 
-def auto_distance_range(base_diameter: float, cam: CameraIntrinsics) -> tuple[float, float]:
-    """Distances at which the base object fills 50 % down to 25 % of the image's short side."""
+def hide(scene: Scene, T_world_camera: np.ndarray, grid: RayGrid, rng: np.random.Generator) -> float:
+    """`--clutter hidden`: an object in front of the base that leaves 20-35 % of it visible (clutter.hide_base),
+    added to the scene; returns the share left visible by it alone."""
+    base = scene.objects[:scene.n_base]
+
+    def visible_share(mesh: trimesh.Trimesh, T: np.ndarray) -> float:
+        hits = cast(Scene(base + [SceneObject(None, mesh, T, (0, 0, 0))], scene.T_world_base, scene.base_centre,
+                          scene.base_diameter, n_base=len(base)), grid, T_world_camera)
+        full = np.zeros(hits.labels.shape, bool)
+        for i in range(len(base)):
+            if i in hits.windows:
+                (v0, v1, u0, u1), m = hits.windows[i]
+                full[v0:v1, u0:u1] |= m
+        return float((hits.labels[full] < len(base)).sum()) / max(int(full.sum()), 1)
+
+    mesh, T, share = hide_base([(o.mesh, o.T_world_obj) for o in base], T_world_camera, rng, visible_share)
+    colour = tuple(float(c) for c in rng.uniform(0.15, 0.95, 3))
+    pattern = Pattern.draw(rng, scene.base_diameter) if scene.table_pattern is not None else None
+    scene.objects.append(SceneObject(None, mesh, T, colour, pattern))
+    return share
+
+
+def auto_distance_range(base_diameter: float, cam: CameraIntrinsics,
+                        fill: tuple[float, float] = (0.25, 0.5)) -> tuple[float, float]:
+    """Distances at which the base object spans fill[1] down to fill[0] of the image's short side."""
     side = min(cam.width / cam.fx, cam.height / cam.fy)  # tan-extent of the short side at z = 1
-    return base_diameter / (0.5 * side), base_diameter / (0.25 * side)
+    return base_diameter / (fill[1] * side), base_diameter / (fill[0] * side)
 
 
 def sample_camera(rng: np.random.Generator, target: np.ndarray, settings: RenderSettings,
@@ -210,7 +280,7 @@ def sample_camera(rng: np.random.Generator, target: np.ndarray, settings: Render
     """T_world_camera on the hemisphere around `target`, looking at it."""
     yaw = math.radians(rng.uniform(*settings.yaw_range_deg))
     pitch = math.radians(rng.uniform(*settings.pitch_range_deg))
-    lo, hi = settings.distance_range_m or auto_distance_range(base_diameter, settings.camera)
+    lo, hi = settings.distance_range_m or auto_distance_range(base_diameter, settings.camera, settings.base_fill)
     dist = rng.uniform(lo, hi)
     eye = target + dist * np.array([math.cos(pitch) * math.cos(yaw), math.cos(pitch) * math.sin(yaw), math.sin(pitch)])
     return se3.look_at(eye, target)
@@ -277,10 +347,12 @@ def cast(scene: Scene, grid: RayGrid, T_world_camera: np.ndarray) -> Hits:
 # --------------------------------------------------------------------------------- appearance and noise
 
 
-def shade(hit: "Hits", scene: Scene, T_world_camera: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+def shade(hit: "Hits", scene: Scene, T_world_camera: np.ndarray, rng: np.random.Generator,
+          grid: RayGrid | None = None) -> np.ndarray:
     """Flat Lambert shading with a random key light, ambient and a weak headlight; slight sensor noise.
 
-    Computed only for the pixels each body covers, from its face normals (flat shading).
+    Computed only for the pixels each body covers, from its face normals (flat shading). Printed patterns
+    (`--clutter textured`) need `grid` (the pixels' rays) to find the surface point each pixel shows.
     """
     elev, azim = rng.uniform(0.5, 1.4), rng.uniform(0, 2 * np.pi)
     light = np.array([math.cos(elev) * math.cos(azim), math.cos(elev) * math.sin(azim), math.sin(elev)])
@@ -289,7 +361,12 @@ def shade(hit: "Hits", scene: Scene, T_world_camera: np.ndarray, rng: np.random.
     rgb = np.empty(hit.labels.shape + (3,), np.float32)
     rgb[:] = (0.08, 0.08, 0.1)  # background
     table_lit = ambient + key * max(light[2], 0.0) + 0.2 * max(float(-T_world_camera[2, 2]), 0.0)
-    rgb[hit.labels == scene.table_label] = np.asarray(scene.table_color) * table_lit
+    on_table = hit.labels == scene.table_label
+    if scene.table_pattern is not None and grid is not None:
+        rgb[on_table] = scene.table_pattern.colours(_surface_points(hit, on_table, T_world_camera, grid),
+                                                    scene.table_color) * table_lit
+    else:
+        rgb[on_table] = np.asarray(scene.table_color) * table_lit
     for i, o in enumerate(scene.objects):
         if i not in hit.windows:
             continue
@@ -309,12 +386,23 @@ def shade(hit: "Hits", scene: Scene, T_world_camera: np.ndarray, rng: np.random.
         lit = (ambient + key * np.clip(sign * (n @ (R.T @ light)), 0, None)
                + 0.2 * np.abs(facing) / np.maximum(np.linalg.norm(to_eye, axis=1), 1e-20))
         block = rgb[v0:v1, u0:u1]
-        block[sel] = np.asarray(o.color, np.float32)[None, :] * lit[:, None].astype(np.float32)
+        colour = np.asarray(o.color, np.float32)[None, :]
+        if o.pattern is not None and grid is not None:
+            window = np.zeros(hit.labels.shape, bool)
+            window[v0:v1, u0:u1] = sel
+            colour = o.pattern.colours(se3.transform_points(se3.inv(o.T_world_obj),
+                                                            _surface_points(hit, window, T_world_camera, grid)), o.color)
+        block[sel] = colour * lit[:, None].astype(np.float32)
     rgb = (np.clip(rgb * gain, 0, 1) * 255 + 0.5).astype(np.int16)
     h, w = rgb.shape[:2]
     dv, du = rng.integers(0, 64, 2)  # sensor noise: a random window of a fixed noise texture
     rgb += noise_texture(h, w)[dv:dv + h, du:du + w, None]
     return np.clip(rgb, 0, 255).astype(np.uint8)
+
+
+def _surface_points(hit: "Hits", pixels: np.ndarray, T_world_camera: np.ndarray, grid: RayGrid) -> np.ndarray:
+    """(N, 3) world points the chosen pixels show (row-major order, as rgb[pixels])."""
+    return se3.transform_points(T_world_camera, grid.dirs[pixels] * hit.depth[pixels][:, None])
 
 
 # --------------------------------------------------------------------------------- one frame
@@ -326,6 +414,8 @@ def render_frame(models: dict[str, PartModel], view: StepView, settings: RenderS
     the noise later (the dataset writer does that in its threads); the result is the same either way."""
     scene = sample_scene(models, view, settings, rng, base)
     T_world_camera = sample_camera(rng, scene.base_centre, settings, scene.base_diameter)
+    if "hidden" in settings.clutter:
+        hide(scene, T_world_camera, grid, rng)
     return view_of(scene, T_world_camera, grid, rng, settings if noise else None)
 
 
@@ -333,7 +423,7 @@ def view_of(scene: Scene, T_world_camera: np.ndarray, grid: RayGrid, rng: np.ran
             settings: RenderSettings | None = None) -> RenderedFrame:
     """The scene seen from T_world_camera; with `settings`, its depth noise added (else clean)."""
     hit = cast(scene, grid, T_world_camera)
-    rgb = shade(hit, scene, T_world_camera, rng)
+    rgb = shade(hit, scene, T_world_camera, rng, grid)
     frame = RenderedFrame(rgb, hit.depth, T_world_camera, scene, hit, int(rng.integers(2**62)))
     if settings is not None:
         frame.depth = noisy_depth(frame, settings)
@@ -341,5 +431,28 @@ def view_of(scene: Scene, T_world_camera: np.ndarray, grid: RayGrid, rng: np.ran
 
 
 def noisy_depth(frame: RenderedFrame, settings: RenderSettings) -> np.ndarray:
-    return add_depth_noise(frame.hits.depth, settings.noise, settings.noise_sigma_at_05m,
-                           np.random.default_rng(frame.noise_seed), settings.camera.fx, rgb=frame.rgb)
+    """The frame's depth as the sensor gives it: its noise model, then a constant bias (`depth_bias_m`) and the
+    depth image shifted against the colour image by `misregistration_px` in a direction drawn per frame."""
+    depth = add_depth_noise(frame.hits.depth, settings.noise, settings.noise_sigma_at_05m,
+                            np.random.default_rng(frame.noise_seed), settings.camera.fx, rgb=frame.rgb)
+    if settings.depth_bias_m:
+        depth = np.where(depth > 0, depth + np.float32(settings.depth_bias_m), 0).astype(np.float32)
+    if settings.misregistration_px:
+        du, dv = misregistration(frame.noise_seed, settings.misregistration_px)
+        depth = shift_image(depth, du, dv)
+    return depth
+
+
+def misregistration(noise_seed: int, px: float) -> tuple[int, int]:
+    """(du, dv): how far a frame's depth image is shifted against its colour image (`px` long, whole pixels,
+    its direction drawn from the frame's noise seed)."""
+    angle = np.random.default_rng([noise_seed, 1]).uniform(0, 2 * np.pi)
+    return int(round(px * np.cos(angle))), int(round(px * np.sin(angle)))
+
+
+def shift_image(image: np.ndarray, du: int, dv: int) -> np.ndarray:
+    """image moved du pixels right and dv down; what comes in at the border is 0 (no depth)."""
+    out = np.zeros_like(image)
+    h, w = image.shape[:2]
+    out[max(dv, 0):h + min(dv, 0), max(du, 0):w + min(du, 0)] = image[max(-dv, 0):h + min(-dv, 0), max(-du, 0):w + min(-du, 0)]
+    return out

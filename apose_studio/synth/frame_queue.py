@@ -8,7 +8,7 @@ from concurrent.futures import ThreadPoolExecutor
 from apose_studio.assembly.model import StepView
 from apose_studio.data.dataset import AnnotatedObject
 from apose_studio.data.outdir import write_manifest
-from apose_studio.synth.frame import RenderedFrame, RenderSettings, noisy_depth
+from apose_studio.synth.frame import RenderedFrame, RenderSettings, misregistration, noisy_depth
 
 
 class FrameQueue:
@@ -30,6 +30,8 @@ class FrameQueue:
                                    *fr.hits.object_stats(i)) for i in annotated]
         extra = {"T_world_base": fr.scene.T_world_base, "T_world_part": fr.scene.T_world_base @ view.T_base_part,
                  "T_world_camera": fr.T_world_camera, "placement": placement}
+        if self.settings.misregistration_px:  # how far the depth image lies from the colour image (du, dv pixels)
+            extra["depth_shift_px"] = misregistration(fr.noise_seed, self.settings.misregistration_px)
         fut = self.pool.submit(lambda: writer.write_images(im_id, fr.rgb, noisy_depth(fr, self.settings), objects))
         self.pending.append((writer, fut, (im_id, self.settings.camera, fr.T_world_camera, objects, extra)))
         self._settle(keep=4)

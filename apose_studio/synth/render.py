@@ -112,6 +112,8 @@ def _start_dataset(asm: Assembly, out, settings: RenderSettings, numbers: list[i
                          "yaw_range_deg": list(settings.yaw_range_deg),
                          "pitch_range_deg": list(settings.pitch_range_deg),
                          "distance_range_m": list(settings.distance_range_m) if settings.distance_range_m else "auto",
-                         "distractors": settings.distractors, "views_per_scene": settings.views_per_scene}}
+                         "distractors": settings.distractors, "views_per_scene": settings.views_per_scene,
+                         "clutter": list(settings.clutter), "depth_bias_m": settings.depth_bias_m,
+                         "misregistration_px": settings.misregistration_px, "base_fill": list(settings.base_fill)}}
     write_manifest(out, info)
     return obj_ids, info

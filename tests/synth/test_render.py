@@ -392,3 +392,105 @@ def test_a_capture_without_extrinsics_gets_the_table_as_its_world(gearbox_datase
     true = fr.T_world_camera  # the renderer's table is z = 0, z up
     assert abs(got[2, 3] - true[2, 3]) < 0.003, (got[2, 3], true[2, 3])  # camera height above the table
     assert abs(got[2, 2] - true[2, 2]) < 0.01  # the tilt of the optical axis against the table's normal
+
+
+def _one_frame(asm, models, settings, step=1, im_id=0):
+    """One frame as render_dataset makes it (seeded per frame), with its scene and clean depth."""
+    from apose_studio.assembly.mesh import base_mesh
+    from apose_studio.geometry.raycast import RayGrid
+    from apose_studio.synth.frame import render_frame
+
+    view = asm.step_view(step)
+    return render_frame(models, view, settings, RayGrid(settings.camera),
+                        np.random.default_rng([settings.seed, step, im_id]), base_mesh(models, view)), view
+
+
+@pytest.mark.parametrize("im_id", range(3))
+def test_a_stacked_object_lies_on_the_base(planetary, im_id):
+    """--clutter stacked: the last object touches the base's surface (within 1 mm, measured by Open3D's
+    distance from trimesh's samples of it to the base mesh, not by the code that placed it) and lies
+    higher than the base's middle."""
+    asm, models = planetary
+    s = RenderSettings(frames=1, seed=3, clutter="stacked", camera=SMALL_CAM)
+    fr, view = _one_frame(asm, models, s, im_id=im_id)
+    flat = fr.scene.objects[-1]
+    assert flat.part is None and flat.mesh.extents[2] < 0.35 * models["motor"].mesh.extents[2]
+    base = fr.scene.objects[0]
+    base_world = base.mesh.copy().apply_transform(base.T_world_obj)
+    surface = se3.transform_points(flat.T_world_obj, flat.mesh.sample(3000, seed=0))
+    assert surface_distance(base_world, surface).min() < 0.001  # touching the base
+    assert surface[:, 2].min() > 0.5 * base_world.bounds[1][2]  # on its top, not on the table beside it
+
+
+def test_hidden_leaves_a_fifth_to_a_third_of_the_base_visible(planetary):
+    """--clutter hidden with the camera 20-50 degrees up: an object stands between the base and the camera, and
+    the base's visible share (the renderer's labels over its unoccluded silhouette) is at most 35 % (20-35 %
+    by that object alone; the loose part and the distractors may hide more) and never nothing."""
+    asm, models = planetary
+    s = RenderSettings(frames=1, seed=3, clutter="hidden", pitch_range_deg=(20.0, 50.0), camera=SMALL_CAM)
+    shares = []
+    for im_id in range(4):
+        fr, view = _one_frame(asm, models, s, step=2, im_id=im_id)
+        n_base = fr.scene.n_base
+        full = np.zeros(fr.labels.shape, bool)
+        for i in range(n_base):
+            if i in fr.hits.windows:
+                (v0, v1, u0, u1), m = fr.hits.windows[i]
+                full[v0:v1, u0:u1] |= m
+        shares.append(float((fr.labels[full] < n_base).sum()) / full.sum())
+        screen = fr.scene.objects[-1]
+        eye = fr.T_world_camera[:3, 3]
+        assert np.linalg.norm(screen.T_world_obj[:2, 3] - eye[:2]) < np.linalg.norm(fr.scene.base_centre[:2] - eye[:2])
+    assert all(0.05 <= v <= 0.36 for v in shares) and np.median(shares) >= 0.12, shares
+
+
+def test_sensor_effects_are_recorded_and_reproducible(planetary, tmp_path):
+    """--depth-bias adds its millimetres to every reading and --misregistration shifts the depth against the
+    colour image by the recorded depth_shift_px (the same scene, the colour image and masks unchanged)."""
+    asm, models = planetary
+    base = RenderSettings(frames=2, seed=4, camera=SMALL_CAM)
+    render_dataset(asm, tmp_path / "plain", base, steps=[1], progress=False, models=models)
+    render_dataset(asm, tmp_path / "real", replace(base, depth_bias_m=0.003, misregistration_px=3.0), steps=[1],
+                   progress=False, models=models)
+    plain, real = Dataset(tmp_path / "plain"), Dataset(tmp_path / "real")
+    frames = json.loads((tmp_path / "real" / "test" / "000001" / "scene_assembly.json").read_text())["frames"]
+    for im_id in (0, 1):
+        a, b = plain.frame(1, im_id), real.frame(1, im_id)
+        du, dv = frames[str(im_id)]["depth_shift_px"]
+        assert 2 <= np.hypot(du, dv) <= 4
+        h, w = a.depth.shape
+        moved = np.zeros_like(a.depth)  # the plain depth moved as the render says, plus the bias
+        moved[max(dv, 0):h + min(dv, 0), max(du, 0):w + min(du, 0)] = a.depth[max(-dv, 0):h + min(-dv, 0),
+                                                                               max(-du, 0):w + min(-du, 0)]
+        both = (moved > 0) & (b.depth > 0)
+        assert both.sum() > 0.5 * both.size
+        np.testing.assert_allclose(b.depth[both] - moved[both], 0.003, atol=1.5e-4)
+        np.testing.assert_array_equal(a.base_mask(), b.base_mask())  # masks and poses keep to the colour image
+        np.testing.assert_array_equal(a.rgb, b.rgb)
+    info = json.loads((tmp_path / "real" / "dataset_info.json").read_text())["settings"]
+    assert info["depth_bias_m"] == 0.003 and info["misregistration_px"] == 3.0
+
+
+def test_textured_prints_patterns_on_the_table(planetary):
+    """--clutter textured: the table is no longer one grey (its luminance varies several times more than the
+    sensor noise alone makes it vary)."""
+    asm, models = planetary
+    spread = {}
+    for kinds in ("", "textured"):
+        fr, _ = _one_frame(asm, models, RenderSettings(frames=1, seed=4, clutter=kinds, camera=SMALL_CAM))
+        table = fr.labels == fr.scene.table_label
+        lum = fr.rgb[table].astype(float) @ [0.299, 0.587, 0.114]
+        spread[kinds] = np.percentile(lum, 95) - np.percentile(lum, 5)
+    assert spread["textured"] > 2 * spread[""], spread
+
+
+def test_bad_render_conditions_are_refused(planetary, tmp_path):
+    asm, models = planetary
+    ok = RenderSettings(frames=2, camera=SMALL_CAM)
+    for bad, match in [(dict(clutter="bench,piles"), "'piles' is not a kind of clutter"),
+                       (dict(clutter="hidden", views_per_scene=2), "--clutter hidden with --views-per-scene"),
+                       (dict(depth_bias_m=0.2), "--depth-bias 200"), (dict(depth_bias_m=float("nan")), "--depth-bias"),
+                       (dict(misregistration_px=-1.0), "--misregistration -1"),
+                       (dict(base_fill=(0.5, 0.2)), "--base-fill 0.5,0.2")]:
+        with pytest.raises(RenderError, match=match):
+            render_dataset(asm, tmp_path / "x", replace(ok, **bad), progress=False, models=models)

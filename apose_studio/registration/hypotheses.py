@@ -1,0 +1,156 @@
+"""Masks that the model checks: other readings of a frame's mask, and how well a pose explains the frame.
+
+A mask drawn from a prompt on a real desk takes in what touches the base: a tin lying on it, a box
+standing in front of it. The estimate on the mask as given is kept when it is confident; otherwise
+`pipeline.estimate` also estimates these readings of it, each a part of the mask:
+
+- *below the base's height*: without the pixels higher above the table than the base can reach
+  standing on it as modelled (what lies on top of it; needs a table in view);
+- *without colour k*: without one of the mask's two colour groups (k-means on chroma), when their
+  colours clearly differ (a red tin on a grey box; needs the view's RGB);
+- *without patch k*: without one of the mask's two largest depth patches (the mask split where the
+  depth jumps), when each part is large enough to hold the base (an object in front, a neighbour);
+
+and keeps the estimate whose model explains the most of the mask's depth with the least the camera
+sees past (`explained`): the mask and the pose are found together. The readings are pure functions of
+the view, the base and the table; `explained` is the judge's evidence counted over the whole mask.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from apose_studio.geometry import se3
+from apose_studio.geometry.noise import depth_edges
+from apose_studio.registration.base import BaseObject, raycast_source
+from apose_studio.registration.scoring import agreement_tolerance, depth_buffer, mask_edge
+from apose_studio.registration.types import MIN_POINTS, RegistrationResult, View
+
+MIN_READING_SHARE = 0.1  # a reading keeps at least this share of the mask's pixels (else it cannot hold the base)
+MIN_CUT_SHARE = 0.03  # ... and leaves out at least this share (else it is the mask as given)
+PATCHES = 2  # the largest depth patches each left out in turn
+MIN_CHROMA_GAP = 12.0  # two colour groups this far apart in Lab's (a, b) are two things, not one object's shading
+MAX_READINGS = 4  # at most this many other readings are estimated (in the order of the module doc)
+CONTRADICTION_WEIGHT = 2.0  # a pixel the camera sees past costs this many explained ones
+
+
+def readings(view: View, base: BaseObject, table: tuple[np.ndarray, float] | None, tol: float) -> list[tuple[str, np.ndarray]]:
+    """(name, mask) of the other readings of `view.mask` (see the module doc), each a part of it that
+    leaves out at least MIN_CUT_SHARE and keeps at least MIN_READING_SHARE of its pixels with depth, none
+    two alike. `table`: the world plane (unit normal towards the camera, offset) the base stands on, or
+    None; `tol`: how far a surface may lie off its place (metres)."""
+    mask, depth = view.mask, view.depth
+    valid = mask & np.isfinite(depth) & (depth > 0)
+    n = int(valid.sum())
+    if n < 2 * MIN_POINTS:
+        return []
+    out: list[tuple[str, np.ndarray]] = []
+
+    def add(name: str, reading: np.ndarray) -> None:
+        kept = int((reading & valid).sum())
+        if not (max(MIN_POINTS, MIN_READING_SHARE * n) <= kept <= (1 - MIN_CUT_SHARE) * n):
+            return
+        if any(_iou(reading, m) > 0.9 for _, m in out):
+            return
+        out.append((name, reading))
+
+    if table is not None:
+        add("below the base's height", mask & ~too_high(view, base, table, tol))
+    if view.rgb is not None and view.rgb.ndim == 3 and view.rgb.shape[2] == 3:
+        for k, group in enumerate(colour_groups(view.rgb, mask), start=1):
+            add(f"without colour {k}", mask & ~group)
+    for k, patch in enumerate(largest_patches(view.depth, mask, PATCHES), start=1):
+        add(f"without depth patch {k}", mask & ~patch)
+    return out[:MAX_READINGS]
+
+
+def colour_groups(rgb: np.ndarray, mask: np.ndarray, iterations: int = 10) -> list[np.ndarray]:
+    """The mask's pixels in two groups by colour (k-means on Lab's chroma a, b with lightness at a third of
+    its weight, so one object's faces lit differently stay together; started from the two most different
+    colours, so it is deterministic), each cleaned of specks; [] when the two groups' chroma lie less
+    than MIN_CHROMA_GAP apart or one is under MIN_READING_SHARE of the mask."""
+    lab = cv2.cvtColor(cv2.medianBlur(np.ascontiguousarray(rgb, dtype=np.uint8), 5), cv2.COLOR_RGB2LAB).astype(np.float32)
+    px = lab[mask] * np.float32([1 / 3, 1, 1])
+    if len(px) < 2 * MIN_POINTS:
+        return []
+    sample = px[:: max(1, len(px) // 3000)]
+    a = sample[np.argmax(np.linalg.norm(sample - np.median(sample, axis=0), axis=1))]
+    centres = np.stack([a, sample[np.argmax(np.linalg.norm(sample - a, axis=1))]])
+    for _ in range(iterations):
+        near = np.argmin(((sample[:, None, :] - centres[None]) ** 2).sum(axis=2), axis=1)
+        if np.bincount(near, minlength=2).min() == 0:
+            return []
+        centres = np.stack([sample[near == j].mean(axis=0) for j in range(2)])
+    if np.linalg.norm(centres[0, 1:] - centres[1, 1:]) < MIN_CHROMA_GAP:
+        return []
+    near = np.argmin(((px[:, None, :] - centres[None]) ** 2).sum(axis=2), axis=1)
+    groups = []
+    for j in range(2):
+        g = np.zeros(mask.shape, np.uint8)
+        g[mask] = near == j
+        g = cv2.morphologyEx(g, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)) > 0
+        if g.sum() < MIN_READING_SHARE * mask.sum():
+            return []
+        groups.append(g)
+    return groups
+
+
+def too_high(view: View, base: BaseObject, table: tuple[np.ndarray, float], tol: float) -> np.ndarray:
+    """(H, W) bool: masked pixels whose depth lies higher above the table than the base reaches standing
+    on it as modelled (its CAD z extent), by more than `tol`."""
+    mask, depth, cam = view.mask, view.depth, view.camera
+    vs, us = np.nonzero(mask & np.isfinite(depth) & (depth > 0))
+    pts = se3.transform_points(view.T_world_camera, cam.backproject(us, vs, depth[vs, us]))
+    normal, offset = table
+    lo, hi = np.asarray(base.mesh.bounds)
+    high = pts @ normal + offset > float(hi[2] - lo[2]) + tol
+    out = np.zeros(mask.shape, bool)
+    out[vs[high], us[high]] = True
+    return out
+
+
+def largest_patches(depth: np.ndarray, mask: np.ndarray, k: int) -> list[np.ndarray]:
+    """The `k` largest pieces of the mask split where the depth jumps (each at least MIN_READING_SHARE of
+    it), largest first: the base and what stands in front of or beside it at another depth."""
+    z = np.where(mask & np.isfinite(depth) & (depth > 0), depth, 0).astype(np.float32)
+    region = ((z > 0) & ~depth_edges(cv2.medianBlur(z, 5), rel=0.012, floor=0.004)).astype(np.uint8)
+    count, labels = cv2.connectedComponents(region, connectivity=4)
+    if count <= 2:
+        return []  # one piece: nothing to leave out
+    sizes = np.bincount(labels.ravel(), minlength=count)
+    sizes[0] = 0
+    total = int((z > 0).sum())
+    order = [i for i in np.argsort(-sizes, kind="stable")[:k] if sizes[i] >= MIN_READING_SHARE * total]
+    kernel = np.ones((5, 5), np.uint8)  # the patch and the edge pixels around it (split off with it)
+    return [(cv2.dilate((labels == i).astype(np.uint8), kernel) > 0) & mask for i in order]
+
+
+def explained(result: RegistrationResult, view: View, base: BaseObject) -> float:
+    """How well `result`'s pose explains the frame: masked pixels whose depth the model's surface there
+    confirms (within the agreement tolerance), less CONTRADICTION_WEIGHT times the pixels anywhere where
+    the camera sees past the model's surface (its outline's 2 px left out: mixed pixels) or where it shows
+    the base far outside the prompt's box. -inf for a failed result. Comparable across readings of one
+    mask: `view.mask` is the mask as given."""
+    if not result.ok or result.T_world_base is None:
+        return float("-inf")
+    seen, _ = raycast_source(base, result.T_world_base, view.T_world_camera, view.camera)
+    if len(seen) == 0:
+        return float("-inf")
+    zbuf = depth_buffer(seen, view.T_world_camera, view.camera)
+    shown = np.isfinite(zbuf)
+    d = view.depth
+    valid = shown & np.isfinite(d) & (d > 0)
+    tol = agreement_tolerance(result.voxel, result.depth_noise)
+    with np.errstate(invalid="ignore"):
+        confirmed = valid & view.mask & (np.abs(d - zbuf) < tol)
+        past = valid & (d > zbuf + tol) & ~mask_edge(shown)
+        box = view.outside_box()
+        if box is not None:  # shown where the user's box says the base is not (and nothing nearer hides it)
+            past |= shown & box & ~(valid & (d < zbuf - tol))
+    return float(confirmed.sum()) - CONTRADICTION_WEIGHT * float(past.sum())
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> float:
+    union = np.logical_or(a, b).sum()
+    return float(np.logical_and(a, b).sum()) / float(union) if union else 1.0

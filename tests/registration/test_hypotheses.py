@@ -1,0 +1,172 @@
+"""Masks that the model checks (registration/hypotheses.py) and the new confidence terms (pose spread, the
+table under the base, the outline), on synthetic scenes whose truth is built by hand; the render-based
+failure kinds of real desks are in test_real_desks.py."""
+
+import numpy as np
+import trimesh
+
+from apose_studio.geometry import se3
+from apose_studio.geometry.sensor import quantisation_step
+from apose_studio.registration import prepare_base
+from apose_studio.registration.hypotheses import colour_groups, explained, largest_patches, readings, too_high
+from apose_studio.registration.pipeline import off_table, outline_continuation
+from apose_studio.registration.scoring import pose_spread
+from apose_studio.registration.types import RegistrationResult, View
+
+from .conftest import CAM, synthetic_view
+
+
+def _box_base(extents=(0.1, 0.06, 0.05)):
+    """A box standing on the table (z = 0), its frame at the bottom centre."""
+    mesh = trimesh.creation.box(extents)
+    mesh.apply_translation([0, 0, extents[2] / 2])
+    return prepare_base(mesh, detect=False)
+
+
+def _table_scene(base, T_world_base, T_world_camera, extra=()):
+    """Depth of the table plane z = 0 with the base (and `extra` meshes, world frame) on it, exactly; the
+    base's own mask."""
+    from apose_studio.geometry.raycast import raycast_depth
+
+    u, v = np.meshgrid(np.arange(CAM.width), np.arange(CAM.height))
+    rays = np.stack([(u - CAM.cx) / CAM.fx, (v - CAM.cy) / CAM.fy, np.ones_like(u, float)], axis=-1)
+    R, o = T_world_camera[:3, :3], T_world_camera[:3, 3]
+    dz = rays @ R[2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        table = np.where(dz < 0, -o[2] / dz, np.inf)
+    z_base = raycast_depth(base.mesh, T_world_base, T_world_camera, CAM)
+    depth = np.minimum(table, np.where(np.isfinite(z_base), z_base, np.inf))
+    mask = np.isfinite(z_base) & (z_base <= depth)
+    for m in extra:
+        z = raycast_depth(m, np.eye(4), T_world_camera, CAM)
+        depth = np.minimum(depth, np.where(np.isfinite(z), z, np.inf))
+    mask &= np.isfinite(z_base) & (np.abs(depth - z_base) < 1e-6)
+    return np.where(np.isfinite(depth), depth, 0).astype(np.float32), mask
+
+
+CAMERA = se3.look_at([0.35, -0.3, 0.35], [0.0, 0.0, 0.03])
+
+
+def test_what_lies_on_the_base_is_too_high_to_be_it():
+    """A flat tin lying on a 50 mm box: its pixels stand higher above the table than the box reaches, the
+    box's own do not; the reading below the base's height leaves out the tin and keeps the box."""
+    base = _box_base()
+    tin = trimesh.creation.cylinder(radius=0.02, height=0.012)
+    tin.apply_translation([0.01, 0.0, 0.05 + 0.006])
+    depth, box_mask = _table_scene(base, np.eye(4), CAMERA, [tin])
+    from apose_studio.geometry.raycast import raycast_depth
+
+    z_tin = raycast_depth(tin, np.eye(4), CAMERA, CAM)
+    tin_mask = np.isfinite(z_tin) & (np.abs(z_tin - depth) < 1e-6)
+    mask = box_mask | tin_mask  # a prompt that took the tin in
+    view = View(depth, mask, CAM, CAMERA)
+    high = too_high(view, base, (np.array([0.0, 0.0, 1.0]), 0.0), tol=0.004)
+    assert (high & tin_mask).sum() > 0.5 * tin_mask.sum()  # the tin's top and the upper part of its side
+    assert (high & box_mask).sum() == 0
+    names = [n for n, _ in readings(view, base, (np.array([0.0, 0.0, 1.0]), 0.0), tol=0.004)]
+    assert names[0] == "below the base's height"
+
+
+def test_depth_patches_split_an_object_in_front():
+    """Two boxes at different depths in one mask split at the depth jump into two patches, largest first."""
+    depth = np.full((100, 120), 1.0, np.float32)
+    depth[20:80, 10:60] = 0.8  # the nearer, larger
+    depth[30:70, 70:110] = 0.9
+    mask = np.zeros(depth.shape, bool)
+    mask[20:80, 10:60] = mask[30:70, 70:110] = True
+    patches = largest_patches(depth, mask, 2)
+    assert len(patches) == 2
+    assert patches[0][50, 30] and not patches[0][50, 90] and patches[1][50, 90] and not patches[1][50, 30]
+
+
+def test_colour_groups_split_two_colours_not_one_objects_shading():
+    rgb = np.zeros((60, 80, 3), np.uint8)
+    rgb[:, :40] = (200, 40, 40)  # a red tin
+    rgb[:, 40:] = (120, 120, 125)  # on a grey box
+    mask = np.ones((60, 80), bool)
+    groups = colour_groups(rgb, mask)
+    assert len(groups) == 2 and {bool(g[30, 10]) for g in groups} == {True, False}
+    assert all(g[30, 10] != g[30, 70] for g in groups)
+    shaded = np.zeros_like(rgb)
+    shaded[:, :40] = (90, 90, 95)  # one grey object, one face lit, one in shade
+    shaded[:, 40:] = (160, 160, 168)
+    assert colour_groups(shaded, mask) == []
+
+
+def test_explained_prefers_the_true_pose_and_counts_what_the_camera_sees_past():
+    base = _box_base()
+    depth, mask = _table_scene(base, np.eye(4), CAMERA)
+    view = View(depth, mask, CAM, CAMERA)
+
+    def result(T):
+        return RegistrationResult(ok=True, T_world_base=T, voxel=base.diameter / 50, depth_noise=0.0)
+
+    right = explained(result(np.eye(4)), view, base)
+    assert right > 0.8 * mask.sum()
+    lifted = explained(result(se3.make_T(np.eye(3), [0.0, 0.0, 0.03])), view, base)  # floating 30 mm up
+    assert lifted < 0.5 * right
+    beside = explained(result(se3.make_T(np.eye(3), [0.2, 0.0, 0.0])), view, base)  # on bare table: seen past
+    assert beside < 0
+    boxed = View(depth, mask, CAM, CAMERA, box=(0, 0, 5, 5))  # a prompt box that holds none of it
+    assert explained(result(np.eye(4)), boxed, base) < 0
+    assert explained(RegistrationResult(ok=False), view, base) == float("-inf")
+
+
+def test_pose_spread_is_small_for_a_corner_and_large_for_a_plane():
+    base = _box_base()
+    rng = np.random.default_rng(0)
+    # three faces of the box meeting at a corner pin every motion down
+    pts = np.concatenate([np.c_[rng.uniform(-0.05, 0.05, 300), np.full(300, -0.03), rng.uniform(0, 0.05, 300)],
+                          np.c_[np.full(300, 0.05), rng.uniform(-0.03, 0.03, 300), rng.uniform(0, 0.05, 300)],
+                          np.c_[rng.uniform(-0.05, 0.05, 300), rng.uniform(-0.03, 0.03, 300), np.full(300, 0.05)]])
+    corner = pose_spread(pts, np.eye(4), base, sigma=0.001, tol=0.003)
+    top = pose_spread(pts[600:], np.eye(4), base, sigma=0.001, tol=0.003)  # the top face alone: it slides freely
+    assert corner < 0.001 and top > 100 * corner
+    assert pose_spread(pts[:5], np.eye(4), base, 0.001, 0.003) == float("inf")  # too few points to say
+
+
+def test_a_pose_that_floats_or_sinks_is_off_the_table():
+    base = _box_base()
+    view = View(np.zeros((480, 640), np.float32), np.zeros((480, 640), bool), CAM, CAMERA)
+    table = (np.array([0.0, 0.0, 1.0]), 0.0)
+
+    def result(z):
+        return RegistrationResult(ok=True, T_world_base=se3.make_T(np.eye(3), [0, 0, z]))
+
+    assert off_table(result(0.002), view, base, 0.002, table) == 0.0  # within the slack (5 % of 0.122 m)
+    assert abs(off_table(result(0.05), view, base, 0.002, table) - (0.05 - 0.05 * base.diameter)) < 1e-9
+    assert off_table(result(-0.03), view, base, 0.002, table) < 0
+    assert np.isnan(off_table(result(0.05), view, base, 0.002, None))
+
+
+def test_a_model_laid_onto_a_larger_surface_has_it_running_past_its_outline():
+    """The base's true outline on the table is a depth step but for its foot; the same box laid against a
+    wall that goes on past it has the wall running past its outline all round."""
+    base = _box_base()
+    from apose_studio.geometry.raycast import raycast_points
+
+    depth, mask = _table_scene(base, np.eye(4), CAMERA)
+    seen, _ = raycast_points(base.mesh, np.eye(4), CAMERA, CAM)
+    view = View(depth, mask, CAM, CAMERA)
+    slack = 0.05 * base.diameter
+    on_table = outline_continuation(seen, view, 0.004, (np.array([0.0, 0.0, 1.0]), 0.0), slack)
+    assert on_table < 0.2
+    # a wall: the box's front face extended far beyond it, at the face's depth
+    T = se3.make_T(np.eye(3), [0.0, 0.0, 0.0])
+    _, wall_mask = synthetic_view(base, T, CAMERA)
+    z_face = np.where(wall_mask, depth, 0)
+    wall = np.full(depth.shape, float(np.median(z_face[wall_mask])), np.float32)
+    wall[wall_mask] = depth[wall_mask]
+    seen_w, _ = raycast_points(base.mesh, T, CAMERA, CAM)
+    laid = outline_continuation(seen_w, View(wall, wall_mask, CAM, CAMERA), 0.02, None, slack)
+    assert laid > 0.5
+
+
+def test_quantisation_step_is_read_off_the_depth():
+    rng = np.random.default_rng(0)
+    z = 1.0 + rng.normal(0, 0.002, (100, 100))
+    region = np.ones(z.shape, bool)
+    steps = np.round(z / 0.003) * 0.003  # a Kinect-like 3 mm step at 1 m
+    assert abs(quantisation_step(steps.astype(np.float32), region) - 0.003) < 2e-4
+    assert quantisation_step((np.round(z / 0.0001) * 0.0001).astype(np.float32), region) < 3e-4  # 0.1 mm PNG steps
+    assert quantisation_step(np.zeros((100, 100), np.float32), region) == 0.0
