@@ -18,7 +18,9 @@ class Problem:
     what: str
 
     def __str__(self) -> str:
-        return f"{self.file}: {self.key}: {self.what}" if self.key else f"{self.file}: {self.what}"
+        from apose_studio.safeio import escaped  # a key is the file's own text: "p\nfake" must not forge a line
+
+        return f"{self.file}: {escaped(self.key)}: {self.what}" if self.key else f"{self.file}: {self.what}"
 
 
 class AssemblyError(AposeError):

@@ -31,13 +31,16 @@ import json
 import logging
 import os
 import pickle
+import re
 import resource
 import select
 import signal
 import stat
 import struct
+import threading
 import time
 import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
@@ -72,15 +75,79 @@ class Limits:
 LIMITS = Limits()
 
 
+# Characters that never belong in a name, a path or a line of text from outside: C0 and C1 controls
+# and DEL (ESC sequences retitle or clear a terminal; a newline forges a line of output), and the
+# Unicode characters that reorder, hide or break text (bidi embeddings, overrides, isolates and marks,
+# zero-width characters, the line and paragraph separators): "x\u202elmay.yaml" shows as "xyaml.yml".
+# The CLI escapes them in what it prints (cli/common.printable, all but tab, newline and \r); names,
+# paths and one-line fields refuse them (`unsafe_char`).
+CONTROL_CODES = (*range(0x20), 0x7F, *range(0x80, 0xA0))
+INVISIBLE_CODES = (0x061C, *range(0x200B, 0x2010), 0x2028, 0x2029, *range(0x202A, 0x202F), 0x2060,
+                   *range(0x2066, 0x206A), 0xFEFF)
+_UNSAFE = re.compile("[" + "".join(re.escape(chr(c)) for c in (*CONTROL_CODES, *INVISIBLE_CODES)) + "]")
+
+
+def unsafe_char(text: str, allow: str = "") -> str | None:
+    """The first character of `text` that is a control or invisible character (see above), shown as an
+    escape (\\x0a, \\u202e), or None; `allow`: characters that may stay (a multi-line field's newline)."""
+    for m in _UNSAFE.finditer(text):
+        if m[0] not in allow:
+            c = ord(m[0])
+            return f"\\x{c:02x}" if c < 0x100 else f"\\u{c:04x}"
+    return None
+
+
+def escaped(text: str, allow: str = "") -> str:
+    """`text` with every control or invisible character but those in `allow` shown as its escape."""
+    return _UNSAFE.sub(lambda m: m[0] if m[0] in allow else unsafe_char(m[0]), text)
+
+
 def check_path_text(path: str | os.PathLike, what: str = "path") -> Path:
-    """`path` as a Path, or an AposeError for a NUL byte or an over-long name."""
+    """`path` as a Path, or an AposeError for a NUL byte, a control or invisible character (a newline,
+    ESC, a bidi override: a name that would forge or disguise output), or an over-long name."""
     text = os.fspath(path)
     if "\x00" in text:
         raise AposeError(f"{what} {text[:60]!r}...: contains a NUL byte; type the path again")
+    bad = unsafe_char(text)
+    if bad is not None:
+        raise AposeError(f"{what} {escaped(text[:120])}: holds the control or "
+                         f"invisible character {bad}; rename the file (or folder) without it")
     if len(text) > LIMITS.path_chars:
         raise AposeError(f"{what} of {len(text)} characters: longer than the {LIMITS.path_chars} a path may have; "
                          "use a shorter path")
     return Path(text)
+
+
+_READS = threading.local()  # .roots: the folders this thread may read files from (None: anywhere)
+
+
+@contextmanager
+def reads_within(roots):
+    """Inside this block, every file this thread opens through safeio must really lie under one of
+    `roots` (resolved after opening, links followed), else an AposeError names where it leads. The
+    studio runs every page action inside it, so no path into the file readers (a typed path, a folder's
+    listing, a link inside the workspace, a file an assembly or a dataset names) reads outside.
+    `roots=None`: no limit."""
+    previous = getattr(_READS, "roots", None)
+    _READS.roots = None if roots is None else tuple(Path(r).resolve() for r in roots)
+    try:
+        yield
+    finally:
+        _READS.roots = previous
+
+
+def _check_within(fd: int, path: Path) -> None:
+    roots = getattr(_READS, "roots", None)
+    if roots is None:
+        return
+    try:
+        real = Path(os.readlink(f"/proc/self/fd/{fd}"))  # the file that was opened, not a name re-resolved later
+    except OSError:
+        real = Path(os.path.realpath(path))
+    if not any(real == r or real.is_relative_to(r) for r in roots):
+        os.close(fd)
+        raise AposeError(f"{path}: leads outside the studio's workspace (to {real}); the studio reads only there. "
+                         "Move the file in, or restart with --root covering it.")
 
 
 def open_regular(path: str | os.PathLike, what: str = "a file") -> tuple[int, os.stat_result]:
@@ -107,6 +174,7 @@ def open_regular(path: str | os.PathLike, what: str = "a file") -> tuple[int, os
         if stat.S_ISDIR(st.st_mode):
             raise AposeError(f"{path}: a folder, not a file; choose {what} inside it")
         raise AposeError(f"{path}: not a regular file (a pipe, device or socket); choose {what}")
+    _check_within(fd, path)
     return fd, st
 
 
@@ -164,8 +232,8 @@ def read_text(path: str | os.PathLike, what: str = "a text file", limit: int = L
 
 
 def parse_json(text: str, where: str):
-    """Strict JSON (no NaN/Infinity, numbers of at most 300 digits, bounded nesting) or an AposeError
-    naming `where`."""
+    """Strict JSON (no NaN/Infinity, numbers of at most 300 digits, no key twice in an object, bounded
+    nesting) or an AposeError naming `where`."""
     def constant(name):
         raise ValueError(f"{name} is not JSON; write a number")
 
@@ -182,8 +250,16 @@ def parse_json(text: str, where: str):
             raise ValueError(f"{s} is too large for a number")
         return v
 
+    def unique(pairs):  # two values for one key: two readers would read two files (YAML refuses them too)
+        out = {}
+        for k, v in pairs:
+            if k in out:
+                raise ValueError(f"the key {escaped(k[:60])!r} is given twice; keep one")
+            out[k] = v
+        return out
+
     try:
-        return json.loads(text, parse_constant=constant, parse_int=number, parse_float=real)
+        return json.loads(text, parse_constant=constant, parse_int=number, parse_float=real, object_pairs_hook=unique)
     except json.JSONDecodeError as e:
         raise AposeError(f"{where}: not valid JSON (line {e.lineno}, column {e.colno}: {e.msg})") from None
     except ValueError as e:

@@ -225,7 +225,7 @@ def test_what_no_count_bounds_is_cut_at_the_memory_and_cpu_limits(tmp_path, monk
     limits(monkeypatch, parse_memory_bytes=64 * 2 ** 20, parse_cpu_seconds=1)
     monkeypatch.setattr(trimesh, "load", lambda *a, **k: [np.ones(2 ** 24) for _ in range(100)])
     with pytest.raises(MeshError, match=r"part.obj: reading this OBJ file needed more than 64.0 MB of memory \(the most "
-                                        r"it may use\); decimate the part .*as binary STL, PLY or GLB"):
+                                        r"it may use\); decimate the part .*if it is large; else export it again as one plain mesh: binary STL, PLY or GLB"):
         load_mesh(tmp_path / "part.obj")
     monkeypatch.setattr(trimesh, "load", spin)
     t0 = time.time()
@@ -441,3 +441,142 @@ def test_an_assembly_loads_with_its_meshes_read_in_children(tiny_dir):
     M._MESH_CACHE.clear()
     models = load_parts(load_assembly(tiny_dir / "assembly.yaml"))
     assert sorted(models) == ["cap", "peg", "plate"] and len(models["plate"].mesh.faces) == 12
+
+
+# ---------------------------------------------------------------- second outside attack (#24): the neighbours
+
+
+def test_an_obj_with_a_material_switch_per_face_reads_in_a_second(tmp_path):
+    """10 MB, 150 000 triangles, one `usemtl` per face (some CAD exporters write it): 30 s of CPU and
+    "decimate the part". Materials are never used, so their lines are dropped before the parse."""
+    k = 80
+    v = [f"v {i} {j} {(i * j) % 7}" for i in range(k) for j in range(k)]
+    f = []
+    for i in range(k - 1):
+        for j in range(k - 1):
+            a = i * k + j + 1
+            f += [f"usemtl m{len(f)}", f"f {a} {a + 1} {a + k}", f"usemtl m{len(f) + 1}", f"f {a + 1} {a + k + 1} {a + k}"]
+    (tmp_path / "mtl.obj").write_text("mtllib nowhere.mtl\n" + "\n".join(v + f) + "\n")
+    t0 = time.process_time()
+    mesh = load_mesh(tmp_path / "mtl.obj", "mm")
+    assert len(mesh.faces) == 2 * (k - 1) ** 2 and time.process_time() - t0 < 10
+
+
+def test_gltf_node_trees_are_bounded_from_the_json(tmp_path):
+    """A one-triangle glTF with 100 000 nested nodes spent the whole 30 s CPU limit."""
+    o, x, y, z = [0, 0, 0], [0.1, 0, 0], [0, 0.1, 0], [0, 0, 0.1]
+    tri = np.array([o, y, x, o, x, z, o, z, y, x, y, z], np.float32).tobytes()  # a tetrahedron, 4 triangles
+
+    def gltf(nodes):
+        return json.dumps({"asset": {"version": "2.0"}, "scenes": [{"nodes": [0]}], "nodes": nodes,
+                           "meshes": [{"primitives": [{"attributes": {"POSITION": 0}}]}],
+                           "accessors": [{"bufferView": 0, "componentType": 5126, "count": 12, "type": "VEC3",
+                                          "min": [0, 0, 0], "max": [0.1, 0.1, 0.1]}],
+                           "bufferViews": [{"buffer": 0, "byteLength": 144}],
+                           "buffers": [{"byteLength": 144, "uri": "data:application/octet-stream;base64,"
+                                        + base64.b64encode(tri).decode()}]})
+
+    chain = lambda n: [{"children": [i + 1]} for i in range(n - 1)] + [{"mesh": 0}]  # noqa: E731
+    for n, message in ((M.GLTF_MAX_NODES + 1, "nodes, over the"), (M.GLTF_MAX_DEPTH + 1, "nested over")):
+        (tmp_path / "deep.gltf").write_text(gltf(chain(n)))
+        t0 = time.time()
+        with pytest.raises(MeshError, match=message):
+            load_mesh(tmp_path / "deep.gltf")
+        assert time.time() - t0 < 5
+    (tmp_path / "ok.gltf").write_text(gltf(chain(M.GLTF_MAX_DEPTH)))
+    assert len(load_mesh(tmp_path / "ok.gltf").faces) == 4
+
+
+def test_a_json_key_given_twice_is_refused():
+    """camera.json with "depth_scale" twice used the last one silently (YAML and TIFF refuse repeats)."""
+    with pytest.raises(AposeError, match="the key 'depth_scale' is given twice"):
+        safeio.parse_json('{"depth_scale": 1, "cx": 2, "depth_scale": 1e-9}', "camera.json")
+    assert safeio.parse_json('{"a": {"k": 1}, "b": {"k": 2}}', "x") == {"a": {"k": 1}, "b": {"k": 2}}
+
+
+def test_names_paths_and_keys_cannot_forge_or_disguise_output(tiny_dir, tmp_path):
+    """A newline in an assembly's name or a part id forged an `error:` line; ESC, bidi and line
+    separators in file names reached the terminal and the disk. Names refuse them; keys echoed in
+    messages and paths show them as escapes."""
+    from apose_studio.errors import AssemblyError
+
+    text = (tiny_dir / "assembly.yaml").read_text()
+    for bad, where in (('name: "bad\\n error: fake"', "name: holds the control or invisible character \\x0a"),
+                       ('name: "a\\u202egpj"', "name: holds the control or invisible character \\u202e")):
+        (tiny_dir / "bad.yaml").write_text(text.replace("name: ", bad + " #", 1))
+        with pytest.raises(AssemblyError) as e:
+            load_assembly(tiny_dir / "bad.yaml")
+        assert where in str(e.value) and "\n error: fake" not in str(e.value)
+    (tiny_dir / "bad.yaml").write_text(text.replace("parts:\n", 'parts:\n  "p\\nerror: fake":\n    mesh: x.stl\n', 1))
+    with pytest.raises(AssemblyError) as e:
+        load_assembly(tiny_dir / "bad.yaml")
+    assert all(line.startswith(str(tiny_dir / "bad.yaml")) for line in str(e.value).splitlines()), str(e.value)
+    for c in "\n\r\x1b\x85\u2028\u202e\u200b\ufeff":
+        with pytest.raises(AposeError, match="control or invisible character"):
+            safeio.check_path_text(f"meshes/a{c}b.stl", "mesh")
+    assert safeio.check_path_text("meshes/Zahnrad é 字.stl") is not None
+
+
+def test_poses_in_an_assembly_file_are_bounded_at_their_key(tiny_dir):
+    """`translation: [1e308, 0, 10]` rendered 1e305 m; `euler_deg: [1e308, 0, 0]` was taken too."""
+    from apose_studio.errors import AssemblyError
+
+    text = (tiny_dir / "assembly.yaml").read_text()
+    for old, new, message in (("[10, 0, 5]", "[1e308, 0, 5]", r"pose_in_base.translation\[0\]: 1e\+308 mm is beyond belief"),
+                              ("[0, 0, 90]", "[0, 1e9, 0]", r"euler_deg\[1\]: 1e\+09° is beyond"),
+                              ("[0, 10, 0]", "[0, -1.1e7, 0]", r"steps\[1\].pose_in_base.translation\[1\]: -1.1e\+07 mm is beyond")):
+        (tiny_dir / "far.yaml").write_text(text.replace(old, new))
+        with pytest.raises(AssemblyError, match=message):
+            load_assembly(tiny_dir / "far.yaml")
+    (tiny_dir / "near.yaml").write_text(text.replace("[10, 0, 5]", "[9.9e6, 0, 5]"))  # 9.9 km: allowed
+    load_assembly(tiny_dir / "near.yaml")
+
+
+def test_a_backup_costs_no_read_and_no_copy(tmp_path, monkeypatch):
+    """Save over a 2 GB file read it whole into memory to write NAME.bak (2.65 GB RSS, a real 2 GB copy).
+    The old file itself becomes the backup (a hard link); without hard links a small one is copied and a
+    big one refused, never lost."""
+    from apose_studio.assembly import fileio
+
+    big = tmp_path / "huge.yaml"
+    with open(big, "wb") as f:
+        f.truncate(2 * 2 ** 30)  # sparse: no disk
+    ino = big.stat().st_ino
+    monkeypatch.setattr(type(big), "read_bytes", lambda self: pytest.fail("the old file was read"))
+    fileio.atomic_write_bytes(big, b"name: new\n", backup=True)
+    bak = tmp_path / "huge.yaml.bak"
+    assert bak.stat().st_ino == ino and bak.stat().st_size == 2 * 2 ** 30 and big.read_text() == "name: new\n"
+    assert big.stat().st_ino != ino
+    monkeypatch.undo()
+
+    def no_links(*a, **k):
+        raise OSError(1, "Operation not permitted")
+
+    monkeypatch.setattr(fileio.os, "link", no_links)
+    fileio.atomic_write_bytes(big, b"name: newer\n", backup=True)  # small: copied
+    assert bak.read_text() == "name: new\n" and big.read_text() == "name: newer\n"
+    monkeypatch.setattr(fileio, "BACKUP_COPY_BYTES", 4)
+    with pytest.raises(AposeError, match="cannot keep it as huge.yaml.bak without a copy"):
+        fileio.atomic_write_bytes(big, b"name: newest\n", backup=True)
+    assert big.read_text() == "name: newer\n" and bak.read_text() == "name: new\n"
+    assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
+
+
+def test_reads_within_follows_links_to_where_the_file_really_is(tmp_path):
+    inside, outside = tmp_path / "ws", tmp_path / "elsewhere"
+    inside.mkdir()
+    outside.mkdir()
+    (outside / "secret.txt").write_text("s")
+    (inside / "own.txt").write_text("o")
+    (inside / "link.txt").symlink_to(outside / "secret.txt")
+    (inside / "dirlink").symlink_to(outside)
+    with safeio.reads_within([inside]):
+        assert safeio.read_text(inside / "own.txt") == "o"
+        for path in (inside / "link.txt", inside / "dirlink" / "secret.txt", inside / ".." / "elsewhere" / "secret.txt"):
+            with pytest.raises(AposeError, match="leads outside the studio's workspace"):
+                safeio.read_text(path)
+        with safeio.reads_within(None):  # nested: lifted for the block only
+            assert safeio.read_text(inside / "link.txt") == "s"
+        with pytest.raises(AposeError):
+            safeio.read_text(inside / "link.txt")
+    assert safeio.read_text(inside / "link.txt") == "s"

@@ -10,6 +10,8 @@ from __future__ import annotations
 import io
 import os
 import re
+import secrets
+import shutil
 import stat
 import tempfile
 import threading
@@ -20,7 +22,7 @@ import yaml
 from ruamel.yaml import YAML
 from ruamel.yaml.comments import CommentedMap, CommentedSeq
 
-from apose_studio.errors import AssemblyError, Problem
+from apose_studio.errors import AposeError, AssemblyError, Problem
 
 _UMASK_LOCK = threading.Lock()
 
@@ -48,7 +50,7 @@ def atomic_write_bytes(path: str | Path, data: bytes, backup: bool = False) -> N
     path = Path(path)
     mode = stat.S_IMODE(path.stat().st_mode) if path.is_file() else 0o666 & ~current_umask()
     if backup and path.is_file():
-        atomic_write_bytes(path.with_name(path.name + ".bak"), path.read_bytes())
+        keep_backup(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
@@ -62,6 +64,32 @@ def atomic_write_bytes(path: str | Path, data: bytes, backup: bool = False) -> N
             os.unlink(tmp)
         raise
     _sweep_stale_tmp(path)
+
+
+BACKUP_COPY_BYTES = 64 * 2 ** 20  # where a file system has no hard links, a backup is copied up to this size
+
+
+def keep_backup(path: Path) -> None:
+    """Keep the file at `path` as NAME.bak (replaced atomically) before it is replaced. The old file
+    itself becomes the backup through a hard link: nothing is read or copied, whatever its size (a
+    2 GB file a user saves over costs no memory and no disk). A file system without hard links gets a
+    streamed copy up to BACKUP_COPY_BYTES; a larger file is refused rather than lost."""
+    bak = path.with_name(path.name + ".bak")
+    tmp = path.with_name(f".{bak.name}.{secrets.token_hex(6)}.tmp")  # swept like the writer's own when left
+    try:
+        os.link(path, tmp)
+    except OSError:
+        size = path.stat().st_size
+        if size > BACKUP_COPY_BYTES:
+            raise AposeError(f"{path}: {size / 2 ** 20:.0f} MB, and this file system cannot keep it as {bak.name} "
+                             f"without a copy (at most {BACKUP_COPY_BYTES // 2 ** 20} MB); move it away or save "
+                             "under another name") from None
+        shutil.copyfile(path, tmp)  # in chunks: bounded memory
+    try:
+        os.replace(tmp, bak)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
 
 
 STALE_TMP_SECONDS = 600  # a temporary file of ours this old was left by a killed writer, not one in flight

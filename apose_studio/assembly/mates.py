@@ -21,6 +21,7 @@ from apose_studio.assembly.fileio import yaml_number as _num
 from apose_studio.assembly.yamlcheck import Checker, kind, rotation
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import is_number
+from apose_studio.geometry.units import MAX_COORDINATE_M
 
 MATE_TYPES = ("coaxial", "contact", "aligned", "angle", "fixed")
 LENGTH_TOL_M = 1e-6  # the format's tolerances for contradictions and a disagreeing pose_in_base
@@ -308,7 +309,7 @@ def disagreement(T_given: np.ndarray, T_solved: np.ndarray) -> tuple[float, floa
 
 
 def _vec(c: Checker, raw, key: str, scale: float = 1.0, unit: bool = False) -> np.ndarray | None:
-    v = c.numbers(raw, key, 3)
+    v = c.numbers(raw, key, 3, limit=None if unit else MAX_COORDINATE_M / scale)
     if v is None:
         return None
     v = np.asarray(v)

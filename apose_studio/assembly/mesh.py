@@ -9,6 +9,7 @@ import io
 import json
 import logging
 import os
+import re
 import struct
 import tempfile
 import threading
@@ -25,7 +26,7 @@ from apose_studio import safeio
 from apose_studio.assembly.model import Assembly, Part, StepView, Symmetry
 from apose_studio.errors import AposeError, MeshError
 from apose_studio.geometry import se3
-from apose_studio.geometry.units import UNIT_TO_M, suspicious_unit
+from apose_studio.geometry.units import MAX_COORDINATE_M, UNIT_TO_M, suspicious_unit
 
 log = logging.getLogger(__name__)
 
@@ -130,7 +131,6 @@ def load_mesh(path: str | Path, unit: str = "m", solid: str | None = None) -> tr
     return trimesh.Trimesh(vertices, faces, process=False)
 
 
-MAX_COORDINATE_M = 1e4  # 10 km: a vertex further out is a unit or export mistake (and overflows the geometry)
 _FAILED: dict = {}  # file identity -> the limit it ran into
 _FIX_DECIMATE = "decimate the part (a few hundred thousand triangles are plenty for registration)"
 
@@ -140,8 +140,9 @@ def _fix_for(ext: str) -> str:
         return ("export the part from CAD as a mesh (binary STL, PLY or GLB) at a coarser tolerance, or split the "
                 "STEP file into its parts")
     if ext in (".obj", ".off", ".stl"):
-        return f"{_FIX_DECIMATE}; as binary STL, PLY or GLB it also reads several times faster than as text"
-    return _FIX_DECIMATE
+        return (f"{_FIX_DECIMATE} if it is large; else export it again as one plain mesh: binary STL, PLY or GLB "
+                "read several times faster than text")
+    return f"{_FIX_DECIMATE} if it is large; else export it again as one plain mesh (one node, no materials)"
 
 
 _BUDGET = threading.local()  # .deadline: when the meshes of the assembly being loaded (load_parts) must be read
@@ -206,6 +207,9 @@ def _parse_mesh_file(path: Path, ext: str, unit: str, fixed: bool = False) -> tu
         data = _gltf_geometry_only(path, ext, data)
     elif ext == ".obj":
         kwargs["skip_materials"] = True  # colours come from the assembly; a .mtl or texture is never read
+        # nor are material switches: one `usemtl` per face (some CAD exporters write it) split the parse
+        # into 150 000 groups and spent 30 s of CPU on a 10 MB file
+        data = _OBJ_MATERIAL_LINE.sub(b"", data)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -402,6 +406,11 @@ def _ply_triangles(path: Path, data: bytes, size: int) -> tuple[int | None, int,
     return n, counts.get(b"vertex", 0), plain
 
 
+_OBJ_MATERIAL_LINE = re.compile(rb"(?m)^[ \t]*(?:usemtl|mtllib)\b[^\n]*")
+GLTF_MAX_NODES = 10_000  # nodes in a part's glTF scene (a CAD assembly exported whole has hundreds)
+GLTF_MAX_DEPTH = 64  # nesting of its node tree
+
+
 def _obj_triangles(data: bytes, chunk: int = 2 ** 24) -> int:
     """The triangles an OBJ's `f` lines make (corners - 2 per line), counted with numpy a chunk of whole
     lines at a time (16 MB of text: about 100 MB of arrays)."""
@@ -506,18 +515,24 @@ def _gltf_count(path: Path, doc: dict) -> None:
 
     per_mesh = [sum(triangles(p) for p in m.get("primitives") or []) for m in doc.get("meshes") or []]
     nodes = doc.get("nodes") or []
+    if len(nodes) > GLTF_MAX_NODES:
+        raise MeshError(f"{path}: its glTF scene has {len(nodes)} nodes, over the {GLTF_MAX_NODES} a part's file may "
+                        "have (walking them costs more than its triangles); export the part as one mesh")
     roots = [r for sc in doc.get("scenes") or [] for r in (sc.get("nodes") or [])]
-    seen, stack, shown, copies = set(), list(roots), 0, 0
+    seen, stack, shown, copies = set(), [(r, 1) for r in roots], 0, 0
     while stack:  # every node reachable from a scene, once (trimesh keys its graph by node)
-        k = stack.pop()
+        k, depth = stack.pop()
         if not isinstance(k, int) or k in seen:
             continue
+        if depth > GLTF_MAX_DEPTH:
+            raise MeshError(f"{path}: its glTF node tree is nested over {GLTF_MAX_DEPTH} deep; export the part as "
+                            "one mesh")
         seen.add(k)
         node = nodes[k]
         if "mesh" in node:
             shown += per_mesh[node["mesh"]]
             copies += 1
-        stack.extend(node.get("children") or [])
+        stack.extend((c, depth + 1) for c in node.get("children") or [])
     if not roots:
         shown = sum(per_mesh)
     stored = sum(per_mesh)

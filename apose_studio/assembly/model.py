@@ -23,7 +23,7 @@ from apose_studio.assembly.yamlcheck import Checker, kind, rotation
 from apose_studio.errors import AposeError, AssemblyError, Problem
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics, camera_from_dict, camera_to_dict
-from apose_studio.geometry.units import UNIT_TO_M
+from apose_studio.geometry.units import MAX_COORDINATE_M, UNIT_TO_M, unit_name
 from apose_studio.params import RegistrationConfig, registration_from_dict, registration_to_dict
 
 FORMAT = "apose-assembly/1"
@@ -254,7 +254,8 @@ def _parse_steps(c: Checker, steps_raw, parts: dict[str, Part], scale: float) ->
         if pose is None and "mates" in raw:
             T = np.eye(4)
         elif c.mapping(pose, f"{key}.pose_in_base", _POSE_KEYS, "a mapping with translation (and optional rotation)") is not None:
-            t = c.numbers(pose.get("translation"), f"{key}.pose_in_base.translation", 3)
+            t = c.numbers(pose.get("translation"), f"{key}.pose_in_base.translation", 3,
+                          limit=MAX_COORDINATE_M / scale, unit=f" {unit_name(scale)}")
             R = rotation(c, pose.get("rotation"), f"{key}.pose_in_base.rotation")
             if t is not None and R is not None:
                 T = se3.make_T(R, np.asarray(t) * scale)
@@ -346,6 +347,8 @@ def assembly_from_dict(data, file: str | Path, folder: Path | None = None) -> As
     name = data.get("name")
     if not isinstance(name, str) or not name.strip():
         c.add("name", f"expected a name, got {kind(name)}")
+    elif (bad := safeio.unsafe_char(name)) is not None:
+        c.add("name", f"holds the control or invisible character {bad}; write the name on one line without it")
     units = data.get("units")
     if units not in UNIT_TO_M:
         c.add("units", f"expected one of {', '.join(UNIT_TO_M)}, got {kind(units)}")

@@ -7,6 +7,7 @@ import numpy as np
 from apose_studio.errors import Problem
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import is_number
+from apose_studio.geometry.units import MAX_ANGLE_DEG
 
 
 class Checker:
@@ -28,7 +29,9 @@ class Checker:
                 self.add(f"{key}.{k}" if key else str(k), f"unknown key; expected one of {', '.join(allowed)}")
         return value
 
-    def numbers(self, value, key: str, n: int, what: str = "numbers") -> list[float] | None:
+    def numbers(self, value, key: str, n: int, what: str = "numbers", limit: float | None = None,
+                unit: str = "") -> list[float] | None:
+        """`n` finite numbers; with `limit`, each at most that far from 0 (named with `unit`)."""
         if not isinstance(value, list):
             self.add(key, f"expected a list of {n} {what}, got {kind(value)}")
             return None
@@ -38,6 +41,11 @@ class Checker:
         bad = [i for i, v in enumerate(value) if not is_number(v)]
         if bad:
             self.add(f"{key}[{bad[0]}]", f"expected a finite number, got {value[bad[0]]!r}")
+            return None
+        far = [i for i, v in enumerate(value) if limit is not None and abs(float(v)) > limit]
+        if far:
+            self.add(f"{key}[{far[0]}]", f"{float(value[far[0]]):g}{unit} is beyond belief (at most {limit:g}{unit}); check "
+                     "the units, or the number")
             return None
         return [float(v) for v in value]
 
@@ -81,7 +89,7 @@ def rotation(c: Checker, value, key: str) -> np.ndarray | None:
             return None
         return se3.quat_wxyz_to_matrix(q)
     if form == "euler_deg":
-        a = c.numbers(value["euler_deg"], f"{key}.euler_deg", 3)
+        a = c.numbers(value["euler_deg"], f"{key}.euler_deg", 3, limit=MAX_ANGLE_DEG, unit="°")
         order = value.get("order", "xyz")
         if not (isinstance(order, str) and len(order) == 3 and (set(order) <= set("xyz") or set(order) <= set("XYZ"))
                 and order[0] != order[1] and order[1] != order[2]):

@@ -14,6 +14,7 @@ from apose_studio.errors import AposeError
 from apose_studio.geometry import se3
 from apose_studio.masks.prompt import parse_box, parse_point
 from apose_studio.params import FIELDS, PRESETS, Params, parse_param, resolve_params
+from apose_studio.safeio import CONTROL_CODES, INVISIBLE_CODES
 
 
 def estimator_args(p: argparse.ArgumentParser, mask_default: str | None = "gt") -> None:
@@ -97,13 +98,11 @@ def parse_prompt(args, flag: str, k: int | None = None, views: int = 1):
 
 # --------------------------------------------------------------------------------------- the terminal
 
-# C0 and C1 controls and DEL (ESC sequences retitle or clear a terminal), and the Unicode controls that
-# reorder or break text (bidi embeddings, overrides and isolates, marks, the line and paragraph
-# separators): a file named "\u202ecod.exe" would print as "exe.doc". Newlines, tabs and the progress
-# bars' \r pass.
-_CONTROLS = [c for c in [*range(0x20), 0x7F, *range(0x80, 0xA0)] if c not in (9, 10, 13)]
-_UNICODE_CONTROLS = [0x061C, 0x200E, 0x200F, 0x2028, 0x2029, *range(0x202A, 0x202F), *range(0x2066, 0x206A)]
-ESCAPES = {c: f"\\x{c:02x}" for c in _CONTROLS} | {c: f"\\u{c:04x}" for c in _UNICODE_CONTROLS}
+# Every control and invisible character (safeio.CONTROL_CODES, INVISIBLE_CODES: ESC sequences, bidi
+# overrides, line separators) is printed as an escape; newlines, tabs and the progress bars' \r pass,
+# because the CLI writes them itself (names and paths that hold them are refused where they are read).
+ESCAPES = ({c: f"\\x{c:02x}" for c in CONTROL_CODES if c not in (9, 10, 13)}
+           | {c: f"\\u{c:04x}" for c in INVISIBLE_CODES})
 LONG_VALUE = 200  # characters without a space: a value longer than this is shortened in error messages
 _LONG = re.compile(r"\S{%d,}" % (LONG_VALUE + 1))
 

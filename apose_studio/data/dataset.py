@@ -37,6 +37,7 @@ from apose_studio.errors import AposeError, DatasetError
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics, is_number
 from apose_studio.geometry.plane import table_frame
+from apose_studio.geometry.units import MAX_COORDINATE_M
 
 FORMAT = "apose-bop/1"
 SPLIT = "test"
@@ -349,7 +350,7 @@ def check_camera_entry(cam, where: str, width: int, height: int) -> tuple[Camera
 
 FOCAL_PX = (10.0, 1e5)  # focal lengths in pixels a camera can have
 DEPTH_SCALE_MM = (1e-3, 100.0)  # mm per depth unit: 0.001 (um) .. 100
-MAX_TRANSLATION_MM = 1e7  # 10 km: anything further is a unit or format mistake
+MAX_TRANSLATION_MM = MAX_COORDINATE_M * 1000.0  # 10 km: anything further is a unit or format mistake
 
 
 def pose_entry(R_flat, t_mm, where: str, r_key: str, t_key: str) -> np.ndarray:

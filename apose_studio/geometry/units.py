@@ -6,8 +6,19 @@ import math
 
 UNIT_TO_M: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
 
+# The farthest a coordinate may lie from its origin, metres (10 km): anything further is a unit or
+# export mistake, and numbers near 1e308 overflow the geometry. Meshes, poses in an assembly file, BOP
+# poses, results files and the studio's fields all use this one limit.
+MAX_COORDINATE_M = 1e4
+MAX_ANGLE_DEG = 3600.0  # a typed or written angle: ten turns either way (1e308° has no meaningful sine)
+
 # A CAD part that a robot assembles is rarely smaller than 2 mm or larger than 5 m across.
 PLAUSIBLE_DIAMETER_M = (0.002, 5.0)
+
+
+def unit_name(scale: float) -> str:
+    """The unit whose metres-per-unit is `scale` ("" when none is)."""
+    return next((u for u, s in UNIT_TO_M.items() if s == scale), "")
 
 
 def to_metres(value: float, unit: str) -> float:

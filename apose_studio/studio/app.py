@@ -32,6 +32,7 @@ from apose_studio.assembly.mesh import PartModel, load_part
 from apose_studio.assembly.model import Assembly
 from apose_studio.errors import AposeError, AssemblyError
 from apose_studio.geometry import se3
+from apose_studio.safeio import reads_within
 from apose_studio.studio import authoring, inspection
 from apose_studio.studio.assembly_panel import AssemblyPanel
 from apose_studio.studio.inspect_panel import EstimateJob, InspectPanel
@@ -98,8 +99,12 @@ class Studio:
             limit_uploads(server, MAX_UPLOAD_BYTES, lambda *a, **k: self.notify(*a, **k))
             if assembly is not None:  # named on the command line: the user's own files, not the page's
                 self.files.open_assembly(Path(assembly), confine=False)
+                self.workspace = self.workspace.trusting(*(p.mesh.parent for p in self.asm.parts.values()))
             if dataset is not None:
                 self.inspect.open_frames(str(dataset), confine=False)
+                frames = self.inspect.frames
+                if getattr(frames, "assembly", None) is not None:
+                    self.workspace = self.workspace.trusting(*(p.mesh.parent for p in frames.assembly.parts.values()))
 
     asm = shared("asm", "the draft (`state.asm`)")
     valid_asm = shared("valid_asm", "the last draft without problems, what the preview shows (`state.valid_asm`)")
@@ -128,7 +133,7 @@ class Studio:
             def run(event=None):
                 client = getattr(event, "client", None)
                 try:
-                    with self.lock:
+                    with self.lock, reads_within(self.workspace.readable):  # no page action reads outside it
                         fn(client)
                 except AssemblyError as e:
                     lines = [str(p) for p in e.problems[:6]]

@@ -16,7 +16,7 @@ from apose_studio.assembly.fileio import atomic_write_bytes, describe_path
 from apose_studio.assembly.mesh import supported_extensions
 from apose_studio.assembly.model import dump_assembly, load_assembly, save_assembly
 from apose_studio.errors import AposeError
-from apose_studio.safeio import read_bytes
+from apose_studio.safeio import check_path_text, read_bytes
 from apose_studio.studio import authoring
 from apose_studio.studio.state import Event, shared
 from apose_studio.studio.widgets import MAX_UPLOAD_BYTES, UNITS, esc, hex_colour
@@ -223,7 +223,7 @@ class AssemblyPanel:
         added, failed = [], []
         for f in files:
             try:
-                added.append(self.add_mesh_file(f, client))
+                added.append(self.add_mesh_file(self.app.workspace.resolve(f, "mesh"), client))  # a link may lead out
             except AposeError as e:
                 failed.append(str(e))
         if added:
@@ -238,7 +238,7 @@ class AssemblyPanel:
             return
         if len(f.content) > MAX_UPLOAD_BYTES:
             raise AposeError(f"{f.name} is {len(f.content) / 2**20:.0f} MB; the limit is {MAX_UPLOAD_BYTES // 2**20} MB")
-        name = Path(f.name).name
+        name = Path(check_path_text(f.name, "the uploaded file's name")).name  # no ESC, newline or bidi in a file we create
         if Path(name).suffix.lower() not in supported_extensions():
             raise AposeError(f"{name}: not a mesh format the studio reads ({', '.join(supported_extensions())})")
         folder = self.app.workspace.resolve(authoring.folder_of(self.app.asm) / "meshes", "assembly file")

@@ -41,13 +41,16 @@ import math
 import reprlib
 import time
 
+from apose_studio.geometry.units import MAX_COORDINATE_M
+from apose_studio.safeio import unsafe_char
+
 log = logging.getLogger(__name__)
 
 MAX_IN_FLIGHT = 2  # uploads one tab may have under way at once
 MAX_TEXT_CHARS = 65_536  # a text field's value (paths are at most 4096)
 MAX_MAGNITUDE = 1e12  # a number field without a range of its own
 MAX_SCENE_M = 1e6  # coordinates a page may report (camera, rays), metres
-MAX_POSE_M = 1e4  # a gizmo's position: 10 km, the core's coordinate limit
+MAX_POSE_M = MAX_COORDINATE_M  # a gizmo's position: 10 km, the core's coordinate limit
 NOTICE_EVERY_S = 1.0  # a tab is told about refused input at most this often
 
 
@@ -170,8 +173,9 @@ def value_problem(handle, value) -> str | None:
             return f"expected text, not {_short(value)}"
         if len(value) > MAX_TEXT_CHARS:
             return f"{len(value)} characters; at most {MAX_TEXT_CHARS}"
-        if "\x00" in value or (not handle.multiline and any(c < " " and c != "\t" or c == "\x7f" for c in value)):
-            return "a line break or control character; this field takes one line of text"
+        bad = "\\x00" if "\x00" in value else unsafe_char(value, "\t\n\r" if handle.multiline else "\t")
+        if bad is not None:
+            return f"the control or invisible character {bad}; this field takes {'text' if handle.multiline else 'one line of text'} without it"
         return None
     if isinstance(handle, (viser.GuiNumberHandle, viser.GuiSliderHandle)):
         return _in_range(value, handle.min, handle.max, isinstance(handle.value, int) and not isinstance(handle.value, bool))

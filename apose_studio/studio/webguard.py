@@ -30,6 +30,7 @@ import hmac
 import http
 import ipaddress
 import logging
+import re
 import secrets
 import threading
 from dataclasses import dataclass
@@ -63,8 +64,20 @@ def is_loopback_bind(host: str) -> bool:
     return is_loopback_name(host)
 
 
+# What a browser sends, and nothing else: a Host header is host[:port] and an Origin is
+# scheme://host[:port] (RFC 6454's serialisation: no userinfo, path, backslash, whitespace, nor a port
+# with a leading zero). Anything looser is refused before it is parsed, so no parser's leniency
+# (urlsplit takes "evil@127.0.0.1" as 127.0.0.1) decides what counts as loopback.
+_HOST = r"(?:\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9._-]+)"
+_HOST_HEADER = re.compile(rf"{_HOST}(?::[0-9]{{1,5}})?")
+_ORIGIN = re.compile(rf"https?://{_HOST}(?::[1-9][0-9]{{0,4}})?")
+
+
 def _host_port(netloc: str, default_port: int | None) -> tuple[str, int | None]:
-    """('127.0.0.1', 8080) from '127.0.0.1:8080'; IPv6 brackets removed; names lower-cased."""
+    """('127.0.0.1', 8080) from '127.0.0.1:8080'; IPv6 brackets removed; names lower-cased; ('', None)
+    for anything that is not host[:port]."""
+    if not _HOST_HEADER.fullmatch(netloc):
+        return "", None
     parts = urlsplit("//" + netloc)
     try:
         port = parts.port
@@ -94,6 +107,8 @@ def refusal(*, path: str, host_header: str | None, origin: str | None, port: int
         return None
     if not origin:
         return "refused: a websocket without an Origin header (only the studio's own page may connect)"
+    if not _ORIGIN.fullmatch(origin):
+        return f"refused: Origin {origin!r} is not an origin a browser sends (scheme://host[:port])"
     o = urlsplit(origin)
     o_host, o_port = _host_port(o.netloc, {"http": 80, "https": 443}.get(o.scheme))
     same_host = o_host == host or (is_loopback_name(o_host) and is_loopback_name(host))
@@ -140,7 +155,11 @@ def start_viser(host: str, port: int, token: str | None, label: str = "apose stu
                 values = request.headers.get_all(name)
                 return values[0] if len(values) == 1 else None
 
-            websocket = (one("Upgrade") or "").lower() == "websocket"
+            # any request that asks for a websocket in any spelling ("Upgrade: , WebSocket", two Upgrade
+            # headers, a Sec-WebSocket-Key alone) is checked as one: which of them a server would upgrade
+            # is its parser's business, not this guard's
+            upgrades = [t.strip().lower() for v in request.headers.get_all("Upgrade") for t in v.split(",")]
+            websocket = "websocket" in upgrades or "Sec-WebSocket-Key" in request.headers
             reason = refusal(path=request.path, host_header=one("Host"), origin=one("Origin"),
                              port=connection.local_address[1], bound_loopback=bound_loopback, token=token,
                              websocket=websocket)
@@ -194,10 +213,23 @@ class Workspace:
     """The folders whose files the studio's page may name. Paths typed into the page resolve here."""
 
     roots: tuple[Path, ...]
+    trusted: tuple[Path, ...] = ()  # folders of the files named on the command line at start (their meshes)
 
     @classmethod
     def of(cls, *folders) -> "Workspace":
         return cls(tuple(dict.fromkeys(Path(f).expanduser().resolve() for f in folders if f is not None)))
+
+    def trusting(self, *folders) -> "Workspace":
+        """This workspace, also reading from `folders` (never writing there, nor resolving typed paths):
+        the meshes of an assembly or dataset the user named on the command line, wherever they lie."""
+        extra = (Path(f).resolve() for f in folders)
+        return Workspace(self.roots, tuple(dict.fromkeys((*self.trusted, *extra))))
+
+    @property
+    def readable(self) -> tuple[Path, ...]:
+        """Where the studio's page actions may read files (safeio.reads_within): the roots, the folders
+        of the start-up files, and the package's own files."""
+        return (*self.roots, *self.trusted, Path(__file__).resolve().parents[1])
 
     def check_assembly(self, asm) -> None:
         """Every mesh an assembly file names lies in the workspace (a file in it may name

@@ -9,6 +9,7 @@ import numpy as np
 
 from apose_studio.errors import AposeError
 from apose_studio.geometry import se3
+from apose_studio.geometry.units import MAX_ANGLE_DEG, MAX_COORDINATE_M
 from apose_studio.studio import inspection
 
 MAX_UPLOAD_BYTES = 200 * 1024 * 1024  # a CAD part above this is almost surely the wrong file
@@ -16,8 +17,8 @@ UNITS = ("m", "cm", "mm", "in")
 VIEWS = ("Assembly", "Inspect")
 ACTIVE = "● "  # marks the 3D view on show in the button group
 # Ranges of the number fields (the page's input is checked against them on the server, viser_adapter.py):
-MM_RANGE = {"min": -1e7, "max": 1e7}  # a length or position in mm: 10 km, the core's coordinate limit
-DEG_RANGE = {"min": -3600.0, "max": 3600.0}  # a typed angle in degrees (ten turns either way)
+MM_RANGE = {"min": -MAX_COORDINATE_M * 1000.0, "max": MAX_COORDINATE_M * 1000.0}  # a length or position in mm: 10 km, the core's coordinate limit
+DEG_RANGE = {"min": -MAX_ANGLE_DEG, "max": MAX_ANGLE_DEG}  # a typed angle in degrees (ten turns either way)
 VECTOR_MM = {k: (v,) * 3 for k, v in MM_RANGE.items()}
 VECTOR_DEG = {k: (v,) * 3 for k, v in DEG_RANGE.items()}
 LAYERS = ("scene cloud", "target cloud", "source cloud", "boxes", "part at estimate", "base at estimate", "labels",

@@ -3,10 +3,12 @@
 from pathlib import Path
 
 import numpy as np
+import pytest
 import trimesh
 import yaml
 
 from apose_studio.assembly.model import load_assembly
+from apose_studio.errors import AposeError
 from apose_studio.geometry import se3
 from apose_studio.studio import MAX_UPLOAD_BYTES
 
@@ -114,3 +116,32 @@ def test_files_outside_the_workspace_are_refused_and_never_echoed(studio, gearbo
     act(st, st.files.on_add_parts)
     assert "outside the studio's workspace" in errors(st)[-1][1]
 
+
+
+def test_a_folder_of_links_reads_nothing_outside_the_workspace(studio, gearbox_copy, tmp_path):
+    """#24 second attack: Add part(s) on a folder added the meshes its links led to outside --root (one
+    such link alone was refused), and Save then wrote their outside paths. Every file a page action
+    opens is checked where it really lies (safeio.reads_within), whichever path led to it."""
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (outside / "secret.stl").write_bytes((gearbox_copy.parent / "wheel.stl").read_bytes())
+    root = gearbox_copy.parent
+    (root / "linked").mkdir()
+    (root / "linked" / "wheel_link.stl").symlink_to(outside / "secret.stl")
+    (root / "linked" / "own.stl").write_bytes((gearbox_copy.parent / "pinion.stl").read_bytes())
+    st = studio(gearbox_copy, root=root)
+    before = set(st.asm.parts)
+    for text in ("linked", "."):
+        st.files.f_mesh.value = text
+        act(st, st.files.on_add_parts)
+        assert not any(str(outside) in str(p.mesh) for p in st.asm.parts.values()), text
+    refused = [b for t, b, e in errors(st) if t == "Some meshes were not added"]
+    assert refused and "outside the studio's workspace" in refused[0], errors(st)
+    assert any("own" in pid for pid in set(st.asm.parts) - before)  # the folder's own mesh is added
+    # a dataset or capture named through the page reads through the same check: a capture whose depth
+    # image is a link out of the workspace is refused where it is opened
+    from apose_studio.safeio import read_bytes, reads_within
+
+    with reads_within(st.workspace.readable), pytest.raises(AposeError, match="leads outside the studio's workspace"):
+        read_bytes(root / "linked" / "wheel_link.stl")
+    assert read_bytes(outside / "secret.stl")  # outside the block, the CLI reads where the user says

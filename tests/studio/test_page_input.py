@@ -335,7 +335,12 @@ def test_value_rules_unit():
         assert value_problem(sl, 4) is None and "whole number" in value_problem(sl, 2.5)
         assert value_problem(v, [1, -1, 0.5]) is None and "[2] 2 is above" in value_problem(v, [0, 0, 2])
         assert value_problem(rgb, [255, 0, 7]) is None and "[0] 256 is above" in value_problem(rgb, [256, 0, 0])
-        assert value_problem(t, "a path/with spaces") is None and "control character" in value_problem(t, "a\x1bb")
+        assert value_problem(t, "a path/with spaces") is None and "control or invisible character" in value_problem(t, "a\x1bb")
+        for c in "\n\r\x85\u2028\u2029\u202e\u200b\ufeff\x00":  # line breaks of every kind, bidi, invisible
+            assert "control or invisible character" in value_problem(t, f"name{c}x"), repr(c)
+        assert value_problem(t, "Zahnradgetriebe é 字 tab\there") is None
+        m = gui.add_text("M", "", multiline=True)
+        assert value_problem(m, "two\nlines\r\n") is None and "invisible" in value_problem(m, "a\u202eb")
         assert "value only, not disabled" in input_problem(gui, dd, {"disabled": False})
         dd.disabled = True
         assert input_problem(gui, dd, {"value": "a"}) == "it is disabled"

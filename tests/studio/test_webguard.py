@@ -200,3 +200,32 @@ def test_no_websocket_before_the_studio_is_ready():
         websockets.sync.client.connect(url, **kw).close()
     finally:
         server.stop()
+
+
+def test_only_origins_and_hosts_as_a_browser_writes_them_pass():
+    """#24 second attack: urlsplit read 'http://evil@127.0.0.1:8080' as 127.0.0.1. An Origin is
+    scheme://host[:port] and a Host header host[:port]; userinfo, a backslash, whitespace, a path or a
+    port with a leading zero is refused before any parsing decides what is loopback."""
+    for bad in ("http://evil.example@127.0.0.1:8080", "http://evil.example\\@127.0.0.1:8080", "http://127.0.0.1\t:8080",
+                "http://127.0.0.1:8080/x", "http://127.0.0.1:08080", "http://127.0.0.1:8080?", "http://127.0.0.1:8080#",
+                "http://127.0.0.1 :8080", "HTTP://127.0.0.1:8080 ", "http:/127.0.0.1:8080", "http://:8080"):
+        assert ws(bad) is not None, bad
+    for bad_host in ("evil.example@127.0.0.1:8080", "127.0.0.1:8080/x", "127.0.0.1 :8080", "127.0.0.1\\:8080"):
+        assert ws("http://127.0.0.1:8080", host=bad_host) is not None, bad_host
+    assert ws("http://127.0.0.1:8080", host="127.0.0.1") is None  # a Host without its port (the socket's counts)
+
+
+def test_every_spelling_of_a_websocket_request_is_checked(studio):
+    """'Upgrade: , websocket' (valid for the websockets library, which drops empty list items) skipped the
+    Origin check and the connection count; only viser's exact comparison kept it from upgrading."""
+    import socket
+
+    st = studio()
+    port, token = st.server.get_port(), st.url.rstrip("/").rsplit("/", 1)[-1]
+    for upgrade in ("Upgrade: , websocket\r\n", "Upgrade: WebSocket, h2c\r\n", "Upgrade: websocket\r\nUpgrade: x\r\n", ""):
+        with socket.create_connection(("127.0.0.1", port), timeout=5) as s:
+            s.sendall((f"GET /t/{token}/ HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nConnection: Upgrade\r\n{upgrade}"
+                       "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n"
+                       "Origin: http://evil.example\r\n\r\n").encode())
+            head = s.recv(4096).split(b"\r\n", 1)[0]
+        assert b" 403 " in head, (upgrade, head)
