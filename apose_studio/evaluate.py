@@ -337,6 +337,12 @@ def score_results(ds, rows: list[BopResult], steps: list[int] | None = None, mod
     models = models or load_parts(ds.assembly)
     doc = {"preset": "results file", "dataset": str(ds.root), "mask": "-", "orientation_prior": False, "steps": [],
            "missing_steps": ds.missing_steps}
+    wanted = {(step, im_id, step_truth(ds, step)[2]) for step in steps or ds.steps for im_id in ds.image_ids(step)}
+    if rows and not any((r.scene_id, r.im_id, r.obj_id) in wanted for r in rows):
+        r = rows[0]
+        raise DatasetError(f"--score-results: none of its {len(rows)} rows names an image of this dataset (its first: "
+                           f"scene_id {r.scene_id}, im_id {r.im_id}, obj_id {r.obj_id}; the dataset's scene_id is the step, "
+                           f"obj_id the step's base: {sorted({(s, o) for s, _, o in wanted})[:6]}); check the ids")
     for step in steps or ds.steps:
         frames, T_base_part, obj_id = step_truth(ds, step)
         best = best_per_image(rows, obj_id)

@@ -147,3 +147,23 @@ def test_score_results_command_refuses_a_bad_column_with_exit_2(gearbox_fixed, t
         r = subprocess.run(cli + [str(path)], capture_output=True, text=True, timeout=300)
         assert r.returncode == 2 and message in r.stderr and "row 1 after the header" in r.stderr, r.stderr
         assert "RuntimeWarning" not in r.stderr and "nan" not in r.stdout
+
+
+def test_results_ids_and_numbers_are_ascii_and_rows_must_name_the_dataset(gearbox_fixed, tmp_path):
+    """int() read '１' (full-width) as 1 and '1_0' as 10; rows naming no image of the dataset were dropped
+    silently and everything scored as failed (#24, third attack)."""
+    from apose_studio.data.bop import read_results_csv
+    from apose_studio.errors import DatasetError
+    from apose_studio.evaluate import score_results
+
+    header = "scene_id,im_id,obj_id,score,R,t,time\n"
+    for i, line in enumerate(("\uff12,0,1,1.0,1 0 0 0 1 0 0 0 1,0 0 500,0.1", "2,0,1_0,1.0,1 0 0 0 1 0 0 0 1,0 0 500,0.1",
+                              "2,0,1,1.0,1 0 0 0 1 0 0 0 1,0 0 5_00,0.1", "2," + "9" * 400 + ",1,1,1 0 0 0 1 0 0 0 1,0 0 1,0.1")):
+        path = tmp_path / f"bad{i}.csv"
+        path.write_text(header + line + "\n")
+        with pytest.raises(DatasetError, match="line 2: expected scene_id,im_id,obj_id"):
+            read_results_csv(path)
+    path = tmp_path / "elsewhere.csv"
+    path.write_text(header + "77,0,1,1.0,1 0 0 0 1 0 0 0 1,0 0 500,0.1\n")
+    with pytest.raises(DatasetError, match="none of its 1 rows names an image of this dataset.*scene_id 77"):
+        score_results(gearbox_fixed, read_results_csv(path))

@@ -580,3 +580,90 @@ def test_reads_within_follows_links_to_where_the_file_really_is(tmp_path):
         with pytest.raises(AposeError):
             safeio.read_text(inside / "link.txt")
     assert safeio.read_text(inside / "link.txt") == "s"
+
+
+# ---------------------------------------------------------------- third round (#24): the neighbours of the neighbours
+
+
+def test_every_number_of_an_assembly_file_is_bounded_at_its_key(tmp_path, tiny_dir):
+    """A mate offset of 1e308 solved to a NaN pose that loaded (exit 0, `--json` with bare NaN) and broke
+    render, estimate and the studio; approach distances, symmetry origins, huge quaternions and
+    directions, and the YAML camera's focal length had no bound either."""
+    import shutil
+
+    from apose_studio.errors import AssemblyError
+
+    src = SAMPLES / "planetary_reducer"
+    folder = tmp_path / "p"
+    shutil.copytree(src, folder)
+    text = (folder / "assembly.yaml").read_text()
+    assert "offset: 3" in text
+    cases = [("offset: 3", "offset: 1e308", r"mates\[\d\]\.offset: expected a gap in the file's units within 10 km"),
+             ("offset: 3", "offset: 1.1e7", r"mates\[\d\]\.offset: expected a gap"),
+             ("format: apose-assembly/1", "format: apose-assembly/1\ncamera: {width: 640, height: 480, fx: 1e308, fy: 500, "
+              "cx: 320, cy: 240}", r"camera\.fx: 1e\+308 px; a focal length is 10 to 100000")]
+    for old, new, message in cases:
+        (folder / "bad.yaml").write_text(text.replace(old, new, 1))
+        with pytest.raises(AssemblyError, match=message):
+            load_assembly(folder / "bad.yaml")
+    from .conftest import TINY_YAML
+
+    tiny = tiny_dir
+    for old, new, message in (("order: 0}", "order: 0, origin: [0, 0, 1e308]}", r"symmetry\.origin\[2\]: 1e\+308 mm is beyond"),
+                              ("euler_deg: [0, 0, 90], order: xyz", "quat_wxyz: [1e300, 0, 0, 0]", r"quat_wxyz\[0\]: 1e\+300 is beyond"),
+                              ("translation: [0, 10, 0]\n", "translation: [0, 10, 0]\n    approach: {direction: [0, 0, 1], "
+                               "distance: 1e308}\n", r"approach\.distance: expected a length > 0 in the file's units within 10 km")):
+        assert old in TINY_YAML, old
+        (tiny / "bad.yaml").write_text(TINY_YAML.replace(old, new, 1))
+        with pytest.raises(AssemblyError, match=message):
+            load_assembly(tiny / "bad.yaml")
+
+
+def test_the_rest_of_unicode_s_invisible_characters_are_refused_and_escaped():
+    """The soft hyphen, tag characters, U+034F, U+180E, U+3164 and variation selectors got into names,
+    paths and upload names, and `apose show` printed them raw; one set now decides (Unicode categories
+    Cc, Cf, Zl, Zp, Cs, Co, Cn and the blank-looking letters)."""
+    from apose_studio.cli.common import printable
+
+    for c in ("\u00ad", "\U000e0041", "\u034f", "\u180e", "\u3164", "\ufe0f", "\u2060", "\udc80", "\ue000"):
+        assert safeio.unsafe_char(f"a{c}b") is not None, repr(c)
+        assert c not in printable(f"a{c}b") and "\\" in printable(f"a{c}b"), repr(c)
+        with pytest.raises(AposeError, match="control or invisible character"):
+            safeio.check_path_text(f"a{c}b.stl")
+    for fine in ("Zahnrad-Getriebe é ü ß", "歯車 字", "Ωmega – “quoted” 😀", "tab\there"):
+        assert printable(fine) == fine and safeio.unsafe_char(fine, "\t") is None
+
+
+def test_a_camera_json_with_two_forms_that_disagree_is_refused():
+    """fx 615 beside a cam_K saying 900: one silently won and changed the estimate."""
+    from apose_studio.data.dataset import check_camera_entry
+
+    K = [615.0, 0, 320, 0, 615, 240, 0, 0, 1]
+    cam, _, _ = check_camera_entry({"cam_K": K, "fx": 615, "depth_scale": 1.0}, "camera.json", 640, 480)
+    assert cam.fx == 615
+    with pytest.raises(DatasetError, match="fx is 615 but cam_K says 900; keep one form"):
+        check_camera_entry({"cam_K": [900.0, *K[1:4], 900.0, *K[5:]], "fx": 615, "depth_scale": 1.0}, "camera.json",
+                           640, 480)
+
+
+def test_an_obj_s_unused_vertex_attributes_are_counted_before_parsing(tmp_path, monkeypatch):
+    """30 M `vt` lines beside 4 triangles used the whole 2 GB limit, with the advice "decimate"."""
+    trimesh.creation.box((10, 10, 10)).export(tmp_path / "box.obj")
+    text = (tmp_path / "box.obj").read_text()
+    (tmp_path / "vt.obj").write_text(text + "vt 0 0\n" * 40)
+    (tmp_path / "vn.obj").write_text("vn\t0 0 1\n" * 40 + text)
+    limits(monkeypatch, mesh_triangles=10)  # 3 x 10 = 30 attribute lines allowed
+    for name, what in (("vt.obj", "40 texture coordinates"), ("vn.obj", "40 normals")):
+        with pytest.raises(MeshError, match=f"it holds {what}.*export it again with geometry only"):
+            load_mesh(tmp_path / name)
+
+
+def test_a_backup_folder_in_the_way_is_named_not_an_internal_error(tmp_path):
+    from apose_studio.assembly import fileio
+
+    target = tmp_path / "a.yaml"
+    target.write_text("old\n")
+    (tmp_path / "a.yaml.bak").mkdir()
+    with pytest.raises(AposeError, match="a.yaml.bak: a folder where the previous version of a.yaml is kept"):
+        fileio.atomic_write_bytes(target, b"new\n", backup=True)
+    assert target.read_text() == "old\n"

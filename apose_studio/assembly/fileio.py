@@ -75,6 +75,9 @@ def keep_backup(path: Path) -> None:
     2 GB file a user saves over costs no memory and no disk). A file system without hard links gets a
     streamed copy up to BACKUP_COPY_BYTES; a larger file is refused rather than lost."""
     bak = path.with_name(path.name + ".bak")
+    if bak.is_dir() and not bak.is_symlink():
+        raise AposeError(f"{bak}: a folder where the previous version of {path.name} is kept; move it away (or save "
+                         "under another name)")
     tmp = path.with_name(f".{bak.name}.{secrets.token_hex(6)}.tmp")  # swept like the writer's own when left
     try:
         os.link(path, tmp)
@@ -87,6 +90,10 @@ def keep_backup(path: Path) -> None:
         shutil.copyfile(path, tmp)  # in chunks: bounded memory
     try:
         os.replace(tmp, bak)
+    except OSError as e:
+        Path(tmp).unlink(missing_ok=True)
+        raise AposeError(f"{bak}: the previous version cannot be kept there ({e.strerror}); move it away or save "
+                         "under another name") from None
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise

@@ -21,7 +21,7 @@ from apose_studio.assembly.fileio import yaml_number as _num
 from apose_studio.assembly.yamlcheck import Checker, kind, rotation
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import is_number
-from apose_studio.geometry.units import MAX_COORDINATE_M
+from apose_studio.geometry.units import MAX_ANGLE_DEG, MAX_COORDINATE_M
 
 MATE_TYPES = ("coaxial", "contact", "aligned", "angle", "fixed")
 LENGTH_TOL_M = 1e-6  # the format's tolerances for contradictions and a disagreeing pose_in_base
@@ -361,10 +361,10 @@ def parse_mates(c: Checker, raw, key: str, base: tuple[str, ...] | None, scale: 
         if base_part is not None and (base is None or base_part not in base):
             c.add(f"{mk}.base.part", f"{kind(base_part)} is not in this step's base ({', '.join(base or ())})")
         offset, degrees, flip = m.get("offset", 0), m.get("degrees", 0 if t != "angle" else None), m.get("flip", False)
-        if t in ("contact", "aligned") and not _finite(offset):
-            c.add(f"{mk}.offset", f"expected a gap in the file's units, got {kind(offset)}")
-        if t == "angle" and not _finite(degrees):
-            c.add(f"{mk}.degrees", f"expected the turn in degrees, got {kind(degrees)}")
+        if t in ("contact", "aligned") and not _within(offset, MAX_COORDINATE_M / scale):
+            c.add(f"{mk}.offset", f"expected a gap in the file's units within 10 km, got {kind(offset)}")
+        if t == "angle" and not _within(degrees, MAX_ANGLE_DEG):
+            c.add(f"{mk}.degrees", f"expected the turn in degrees (at most {MAX_ANGLE_DEG:g} either way), got {kind(degrees)}")
         if not isinstance(flip, bool):
             c.add(f"{mk}.flip", f"expected true or false, got {kind(flip)}")
         if len(c.problems) == n0 and b is not None and p is not None:
@@ -372,7 +372,9 @@ def parse_mates(c: Checker, raw, key: str, base: tuple[str, ...] | None, scale: 
     return tuple(out) if len(c.problems) == n0 else None
 
 
-_finite = is_number  # a gap or a turn: a finite number, not a bool
+def _within(v, limit: float) -> bool:
+    """A finite number (not a bool) at most `limit` from 0: a gap, a turn or a distance."""
+    return is_number(v) and abs(float(v)) <= limit
 
 
 def parse_approach(c: Checker, raw, key: str, scale: float) -> Approach | None:
@@ -381,8 +383,8 @@ def parse_approach(c: Checker, raw, key: str, scale: float) -> Approach | None:
         return None
     d = _vec(c, spec.get("direction"), f"{key}.direction", unit=True)
     dist = spec.get("distance")
-    if not _finite(dist) or dist <= 0:
-        c.add(f"{key}.distance", f"expected a length > 0 in the file's units, got {kind(dist)}")
+    if not _within(dist, MAX_COORDINATE_M / scale) or dist <= 0:
+        c.add(f"{key}.distance", f"expected a length > 0 in the file's units within 10 km, got {kind(dist)}")
         return None
     return None if d is None else Approach(d, float(dist) * scale)
 

@@ -359,6 +359,11 @@ def _check_declared_size(path: Path, ext: str, data: bytes, size: int | None = N
         if vertices > 3 * cap:
             raise MeshError(f"{path}: its vertex lines hold {vertices} vertices, over the {3 * cap} a part's mesh may "
                             f"have; {_FIX_DECIMATE}")
+        for tag, what in ((b"vt", "texture coordinates"), (b"vn", "normals"), (b"vp", "parameter-space vertices")):
+            extra = sum(data.count(b"\n" + tag + sep) + (data[:3] == tag + sep) for sep in (b" ", b"\t"))
+            if extra > 3 * cap:  # parsed and stored though never used: 30 M `vt` lines took 2 GB for 4 triangles
+                raise MeshError(f"{path}: it holds {extra} {what} ({tag.decode()} lines), over the {3 * cap} a part's "
+                                "mesh may have; export it again with geometry only (no texture coordinates or normals)")
         n, how = _obj_triangles(data), "its face lines hold"
     if vertices > 3 * cap:
         raise MeshError(f"{path}: its header declares {vertices} vertices, over the {3 * cap} a part's mesh may have; "
@@ -601,7 +606,8 @@ def _read_step(path: Path, folder: str) -> dict[str, tuple[np.ndarray, np.ndarra
             os.unlink(glb)
         try:
             cascadio.step_to_glb(src, glb, tol_angular=0.5, **tolerance)
-            blob = safeio.read_bytes(glb, "the tessellated STEP file", safeio.LIMITS.mesh_bytes)
+            with safeio.reads_within([folder]):  # our own temporary file, wherever the workspace is
+                blob = safeio.read_bytes(glb, "the tessellated STEP file", safeio.LIMITS.mesh_bytes)
             blob = _gltf_geometry_only(path, ".glb", blob)
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")

@@ -207,7 +207,8 @@ def _parse_symmetry(c: Checker, raw, key: str, scale: float) -> Symmetry | None:
     if sym is None:
         return None
     axis = c.numbers(sym.get("axis"), f"{key}.axis", 3)
-    origin = c.numbers(sym.get("origin", [0, 0, 0]), f"{key}.origin", 3)
+    origin = c.numbers(sym.get("origin", [0, 0, 0]), f"{key}.origin", 3, limit=MAX_COORDINATE_M / scale,
+                       unit=f" {unit_name(scale)}")
     order = sym.get("order")
     if not (isinstance(order, int) and not isinstance(order, bool) and 0 <= order <= MAX_SYMMETRY_ORDER
             and order != 1):
@@ -301,9 +302,18 @@ def _solve_mates(c: Checker, steps: list[Step], parts: dict[str, Part], given: d
             T_base_root = se3.inv(T_root_base0)
             members = {b: T_base_root @ T_root.get(b, np.eye(4)) for b in s.base}
             try:
-                sol = solve_step_mates(s, members, parts[s.part])
+                with np.errstate(all="ignore"):  # a result beyond belief is named below, not warned about
+                    sol = solve_step_mates(s, members, parts[s.part])
             except MateError as e:
                 c.add(f"steps[{i}].mates" + (f"[{e.index}]" if e.index is not None else ""), e.what)
+                continue
+            except (ValueError, np.linalg.LinAlgError) as e:  # numbers each within range that still break the solver
+                c.add(f"steps[{i}].mates", f"cannot be solved ({type(e).__name__}); check their numbers")
+                continue
+            T = sol.T_base_part
+            if not (np.all(np.isfinite(T)) and np.linalg.norm(T[:3, 3]) <= MAX_COORDINATE_M):
+                c.add(f"steps[{i}].mates", "solve to a pose beyond 10 km of the base (or no number at all); check "
+                      "their offsets and points")
                 continue
             off = mt.disagreement(s.T_base_part, sol.T_base_part) if given.get(i) and sol.n_free == 0 else None
             if off is not None:

@@ -9,6 +9,8 @@ from apose_studio.geometry import se3
 from apose_studio.geometry.camera import is_number
 from apose_studio.geometry.units import MAX_ANGLE_DEG
 
+MAX_FILE_NUMBER = 1e9  # no number an assembly file holds needs more (10 km is 1e7 mm); lengths have tighter limits
+
 
 class Checker:
     """Collects problems while walking the YAML tree."""
@@ -31,7 +33,8 @@ class Checker:
 
     def numbers(self, value, key: str, n: int, what: str = "numbers", limit: float | None = None,
                 unit: str = "") -> list[float] | None:
-        """`n` finite numbers; with `limit`, each at most that far from 0 (named with `unit`)."""
+        """`n` finite numbers, each at most `limit` from 0 (named with `unit`; default MAX_FILE_NUMBER: a
+        direction or quaternion of 1e308 overflows when normalised)."""
         if not isinstance(value, list):
             self.add(key, f"expected a list of {n} {what}, got {kind(value)}")
             return None
@@ -42,7 +45,8 @@ class Checker:
         if bad:
             self.add(f"{key}[{bad[0]}]", f"expected a finite number, got {value[bad[0]]!r}")
             return None
-        far = [i for i, v in enumerate(value) if limit is not None and abs(float(v)) > limit]
+        limit = MAX_FILE_NUMBER if limit is None else limit
+        far = [i for i, v in enumerate(value) if abs(float(v)) > limit]
         if far:
             self.add(f"{key}[{far[0]}]", f"{float(value[far[0]]):g}{unit} is beyond belief (at most {limit:g}{unit}); check "
                      "the units, or the number")

@@ -14,7 +14,7 @@ from apose_studio.errors import AposeError
 from apose_studio.geometry import se3
 from apose_studio.masks.prompt import parse_box, parse_point
 from apose_studio.params import FIELDS, PRESETS, Params, parse_param, resolve_params
-from apose_studio.safeio import CONTROL_CODES, INVISIBLE_CODES
+from apose_studio.safeio import escaped
 
 
 def estimator_args(p: argparse.ArgumentParser, mask_default: str | None = "gt") -> None:
@@ -98,18 +98,17 @@ def parse_prompt(args, flag: str, k: int | None = None, views: int = 1):
 
 # --------------------------------------------------------------------------------------- the terminal
 
-# Every control and invisible character (safeio.CONTROL_CODES, INVISIBLE_CODES: ESC sequences, bidi
-# overrides, line separators) is printed as an escape; newlines, tabs and the progress bars' \r pass,
-# because the CLI writes them itself (names and paths that hold them are refused where they are read).
-ESCAPES = ({c: f"\\x{c:02x}" for c in CONTROL_CODES if c not in (9, 10, 13)}
-           | {c: f"\\u{c:04x}" for c in INVISIBLE_CODES})
+# Every control and invisible character (safeio.unsafe_char's set: ESC sequences, bidi overrides, line
+# separators, zero-width and tag characters) is printed as an escape; newlines, tabs and the progress
+# bars' \r pass, because the CLI writes them itself (names and paths that hold them are refused where
+# they are read).
 LONG_VALUE = 200  # characters without a space: a value longer than this is shortened in error messages
 _LONG = re.compile(r"\S{%d,}" % (LONG_VALUE + 1))
 
 
 def printable(text: str) -> str:
-    """`text` with every control character shown as an escape (\\x1b, \\u202e)."""
-    return text.translate(ESCAPES)
+    """`text` with every control or invisible character shown as an escape (\\x1b, \\u202e)."""
+    return escaped(text, allow="\t\n\r")
 
 
 def shorten_values(text: str) -> str:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -150,6 +151,22 @@ def write_results_csv(path: Path, rows: list[BopResult]) -> None:
     atomic_write_text(Path(path), "\n".join(lines) + "\n")
 
 
+_WHOLE = re.compile(r"\s*[0-9]{1,9}\s*")  # ASCII digits only: int() also takes "１" and "1_0"
+_REAL = re.compile(r"\s*[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]{1,3})?\s*|\s*[+-]?(?:nan|inf)\s*", re.I)
+
+
+def _whole(text: str) -> int:
+    if not _WHOLE.fullmatch(text):
+        raise ValueError(text)
+    return int(text)
+
+
+def _real(text: str) -> float:
+    if len(text) > 64 or not _REAL.fullmatch(text):  # nan and inf are read, then refused by name
+        raise ValueError(text)
+    return float(text)
+
+
 def read_results_csv(path: Path) -> list[BopResult]:
     """A BOP19 results CSV from any method; DatasetError naming the line for a malformed one."""
     path = Path(path)
@@ -171,12 +188,12 @@ def read_results_csv(path: Path) -> list[BopResult]:
                 continue
             try:
                 scene, im, obj, score, R, t, tm = rec
-                R9 = np.array([float(v) for v in R.split()], float)
-                t3 = np.array([float(v) for v in t.split()], float)
+                R9 = np.array([_real(v) for v in R.split()], float)
+                t3 = np.array([_real(v) for v in t.split()], float)
                 if R9.shape != (9,) or t3.shape != (3,) or not (np.isfinite(R9).all() and np.isfinite(t3).all()):
                     raise ValueError
-                ids = int(scene), int(im), int(obj)
-                score_v, time_v = float(score), float(tm)
+                ids = _whole(scene), _whole(im), _whole(obj)
+                score_v, time_v = _real(score), _real(tm)
             except ValueError:
                 raise DatasetError(f"{path}: line {n}: expected scene_id,im_id,obj_id,score,R (9 numbers),t (3 numbers, "
                                    "mm),time") from None

@@ -35,7 +35,7 @@ from apose_studio.assembly.model import Assembly, load_assembly, save_assembly
 from apose_studio.data.outdir import claim
 from apose_studio.errors import AposeError, DatasetError
 from apose_studio.geometry import se3
-from apose_studio.geometry.camera import CameraIntrinsics, is_number
+from apose_studio.geometry.camera import FOCAL_PX, CameraIntrinsics, is_number
 from apose_studio.geometry.plane import table_frame
 from apose_studio.geometry.units import MAX_COORDINATE_M
 
@@ -317,6 +317,10 @@ def check_camera_entry(cam, where: str, width: int, height: int) -> tuple[Camera
         if abs(skew) > 1e-6 * max(abs(fx), 1.0):
             raise DatasetError(f"{where}: cam_K[1] (skew) is {skew:g}; apose's pinhole model has no skew. Rectify the "
                                "images, or set it to 0 if the calibration's skew is negligible")
+        for key, value in zip(("fx", "fy", "cx", "cy"), (fx, fy, cx, cy)):  # both forms: two readers, two cameras
+            if key in cam and number(key, cam[key]) != value:
+                raise DatasetError(f"{where}: {key} is {number(key, cam[key]):g} but cam_K says {value:g}; keep one "
+                                   "form of the intrinsics (cam_K, or fx, fy, cx, cy)")
     else:
         missing = [k for k in ("fx", "fy", "cx", "cy") if k not in cam]
         if missing:
@@ -348,7 +352,6 @@ def check_camera_entry(cam, where: str, width: int, height: int) -> tuple[Camera
     return CameraIntrinsics(width, height, fx, fy, cx, cy), depth_scale, T_world_camera
 
 
-FOCAL_PX = (10.0, 1e5)  # focal lengths in pixels a camera can have
 DEPTH_SCALE_MM = (1e-3, 100.0)  # mm per depth unit: 0.001 (um) .. 100
 MAX_TRANSLATION_MM = MAX_COORDINATE_M * 1000.0  # 10 km: anything further is a unit or format mistake
 

@@ -56,6 +56,8 @@ def is_number(v) -> bool:
 
 
 _CAMERA_KEYS = {"width": "int", "height": "int", "fx": "float", "fy": "float", "cx": "float", "cy": "float"}
+FOCAL_PX = (10.0, 1e5)  # focal lengths in pixels a camera can have (Kinect ~525, RealSense D435 ~615)
+MAX_SIDE_PX = 16384  # an image's side
 
 
 def camera_from_dict(data, file: str, key: str = "camera") -> tuple[CameraIntrinsics | None, list[Problem]]:
@@ -70,10 +72,15 @@ def camera_from_dict(data, file: str, key: str = "camera") -> tuple[CameraIntrin
         v = data.get(k)
         if v is None:
             problems.append(Problem(file, f"{key}.{k}", "missing; expected a positive number"))
-        elif kind == "int" and not (isinstance(v, int) and not isinstance(v, bool) and 0 < v <= 16384):
+        elif kind == "int" and not (isinstance(v, int) and not isinstance(v, bool) and 0 < v <= MAX_SIDE_PX):
             problems.append(Problem(file, f"{key}.{k}", f"expected a positive whole number of pixels, got {v!r}"))
         elif kind == "float" and not (is_number(v) and v > 0):
             problems.append(Problem(file, f"{key}.{k}", f"expected a positive number of pixels, got {v!r}"))
+        elif k in ("fx", "fy") and not FOCAL_PX[0] <= v <= FOCAL_PX[1]:
+            problems.append(Problem(file, f"{key}.{k}", f"{v:g} px; a focal length is {FOCAL_PX[0]:g} to {FOCAL_PX[1]:g} "
+                                    "pixels (Kinect ~525, RealSense D435 ~615)"))
+        elif k in ("cx", "cy") and v > 2 * MAX_SIDE_PX:
+            problems.append(Problem(file, f"{key}.{k}", f"{v:g} px; the principal point lies near the image's centre"))
         else:
             values[k] = v if kind == "int" else float(v)
     if problems:
@@ -91,4 +98,4 @@ def fov_camera(width: int, height: int, hfov_deg: float) -> CameraIntrinsics:
     return CameraIntrinsics(width, height, f, f, width / 2, height / 2)
 
 
-__all__ = ["CameraIntrinsics", "camera_from_dict", "camera_to_dict", "fov_camera", "is_number"]
+__all__ = ["FOCAL_PX", "CameraIntrinsics", "camera_from_dict", "camera_to_dict", "fov_camera", "is_number"]

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 import traceback
 from functools import wraps
 from pathlib import Path
@@ -80,6 +81,9 @@ class Studio:
         self.models: dict[tuple, PartModel] = {}  # (mesh path, units, colour, index) -> PartModel
         self.nodes: dict[str, object] = {}  # scene nodes by name (tests look here)
         self._errors_shown: dict[int, list] = {}  # client id -> its error notifications still on screen
+        self._pending: dict[int, int] = {}  # client id -> its page actions waiting for or holding the lock
+        self._pending_lock = threading.Lock()
+        self._dropped_told: dict[int, float] = {}  # client id -> when it was last told of dropped presses
         self.cache = cache if cache is not None else inspection.ResultCache()
         self.current_view = "Assembly"
         self._notice_timer: threading.Timer | None = None
@@ -132,8 +136,13 @@ class Studio:
             @wraps(fn)
             def run(event=None):
                 client = getattr(event, "client", None)
+                cid = getattr(client, "client_id", None)
+                if cid is not None and not self._admit(cid, client, title):
+                    return
                 try:
                     with self.lock, reads_within(self.workspace.readable):  # no page action reads outside it
+                        if cid is not None and cid not in self.server.get_clients():
+                            return  # the tab closed while this waited: nobody is asking any more
                         fn(client)
                 except AssemblyError as e:
                     lines = [str(p) for p in e.problems[:6]]
@@ -145,8 +154,30 @@ class Studio:
                     log.error("%s failed:\n%s", title, traceback.format_exc())
                     self.notify(client, title, f"internal error ({type(e).__name__}: {e}); the server log has details",
                                 error=True)
+                finally:
+                    if cid is not None:
+                        with self._pending_lock:
+                            self._pending[cid] -= 1
             return run
         return wrap
+
+    def _admit(self, cid: int, client, title: str) -> bool:
+        """One tab may have MAX_PENDING_PER_TAB actions waiting for (or holding) the studio at once; a press
+        beyond that is dropped and the tab told (at most once a second). 300 presses of *Add part(s)* on a
+        folder in 0.3 s once kept every other tab waiting for two minutes."""
+        with self._pending_lock:
+            n = self._pending.get(cid, 0)
+            if n < MAX_PENDING_PER_TAB:
+                self._pending[cid] = n + 1
+                return True
+            now, told = time.monotonic(), self._dropped_told.get(cid, 0.0)
+            if now - told < 1.0:
+                return False
+            self._dropped_told[cid] = now
+        log.info("tab %s: %s dropped, %d actions of it still waiting", cid, title, n)
+        self.notify(client, title, f"not done: {n} of your earlier actions are still waiting; press again once they "
+                    "have finished", error=True)
+        return False
 
     def on_connect(self, client) -> None:
         try:
@@ -347,6 +378,9 @@ class Studio:
     def refresh_assembly_widgets(self) -> None:
         """Every widget and the preview show the draft and the selected step as they are now."""
         self.events.emit(Event.DRAFT_CHANGED)
+
+
+MAX_PENDING_PER_TAB = 4  # page actions one tab may have waiting for the studio at once
 
 
 def default_workspace(assembly=None, dataset=None, root=None) -> Workspace:

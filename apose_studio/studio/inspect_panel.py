@@ -143,6 +143,10 @@ class InspectPanel:
             if confine:  # a dataset named on the command line at start is the user's choice
                 self.app.workspace.check_assembly(frames.assembly)
             steps = [f"{s}. {frames.assembly.steps[s - 1].part}" for s in frames.steps]
+            first = frames.steps[0] if frames.steps else None
+            ids = frames.image_ids(first) if first is not None else []
+            if ids:  # its first frame read now (scene files, images): a refusal leaves what is shown as it was
+                frames.frame(first, ids[0])
         else:
             if not self.app.valid_asm.steps:
                 raise AposeError("a capture needs an assembly: open one in the Assembly tab first")

@@ -332,10 +332,10 @@ def test_bad_offsets_degrees_and_fixed_references_name_their_keys(folder):
                                  {"type": "fixed", "base": {"translation": [0, 0, 0], "rotation": {"euler_deg": "x"}},
                                   "part": {"translation": [0, 0, 0]}}])
     by_key = {p.key: p.what for p in problems}
-    assert by_key["steps[0].mates[0].offset"].startswith("expected a gap in the file's units, got")
-    assert by_key["steps[0].mates[1].offset"].startswith("expected a gap in the file's units, got")
-    assert by_key["steps[0].mates[2].degrees"].startswith("expected the turn in degrees, got")
-    assert by_key["steps[0].mates[3].degrees"].startswith("expected the turn in degrees, got")
+    assert by_key["steps[0].mates[0].offset"].startswith("expected a gap in the file's units within 10 km, got")
+    assert by_key["steps[0].mates[1].offset"].startswith("expected a gap in the file's units within 10 km, got")
+    assert by_key["steps[0].mates[2].degrees"].startswith("expected the turn in degrees (at most 3600 either way), got")
+    assert by_key["steps[0].mates[3].degrees"].startswith("expected the turn in degrees (at most 3600 either way), got")
     assert any(k.startswith("steps[0].mates[4].base.rotation") for k in by_key), by_key
     assert len(_asm(folder, [good]).steps[0].mates) == 1  # and a good one alone is accepted
 

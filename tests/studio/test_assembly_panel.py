@@ -145,3 +145,27 @@ def test_a_folder_of_links_reads_nothing_outside_the_workspace(studio, gearbox_c
     with reads_within(st.workspace.readable), pytest.raises(AposeError, match="leads outside the studio's workspace"):
         read_bytes(root / "linked" / "wheel_link.stl")
     assert read_bytes(outside / "secret.stl")  # outside the block, the CLI reads where the user says
+
+
+def test_a_refused_dataset_leaves_the_inspect_tab_as_it_was(studio, gearbox_dataset, tmp_path):
+    """A dataset whose first images are links out of the workspace was refused only when its first frame
+    was drawn: the step list had already switched to it, and the message called it the data "shown
+    before". It is read whole before anything changes."""
+    import shutil
+
+    root = tmp_path / "ws"
+    shutil.copytree(gearbox_dataset, root / "ok")
+    shutil.copytree(gearbox_dataset, root / "linked")
+    for image in sorted((root / "linked").rglob("rgb/*"))[:1] + sorted((root / "linked").rglob("depth/*"))[:1]:
+        shutil.move(str(image), tmp_path / image.name)
+        image.symlink_to(tmp_path / image.name)
+    st = studio(root=root)
+    st.inspect.i_path.value = str(root / "ok")
+    act(st, st.inspect.on_open_data)
+    steps, shown = list(st.inspect.i_step.options), st.inspect.frames_path
+    assert not errors(st) and shown == str(root / "ok")
+    st.inspect.i_path.value = str(root / "linked")
+    act(st, st.inspect.on_open_data)
+    message = errors(st)[-1][1]
+    assert "leads outside the studio's workspace" in message and f"still showing the data opened before: {root / 'ok'}" in message
+    assert list(st.inspect.i_step.options) == steps and st.inspect.frames_path == shown

@@ -150,3 +150,59 @@ def test_a_tab_s_next_message_closes_its_older_error():
     st.notify(a, "Estimated", "1 frame(s) in 0.5 s")
     assert a_log == [("shown", "Prompt"), ("removed", "Prompt"), ("shown", "Estimated")]
     assert b_log == [("shown", "Save")]  # the other tab's error is left alone
+
+
+def test_one_tab_s_flood_of_presses_never_holds_the_others(studio):
+    """#24 second attack: 300 presses of Add part(s) on a folder in 0.3 s kept a second tab waiting over a
+    minute, and the queued work ran on after the flooding tab closed. A tab may have MAX_PENDING_PER_TAB
+    actions waiting; more are dropped with a notice, and a closed tab's waiting actions never run."""
+    import threading
+
+    from apose_studio.studio.app import MAX_PENDING_PER_TAB
+
+    from .test_page_input import Tab
+
+    st = studio()
+    flooder, other = Tab(st), Tab(st)
+    release, ran = threading.Event(), []
+
+    def slow(client):
+        ran.append(client.client_id)
+        release.wait(10)
+
+    class Press:
+        def __init__(self, tab):
+            self.client = tab.client
+
+    threads = [threading.Thread(target=st.guarded("Add part(s)")(slow), args=(Press(flooder),)) for _ in range(40)]
+    for t in threads:
+        t.start()
+    time.sleep(0.5)
+    assert ran == [flooder.client_id]  # one runs, MAX_PENDING_PER_TAB - 1 wait, the rest were dropped
+    assert any("still waiting" in body for _, body, error in st.notes if error)
+    release.set()
+    for t in threads:
+        t.join(10)
+    assert ran == [flooder.client_id] * MAX_PENDING_PER_TAB
+    answered = []
+    st.guarded("Other")(lambda c: answered.append(c.client_id))(Press(other))  # the other tab's press runs at once
+    assert answered == [other.client_id]
+    # a tab that closes while its presses wait: they never run
+    release.clear()
+    ran.clear()
+    blocker = threading.Thread(target=st.guarded("Hold")(lambda c: release.wait(10)), args=(Press(other),))
+    blocker.start()
+    time.sleep(0.2)
+    waiting = [threading.Thread(target=st.guarded("Add part(s)")(slow), args=(Press(flooder),)) for _ in range(3)]
+    for t in waiting:
+        t.start()
+    flooder.close()
+    for _ in range(100):
+        if flooder.client_id not in st.server.get_clients():
+            break
+        time.sleep(0.05)
+    release.set()
+    for t in [blocker, *waiting]:
+        t.join(10)
+    assert ran == []
+    other.close()
