@@ -166,8 +166,8 @@ class Studio:
         beyond that is dropped and the tab told (at most once a second). 300 presses of *Add part(s)* on a
         folder in 0.3 s once kept every other tab waiting for two minutes."""
         with self._pending_lock:
-            n = self._pending.get(cid, 0)
-            if n < MAX_PENDING_PER_TAB:
+            n, everyone = self._pending.get(cid, 0), sum(self._pending.values())
+            if n < MAX_PENDING_PER_TAB and everyone < MAX_PENDING_ALL:  # many tabs of one flooder count too
                 self._pending[cid] = n + 1
                 return True
             now, told = time.monotonic(), self._dropped_told.get(cid, 0.0)
@@ -175,8 +175,8 @@ class Studio:
                 return False
             self._dropped_told[cid] = now
         log.info("tab %s: %s dropped, %d actions of it still waiting", cid, title, n)
-        self.notify(client, title, f"not done: {n} of your earlier actions are still waiting; press again once they "
-                    "have finished", error=True)
+        waiting = f"{n} of your earlier actions are" if n >= MAX_PENDING_PER_TAB else f"{everyone} actions of all tabs are"
+        self.notify(client, title, f"not done: {waiting} still waiting; press again once they have finished", error=True)
         return False
 
     def on_connect(self, client) -> None:
@@ -381,6 +381,7 @@ class Studio:
 
 
 MAX_PENDING_PER_TAB = 4  # page actions one tab may have waiting for the studio at once
+MAX_PENDING_ALL = 16  # ... and all tabs together (the 16 connections a studio takes, flooding at once)
 
 
 def default_workspace(assembly=None, dataset=None, root=None) -> Workspace:

@@ -206,3 +206,35 @@ def test_one_tab_s_flood_of_presses_never_holds_the_others(studio):
         t.join(10)
     assert ran == []
     other.close()
+
+
+def test_many_tabs_of_one_flooder_share_one_cap(studio, monkeypatch):
+    import threading
+
+    from apose_studio.studio import app
+
+    from .test_page_input import Tab
+
+    monkeypatch.setattr(app, "MAX_PENDING_ALL", 3)
+    st = studio()
+    tabs = [Tab(st) for _ in range(3)]
+    release, ran = threading.Event(), []
+
+    class Press:
+        def __init__(self, tab):
+            self.client = tab.client
+
+    def slow(client):
+        ran.append(client.client_id)
+        release.wait(10)
+
+    threads = [threading.Thread(target=st.guarded("Add part(s)")(slow), args=(Press(t),)) for t in tabs for _ in range(2)]
+    for t in threads:
+        t.start()
+    time.sleep(0.5)
+    release.set()
+    for t in threads:
+        t.join(10)
+    assert len(ran) == 3 and any("actions of all tabs are still waiting" in b for _, b, e in st.notes if e), st.notes
+    for t in tabs:
+        t.close()
