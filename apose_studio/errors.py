@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from apose_studio.text import escaped
+
 
 class AposeError(Exception):
     """Base class: a problem the user can fix, with a message that says what and how."""
@@ -18,8 +20,6 @@ class Problem:
     what: str
 
     def __str__(self) -> str:
-        from apose_studio.safeio import escaped  # a key is the file's own text: "p\nfake" must not forge a line
-
         return f"{self.file}: {escaped(self.key)}: {self.what}" if self.key else f"{self.file}: {self.what}"
 
 

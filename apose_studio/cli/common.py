@@ -98,7 +98,7 @@ def parse_prompt(args, flag: str, k: int | None = None, views: int = 1):
 
 # --------------------------------------------------------------------------------------- the terminal
 
-# Every control and invisible character (safeio.unsafe_char's set: ESC sequences, bidi overrides, line
+# Every control and invisible character (text.unsafe_char's set: ESC sequences, bidi overrides, line
 # separators, zero-width and tag characters) is printed as an escape; newlines, tabs and the progress
 # bars' \r pass, because the CLI writes them itself (names and paths that hold them are refused where
 # they are read).
