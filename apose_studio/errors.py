@@ -2,9 +2,24 @@
 
 from __future__ import annotations
 
+import errno
 from dataclasses import dataclass
 
 from apose_studio.text import escaped
+
+
+def os_error_text(e: OSError) -> str:
+    """One line for an OSError (a full disk, a read-only folder, a name too long): the file, what the
+    system said, and what to do. The CLI and the studio show it instead of a traceback."""
+    where = f"{escaped(str(e.filename))}: " if getattr(e, "filename", None) else ""
+    fix = {errno.ENOSPC: "free some disk space or choose another folder (nothing half-written was kept)",
+           errno.EDQUOT: "free some space under your quota or choose another folder",
+           errno.EROFS: "the file system is read-only; choose another folder",
+           errno.EACCES: "permission denied; choose a folder you may write to",
+           errno.EPERM: "not permitted; choose a folder you may write to",
+           errno.ENAMETOOLONG: "use a shorter path",
+           errno.EMFILE: "too many open files; raise `ulimit -n`"}.get(e.errno, "check the path and try again")
+    return f"{where}{e.strerror or e}; {fix}"
 
 
 class AposeError(Exception):

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import errno
 import json
 import logging
 import os
@@ -15,7 +14,7 @@ from pathlib import Path
 from apose_studio import __version__
 from apose_studio.assembly.summary import show_json, show_text
 from apose_studio.cli.common import Printable, check_output_file, estimator_args, shorten_values
-from apose_studio.errors import AposeError
+from apose_studio.errors import AposeError, os_error_text
 from apose_studio.safeio import check_path_text
 
 REPO = Path(__file__).resolve().parents[2]  # the checkout: apose_studio/cli/commands.py -> the repo
@@ -147,19 +146,6 @@ def _positive_int(text: str) -> int:
     if n < 1:
         raise argparse.ArgumentTypeError(f"expected a whole number of at least 1, got {text!r}")
     return n
-
-
-def _os_error(e: OSError) -> str:
-    """One line for an OSError: the file, what the system said, and what to do."""
-    where = f"{e.filename}: " if getattr(e, "filename", None) else ""
-    fix = {errno.ENOSPC: "free some disk space or choose another folder (nothing half-written was kept)",
-           errno.EDQUOT: "free some space under your quota or choose another folder",
-           errno.EROFS: "the file system is read-only; choose another folder",
-           errno.EACCES: "permission denied; choose a folder you may write to",
-           errno.EPERM: "not permitted; choose a folder you may write to",
-           errno.ENAMETOOLONG: "use a shorter path",
-           errno.EMFILE: "too many open files; raise `ulimit -n`"}.get(e.errno, "check the path and try again")
-    return f"{where}{e.strerror or e}; {fix}"
 
 
 def _check_argument_text(args) -> None:
@@ -435,7 +421,7 @@ def _main(argv=None) -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
     except OSError as e:  # the system refused: a full disk, a read-only folder, a name too long
-        print(f"error: {_os_error(e)}", file=sys.stderr)
+        print(f"error: {os_error_text(e)}", file=sys.stderr)
         return 2
     except MemoryError:
         print("error: out of memory; use smaller inputs (fewer frames, a decimated mesh, a smaller image)", file=sys.stderr)

@@ -31,7 +31,7 @@ import numpy as np
 
 from apose_studio.assembly.mesh import PartModel, load_part
 from apose_studio.assembly.model import Assembly
-from apose_studio.errors import AposeError, AssemblyError
+from apose_studio.errors import AposeError, AssemblyError, os_error_text
 from apose_studio.geometry import se3
 from apose_studio.safeio import reads_within
 from apose_studio.studio import authoring, inspection
@@ -150,6 +150,9 @@ class Studio:
                     self.notify(client, title, "\n".join(lines) + more, error=True)
                 except AposeError as e:
                     self.notify(client, title, str(e), error=True)
+                except OSError as e:  # the system refused (a read-only folder, a full disk): what and what to do
+                    also = " (or Download the file)" if title == "Save" else ""
+                    self.notify(client, title, os_error_text(e) + also, error=True)
                 except Exception as e:  # a bug: say so, keep serving
                     log.error("%s failed:\n%s", title, traceback.format_exc())
                     self.notify(client, title, f"internal error ({type(e).__name__}: {e}); the server log has details",

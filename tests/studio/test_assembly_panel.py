@@ -169,3 +169,21 @@ def test_a_refused_dataset_leaves_the_inspect_tab_as_it_was(studio, gearbox_data
     message = errors(st)[-1][1]
     assert "leads outside the studio's workspace" in message and f"still showing the data opened before: {root / 'ok'}" in message
     assert list(st.inspect.i_step.options) == steps and st.inspect.frames_path == shown
+
+
+def test_a_save_the_system_refuses_says_what_and_what_to_do(studio, gearbox_copy, monkeypatch):
+    """A read-only folder showed "internal error (PermissionError ...)". As root the folder's mode does not
+    stop a write, so the system's refusal is simulated where the file is created."""
+    import errno
+    import tempfile
+
+    def refuse(*a, **k):
+        raise OSError(errno.EROFS, "Read-only file system", str(gearbox_copy.parent / ".x.yaml.tmp"))
+
+    st = studio(gearbox_copy, root=gearbox_copy.parent)
+    st.files.f_path.value = str(gearbox_copy.parent / "x.yaml")
+    monkeypatch.setattr(tempfile, "mkstemp", refuse)
+    st.guarded("Save")(lambda c: st.files.on_save(c))(None)
+    title, body, _ = errors(st)[-1]
+    assert "internal error" not in body and "read-only; choose another folder (or Download the file)" in body, body
+    assert not (gearbox_copy.parent / "x.yaml").exists()
