@@ -260,3 +260,19 @@ def test_paths_and_numbers_on_the_command_line_are_checked(capture, tmp_path):
             continue
         assert r.returncode == 2 and message in r.stderr, (args[:2], r.returncode, r.stderr[-300:])
         assert "Traceback" not in r.stderr
+
+
+def test_a_capture_with_a_jpeg_colour_image_opens(capture, tmp_path):
+    """A capture made from a rendered frame has rgb.jpg (as BOP and our renders store colour); it was
+    refused as "neither a dataset, a capture nor a BOP scene" (newcomer's finding)."""
+    from apose_studio.data.dataset import load_capture
+    from apose_studio.data.sources import open_frames
+
+    folder = tmp_path / "jpeg"
+    shutil.copytree(capture["ours"], folder)
+    png = folder / "rgb.png"
+    cv2.imwrite(str(folder / "rgb.jpg"), cv2.imread(str(png)), [cv2.IMWRITE_JPEG_QUALITY, 95])
+    png.unlink()
+    frame = open_frames(folder)
+    png_frame = load_capture(capture["ours"])
+    assert frame.rgb.shape == png_frame.rgb.shape and np.abs(frame.rgb.astype(int) - png_frame.rgb.astype(int)).mean() < 3

@@ -667,3 +667,12 @@ def test_a_backup_folder_in_the_way_is_named_not_an_internal_error(tmp_path):
     with pytest.raises(AposeError, match="a.yaml.bak: a folder where the previous version of a.yaml is kept"):
         fileio.atomic_write_bytes(target, b"new\n", backup=True)
     assert target.read_text() == "old\n"
+
+
+def test_random_bytes_named_stl_are_called_corrupt_not_too_big(tmp_path):
+    """3 KB of random bytes as a .stl got "declares 168 M triangles ... decimate the part" (newcomer's
+    finding): a header count the file's size cannot hold is corruption."""
+    (tmp_path / "corrupt.stl").write_bytes(np.random.default_rng(3).integers(0, 256, 3000, dtype=np.uint8).tobytes())
+    with pytest.raises(MeshError, match=r"but the file is 3000 bytes.*corrupt or truncated: export it again") as e:
+        load_mesh(tmp_path / "corrupt.stl")
+    assert "decimate" not in str(e.value)

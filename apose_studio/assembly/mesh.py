@@ -345,6 +345,9 @@ def _check_declared_size(path: Path, ext: str, data: bytes, size: int | None = N
     n, vertices, how = None, 0, "its header declares"
     if ext == ".stl":
         n = _binary_stl_count(data, size)
+        if n is not None and n > cap and size < 84 + 50 * n:  # random bytes, or cut short: not a big part
+            raise MeshError(f"{path}: its header declares {n} triangles but the file is {size} bytes, not the "
+                            f"{84 + 50 * n} that many take; the file is corrupt or truncated: export it again")
         if n is None and whole:
             n, how = data.count(b"endloop"), "it holds"
     elif ext == ".ply":

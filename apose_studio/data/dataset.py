@@ -22,6 +22,7 @@ render leaves every listed frame readable.
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -382,12 +383,23 @@ def pose_entry(R_flat, t_mm, where: str, r_key: str, t_key: str) -> np.ndarray:
     return se3.make_T(R, t / 1000.0)
 
 
+CAPTURE_RGB = ("rgb.png", "rgb.jpg")  # a capture's colour image: PNG, or JPEG as BOP and our renders store it
+
+
+def capture_rgb(folder: Path) -> Path:
+    """The capture's colour image: rgb.png, else rgb.jpg when only that is there."""
+    for name in CAPTURE_RGB:
+        if os.path.lexists(folder / name):
+            return folder / name
+    return folder / CAPTURE_RGB[0]
+
+
 def load_capture(folder: str | Path) -> Frame:
-    """A real capture: rgb.png, depth.png (uint16) and camera.json (see read_capture_camera). Without the
-    camera's pose, the world frame sits on the table plane when one is seen (z = 0 on it, z up, origin
-    where the optical axis meets it), else on the camera."""
+    """A real capture: rgb.png (or rgb.jpg), depth.png (uint16) and camera.json (see read_capture_camera).
+    Without the camera's pose, the world frame sits on the table plane when one is seen (z = 0 on it, z
+    up, origin where the optical axis meets it), else on the camera."""
     folder = Path(folder)
-    rgb = read_rgb(folder / "rgb.png")
+    rgb = read_rgb(capture_rgb(folder))
     h, w = rgb.shape[:2]
     intr, depth_scale, T_world_camera = read_capture_camera(folder / "camera.json", w, h)
     depth = read_depth(folder / "depth.png", depth_scale)

@@ -6,7 +6,7 @@ import os
 from pathlib import Path
 
 from apose_studio.data.bop import BopScene, is_bop_scene
-from apose_studio.data.dataset import Dataset, DatasetError, load_capture
+from apose_studio.data.dataset import CAPTURE_RGB, Dataset, DatasetError, load_capture
 
 
 def open_frames(path: str | Path):
@@ -15,11 +15,11 @@ def open_frames(path: str | Path):
     path = Path(path)
     if os.path.lexists(path / "dataset_info.json"):  # a FIFO or folder there too: Dataset says what it is
         return Dataset(path)
-    if os.path.lexists(path / "rgb.png"):
+    if any(os.path.lexists(path / name) for name in CAPTURE_RGB):
         return load_capture(path)
     if is_bop_scene(path):
         return BopScene(path)
     if not path.exists():
         raise DatasetError(f"{path}: no such folder")
-    raise DatasetError(f"{path}: neither a dataset (dataset_info.json), a capture (rgb.png, depth.png, camera.json) "
+    raise DatasetError(f"{path}: neither a dataset (dataset_info.json), a capture (rgb.png or rgb.jpg, depth.png, camera.json) "
                        "nor a BOP scene (scene_camera.json, rgb/, depth/)")

@@ -78,7 +78,8 @@ class AssemblyPanel:
         self.app.state.step_index = 0 if asm.steps else None
         self.saved_path = asm.path
         self.f_path.value = str(asm.path)
-        self.app.set_assembly(asm, client)
+        self.app.history.clear()  # another file: Undo never brings the previous file's draft back over this one
+        self.app.set_assembly(asm, client, record=False)
         self.app.events.emit(Event.DRAFT_OPENED)
         self.app.frame_camera_on_assembly()
         self.warn_units(client)
@@ -118,7 +119,9 @@ class AssemblyPanel:
         self.app.state.step_index = None
         name = target.stem
         self.app.valid_asm = authoring.new_assembly(name, self.f_units.value, target.parent)  # an empty preview
-        self.app.set_assembly(authoring.new_assembly(name, self.f_units.value, target.parent), client, quiet=True)
+        self.app.history.clear()  # a new file starts its own history
+        self.app.set_assembly(authoring.new_assembly(name, self.f_units.value, target.parent), client, quiet=True,
+                              record=False)
         self.saved_path = None
         self.f_path.value = str(target)
         self.app.notify(client, "New assembly", f"{name}: add parts, then steps; Save writes {target}")

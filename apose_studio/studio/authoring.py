@@ -336,6 +336,11 @@ class History:
         del self.undo_stack[:-self.limit]
         self.redo_stack.clear()
 
+    def clear(self) -> None:
+        """Forget every step (another file was opened, or a new one started)."""
+        self.undo_stack.clear()
+        self.redo_stack.clear()
+
     def undo(self, current: Assembly) -> Assembly:
         if not self.undo_stack:
             raise AposeError("nothing to undo")

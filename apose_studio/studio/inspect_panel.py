@@ -133,6 +133,8 @@ class InspectPanel:
             if self.frames_path is not None:  # say what stays on screen
                 raise AposeError(f"{e}\n(still showing the data opened before: {self.frames_path})") from None
             raise
+        what = (f"a dataset of {len(self.frames.steps)} step(s)" if isinstance(self.frames, Dataset) else "a capture")
+        self.app.notify(client, "Data opened", f"{self.frames_path}: {what}")  # and an older error on screen closes
 
     def open_frames(self, text: str, client=None, confine: bool = True) -> None:
         frames = open_frames(Path(text).expanduser())

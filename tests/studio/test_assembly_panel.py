@@ -12,6 +12,7 @@ from apose_studio.errors import AposeError
 from apose_studio.geometry import se3
 from apose_studio.studio import MAX_UPLOAD_BYTES
 
+from ..conftest import SAMPLES
 from .conftest import act, errors
 
 
@@ -187,3 +188,25 @@ def test_a_save_the_system_refuses_says_what_and_what_to_do(studio, gearbox_copy
     title, body, _ = errors(st)[-1]
     assert "internal error" not in body and "read-only; choose another folder (or Download the file)" in body, body
     assert not (gearbox_copy.parent / "x.yaml").exists()
+
+
+def test_undo_never_brings_another_file_s_draft_back(studio, gearbox_copy, tmp_path):
+    """Newcomer's finding: Open a 21-part file, then a 4-part one, press Undo: the 21 parts came back under the
+    second file's name, and Save wrote them over it. Opening (or starting) a file starts its own history."""
+    import shutil
+
+    other = tmp_path / "other"
+    shutil.copytree(SAMPLES / "planetary_reducer", other)
+    st = studio(gearbox_copy, root=tmp_path)
+    st.files.f_name.value = "renamed"
+    act(st, st.files.on_name)  # an edit in the first file's history
+    assert st.asm.name == "renamed"
+    st.files.f_path.value = str(other / "assembly.yaml")
+    act(st, st.files.on_open)
+    opened = st.asm
+    act(st, lambda c: st.undo_redo("Undo", c))
+    assert st.asm is opened and "nothing to undo" in errors(st)[-1][1]
+    st.files.f_path.value = str(tmp_path / "fresh.yaml")
+    act(st, st.files.on_new)
+    act(st, lambda c: st.undo_redo("Undo", c))
+    assert st.asm.name == "fresh" and "nothing to undo" in errors(st)[-1][1]
