@@ -273,7 +273,6 @@ def main() -> int:
               f"{np.mean([r['final_iou'] for r in table['stacked']]):.3f} (>= 0.90)")
     if args.json:
         Path(args.json).write_text(json.dumps(all_rows, indent=1))
-    _ = metrics
     return 0
 
 
