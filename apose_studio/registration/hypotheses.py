@@ -6,6 +6,9 @@ standing in front of it. The estimate on the mask as given is kept when it is co
 
 - *below the base's height*: without the pixels higher above the table than the base can reach
   standing on it as modelled (what lies on top of it; needs a table in view);
+- *without what stands in front*: without the mask's depth patches that stand in front of another of its
+  patches where they meet and behind none (the front-most: an object between the camera and the base,
+  which a box drawn around the little that is seen of the base takes in);
 - *without colour k*: without one of the mask's two colour groups (k-means on chroma), when their
   colours clearly differ (a red tin on a grey box; needs the view's RGB);
 - *without patch k*: without one of the mask's two largest depth patches (the mask split where the
@@ -32,7 +35,10 @@ MIN_CUT_SHARE = 0.03  # ... and leaves out at least this share (else it is the m
 PATCHES = 2  # the largest depth patches each left out in turn
 MIN_CHROMA_GAP = 12.0  # two colour groups this far apart in Lab's (a, b) are two things, not one object's shading
 MAX_READINGS = 4  # at most this many other readings are estimated (in the order of the module doc)
-CONTRADICTION_WEIGHT = 2.0  # a pixel the camera sees past costs this many explained ones
+CONTRADICTION_WEIGHT = 5.0  # a pixel the camera sees past costs this many explained ones: a pose raised onto a flat
+# object lying on the base confirms its pixels too, and only the sides seen past tell it from the right pose.
+# benchmarks/captures.py (stacked, hidden, real; desk objects and helical gearbox, 108 frames): 2 -> 5 made 5
+# frames right (4 confident), none worse, confident-and-wrong unchanged
 
 
 def readings(view: View, base: BaseObject, table: tuple[np.ndarray, float] | None, tol: float) -> list[tuple[str, np.ndarray]]:
@@ -57,6 +63,9 @@ def readings(view: View, base: BaseObject, table: tuple[np.ndarray, float] | Non
 
     if table is not None:
         add("below the base's height", mask & ~too_high(view, base, table, tol))
+    front = front_most(view.depth, mask)
+    if front.any():
+        add("without what stands in front", mask & ~front)
     if view.rgb is not None and view.rgb.ndim == 3 and view.rgb.shape[2] == 3:
         for k, group in enumerate(colour_groups(view.rgb, mask), start=1):
             add(f"without colour {k}", mask & ~group)
@@ -110,12 +119,24 @@ def too_high(view: View, base: BaseObject, table: tuple[np.ndarray, float], tol:
     return out
 
 
+EDGE_REL, EDGE_FLOOR = 0.012, 0.004  # a depth jump over max(EDGE_FLOOR, EDGE_REL * z) splits patches (as prompt.py)
+MIN_FRONT_SHARE = 0.02  # a patch this small a share of the mask does not count as standing in front
+BORDER_PX = 4  # how far across a depth jump two patches are compared
+
+
+def depth_patches(depth: np.ndarray, mask: np.ndarray) -> tuple[int, np.ndarray, np.ndarray]:
+    """(count, labels, z): the mask split where the (median-filtered) depth jumps, 4-connected pieces
+    labelled 1.. (0: outside the mask, no depth, or on a jump), and the mask's depth (0 elsewhere)."""
+    z = np.where(mask & np.isfinite(depth) & (depth > 0), depth, 0).astype(np.float32)
+    region = ((z > 0) & ~depth_edges(cv2.medianBlur(z, 5), rel=EDGE_REL, floor=EDGE_FLOOR)).astype(np.uint8)
+    count, labels = cv2.connectedComponents(region, connectivity=4)
+    return count, labels, z
+
+
 def largest_patches(depth: np.ndarray, mask: np.ndarray, k: int) -> list[np.ndarray]:
     """The `k` largest pieces of the mask split where the depth jumps (each at least MIN_READING_SHARE of
     it), largest first: the base and what stands in front of or beside it at another depth."""
-    z = np.where(mask & np.isfinite(depth) & (depth > 0), depth, 0).astype(np.float32)
-    region = ((z > 0) & ~depth_edges(cv2.medianBlur(z, 5), rel=0.012, floor=0.004)).astype(np.uint8)
-    count, labels = cv2.connectedComponents(region, connectivity=4)
+    count, labels, z = depth_patches(depth, mask)
     if count <= 2:
         return []  # one piece: nothing to leave out
     sizes = np.bincount(labels.ravel(), minlength=count)
@@ -124,6 +145,45 @@ def largest_patches(depth: np.ndarray, mask: np.ndarray, k: int) -> list[np.ndar
     order = [i for i in np.argsort(-sizes, kind="stable")[:k] if sizes[i] >= MIN_READING_SHARE * total]
     kernel = np.ones((5, 5), np.uint8)  # the patch and the edge pixels around it (split off with it)
     return [(cv2.dilate((labels == i).astype(np.uint8), kernel) > 0) & mask for i in order]
+
+
+def front_most(depth: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the mask's depth patches (at least MIN_FRONT_SHARE of it) that stand in front of another
+    of its patches where the two meet, and behind none, with the edge pixels around them. Where two patches
+    meet (within BORDER_PX across the jump), the nearer is the one whose median depth there is smaller by
+    more than the jump that split them. An occluder between the camera and a mostly hidden base is the
+    front-most; the base behind it is not, even when it stands in front of something further back."""
+    count, labels, z = depth_patches(depth, mask)
+    out = np.zeros(mask.shape, bool)
+    if count <= 2:
+        return out
+    sizes = np.bincount(labels.ravel(), minlength=count)
+    big = [i for i in range(1, count) if sizes[i] >= max(MIN_POINTS, MIN_FRONT_SHARE * sizes[1:].sum())]
+    if len(big) < 2:
+        return out
+    kernel = np.ones((2 * BORDER_PX + 1, 2 * BORDER_PX + 1), np.uint8)
+    near = {i: cv2.dilate((labels == i).astype(np.uint8), kernel) > 0 for i in big}
+    in_front_of: dict[int, set[int]] = {i: set() for i in big}
+    behind: dict[int, set[int]] = {i: set() for i in big}
+    for n, a in enumerate(big):
+        for b in big[n + 1:]:
+            meet = near[a] & near[b]
+            za, zb = z[meet & (labels == a)], z[meet & (labels == b)]
+            if len(za) < 5 or len(zb) < 5:
+                continue  # they do not meet
+            da, db = float(np.median(za)), float(np.median(zb))
+            jump = max(EDGE_FLOOR, EDGE_REL * max(da, db))
+            if da < db - jump:
+                in_front_of[a].add(b)
+                behind[b].add(a)
+            elif db < da - jump:
+                in_front_of[b].add(a)
+                behind[a].add(b)
+    edge = np.ones((5, 5), np.uint8)  # the patch and the edge pixels around it (split off with it)
+    for i in big:
+        if in_front_of[i] and not behind[i]:
+            out |= cv2.dilate((labels == i).astype(np.uint8), edge) > 0
+    return out & mask
 
 
 def explained(result: RegistrationResult, view: View, base: BaseObject) -> float:

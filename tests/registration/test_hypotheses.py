@@ -8,7 +8,14 @@ import trimesh
 from apose_studio.geometry import se3
 from apose_studio.geometry.sensor import quantisation_step
 from apose_studio.registration import prepare_base
-from apose_studio.registration.hypotheses import colour_groups, explained, largest_patches, readings, too_high
+from apose_studio.registration.hypotheses import (
+    colour_groups,
+    explained,
+    front_most,
+    largest_patches,
+    readings,
+    too_high,
+)
 from apose_studio.registration.pipeline import off_table, outline_continuation
 from apose_studio.registration.scoring import pose_spread
 from apose_studio.registration.types import RegistrationResult, View
@@ -77,6 +84,36 @@ def test_depth_patches_split_an_object_in_front():
     patches = largest_patches(depth, mask, 2)
     assert len(patches) == 2
     assert patches[0][50, 30] and not patches[0][50, 90] and patches[1][50, 90] and not patches[1][50, 30]
+
+
+def test_front_most_is_the_occluder_not_the_base_behind_it():
+    """A chain in one mask: an occluder (0.70 m) in front of the base (0.90 m), which stands in front of
+    something further back (0.95 m). Only the occluder is in front of a patch and behind none; the base,
+    in front of the back one but behind the occluder, stays, as does the back one."""
+    depth = np.full((100, 160), 1.2, np.float32)
+    depth[20:80, 40:110] = 0.90  # the base
+    depth[20:80, 110:140] = 0.95  # behind it, beside it
+    depth[10:90, 10:60] = 0.70  # the occluder, over the base's left part
+    mask = np.zeros(depth.shape, bool)
+    mask[10:90, 10:140] = True
+    mask[10:20, 60:140] = mask[80:90, 60:140] = False
+    front = front_most(depth, mask)
+    assert front[50, 30] and front[15, 20]  # the occluder, all of it
+    assert not front[50, 80] and not front[50, 125]  # not the base, not what stands behind it
+    assert (front & (depth == np.float32(0.90))).sum() <= 2 * 60  # at most the split edge's own pixels beside it
+    alone = np.zeros_like(mask)
+    alone[20:80, 40:110] = True
+    assert not front_most(np.where(alone, np.float32(0.9), depth), alone).any()  # one patch: nothing in front
+    apart = np.zeros_like(mask)  # two patches that do not meet: neither stands in front of the other
+    apart[20:80, 70:100] = True
+    apart[85:95, 10:30] = True
+    far = depth.copy()
+    far[85:95, 10:30] = 0.5
+    assert not front_most(far, apart).any()
+    view = View(depth, mask, CAM, se3.look_at([0.0, 0.0, 1.0], [0.0, 0.0, 0.0]))
+    base = _box_base()
+    names = [n for n, _ in readings(view, base, None, tol=0.004)]
+    assert "without what stands in front" in names
 
 
 def test_colour_groups_split_two_colours_not_one_objects_shading():

@@ -88,3 +88,25 @@ def test_a_nearly_symmetric_hole_punch_is_never_confident_and_wrong(step, im_id)
     only when right."""
     frame, r, mask, err = estimate_prompted(DESK, step, im_id, clutter="bench,stacked", **KINECT)
     assert not (r.ok and r.confident) or err < 0.1, (r.reading, err)
+
+
+def test_what_lies_on_the_base_does_not_outweigh_the_sides_a_lifted_pose_contradicts():
+    """A flat object lying on the casing: the mask as given holds it, and a pose raised onto it explains
+    its pixels too, while the camera sees past that pose's sides. A pixel seen past the model weighs more
+    than one more pixel explained (hypotheses.CONTRADICTION_WEIGHT), so the reading without the flat
+    object's colour wins, right and confident (before: the raised pose, wrong and unconfident)."""
+    frame, r, mask, err = estimate_prompted(GEARBOX, 2, 1, clutter="bench,stacked", **KINECT)
+    assert iou(mask, frame.base_mask()) < 0.5  # the prompted mask holds much of the flat object
+    assert r.ok and r.confident and err < 0.1, (r.reason, r.reading, err)
+    assert r.reading.startswith("without colour")
+
+
+def test_the_object_in_front_is_left_out_of_a_mostly_hidden_base():
+    """A watering can three quarters hidden behind a box; the box drawn around what is seen of the can takes
+    in the box's corner, which stands in front of the can where the two meet. Without the front-most patch
+    the pose is right and confident (before: the pose fitted the box, wrong)."""
+    frame, r, mask, err = estimate_prompted(DESK, 2, 0, clutter="hidden", pitch_range_deg=(20.0, 50.0), **KINECT)
+    assert iou(mask, frame.base_mask()) < 0.3  # the prompted mask is mostly the box in front
+    assert r.ok and r.confident and err < 0.1, (r.reason, r.reading, err)
+    assert r.reading == "without what stands in front"
+    assert iou(r.model_mask, frame.base_mask()) > 0.5
