@@ -29,7 +29,7 @@ from apose_studio.masks.prompt import prompted_mask
 from apose_studio.masks.segment import depth_mask, load_model
 from apose_studio.registration import BaseObject, Params, RegistrationResult, estimate, prepare_base
 from apose_studio.registration.fusion import estimate_views
-from apose_studio.registration.types import View
+from apose_studio.registration.types import CONFIDENT_PART_SPREAD, View
 
 BOX_MARGIN = 0.04  # the `box` source: the ground truth's visible box, this much wider on each side
 
@@ -181,9 +181,20 @@ def estimate_view(view: View, ctx: StepContext, params: Params, orientation_prio
     """Step `ctx`'s assembly pose in one view. With orientation_prior the CAD's orientation is taken as
     the base's orientation in the world (what `--base-pose fixed` renders, and the paper assumes)."""
     ctx.base.warm_up(params)
-    return estimate(view, ctx.base, ctx.view.T_base_part, params,
-                    prior_T_world_base=np.eye(4) if orientation_prior else None, trace_iterations=trace_iterations,
-                    part_symmetries=ctx.part.symmetries)
+    return held_to_part(estimate(view, ctx.base, ctx.view.T_base_part, params,
+                                 prior_T_world_base=np.eye(4) if orientation_prior else None,
+                                 trace_iterations=trace_iterations, part_symmetries=ctx.part.symmetries), ctx.part)
+
+
+def held_to_part(result: RegistrationResult, part: PartModel) -> RegistrationResult:
+    """`result` judged also against the part it places: the pose answers where the part goes, and a part
+    is placed right within 10 % of its own diameter, which for a label on a duck is less than the base's
+    own allowance (6 % of the base's diameter). A result stays confident only when the data pins the pose
+    to within CONFIDENT_PART_SPREAD of the part's diameter too (its `spread_allowed` is the smaller of
+    the two)."""
+    if not result.ok:
+        return result
+    return replace(result, spread_allowed=min(result.spread_allowed, CONFIDENT_PART_SPREAD * part.diameter))
 
 
 def estimate_frame(frame: Frame, ctx: StepContext, params: Params, mask_source: str = "gt",
@@ -200,5 +211,5 @@ def estimate_frames(views: list[View], ctx: StepContext, params: Params,
                     orientation_prior: bool = False) -> RegistrationResult:
     """One fused estimate from several views of one placement (registration.fusion)."""
     ctx.base.warm_up(params)
-    return estimate_views(views, ctx.base, ctx.view.T_base_part, params, np.eye(4) if orientation_prior else None,
-                          ctx.part.symmetries)
+    return held_to_part(estimate_views(views, ctx.base, ctx.view.T_base_part, params,
+                                       np.eye(4) if orientation_prior else None, ctx.part.symmetries), ctx.part)

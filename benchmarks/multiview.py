@@ -33,10 +33,9 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 from registration import ASSEMBLIES, loaded_assemblies  # noqa: E402
 
 from apose_studio.data.dataset import Dataset  # noqa: E402
-from apose_studio.estimation import StepContext  # noqa: E402
+from apose_studio.estimation import StepContext, estimate_frames, estimate_view  # noqa: E402
 from apose_studio.evaluate import score_frame
-from apose_studio.registration import estimate, resolve_params  # noqa: E402
-from apose_studio.registration.fusion import estimate_views  # noqa: E402
+from apose_studio.registration import resolve_params  # noqa: E402
 from apose_studio.registration.next_view import next_view  # noqa: E402
 from apose_studio.registration.types import View  # noqa: E402
 from apose_studio.synth.frame import RenderSettings, sample_scene, view_of  # noqa: E402
@@ -74,14 +73,13 @@ def run(root: Path, asm, models, settings: RenderSettings, params) -> list[dict]
             row = {"step": step, "single": [], "t_single": []}
             for f, v in zip(frames, views):
                 t = time.perf_counter()
-                r = estimate(v, ctx.base, ctx.view.T_base_part, params,
-                             part_symmetries=ctx.part.symmetries)
+                r = estimate_view(v, ctx, params)
                 row["t_single"].append(time.perf_counter() - t)
                 row["single"].append((right(f, r, ctx), bool(r.ok and r.confident), bool(r.ambiguous)))
                 if f is frames[0]:
                     first = r
             t = time.perf_counter()
-            fused = estimate_views(views, ctx.base, ctx.view.T_base_part, params, part_symmetries=ctx.part.symmetries)
+            fused = estimate_frames(views, ctx, params)
             row["t_fused"] = time.perf_counter() - t
             row["fused"] = (right(frames[0], fused, ctx), bool(fused.ok and fused.confident))
             if first.ok and not (first.confident and not first.ambiguous):
@@ -89,8 +87,7 @@ def run(root: Path, asm, models, settings: RenderSettings, params) -> list[dict]
                 row["doubt"] = True
                 if advice is not None:
                     adv = advised_view(asm, models, ctx, settings, step, placement, advice.T_world_camera, grid)
-                    a = estimate_views([views[0], adv], ctx.base, ctx.view.T_base_part, params,
-                                       part_symmetries=ctx.part.symmetries)
+                    a = estimate_frames([views[0], adv], ctx, params)
                     row["advised"] = right(frames[0], a, ctx) and a.confident
                 row["random"] = row["fused"][0] and row["fused"][1]
             rows.append(row)

@@ -102,3 +102,21 @@ def test_a_view_is_frozen():
     v = View(np.ones((2, 2)), np.ones((2, 2), bool), CameraIntrinsics(2, 2, 1.0, 1.0, 1.0, 1.0), np.eye(4))
     with pytest.raises(dataclasses.FrozenInstanceError):
         v.mask = None
+
+
+def test_a_pose_is_held_to_the_part_it_places():
+    """The spread a confident result may have is the smaller of the base's allowance and 5 % of the placed
+    part's diameter: 4 mm of freedom passes a 112 mm base (6.7 mm) but not a 70 mm label (3.5 mm)."""
+    from types import SimpleNamespace
+
+    from apose_studio.estimation import held_to_part
+
+    r = result(spread=0.004, spread_allowed=0.06 * 0.112)
+    assert r.confident
+    small = held_to_part(r, SimpleNamespace(diameter=0.070))
+    assert not small.confident and small.spread_allowed == pytest.approx(0.0035)
+    assert "free to move by 4.0 mm, more than the 3.5 mm the placement allows" in doubts(small)
+    assert held_to_part(r, SimpleNamespace(diameter=0.100)).confident  # 5 mm allowed: the base's 6.7 mm is not loosened
+    assert held_to_part(r, SimpleNamespace(diameter=1.0)).spread_allowed == pytest.approx(0.06 * 0.112)
+    bad = failed("no depth")
+    assert held_to_part(bad, SimpleNamespace(diameter=0.070)) is bad
