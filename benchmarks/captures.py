@@ -30,7 +30,8 @@ Prints per condition:
   its ADD (ADI for a base with exact symmetries) is under 10 % of the base's diameter, and confident-
   and-wrong by that test; the part's test above is stricter wherever the part is smaller than the base
   (a 72 mm label on a 112 mm duck allows 7.2 mm at the label);
-- seconds per frame including segmentation (median, and the 90th percentile);
+- seconds per frame including segmentation (median, and the 90th percentile), and a table of where the
+  time went over all frames (the prompted mask and each result's timings by stage);
 - the confidence flag's four rates over all frames: confident-and-right, confident-and-wrong,
   unconfident-and-right, unconfident-and-wrong (a failed estimate counts as unconfident; right = the
   MSSD test modulo exact symmetries);
@@ -55,7 +56,7 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
-from registration import ASSEMBLIES, DESK, loaded_assemblies  # noqa: E402
+from registration import ASSEMBLIES, DESK, loaded_assemblies, stage_table  # noqa: E402
 
 from apose_studio.data.dataset import Dataset  # noqa: E402
 from apose_studio.estimation import StepContext, estimate_frame  # noqa: E402
@@ -165,8 +166,11 @@ def run(ds: Dataset, asm, models, params, margin_px: int, compare_depth: bool = 
                 continue  # the base is wholly hidden: nothing to prompt
             t0 = time.perf_counter()
             mask = prompted_mask(frame.rgb, frame.depth, frame.camera, box=box).mask
+            t_mask = time.perf_counter() - t0
             r = estimate_frame(frame, ctx, params, mask=mask, box=box)
             seconds = time.perf_counter() - t0
+            stages = {"prompted mask": t_mask, **r.timings}
+            stages["rest"] = max(seconds - sum(stages.values()), 0.0)  # judging, choosing, what no stage names
             sc = score_frame(frame, r, ctx.part, mask, ctx.base.symmetries)
             d = ctx.part.diameter
             right = bool(r.ok and sc.mssd_mod_base_sym < 0.1 * d)  # exact twins of the base are the same assembly
@@ -188,7 +192,8 @@ def run(ds: Dataset, asm, models, params, margin_px: int, compare_depth: bool = 
                          "diameter_mm": ctx.base.diameter * 1000,
                          "base_add_mm": add * 1000 if np.isfinite(add) else None,
                          "base_right": bool(add < 0.1 * ctx.base.diameter),
-                         "confident": bool(r.ok and r.confident), "seconds": seconds, "noise_mm": r.depth_noise * 1000,
+                         "confident": bool(r.ok and r.confident), "seconds": seconds, "stages": stages,
+                         "noise_mm": r.depth_noise * 1000,
                          "telling_px": telling_pixels(frame, ctx, shift)})
     return rows
 
@@ -259,6 +264,8 @@ def main() -> int:
               f"{np.mean(told) if told else float('nan'):.3f} | {np.mean([r['base_right'] for r in rows]):.3f} | "
               f"{sum(r['confident'] and not r['base_right'] for r in rows)} |")
     all_rows = [r for rows in table.values() for r in rows]
+    print("\nwhere the time went, over all frames (a result's timings_s; 'other readings' holds their whole estimates):\n")
+    print(stage_table([r["stages"] for r in all_rows]))
     told = [r for r in all_rows if not hidden(r)]
     cw = sum(r["confident"] and not r["right"] for r in all_rows)
     ur = sum(not r["confident"] and r["right"] for r in all_rows) / max(len(all_rows), 1)

@@ -40,6 +40,24 @@ DESK = {"desk_objects": REPO / "sample_assemblies" / "desk_objects" / "assembly.
 # real size (benchmarks/captures.py's real-like rows); not in the registration/tune tables
 
 
+def stage_table(timings: list[dict[str, float]], title: str = "stage") -> str:
+    """A markdown table of where the time went, from each frame's `timings` (seconds by stage, as a
+    result's `timings_s` reports them, plus any the caller adds such as the prompted mask): per stage, the
+    frames it ran in, its median and 90th-percentile milliseconds there, and its share of all the time.
+    Stages in the order they first appear."""
+    import numpy as np
+
+    stages: list[str] = []
+    for t in timings:
+        stages += [k for k in t if k not in stages]
+    total = sum(sum(t.values()) for t in timings) or 1.0
+    lines = [f"| {title} | frames | median ms | p90 ms | share of the time |", "|---|---|---|---|---|"]
+    for k in stages:
+        v = np.array([t[k] for t in timings if k in t]) * 1000
+        lines.append(f"| {k} | {len(v)} | {np.median(v):.1f} | {np.percentile(v, 90):.1f} | {v.sum() / 1000 / total:.1%} |")
+    return "\n".join(lines)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=10, help="views per step (default 10)")

@@ -11,7 +11,8 @@ benchmarks/registration.py, with and without RealSense-like noise) are rendered 
 alternating from frame to frame, so that this machine's drift in speed falls on all settings
 alike: on a 2-core machine run-to-run timings drift by 10-15 %, which a back-to-back comparison of
 two whole benchmark runs cannot tell from a real change. Prints, per step, recall (MSSD below 10 %
-of the part's diameter) and median seconds per frame of each setting, then a summary line each.
+of the part's diameter) and median seconds per frame of each setting, then a summary line each, and
+a table per setting of where the time went (the results' timings by stage).
 
 --poses writes every frame's estimated T_world_part of the first setting; --compare reads such a
 file from another run (e.g. before a refactoring) and prints how far each pose moved (mm, degrees).
@@ -31,7 +32,7 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
-from registration import ASSEMBLIES, loaded_assemblies  # noqa: E402
+from registration import ASSEMBLIES, loaded_assemblies, stage_table  # noqa: E402
 
 from apose_studio.data.dataset import Dataset  # noqa: E402
 from apose_studio.estimation import StepContext  # noqa: E402
@@ -57,6 +58,7 @@ def main() -> int:
     times: list[list[float]] = [[] for _ in params]
     recalls: list[list[float]] = [[] for _ in params]
     adis: list[list[float]] = [[] for _ in params]
+    stages: list[list[dict[str, float]]] = [[] for _ in params]  # per frame: seconds by stage (a result's timings)
     for name, asm, models in loaded_assemblies(ASSEMBLIES):
         for noise in args.noise.split(","):
             root = Path(args.data) / f"{name}-{noise}-{args.base_pose}-{args.frames}"
@@ -78,6 +80,8 @@ def main() -> int:
                         t = time.perf_counter()
                         result, score = estimate_and_score(fr, ctx, params[i], orientation_prior=args.base_pose == "fixed")
                         t_step[i].append(time.perf_counter() - t)
+                        stages[i].append({**result.timings,
+                                          "rest": max(t_step[i][-1] - sum(result.timings.values()), 0.0)})
                         if i == 0:
                             poses[f"{root.name}/{step}/{fr.im_id}"] = result.T_world_part.tolist() if result.ok else None
                         ok = score.mssd is not None and score.mssd < 0.1 * ctx.part.diameter
@@ -95,6 +99,9 @@ def main() -> int:
         print(f"#{i} {json.dumps(s)}: mean recall {np.mean(recalls[i]):.3f}; median of the steps' median times "
               f"{np.median(times[i]) * 1000:.0f} ms, mean {np.mean(times[i]) * 1000:.0f} ms; mean ADI of the right "
               f"frames {np.mean(adis[i]) * 1000:.3f} mm")
+    for i, s in enumerate(settings):
+        print(f"\nwhere the time went, #{i} {json.dumps(s)} ('rest': judging, scoring, what no stage names):\n")
+        print(stage_table(stages[i]))
     if args.poses:
         Path(args.poses).write_text(json.dumps(poses))
         print(f"wrote {len(poses)} poses to {args.poses}")
