@@ -93,8 +93,7 @@ def cmd_demo(args) -> int:
         t = r.T_world_part[:3, 3] * 1000
         print(f"  step {step}: place {ctx.part.id:<8} at ({t[0]:+7.1f}, {t[1]:+7.1f}, {t[2]:+7.1f}) mm in the world; "
               f"error vs truth: MSSD {sc.mssd * 1000:.2f} mm, ADI {sc.adi * 1000:.2f} mm; {r.seconds * 1000:.0f} ms"
-              + ("  (ambiguous: symmetric base)" if r.ambiguous else "")
-              + ("" if r.confident else f"  (low confidence: {doubts(r)}; likely wrong)"))
+              + ("" if r.confident else f"  (not confident: {doubts(r)})"))
     print(f"\nnext: `apose eval {out}` for the per-step table, `apose estimate {out} --step 1` for one frame")
     if args.no_studio:
         return 0

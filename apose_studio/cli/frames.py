@@ -94,7 +94,7 @@ def cmd_estimate(args) -> int:
     if sc is not None and sc.mask_iou is not None:
         print(f"mask ({source}): IoU {sc.mask_iou:.3f} against the ground-truth base mask")
     if not r.confident:
-        print(f"low confidence: {est.doubts}; this pose is likely wrong")
+        print(f"not confident: {est.doubts}")
     if r.ambiguous:
         _print_alternatives(r, ctx.part.id)
     if r.equivalent:

@@ -99,7 +99,7 @@ def cmd_estimate_views(args) -> int:
     print("\n".join(pose_lines(r.T_world_part)))
     print(f"{r.timings.get('total fused', r.seconds) * 1000:.0f} ms; coverage {r.coverage:.2f} (the worst view)")
     if not r.confident:
-        print(f"low confidence: {est.doubts}")
+        print(f"not confident: {est.doubts}")
     if advice is not None:
         p = advice.T_world_camera[:3, 3] * 1000
         print(f"look next from camera at ({p[0]:+.0f}, {p[1]:+.0f}, {p[2]:+.0f}) mm (world), looking at the base: "

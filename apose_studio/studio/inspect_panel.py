@@ -27,7 +27,7 @@ from apose_studio.evaluate import estimate_and_score
 from apose_studio.geometry import se3
 from apose_studio.masks.segment import depth_mask
 from apose_studio.params import PRESETS, resolve_params
-from apose_studio.registration import project_to_cloud
+from apose_studio.registration import doubts, project_to_cloud
 from apose_studio.studio import inspection
 from apose_studio.studio.prompt_panel import PROMPT_SOURCE, prompt_of, prompted_mask
 from apose_studio.studio.state import Event, shared
@@ -437,7 +437,7 @@ class InspectPanel:
                 if not result.ok:
                     failed.append(f"frame {im_id}: {result.reason}")
                 elif not result.confident:
-                    unsure.append(f"frame {im_id}: coverage {result.coverage:.0%}")
+                    unsure.append(f"frame {im_id}: {doubts(result)}")
                 self.i_progress.value = 100.0 * (k + 1) / len(ids)
             dt = time.perf_counter() - t0
         except BaseException:
@@ -456,7 +456,6 @@ class InspectPanel:
         if failed:
             self.app.notify(client, "Estimation failed", esc("\n".join(failed[:5])), error=True)
         elif unsure:
-            self.app.notify(client, "Estimated, low confidence", "the model explains too little of the target (likely "
-                        "wrong): " + esc("; ".join(unsure[:5])), error=True)
+            self.app.notify(client, "Estimated, not confident", esc("\n".join(unsure[:5])), error=True)
         else:
             self.app.notify(client, "Estimated", f"{len(ids)} frame(s) in {dt:.1f} s")

@@ -218,7 +218,7 @@ def metrics_markdown(score, result: RegistrationResult | None) -> str:
         flags.append(f"ambiguous: {len(result.alternatives) + 1} placements fit the data equally (a (nearly) symmetric "
                      "base, and what tells them apart is not in view); the others are the magenta boxes")
     if not result.confident:
-        flags.append(f"low confidence: {doubts(result)}")
+        flags.append(f"not confident: {doubts(result)}")
     table = "| metric | value |\n|---|---|\n" + "\n".join(f"| {k} | {v} |" for k, v in rows)
     verdict = ("**✔ ok and confident**: one placement that the data supports" if result.confident else
                "**⚠ ok, not confident**: do not act on this pose without a second look")

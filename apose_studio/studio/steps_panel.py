@@ -152,7 +152,7 @@ class StepsPanel:
         T = authoring.pose_from_typed(self.f_t.value, self.f_r.value)
         before = self.app.asm
         self.app.history.record(before)
-        self.set_pose(T, client, sync_fields=False)
+        self.set_pose(T, client, sync_fields=False, gizmo=True)  # the fields are the user's; the gizmo follows them
         self.settle_mates(before, client)
 
     def settle_mates(self, before, client) -> None:
@@ -185,7 +185,10 @@ class StepsPanel:
             drop.on_click(on_drop)
             back.on_click(on_back)
 
-    def set_pose(self, T: np.ndarray, client, sync_fields: bool = True) -> None:
+    def set_pose(self, T: np.ndarray, client, sync_fields: bool = True, gizmo: bool | None = None) -> None:
+        """The selected step's part at T (T_base_part). `sync_fields`: rewrite the typed pose fields from it;
+        `gizmo`: put the gizmo on it (default: as `sync_fields`). A typed pose moves the gizmo but leaves
+        the fields as typed; mid-drag neither moves (the gizmo stays where the hand puts it)."""
         self.app.asm = authoring.edit_step(self.app.asm, self.step_index, T_base_part=T)
         self.app.problems = authoring.problems(self.app.asm)
         if not [p for p in self.app.problems if p.key != "steps"]:
@@ -193,7 +196,7 @@ class StepsPanel:
         if sync_fields:
             self.sync_typed_pose()
         self.refresh_status()
-        self.refresh_assembly_scene(gizmo=sync_fields)  # mid-drag, the gizmo stays where the hand puts it
+        self.refresh_assembly_scene(gizmo=sync_fields if gizmo is None else gizmo)
 
     def on_gizmo(self, event) -> None:
         """A drag of the gizmo (viser's TransformControlsEvent: phase start / update / end, the pose in

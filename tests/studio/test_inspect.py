@@ -277,3 +277,25 @@ def test_views_of_one_placement_are_ticked_and_fused(studio, tmp_path):
     assert "/inspect/next_view" in st.nodes and "/inspect/next_view_label" in st.nodes
     st.inspect.i_frame.value = 2  # another placement: its own frames, no advice
     assert sorted(st.views.ticks) == [2, 3] and "/inspect/next_view" not in st.nodes
+
+
+def test_a_notice_gives_the_actual_doubt(studio, gearbox_dataset, monkeypatch):
+    """#28: an ambiguous result was announced as "the model explains too little of the target (likely wrong):
+    coverage 98 %". The notice names the doubt the result has, here the placements that fit alike."""
+    from dataclasses import replace
+
+    from apose_studio.registration import Candidate
+
+    st = studio(SAMPLES / "helical_gearbox" / "assembly.yaml", gearbox_dataset)
+    real = st.inspect.estimate
+
+    def ambiguous(job, im_id):
+        r, *rest = real(job, im_id)
+        other = Candidate(r.T_world_base, r.T_world_part, 0.99, 0.99, 0.001, 0.99, 1)
+        return (replace(r, ambiguous=True, alternatives=[other]), *rest)
+
+    monkeypatch.setattr(st.inspect, "estimate", ambiguous)
+    act(st, st.inspect.run_estimation, False)
+    title, body, error = st.notes[-1]
+    assert title == "Estimated, not confident" and error, st.notes[-1]
+    assert "2 placements fit the data equally" in body and "explains too little" not in body and "likely" not in body

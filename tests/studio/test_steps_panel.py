@@ -5,7 +5,7 @@ import numpy as np
 
 from apose_studio.geometry import se3
 
-from .conftest import errors
+from .conftest import act, errors
 
 
 def test_gizmo_drag_updates_the_typed_pose_with_snapping(studio, gearbox_copy):
@@ -28,3 +28,56 @@ def test_gizmo_drag_updates_the_typed_pose_with_snapping(studio, gearbox_copy):
     np.testing.assert_allclose(st.steps.f_r.value, (0.0, 0.0, 30.0), atol=1e-6)  # and to 5°
     np.testing.assert_allclose(st.asm.steps[0].T_base_part[:3, 3], [0.0125, 0, 0.0145], atol=1e-9)
 
+
+
+def _drag(g, phase: str) -> None:
+    from viser._scene_handles import TransformControlsEvent  # what viser passes (tests/e2e drags with the mouse)
+
+    for cb in g._impl_aux.update_cb:
+        cb(TransformControlsEvent(client=None, client_id=None, target=g, phase=phase))
+
+
+def _shown(handle) -> np.ndarray:
+    """A scene node's pose as the page is told it (world)."""
+    return se3.make_T(se3.quat_wxyz_to_matrix(np.asarray(handle.wxyz)), np.asarray(handle.position))
+
+
+def test_a_typed_pose_moves_the_gizmo_and_the_next_drag_starts_there(studio, gearbox_copy):
+    """#28: type x = 30 on a step, then drag the gizmo's z arrow: the translation becomes (30, 0, z), not
+    (0, 0, z) from where the gizmo was before the typing."""
+    st = studio(gearbox_copy)
+    st.steps.step_index = 0
+    st.steps.refresh_assembly_scene()
+    st.steps.f_snap_mm.value, st.steps.f_snap_deg.value = 0.0, 0.0
+    g = st.nodes["/assembly/gizmo"]
+    st.steps.f_t.value = (30.0, 0.0, 0.0)  # typing fires the same callback as the browser
+    T_world_base = st.steps._preview["casing"]
+    want = T_world_base @ st.asm.steps[0].T_base_part
+    np.testing.assert_allclose(st.asm.steps[0].T_base_part[:3, 3], [0.030, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(_shown(g), want, atol=1e-6)  # the gizmo went with the part
+    np.testing.assert_allclose(_shown(st.steps.mesh_handles["pinion"]), want, atol=1e-6)
+    up = want.copy()
+    up[:3, 3] += T_world_base[:3, 2] * 0.02  # the z arrow, 20 mm along the base's z
+    g._impl.wxyz, g._impl.position = se3.matrix_to_quat_wxyz(up[:3, :3]), up[:3, 3]
+    _drag(g, "start")
+    _drag(g, "end")
+    assert errors(st) == []
+    np.testing.assert_allclose(st.asm.steps[0].T_base_part[:3, 3], [0.030, 0, 0.020], atol=1e-6)
+    np.testing.assert_allclose(st.steps.f_t.value, (30.0, 0.0, 20.0), atol=1e-3)
+
+
+def test_undo_and_redo_move_the_drawn_part_and_the_gizmo_with_the_draft(studio, gearbox_copy):
+    """#28: after Undo the fields and the gizmo said (0, 0, 0) while the part stayed drawn at the typed pose."""
+    st = studio(gearbox_copy)
+    st.steps.step_index = 0
+    st.steps.refresh_assembly_scene()
+    before = st.asm.steps[0].T_base_part.copy()
+    st.steps.f_t.value = (30.0, 0.0, 0.0)
+    for which, T_base_part in (("Undo", before), ("Redo", st.asm.steps[0].T_base_part.copy())):
+        act(st, st.undo_redo, which)
+        np.testing.assert_allclose(st.asm.steps[0].T_base_part, T_base_part, atol=1e-12)
+        want = st.steps._preview["casing"] @ T_base_part
+        np.testing.assert_allclose(_shown(st.steps.mesh_handles["pinion"]), want, atol=1e-6)  # the drawn part
+        np.testing.assert_allclose(_shown(st.nodes["/assembly/gizmo"]), want, atol=1e-6)
+        np.testing.assert_allclose(st.steps.f_t.value, T_base_part[:3, 3] * 1000, atol=1e-3)
+    assert errors(st) == []
