@@ -179,13 +179,21 @@ def pose_from_typed(t_mm, euler_deg) -> np.ndarray:
     return se3.make_T(se3.euler_deg_to_matrix(e, EULER_ORDER), t / 1000.0)
 
 
-def snap_pose(T: np.ndarray, step_mm: float = 0.0, step_deg: float = 0.0) -> np.ndarray:
-    """Round translation to multiples of step_mm and the Euler angles to multiples of step_deg (0 = off)."""
+def snap_pose(T: np.ndarray, step_mm: float = 0.0, step_deg: float = 0.0, since: np.ndarray | None = None) -> np.ndarray:
+    """Round translation to multiples of step_mm and the Euler angles to multiples of step_deg (0 = off).
+    `since`: the pose a drag started from; only the values the drag changed are rounded, so dragging the
+    x arrow leaves a typed y = 0.3 mm as it is (a one-axis drag re-snapped the other axes)."""
     t, e = typed_pose(T)
+    t0, e0 = typed_pose(since) if since is not None else (None, None)
+
+    def snapped(v, v0, step):
+        r = np.round(v / step) * step
+        return r if v0 is None else np.where(np.abs(v - v0) > 1e-3, r, v0)  # 1 µm, 0.001°: unchanged
+
     if step_mm > 0:
-        t = np.round(t / step_mm) * step_mm
+        t = snapped(t, t0, step_mm)
     if step_deg > 0:
-        e = np.round(e / step_deg) * step_deg
+        e = snapped(e, e0, step_deg)
     return pose_from_typed(t, e)
 
 

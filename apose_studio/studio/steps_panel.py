@@ -207,10 +207,11 @@ class StepsPanel:
         step = self.app.asm.steps[self.step_index]
         T_world_base = self._preview[step.base[0]]
         T = se3.inv(T_world_base) @ se3.make_T(se3.quat_wxyz_to_matrix(np.asarray(g.wxyz)), np.asarray(g.position))
-        T = authoring.snap_pose(T, float(self.f_snap_mm.value or 0), float(self.f_snap_deg.value or 0))
         if event.phase == "start" or self._drag_before is None:
             self._drag_before = self.app.asm
             self.app.history.record(self._drag_before)
+        T = authoring.snap_pose(T, float(self.f_snap_mm.value or 0), float(self.f_snap_deg.value or 0),
+                                since=self._drag_before.steps[self.step_index].T_base_part)
         self.set_pose(T, None, sync_fields=event.phase == "end")
         if event.phase == "end":
             before, self._drag_before = self._drag_before, None

@@ -81,3 +81,22 @@ def test_undo_and_redo_move_the_drawn_part_and_the_gizmo_with_the_draft(studio, 
         np.testing.assert_allclose(_shown(st.nodes["/assembly/gizmo"]), want, atol=1e-6)
         np.testing.assert_allclose(st.steps.f_t.value, T_base_part[:3, 3] * 1000, atol=1e-3)
     assert errors(st) == []
+
+
+def test_a_one_axis_drag_snaps_only_what_it_moved(studio, gearbox_copy):
+    """#28: dragging the x arrow re-snapped y and z. A typed y = 0.3 mm and z = 14.7 mm stay as typed while
+    the drag moves x, which snaps to the 0.5 mm step."""
+    st = studio(gearbox_copy)
+    st.steps.step_index = 0
+    st.steps.refresh_assembly_scene()
+    st.steps.f_t.value = (0.0, 0.3, 14.7)
+    st.steps.f_r.value = (0.0, 0.0, 12.0)  # not a multiple of the 5° step either
+    g = st.nodes["/assembly/gizmo"]
+    T = _shown(g)
+    T[:3, 3] += st.steps._preview["casing"][:3, 0] * 0.01234  # along the base's x
+    g._impl.wxyz, g._impl.position = se3.matrix_to_quat_wxyz(T[:3, :3]), T[:3, 3]
+    _drag(g, "start")
+    _drag(g, "end")
+    assert errors(st) == []
+    np.testing.assert_allclose(st.steps.f_t.value, (12.5, 0.3, 14.7), atol=1e-3)
+    np.testing.assert_allclose(st.steps.f_r.value, (0.0, 0.0, 12.0), atol=1e-3)
