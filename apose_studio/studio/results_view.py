@@ -20,7 +20,7 @@ from apose_studio.geometry import se3
 from apose_studio.studio import inspection
 from apose_studio.studio.prompt_panel import overlay_mask
 from apose_studio.studio.state import Event
-from apose_studio.studio.widgets import LAYERS, legend_html, pos, wxyz
+from apose_studio.studio.widgets import LAYERS, legend_html, pos, shaded, wxyz
 
 log = logging.getLogger(__name__)
 
@@ -111,7 +111,7 @@ class ResultsView:
                 wireframe=True, wxyz=wxyz(r.T_world_base), position=pos(r.T_world_base)))
             mesh = part_model.mesh
             self.app.node("/inspect/ghost", scene.add_mesh_simple(
-                "/inspect/ghost", mesh.vertices.astype(np.float32), mesh.faces.astype(np.uint32), color=inspection.GREEN,
+                "/inspect/ghost", *shaded(mesh), color=inspection.GREEN,
                 opacity=0.45, wxyz=wxyz(r.T_world_part), position=pos(r.T_world_part)))
         if r is not None and len(r.target_cloud):
             tgt = inspection.thin(r.target_cloud, 20000).astype(np.float32)

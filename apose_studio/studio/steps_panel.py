@@ -20,7 +20,7 @@ from apose_studio.errors import AposeError
 from apose_studio.geometry import se3
 from apose_studio.studio import authoring
 from apose_studio.studio.state import Event, shared
-from apose_studio.studio.widgets import VECTOR_DEG, VECTOR_MM, esc, pos, wxyz
+from apose_studio.studio.widgets import VECTOR_DEG, VECTOR_MM, esc, pos, shaded, wxyz
 
 log = logging.getLogger(__name__)
 
@@ -335,8 +335,7 @@ class StepsPanel:
             if h is None:
                 m = self.app.model(pid, asm)
                 color = tuple(int(255 * c) for c in m.color)
-                h = self.app.server.scene.add_mesh_simple(f"/parts/{pid}", m.mesh.vertices.astype(np.float32),
-                                                      m.mesh.faces.astype(np.uint32), color=color, flat_shading=False)
+                h = self.app.server.scene.add_mesh_simple(f"/parts/{pid}", *shaded(m.mesh), color=color, flat_shading=False)
                 self.mesh_handles[pid] = h
             T = self._preview.get(pid)
             h._apose_visible = T is not None

@@ -25,6 +25,19 @@ LAYERS = ("scene cloud", "target cloud", "source cloud", "boxes", "part at estim
           "camera")
 
 
+SHARP_EDGE_DEG = 30.0  # faces meeting at a sharper angle than this are drawn with a crease, not smoothed over
+
+
+def shaded(mesh) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices float32, faces uint32) of a mesh as the 3D view should draw it: faces split apart along
+    edges sharper than SHARP_EDGE_DEG, so the browser's smooth shading keeps a box's edges crisp and a
+    cylinder round (shared vertices averaged every normal and made faceted CAD look melted)."""
+    from trimesh import graph
+
+    m = graph.smooth_shade(mesh, angle=np.radians(SHARP_EDGE_DEG))
+    return np.asarray(m.vertices, np.float32), np.asarray(m.faces, np.uint32)
+
+
 def esc(text) -> str:
     """User- or file-derived text made safe to place in HTML or markdown (part ids, file names, messages)."""
     return html.escape(str(text), quote=True)

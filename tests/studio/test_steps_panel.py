@@ -100,3 +100,21 @@ def test_a_one_axis_drag_snaps_only_what_it_moved(studio, gearbox_copy):
     assert errors(st) == []
     np.testing.assert_allclose(st.steps.f_t.value, (12.5, 0.3, 14.7), atol=1e-3)
     np.testing.assert_allclose(st.steps.f_r.value, (0.0, 0.0, 12.0), atol=1e-3)
+
+
+def test_faceted_cad_keeps_its_edges_and_round_parts_stay_smooth(studio, gearbox_copy):
+    """#28: shared vertices averaged a box's normals across its edges and faceted CAD looked melted. A box is
+    drawn with its six faces apart (4 corners each); a cylinder's side keeps its vertices shared (smooth);
+    the parts sent to the page are drawn that way."""
+    import trimesh
+
+    from apose_studio.studio.widgets import shaded
+
+    v, f = shaded(trimesh.creation.box((1, 2, 3)))
+    assert len(f) == 12 and len(v) == 24
+    cyl = trimesh.creation.cylinder(radius=1.0, height=2.0, sections=64)
+    v, f = shaded(cyl)
+    assert len(v) < 2 * len(cyl.vertices)  # the side's 64 columns share vertices; only the rims are split
+    st = studio(gearbox_copy)
+    sent = st.steps.mesh_handles["casing"]
+    assert len(sent.vertices) == len(shaded(st.model("casing", st.asm).mesh)[0]) > len(st.model("casing", st.asm).mesh.vertices)
