@@ -34,6 +34,7 @@ def _same_bytes(path: Path, content: bytes) -> bool:
 
 class AssemblyPanel:
     saved_path = shared("saved_path", "the file the draft was opened from or last saved to (`state.saved_path`)")
+    saved_draft = shared("saved_draft", "the draft as opened or last saved (`state.saved_draft`)")
 
     def __init__(self, app):
         self.app = app
@@ -79,6 +80,7 @@ class AssemblyPanel:
         self.saved_path = asm.path
         self.f_path.value = str(asm.path)
         self.app.history.clear()  # another file: Undo never brings the previous file's draft back over this one
+        self.saved_draft = asm
         self.app.set_assembly(asm, client, record=False)
         self.app.events.emit(Event.DRAFT_OPENED)
         self.app.frame_camera_on_assembly()
@@ -120,9 +122,9 @@ class AssemblyPanel:
         name = target.stem
         self.app.valid_asm = authoring.new_assembly(name, self.f_units.value, target.parent)  # an empty preview
         self.app.history.clear()  # a new file starts its own history
+        self.saved_path = self.saved_draft = None
         self.app.set_assembly(authoring.new_assembly(name, self.f_units.value, target.parent), client, quiet=True,
                               record=False)
-        self.saved_path = None
         self.f_path.value = str(target)
         self.app.notify(client, "New assembly", f"{name}: add parts, then steps; Save writes {target}")
 
@@ -150,7 +152,7 @@ class AssemblyPanel:
         path = save_assembly(self.app.asm, path, backup=True)
         self.saved_path = path
         self.app.asm = load_assembly(path)  # what is on disk is what the studio now edits (paths re-anchored)
-        self.app.valid_asm = self.app.asm
+        self.app.valid_asm = self.saved_draft = self.app.asm
         self.app.events.emit(Event.DRAFT_SAVED)
         bak = path.with_name(path.name + ".bak")
         self.app.notify(client, "Saved", str(path) + (f" (previous version: {bak.name})" if bak.exists() else ""))

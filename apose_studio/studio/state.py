@@ -102,7 +102,7 @@ class StudioState:
     """The studio's shared data; see the module docstring. `asm`, `valid_asm`, `problems` are written
     by the app (`Studio.set_assembly`) and the Steps panel (a gizmo drag), `step_index` by the Steps
     panel and the app, `preview` and `meshes` by the Steps panel, `picks` by the Mates panel,
-    `saved_path` by the Assembly panel."""
+    `saved_path` and `saved_draft` by the Assembly panel."""
 
     asm: Assembly  # the draft
     valid_asm: Assembly  # the last draft without problems: what the preview shows
@@ -112,6 +112,8 @@ class StudioState:
     meshes: dict[str, object] = field(default_factory=dict)  # part id -> its mesh handle in the 3D view
     picks: dict[str, tuple] = field(default_factory=dict)  # "part" / "base" -> (part id, Feature in its frame)
     saved_path: Path | None = None  # the file the draft was opened from or last saved to
+    saved_draft: Assembly | None = None  # the draft as it was opened or last saved (drafts are never changed in
+    # place: `asm is saved_draft` means nothing is unsaved, Undo back to it included)
     inspect: InspectState = field(default_factory=InspectState)
 
     @classmethod

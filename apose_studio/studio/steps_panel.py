@@ -298,12 +298,19 @@ class StepsPanel:
         self.steps_html.content = (
             "<table style='font-size:0.8em;width:100%;border-collapse:collapse'>"
             "<tr style='text-align:left'><th>#</th><th>part</th><th>on base</th><th>t (mm)</th></tr>" + body + "</table>")
+        st = self.app.state
+        if st.saved_path is None:
+            saved = " Not saved yet."
+        elif self.app.asm is st.saved_draft:
+            saved = f" Saved as {esc(st.saved_path)}."
+        else:
+            saved = f" **Unsaved changes** (last saved as {esc(st.saved_path)})."
         if not self.app.problems:
-            saved = f" Saved as {esc(self.app.state.saved_path)}." if self.app.state.saved_path else ""
             self.status_md.content = f"✅ **Valid**: {len(self.app.asm.parts)} parts, {len(self.app.asm.steps)} steps.{saved}"
         else:
             lines = "\n".join(f"- {esc(p.key or 'file')}: {esc(p.what)}" for p in self.app.problems[:6])
-            self.status_md.content = f"⚠ **{len(self.app.problems)} problem(s)**; saving is off until fixed:\n{lines}"
+            self.status_md.content = (f"⚠ **{len(self.app.problems)} problem(s)**; saving is off until fixed:\n{lines}"
+                                      f"\n\n{saved.strip()}")
 
     def refresh_assembly_scene(self, gizmo: bool = True) -> None:
         """Meshes at their preview poses; the gizmo on the selected step's part."""

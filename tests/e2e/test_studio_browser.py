@@ -2,6 +2,7 @@
 would use it. Screenshots land in artifacts/e2e/ (look at them: they are the review of the page)."""
 
 import os
+import re
 import shutil
 import threading
 import time
@@ -153,7 +154,8 @@ def test_author_a_step_and_save(browser, studio, tmp_path):
     assert step["pose_in_base"]["translation"] == [12.5, -7, 30]
     w, x, _, _ = step["pose_in_base"]["rotation"]["quat_wxyz"]
     assert abs(w - 0.7071068) < 1e-6 and abs(x - 0.7071068) < 1e-6
-    page.get_by_text("Saved as").first.wait_for(timeout=10000)
+    page.get_by_text(re.compile(r"Saved as .*assembly\.yaml\.")).first.wait_for(timeout=10000)  # not "(last saved as"
+    assert "Unsaved changes" not in studio.steps.status_md.content
     shot(page, "assembly_tab.png")
     # a second tab sees the same draft, and the server still serves after a broken file
     other = open_page(browser, studio)
