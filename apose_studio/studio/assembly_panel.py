@@ -217,10 +217,19 @@ class AssemblyPanel:
         if not text:
             raise AposeError("type a mesh path or a folder of meshes (on the server) into 'Mesh path or folder'")
         path = self.app.workspace.resolve(text, "mesh")
+        already: list[str] = []
         if path.is_dir():
             files = sorted(p for p in path.iterdir() if p.suffix.lower() in supported_extensions() and p.is_file())
             if not files:
                 raise AposeError(f"{path}: no meshes here ({', '.join(supported_extensions())})")
+            # a folder added again adds what is new in it; one file typed again is a second part from it
+            used = {part.mesh.resolve(): pid for pid, part in self.app.asm.parts.items()}
+            already = [f"{f.name} (as {used[f.resolve()]})" for f in files if f.resolve() in used]
+            files = [f for f in files if f.resolve() not in used]
+            if not files:
+                self.app.notify(client, "Nothing new in the folder",
+                                f"every mesh in {esc(path)} is a part already: " + esc(", ".join(already[:8])))
+                return
         elif path.is_file():
             files = [path]
         else:
@@ -232,7 +241,8 @@ class AssemblyPanel:
             except AposeError as e:
                 failed.append(str(e))
         if added:
-            self.app.notify(client, "Parts added", ", ".join(added))
+            self.app.notify(client, "Parts added", ", ".join(added) + (
+                f"; already parts, not added again: {esc(', '.join(already[:8]))}" if already else ""))
         if failed:
             self.app.notify(client, "Some meshes were not added", "\n".join(failed[:5]), error=True)
         self.app.frame_camera_on_assembly()

@@ -210,3 +210,22 @@ def test_undo_never_brings_another_file_s_draft_back(studio, gearbox_copy, tmp_p
     act(st, st.files.on_new)
     act(st, lambda c: st.undo_redo("Undo", c))
     assert st.asm.name == "fresh" and "nothing to undo" in errors(st)[-1][1]
+
+
+def test_a_folder_added_again_adds_only_what_is_new(studio, gearbox_copy, tmp_path):
+    """#28: adding the same folder twice made every part again as *_2, silently. A folder adds the meshes
+    that are not parts yet and names the others; one file typed again is a second part from it (two of
+    the same screw)."""
+    st = studio(gearbox_copy)
+    before = set(st.asm.parts)
+    st.files.f_mesh.value = str(gearbox_copy.parent)
+    act(st, st.files.on_add_parts)
+    assert set(st.asm.parts) == before and errors(st) == []
+    assert st.notes[-1][0] == "Nothing new in the folder" and "casing.stl (as casing)" in st.notes[-1][1]
+    (gearbox_copy.parent / "spacer.stl").write_bytes((gearbox_copy.parent / "pinion.stl").read_bytes())
+    act(st, st.files.on_add_parts)
+    assert set(st.asm.parts) - before == {"spacer"}
+    assert "spacer" in st.notes[-1][1] and "not added again" in st.notes[-1][1]
+    st.files.f_mesh.value = str(gearbox_copy.parent / "spacer.stl")
+    act(st, st.files.on_add_parts)
+    assert set(st.asm.parts) - before == {"spacer", "spacer_2"}
