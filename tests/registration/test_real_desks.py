@@ -105,10 +105,12 @@ def test_what_lies_on_the_base_does_not_outweigh_the_sides_a_lifted_pose_contrad
 def test_the_object_in_front_is_left_out_of_a_mostly_hidden_base():
     """A watering can three quarters hidden behind a box; the box drawn around what is seen of the can takes
     in the box's corner, which stands in front of the can where the two meet. Without the front-most patch
-    the pose is right and confident (before: the pose fitted the box, wrong)."""
+    the pose is right (before: 211 mm off, fitted to the box). It is not confident: the quarter in view
+    leaves the can free to move by more than the 70 mm label on it allows (estimation.held_to_part)."""
     frame, r, mask, err = estimate_prompted(DESK, 2, 0, clutter="hidden", pitch_range_deg=(20.0, 50.0), **KINECT)
     assert iou(mask, frame.base_mask()) < 0.3  # the prompted mask is mostly the box in front
-    assert r.ok and r.confident and err < 0.1, (r.reason, r.reading, err)
+    assert r.ok and err < 0.1, (r.reason, r.reading, err)
+    assert not r.confident and "the placement allows" in doubts(r)
     assert r.reading == "without what stands in front"
     assert iou(r.model_mask, frame.base_mask()) > 0.5
 
