@@ -9,6 +9,7 @@ headless core reads. Typed poses are millimetres and degrees (extrinsic xyz Eule
 from __future__ import annotations
 
 import re
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -331,13 +332,23 @@ def set_approach(asm: Assembly, index: int, direction, distance_m: float) -> Ass
 class History:
     """Undo and redo over whole drafts (Assemblies are immutable, so a snapshot is a reference)."""
 
+    TYPING_GAP_S = 2.0  # edits of one field closer together than this are one undo step (keystrokes of a number)
+
     def __init__(self, limit: int = 200):
         self.undo_stack: list[Assembly] = []
         self.redo_stack: list[Assembly] = []
         self.limit = limit
+        self._typing: tuple[object, float] | None = None  # (the field, when) of the last typed edit recorded
 
-    def record(self, before: Assembly) -> None:
-        """Call before an edit replaces `before`; a new edit forgets what was undone."""
+    def record(self, before: Assembly, typing: object = None, now: float | None = None) -> None:
+        """Call before an edit replaces `before`; a new edit forgets what was undone. `typing`: the field
+        being typed in (any key, e.g. ("translation", step)); its edits within TYPING_GAP_S of the last one
+        are one undo step, as a word typed is one undo step in an editor (typing 30 fired "3", then "30")."""
+        now = time.monotonic() if now is None else now
+        last, self._typing = self._typing, ((typing, now) if typing is not None else None)
+        if typing is not None and last is not None and last[0] == typing and now - last[1] < self.TYPING_GAP_S \
+                and self.undo_stack:
+            return  # the same field still being typed in: its first edit's snapshot stays the undo step
         if self.undo_stack and self.undo_stack[-1] is before:
             return
         self.undo_stack.append(before)
@@ -348,15 +359,18 @@ class History:
         """Forget every step (another file was opened, or a new one started)."""
         self.undo_stack.clear()
         self.redo_stack.clear()
+        self._typing = None
 
     def undo(self, current: Assembly) -> Assembly:
         if not self.undo_stack:
             raise AposeError("nothing to undo")
+        self._typing = None
         self.redo_stack.append(current)
         return self.undo_stack.pop()
 
     def redo(self, current: Assembly) -> Assembly:
         if not self.redo_stack:
             raise AposeError("nothing to redo")
+        self._typing = None
         self.undo_stack.append(current)
         return self.redo_stack.pop()

@@ -151,7 +151,7 @@ class StepsPanel:
             return
         T = authoring.pose_from_typed(self.f_t.value, self.f_r.value)
         before = self.app.asm
-        self.app.history.record(before)
+        self.app.history.record(before, typing=("pose", self.step_index))  # a number's keystrokes: one undo step
         self.set_pose(T, client, sync_fields=False, gizmo=True)  # the fields are the user's; the gizmo follows them
         self.settle_mates(before, client)
 

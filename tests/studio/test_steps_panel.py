@@ -137,3 +137,26 @@ def test_the_status_says_whether_the_draft_is_saved(studio, gearbox_copy, tmp_pa
     st.files.f_path.value = str(tmp_path / "fresh.yaml")
     act(st, st.files.on_new)
     assert "Not saved yet" in st.steps.status_md.content
+
+
+def test_the_keystrokes_of_a_typed_number_are_one_undo_step(studio, gearbox_copy):
+    """#28 (newcomer): typing 30 recorded "3" and "30" as two undo steps (and Undo stopped at 3 mm). Edits of
+    one field in quick succession are one step; another field, or a pause, starts the next."""
+    from apose_studio.studio.authoring import History
+
+    st = studio(gearbox_copy)
+    st.steps.step_index = 0
+    before = st.asm.steps[0].T_base_part.copy()
+    st.steps.f_t.value = (3.0, 0.0, 14.5)
+    st.steps.f_t.value = (30.0, 0.0, 14.5)
+    act(st, st.undo_redo, "Undo")
+    np.testing.assert_allclose(st.asm.steps[0].T_base_part, before, atol=1e-12)
+    h, a, b, c = History(), object(), object(), object()
+    h.record(a, typing="x", now=0.0)
+    h.record(b, typing="x", now=1.0)  # the same field, 1 s later: the same step
+    assert h.undo_stack == [a]
+    h.record(b, typing="x", now=4.0)  # after a pause: a new step
+    assert h.undo_stack == [a, b]
+    h.record(c, typing="y", now=4.5)  # another field: a new step
+    h.record(a, now=4.6)  # an edit that is not typing
+    assert h.undo_stack == [a, b, c, a]
