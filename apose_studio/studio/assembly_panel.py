@@ -20,6 +20,7 @@ from apose_studio.safeio import check_path_text, read_bytes
 from apose_studio.studio import authoring
 from apose_studio.studio.state import Event, shared
 from apose_studio.studio.widgets import MAX_UPLOAD_BYTES, UNITS, esc, hex_colour
+from apose_studio.text import unsafe_char
 
 log = logging.getLogger(__name__)
 
@@ -190,8 +191,11 @@ class AssemblyPanel:
             return
 
         name = self.f_name.value.strip()
-        if not name:
-            raise AposeError("the assembly needs a name")
+        bad = unsafe_char(name)
+        if not name or bad:
+            self.refresh_files()  # the field shows the name the draft keeps, not the refused one
+            why = "the assembly needs a name" if not name else f"a name cannot hold the invisible character {bad}"
+            raise AposeError(f"{why}; it stays {esc(self.app.asm.name)!r}")
         self.app.set_assembly(replace(self.app.asm, name=name), client)
 
     def on_units(self, client) -> None:

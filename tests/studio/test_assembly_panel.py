@@ -229,3 +229,14 @@ def test_a_folder_added_again_adds_only_what_is_new(studio, gearbox_copy, tmp_pa
     st.files.f_mesh.value = str(gearbox_copy.parent / "spacer.stl")
     act(st, st.files.on_add_parts)
     assert set(st.asm.parts) - before == {"spacer", "spacer_2"}
+
+
+def test_a_refused_name_is_not_left_in_the_field(studio, gearbox_copy):
+    """Newcomer: clearing the Name field was refused but the field stayed empty, as if it had taken."""
+    st = studio(gearbox_copy)
+    st.files.f_name.value = "   "
+    assert "needs a name" in errors(st)[-1][1] and st.asm.name == "helical_gearbox"
+    assert st.files.f_name.value == "helical_gearbox"
+    st.files.f_name.value = "gear\u200bbox"  # a zero-width space: looks like "gearbox", is not
+    assert "invisible character \\u200b" in errors(st)[-1][1] and st.asm.name == "helical_gearbox"
+    assert st.files.f_name.value == "helical_gearbox" and st.problems == []
