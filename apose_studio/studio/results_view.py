@@ -118,6 +118,7 @@ class ResultsView:
             self.app.node("/inspect/target", scene.add_point_cloud("/inspect/target", tgt, inspection.RED, point_size=d / 120,
                                                                 point_shape="circle"))
             labels.append(("target cloud", tgt[np.argmax(tgt[:, 2])], "bottom-right"))
+        self.i_legend.content = legend_html({text for text, _, _ in labels} | ({"source cloud"} if r is not None and r.ok else set()))
         for k, (text, where, anchor) in enumerate(labels):
             name = f"/inspect/label_{k}"
             self.app.node(name, scene.add_label(name, text, position=tuple(float(v) for v in where), anchor=anchor,

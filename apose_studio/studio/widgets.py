@@ -47,10 +47,14 @@ def hex_colour(color) -> str:
     return "#" + "".join(f"{int(round(255 * c)):02x}" for c in color)
 
 
-def legend_html() -> str:
+def legend_html(shown=None) -> str:
+    """The colours of the Inspect view, each with its name; `shown`: the names drawn now (an entry is
+    listed when its name starts with one of them: "truth" lists "truth (dashed)"), None: all of them. A
+    capture has no truth, and a frame not yet estimated no estimate: the legend lists only what is there."""
+    entries = [(name, rgb) for name, rgb in inspection.LEGEND if shown is None or any(name.startswith(s) for s in shown)]
     items = "".join(f"<span style='white-space:nowrap;margin-right:10px'><span style='display:inline-block;width:14px;"
                     f"height:4px;vertical-align:middle;background:{hex_colour([c / 255 for c in rgb])}'></span> {esc(name)}</span>"
-                    for name, rgb in inspection.LEGEND)
+                    for name, rgb in entries)
     return f"<div style='font-size:0.8em;line-height:1.8'>{items}</div>"
 
 

@@ -299,3 +299,18 @@ def test_a_notice_gives_the_actual_doubt(studio, gearbox_dataset, monkeypatch):
     title, body, error = st.notes[-1]
     assert title == "Estimated, not confident" and error, st.notes[-1]
     assert "2 placements fit the data equally" in body and "explains too little" not in body and "likely" not in body
+
+
+def test_the_legend_lists_only_what_is_drawn(studio, gearbox_dataset, capture):
+    """Newcomer: a capture's legend listed "truth", which a capture does not have. The legend names what the
+    view draws: a rendered frame's truth always, the estimate's colours once there is one."""
+    from .conftest import open_capture
+
+    st = open_capture(studio, capture)
+    legend = st.results.i_legend.content
+    assert "truth" not in legend and "estimate" not in legend and "target cloud" not in legend
+    st = studio(SAMPLES / "helical_gearbox" / "assembly.yaml", gearbox_dataset)
+    assert "truth (dashed)" in st.results.i_legend.content and "estimate" not in st.results.i_legend.content
+    act(st, st.inspect.run_estimation, False)
+    legend = st.results.i_legend.content
+    assert all(name in legend for name in ("truth (dashed)", "estimate", "target cloud", "source cloud")), legend
