@@ -63,13 +63,14 @@ def readings(view: View, base: BaseObject, table: tuple[np.ndarray, float] | Non
 
     if table is not None:
         add("below the base's height", mask & ~too_high(view, base, table, tol))
-    front = front_most(view.depth, mask)
+    patches = depth_patches(depth, mask)  # split once, read twice below
+    front = front_most(depth, mask, patches)
     if front.any():
         add("without what stands in front", mask & ~front)
     if view.rgb is not None and view.rgb.ndim == 3 and view.rgb.shape[2] == 3:
         for k, group in enumerate(colour_groups(view.rgb, mask), start=1):
             add(f"without colour {k}", mask & ~group)
-    for k, patch in enumerate(largest_patches(view.depth, mask, PATCHES), start=1):
+    for k, patch in enumerate(largest_patches(depth, mask, PATCHES, patches), start=1):
         add(f"without depth patch {k}", mask & ~patch)
     return out[:MAX_READINGS]
 
@@ -133,27 +134,33 @@ def depth_patches(depth: np.ndarray, mask: np.ndarray) -> tuple[int, np.ndarray,
     return count, labels, z
 
 
-def largest_patches(depth: np.ndarray, mask: np.ndarray, k: int) -> list[np.ndarray]:
+def with_edge(labels: np.ndarray, i: int, mask: np.ndarray) -> np.ndarray:
+    """Patch `i` and the edge pixels around it (the jump it was split off at), within the mask."""
+    return (cv2.dilate((labels == i).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0) & mask
+
+
+def largest_patches(depth: np.ndarray, mask: np.ndarray, k: int, patches=None) -> list[np.ndarray]:
     """The `k` largest pieces of the mask split where the depth jumps (each at least MIN_READING_SHARE of
-    it), largest first: the base and what stands in front of or beside it at another depth."""
-    count, labels, z = depth_patches(depth, mask)
+    it), largest first: the base and what stands in front of or beside it at another depth. `patches`:
+    depth_patches(depth, mask) when already split."""
+    count, labels, z = patches if patches is not None else depth_patches(depth, mask)
     if count <= 2:
         return []  # one piece: nothing to leave out
     sizes = np.bincount(labels.ravel(), minlength=count)
     sizes[0] = 0
     total = int((z > 0).sum())
     order = [i for i in np.argsort(-sizes, kind="stable")[:k] if sizes[i] >= MIN_READING_SHARE * total]
-    kernel = np.ones((5, 5), np.uint8)  # the patch and the edge pixels around it (split off with it)
-    return [(cv2.dilate((labels == i).astype(np.uint8), kernel) > 0) & mask for i in order]
+    return [with_edge(labels, i, mask) for i in order]
 
 
-def front_most(depth: np.ndarray, mask: np.ndarray) -> np.ndarray:
+def front_most(depth: np.ndarray, mask: np.ndarray, patches=None) -> np.ndarray:
     """(H, W) bool: the mask's depth patches (at least MIN_FRONT_SHARE of it) that stand in front of another
     of its patches where the two meet, and behind none, with the edge pixels around them. Where two patches
     meet (within BORDER_PX across the jump), the nearer is the one whose median depth there is smaller by
     more than the jump that split them. An occluder between the camera and a mostly hidden base is the
-    front-most; the base behind it is not, even when it stands in front of something further back."""
-    count, labels, z = depth_patches(depth, mask)
+    front-most; the base behind it is not, even when it stands in front of something further back.
+    `patches`: depth_patches(depth, mask) when already split."""
+    count, labels, z = patches if patches is not None else depth_patches(depth, mask)
     out = np.zeros(mask.shape, bool)
     if count <= 2:
         return out
@@ -179,11 +186,10 @@ def front_most(depth: np.ndarray, mask: np.ndarray) -> np.ndarray:
             elif db < da - jump:
                 in_front_of[b].add(a)
                 behind[a].add(b)
-    edge = np.ones((5, 5), np.uint8)  # the patch and the edge pixels around it (split off with it)
     for i in big:
         if in_front_of[i] and not behind[i]:
-            out |= cv2.dilate((labels == i).astype(np.uint8), edge) > 0
-    return out & mask
+            out |= with_edge(labels, i, mask)
+    return out
 
 
 def explained(result: RegistrationResult, view: View, base: BaseObject) -> float:

@@ -228,8 +228,9 @@ class AssemblyPanel:
                 raise AposeError(f"{path}: no meshes here ({', '.join(supported_extensions())})")
             # a folder added again adds what is new in it; one file typed again is a second part from it
             used = {part.mesh.resolve(): pid for pid, part in self.app.asm.parts.items()}
-            already = [f"{f.name} (as {used[f.resolve()]})" for f in files if f.resolve() in used]
-            files = [f for f in files if f.resolve() not in used]
+            part_of = {f: used.get(f.resolve()) for f in files}
+            already = [f"{f.name} (as {pid})" for f, pid in part_of.items() if pid is not None]
+            files = [f for f, pid in part_of.items() if pid is None]
             if not files:
                 self.app.notify(client, "Nothing new in the folder",
                                 f"every mesh in {esc(path)} is a part already: " + esc(", ".join(already[:8])))

@@ -32,6 +32,7 @@ class ResultsView:
         self.stages: list = []
         self._seen_from_sensor = None  # the capture whose camera layer was turned off (its view is the sensor's)
         self._base_mesh: tuple = (None, None)  # ((assembly identity, step), its base mesh)
+        self._ghost: tuple = (None, None)  # (the part's mesh, widgets.shaded of it): the ghost drawn at the estimate
         app.events.on(Event.FRAME_CHANGED, self.draw_frame)
         app.events.on(Event.RESULT_READY, self.draw_frame)
         app.events.on(Event.OVERLAY_CHANGED, self.draw_overlay)
@@ -109,9 +110,10 @@ class ResultsView:
             self.app.node("/inspect/base_est", scene.add_mesh_simple(
                 "/inspect/base_est", base.vertices.astype(np.float32), base.faces.astype(np.uint32), color=inspection.GREEN,
                 wireframe=True, wxyz=wxyz(r.T_world_base), position=pos(r.T_world_base)))
-            mesh = part_model.mesh
+            if self._ghost[0] is not part_model.mesh:  # shaded once per part, not on every frame drawn
+                self._ghost = (part_model.mesh, shaded(part_model.mesh))
             self.app.node("/inspect/ghost", scene.add_mesh_simple(
-                "/inspect/ghost", *shaded(mesh), color=inspection.GREEN,
+                "/inspect/ghost", *self._ghost[1], color=inspection.GREEN,
                 opacity=0.45, wxyz=wxyz(r.T_world_part), position=pos(r.T_world_part)))
         if r is not None and len(r.target_cloud):
             tgt = inspection.thin(r.target_cloud, 20000).astype(np.float32)
