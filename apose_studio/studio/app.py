@@ -194,6 +194,14 @@ class Studio:
         gui.configure_theme(control_layout="fixed", control_width="large", show_share_button=False,
                             brand_color=(40, 90, 230))
         self.server.scene.set_up_direction("+z")
+        # plain lights: no shadows and no environment map. Drawn without a GPU (software WebGL, as in VMs and remote
+        # desktops) a frame of the inspect view took ~1 s with viser's defaults, ~0.7 s without the environment map,
+        # ~0.25 s without shadows too; and while the browser draws, the page answers no click (benchmarks/
+        # studio_browser.py). A sky/ground light stands in for the map, so that the sides of a part are not black.
+        self.server.scene.configure_default_lights(True, cast_shadow=False)
+        self.server.scene.configure_environment_map(hdri=None)
+        self.server.scene.add_light_hemisphere("/lights/sky", sky_color=(255, 255, 255), ground_color=(110, 110, 120),
+                                               intensity=1.2, position=(0.0, 0.0, 1.0))
         self.view = gui.add_button_group("3D view", VIEWS)
         self.view.on_click(lambda e: self.guarded("3D view")(lambda c: self.on_view_button(e.target.value))(e))
         tabs = gui.add_tab_group()

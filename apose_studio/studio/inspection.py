@@ -184,20 +184,25 @@ def thin(points: np.ndarray, max_points: int, seed: int = 0) -> np.ndarray:
 
 @dataclass(frozen=True)
 class StageView:
-    """One frame of the registration replay."""
+    """One frame of the registration replay: the source cloud (base frame, shared by every stage) at
+    this stage's pose."""
 
     name: str
-    source_world: np.ndarray  # (N, 3) the source cloud at this stage's pose
+    source_base: np.ndarray  # (N, 3) float32, the source cloud in the base's frame
     T_world_base: np.ndarray
     fitness: float
     inlier_rmse: float
 
+    @property
+    def source_world(self) -> np.ndarray:
+        return se3.transform_points(self.T_world_base, self.source_base)
+
 
 def replay(result: RegistrationResult, max_points: int = 20000) -> list[StageView]:
-    """The source cloud moved by each stage's T_world_base: initial -> global -> ICP iterations -> final."""
-    src = thin(result.source_cloud, max_points)
-    return [StageView(s.name, se3.transform_points(s.T_world_base, src).astype(np.float32), s.T_world_base,
-                      float(s.fitness), float(s.inlier_rmse)) for s in result.stages]
+    """Each stage of the registration (initial -> global -> ICP iterations -> final) as the pose that moves
+    the (thinned) source cloud: a replay sends the cloud once and then only poses."""
+    src = thin(result.source_cloud, max_points).astype(np.float32)
+    return [StageView(s.name, src, s.T_world_base, float(s.fitness), float(s.inlier_rmse)) for s in result.stages]
 
 
 def metrics_markdown(score, result: RegistrationResult | None) -> str:

@@ -3,6 +3,7 @@
 
 import numpy as np
 
+from apose_studio.geometry import se3
 from apose_studio.studio import serve
 
 from ..conftest import SAMPLES, free_port, mssd_to_truth
@@ -14,22 +15,41 @@ def test_inspect_estimate_replay_and_cache(studio, gearbox_dataset):
     assert st.inspect.frame is not None and {"/inspect/camera", "/inspect/scene", "/inspect/box_gt"} <= set(st.nodes)
     assert "/inspect/box_est" not in st.nodes
     st.inspect.i_prior.value = True
+    scene, camera = st.nodes["/inspect/scene"], st.nodes["/inspect/camera"]
     act(st, st.inspect.run_estimation, True)  # the whole step: both frames
     assert len(st.cache) == 2 and not errors(st)
+    # the frame did not change: its scene cloud and camera are not sent again with the estimate
+    assert st.nodes["/inspect/scene"] is scene and st.nodes["/inspect/camera"] is camera
     assert {"/inspect/target", "/inspect/source", "/inspect/box_est", "/inspect/box_gt"} <= set(st.nodes)
     assert st.inspect.score.mssd < 0.002 and "MSSD" in st.results.i_metrics.content
     n = len(st.results.stages)
     assert n >= 4 and st.results.stages[0].name == "initial" and st.results.stages[-1].name == "final"
-    final = st.nodes["/inspect/source"].points.copy()
+    def world(name):  # a node's points (or its frame's origin) in the world
+        h = st.nodes[name]
+        T = se3.make_T(se3.quat_wxyz_to_matrix(np.asarray(h.wxyz)), np.asarray(h.position))
+        return se3.transform_points(T, np.asarray(h.points if hasattr(h, "points") else np.zeros((1, 3))))
+
+    source = st.nodes["/inspect/source"]
+    final = {n: world(n) for n in ("/inspect/source", "/inspect/ghost", "/inspect/box_est")}
+    np.testing.assert_allclose(final["/inspect/source"], st.results.stages[-1].source_world, atol=1e-4)  # 0.1 mm: as drawn
     st.results.i_stage.value = 0
-    first = st.nodes["/inspect/source"].points
-    assert np.abs(first - final).max() > 0 and "initial" in st.results.i_stage_md.content
+    first = {n: world(n) for n in final}
+    assert np.abs(first["/inspect/source"] - final["/inspect/source"]).max() > 0 and "initial" in st.results.i_stage_md.content
+    np.testing.assert_allclose(first["/inspect/source"], st.results.stages[0].source_world, atol=1e-4)
+    # the estimate's ghost and box follow the stage shown, not only the cloud; the cloud is moved, not sent again
+    assert all(np.abs(first[n] - final[n]).max() > 1e-4 for n in ("/inspect/ghost", "/inspect/box_est"))
+    assert st.nodes["/inspect/source"] is source
     # the 2D view draws both boxes: green (estimate) and amber (truth) pixels appear on the RGB
     img = st.results.i_image.image
     assert ((img[..., 1] > 150) & (img[..., 0] < 80)).any()
     assert ((img[..., 0] > 230) & (img[..., 1] > 130) & (img[..., 1] < 190) & (img[..., 2] < 50)).any()
+    ghost = st.nodes["/inspect/ghost"]
     st.inspect.i_frame.value = 1
     assert st.inspect.result is not None and st.inspect.frame.im_id == 1  # cached: no estimation needed
+    # another frame: a new scene cloud; the same part's ghost is moved, not sent again
+    assert st.nodes["/inspect/scene"] is not scene and st.nodes["/inspect/ghost"] is ghost
+    T = st.inspect.result.T_world_part
+    np.testing.assert_allclose(ghost.position, T[:3, 3], atol=1e-9)
 
 
 def test_an_ambiguous_result_shows_the_other_placements_in_magenta(studio, gearbox_dataset):
