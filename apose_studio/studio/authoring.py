@@ -35,10 +35,14 @@ def folder_of(asm: Assembly) -> Path:
 
 
 def unique_part_id(asm: Assembly, wanted: str) -> str:
-    """A valid, unused part id from a file name ('Left Gear.stl' -> 'left_gear', then 'left_gear_2')."""
-    base = re.sub(r"[^0-9a-zA-Z_]+", "_", wanted).strip("_").lower()[:48] or "part"  # fits assembly.PART_ID
+    """A valid, unused part id from a file name, spelt as the file is ('Nema17.step' -> 'Nema17', 'Left
+    Gear.stl' -> 'Left_Gear', 'm3-bolt.stl' -> 'm3-bolt'): what PART_ID refuses becomes '_'. Unused
+    whatever the case ('left_gear' beside 'Left_Gear' becomes 'left_gear_2'): two ids that differ only by
+    case would read as one part in a list."""
+    base = re.sub(r"[^0-9A-Za-z_.\-]+", "_", wanted).strip("_.-")[:48] or "part"  # fits assembly.PART_ID
+    taken = {p.lower() for p in asm.parts}
     pid, k = base, 2
-    while pid in asm.parts:
+    while pid.lower() in taken:
         pid, k = f"{base}_{k}", k + 1
     return pid
 

@@ -16,10 +16,10 @@ def test_build_an_assembly_from_nothing_and_save_it(tmp_path):
     asm = authoring.new_assembly("rig", "mm", tmp_path)
     asm, plate = authoring.add_part(asm, tmp_path / "Base Plate.stl")
     asm, peg = authoring.add_part(asm, tmp_path / "peg.stl")
-    assert (plate, peg) == ("base_plate", "peg")
+    assert (plate, peg) == ("Base_Plate", "peg")
     assert [p.key for p in authoring.problems(asm)] == ["steps"]  # valid so far, but nothing to save
     asm = authoring.add_step(asm)
-    assert asm.steps[0].part == "peg" and asm.steps[0].base == ("base_plate",)
+    assert asm.steps[0].part == "peg" and asm.steps[0].base == ("Base_Plate",)
     T = authoring.pose_from_typed([10, -5, 12], [0, 0, 90])
     asm = authoring.edit_step(asm, 0, T_base_part=T)
     assert authoring.problems(asm) == []
@@ -35,7 +35,11 @@ def test_unique_ids():
     asm, a = authoring.add_part(asm, "/x/Left Gear.stl")
     asm, b = authoring.add_part(asm, "/y/left-gear.ply")
     asm, c = authoring.add_part(asm, "/z/###.stl")
-    assert (a, b, c) == ("left_gear", "left_gear_2", "part")
+    asm, d = authoring.add_part(asm, "/z/Nema17.step")
+    asm, e = authoring.add_part(asm, "/z/m3-bolt.v2.stl")
+    asm, f = authoring.add_part(asm, "/z/left_gear.stl")
+    # the file's spelling is kept (case, '-' and '.'); what an id may not hold becomes '_'; unused whatever the case
+    assert (a, b, c, d, e, f) == ("Left_Gear", "left-gear", "part", "Nema17", "m3-bolt.v2", "left_gear_2")
 
 
 def test_reorder_reports_the_offending_step(tiny_dir):
