@@ -114,18 +114,24 @@ class Studio:
     valid_asm = shared("valid_asm", "the last draft without problems, what the preview shows (`state.valid_asm`)")
     problems = shared("problems", "the draft's problems (`state.problems`)")
 
-    def notify(self, client, title: str, body: str, error: bool = False) -> None:
+    def notify(self, client, title: str, body: str, error: bool = False, others_of=None) -> None:
         """Tell the tab that acted (or every tab when no one did). An error stays until closed, but only until
-        the tab's next message: an old error beside a newer success reads as if the success had failed."""
+        the tab's next message: an old error beside a newer success reads as if the success had failed.
+        `others_of`: tell every tab but that one (what another tab's action changed here), in yellow, kept
+        as an error is."""
         (log.warning if error else log.info)("%s: %s", title, body)
-        clients = [client] if client is not None else list(self.server.get_clients().values())
+        if others_of is not None:
+            clients = [c for c in self.server.get_clients().values() if c.client_id != others_of.client_id]
+        else:
+            clients = [client] if client is not None else list(self.server.get_clients().values())
+        lasting = error or others_of is not None
         for c in clients:
             try:
                 for old in self._errors_shown.pop(c.client_id, []):
                     old.remove()
-                handle = c.add_notification(title, body, auto_close_seconds=None if error else 4.0,
-                                            color="red" if error else "green")
-                if error:
+                handle = c.add_notification(title, body, auto_close_seconds=None if lasting else 4.0,
+                                            color="red" if error else "yellow" if others_of is not None else "green")
+                if lasting:
                     self._errors_shown.setdefault(c.client_id, []).append(handle)
             except Exception:  # a tab that just closed
                 pass

@@ -128,10 +128,18 @@ class StepsPanel:
     def on_select_step(self, client) -> None:
         if self._syncing or not self.app.asm.steps:
             return
+        before = self.step_index
         self.step_index = int(self.f_step.value.split(".")[0]) - 1
         self.refresh_steps()
         self.app.events.emit(Event.STEP_SELECTED, index=self.step_index)
         self.f_upto.value = self.step_index + 1
+        if client is not None and before != self.step_index:
+            # the studio's fields are one set shared by every tab (viser's server GUI): the other tabs' fields now
+            # edit this step too; say so there, before a value typed into them moves a part their user did not pick
+            s = self.app.asm.steps[self.step_index]
+            self.app.notify(None, "Step changed in another tab",
+                            f"another tab selected step {self.step_index + 1} ({s.part}): the Step fields and the 3D "
+                            "view here show it too (every tab shares one selection)", others_of=client)
 
     def on_step_part(self, client) -> None:
         if self._syncing or self.step_index is None:

@@ -713,3 +713,25 @@ def test_upload_a_mesh_from_the_browser(browser, tmp_path_factory):
         page.close()
     finally:
         server.stop()
+
+
+def test_a_step_chosen_in_another_tab_is_told_here(browser, studio, tmp_path):
+    """The studio's fields are one set for every tab: when tab B selects another step, tab A's fields show
+    it too, and A is told so (in yellow, kept) before a value typed there moves a part A's user did not pick;
+    B, which chose, is not told."""
+    asm_path = _sample_copy(tmp_path)
+    a = open_page(browser, studio)
+    type_into(a, "Assembly file", str(asm_path))
+    a.get_by_role("button", name="Open").click()
+    wait_until(lambda: len(studio.asm.steps) == 3, "the sample to open")
+    b = open_page(browser, studio)
+    expect(field(b, "Step").first).to_have_value("1. pinion", timeout=10000)
+    field(b, "Step").first.click()
+    b.get_by_role("option", name="2. wheel", exact=True).click()
+    wait_until(lambda: studio.state.step_index == 1, "step 2 to be selected")
+    expect(field(a, "Step").first).to_have_value("2. wheel", timeout=10000)
+    a.get_by_text("Step changed in another tab").first.wait_for(timeout=10000)
+    assert "2 (wheel)" in a.get_by_text(re.compile("another tab selected step")).first.inner_text()
+    time.sleep(0.5)
+    assert b.get_by_text("Step changed in another tab").count() == 0
+    shot(a, "told_of_another_tab.png")
