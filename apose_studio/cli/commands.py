@@ -129,6 +129,20 @@ def cmd_studio(args) -> int:
     return _serve_studio(args.assembly, args.dataset, args.host, args.port, root=args.root, token=args.token)
 
 
+def cmd_export_html(args) -> int:
+    from apose_studio.assembly.fileio import atomic_write_text
+    from apose_studio.studio.export import export_replay
+
+    out = Path(args.out)
+    check_output_file(out, "--out", inputs=[args.input])
+    page, result = export_replay(args.input, args.step, args.frame, args.assembly, args.orientation_prior)
+    atomic_write_text(out, page)
+    verdict = "confident" if result.confident else "not confident"
+    print(f"wrote {out} ({len(page.encode('utf-8')) / 1e6:.1f} MB): step {args.step}, frame {args.frame}, {verdict}, "
+          f"{len(result.stages)} stages; open it in any browser (no server, no network)")
+    return 0
+
+
 def _pair(text: str, what: str) -> tuple[float, float]:
     try:
         a, b = (float(x) for x in text.split(","))
@@ -253,7 +267,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--version", action="version", version=f"apose_studio {__version__}")
     ap.add_argument("-v", "--verbose", action="store_true", help="show debug logging and tracebacks")
     sub = ap.add_subparsers(dest="command", metavar="COMMAND")
-    for add in (_add_show, _add_render, _add_estimate, _add_eval, _add_train_seg, _add_demo, _add_studio):
+    for add in (_add_show, _add_render, _add_estimate, _add_eval, _add_train_seg, _add_demo, _add_studio,
+                _add_export_html):
         add(sub)
     return ap
 
@@ -387,6 +402,18 @@ def _add_studio(sub) -> None:
     p.add_argument("--dataset", help="dataset folder (from `apose render`) or capture folder to open in the Inspect tab")
     _server_args(p)
     p.set_defaults(func=cmd_studio)
+
+
+def _add_export_html(sub) -> None:
+    p = sub.add_parser("export-html", help="estimate one frame and write the studio's inspect view and registration "
+                       "replay as one HTML page that opens without a server")
+    p.add_argument("input", help="dataset folder from `apose render`, or a capture folder (with --assembly)")
+    p.add_argument("--assembly", help="assembly YAML (needed for a capture; a dataset has its own)")
+    p.add_argument("--step", type=int, required=True, help="assembly step (1-based)")
+    p.add_argument("--frame", type=int, default=0, help="image id within the step (default 0)")
+    p.add_argument("--orientation-prior", action="store_true", help="take the CAD orientation as the base's")
+    p.add_argument("--out", required=True, help="the HTML file to write")
+    p.set_defaults(func=cmd_export_html)
 
 
 def main(argv=None) -> int:

@@ -80,6 +80,7 @@ class InspectPanel:
         self._syncing = False
         self.contexts: dict = {}  # (assembly, models identity, step) -> (assembly, models, StepContext)
         app.events.on(Event.MASK_SOURCE_CHOSEN, self.on_mask_source_chosen)
+        app.events.on(Event.FRAMING_ASKED, self.frame_camera_on_frame)
 
     def build(self) -> None:
         gui = self.app.server.gui

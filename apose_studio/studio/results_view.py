@@ -11,6 +11,7 @@ import json
 import logging
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -20,9 +21,21 @@ from apose_studio.geometry import se3
 from apose_studio.studio import inspection
 from apose_studio.studio.prompt_panel import overlay_mask
 from apose_studio.studio.state import Event
-from apose_studio.studio.widgets import LAYERS, legend_html, pos, shaded, wxyz
+from apose_studio.studio.widgets import LAYERS, esc, legend_html, pos, shaded, wxyz
 
 log = logging.getLogger(__name__)
+
+REPLAY_SECONDS_PER_STAGE = 0.4  # in an exported replay page
+
+
+def inject_caption(page: str, caption_html: str) -> str:
+    """`page` (an HTML document) with `caption_html` in a box over its top-right corner (the playback controls
+    are at the bottom)."""
+    box = ("<div id='apose-caption' style='position:fixed;right:12px;top:12px;z-index:1000;max-width:460px;"
+           "background:rgba(255,255,255,0.92);color:#222;padding:8px 10px;border-radius:6px;"
+           f"font:13px/1.4 sans-serif;box-shadow:0 1px 4px rgba(0,0,0,0.3)'>{caption_html}</div>")
+    end = page.rindex("</body>")
+    return page[:end] + box + page[end:]
 
 
 class ResultsView:
@@ -54,6 +67,9 @@ class ResultsView:
             self.i_pose = gui.add_markdown("")
             b = gui.add_button("Download pose (JSON)", hint="T_world_part, T_camera_part and T_world_base of the estimate")
             b.on_click(self.app.guarded("Download pose")(self.on_download_pose))
+            b = gui.add_button("Export replay (HTML)", hint="this view and the registration replay as one page that any "
+                               "browser opens without the studio or a network")
+            b.on_click(self.app.guarded("Export replay")(self.on_export_replay))
             self.i_image = gui.add_image(np.zeros((48, 64, 3), np.uint8), label="RGB")
             self.i_full = gui.add_checkbox("Full image", False, hint="show the whole RGB image instead of the part around the object")
             self.i_full.on_update(self.app.guarded("Full image")(lambda c: self.draw_overlay()))
@@ -231,6 +247,57 @@ class ResultsView:
             raise AposeError("no browser to send the download to")
         client.send_file_download(f"pose_step{ins.step}_frame{ins.frame.im_id}.json",
                                   json.dumps(report, indent=1).encode("utf-8"))
+
+    def on_export_replay(self, client) -> None:
+        if client is None:
+            raise AposeError("no browser to send the download to")
+        ins = self.app.state.inspect
+        page = self.replay_html()
+        client.send_file_download(f"replay_step{ins.step}_frame{ins.frame.im_id}.html", page.encode("utf-8"))
+
+    def replay_html(self) -> str:
+        """The Inspect view of this frame and its estimate as one standalone HTML page: viser's scene
+        serializer writes its own client and the scene into one file, which opens from disk with no server and
+        no network request (the studio draws with no environment map, which the client would fetch). The page
+        shows the scene as drawn now, then replays the registration, REPLAY_SECONDS_PER_STAGE per stage,
+        ending on the final pose (viser's playback controls pause and scrub it), with the legend, the step
+        and frame and the result's numbers over the view."""
+        ins = self.app.state.inspect
+        r = ins.result
+        if r is None or not r.ok or not self.stages:
+            raise AposeError("estimate this frame first (Estimate frame); then its replay can be exported")
+        if self.app.current_view != "Inspect":
+            self.app.show_view("Inspect")
+        serializer = self.app.server.get_scene_serializer()  # from the scene as drawn now
+        try:
+            self.app.events.emit(Event.FRAMING_ASKED)  # the page opens looking at the object
+            for k in range(len(self.stages)):
+                serializer.insert_sleep(REPLAY_SECONDS_PER_STAGE)
+                self.set_stage(k)
+        finally:
+            page = serializer.as_html()  # (also stops the recording when the replay failed)
+        return inject_caption(page, self.caption())
+
+    def set_stage(self, k: int) -> None:
+        """Show replay stage `k`, the slider moved to it without its callback."""
+        self._syncing = True
+        try:
+            self.i_stage.value = k
+        finally:
+            self._syncing = False
+        self.show_stage()
+
+    def caption(self) -> str:
+        """What the exported page says over the view: source, step, frame, the legend and the numbers."""
+        ins = self.app.state.inspect
+        r, score = ins.result, ins.score
+        verdict = "ok and confident" if r.confident else "not confident"
+        numbers = [f"fitness {r.fitness:.3f}", f"inlier RMSE {r.inlier_rmse * 1000:.2f} mm"]
+        if score is not None and getattr(score, "mssd", None) is not None:
+            numbers.insert(0, f"MSSD {score.mssd * 1000:.2f} mm against the truth")
+        shown = {"target cloud", "source cloud", "estimate"} | ({"truth"} if ins.frame.T_world_part is not None else set())
+        return (f"<b>apose studio</b> &middot; {esc(Path(str(ins.frames_path)).name)} &middot; step {ins.step} "
+                f"&middot; frame {int(ins.frame.im_id)}<br>{esc(verdict)}: {esc(', '.join(numbers))}{legend_html(shown)}")
 
     def show_stage(self) -> None:
         if self._syncing:

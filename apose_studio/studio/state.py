@@ -40,6 +40,7 @@ class Event(str, Enum):
     RESULT_READY = "result ready"  # a new estimate is in `state.inspect.result` / `score` for `state.inspect.frame`
     MASK_SOURCE_CHOSEN = "mask source chosen"  # the user chose mask source `source` outside the Mask dropdown
     OVERLAY_CHANGED = "overlay changed"  # what the RGB overlay shows changed (a prompt's mask): redraw it
+    FRAMING_ASKED = "framing asked"  # the cameras should look at the object under inspection (an export records them)
 
 
 PAYLOAD: dict[Event, tuple[str, ...]] = {
@@ -53,6 +54,7 @@ PAYLOAD: dict[Event, tuple[str, ...]] = {
     Event.RESULT_READY: (),
     Event.MASK_SOURCE_CHOSEN: ("source",),
     Event.OVERLAY_CHANGED: (),
+    Event.FRAMING_ASKED: (),
 }
 
 

@@ -185,3 +185,19 @@ def test_bidi_controls_are_escaped_and_long_values_shortened(tmp_path):
     text = shorten_values("score is " + "9" * 5000 + " ; write a finite number")
     assert text.startswith("score is 9999") and "(5000 characters)" in text and text.endswith(" ; write a finite number")
     assert shorten_values("a normal /path/to/file.yaml: 12 problems") == "a normal /path/to/file.yaml: 12 problems"
+
+
+def test_export_html_writes_a_standalone_replay_and_refuses_what_is_not_there(gearbox_dataset, tmp_path):
+    """`apose export-html DATASET --step K --frame I --out OUT.html`: the page holds viser's client, the
+    scene (embedded, base64) and the caption; a step or frame the dataset lacks is refused with exit code 2
+    and the choices, and no file is written. (tests/e2e opens such a page in Chromium from disk.)"""
+    out = tmp_path / "replay.html"
+    r = run("export-html", gearbox_dataset, "--step", 1, "--frame", 1, "--orientation-prior", "--out", out)
+    assert r.returncode == 0, r.stderr
+    page = out.read_text()
+    assert "__VISER_EMBED_DATA__" in page and "id='apose-caption'" in page and "step 1 &middot; frame 1" in page
+    assert "wrote" in r.stdout and "Server stopped" not in r.stdout
+    for args, said in ((("--step", 4, "--frame", 0), "has steps 1"), (("--step", 1, "--frame", 7), "has frames 0, 1")):
+        bad = tmp_path / "bad.html"
+        r = run("export-html", gearbox_dataset, *args, "--out", bad)
+        assert r.returncode == 2 and said in r.stderr and not bad.exists(), r.stderr

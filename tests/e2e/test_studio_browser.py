@@ -735,3 +735,39 @@ def test_a_step_chosen_in_another_tab_is_told_here(browser, studio, tmp_path):
     time.sleep(0.5)
     assert b.get_by_text("Step changed in another tab").count() == 0
     shot(a, "told_of_another_tab.png")
+
+
+def test_an_exported_replay_opens_from_disk_with_no_network(browser, studio, gearbox_dataset, tmp_path):
+    """Export replay (HTML): the page the Result folder's button downloads opens from a file:// URL in
+    Chromium with no server, makes no network request, draws the scene (the 3D canvas) and shows the
+    legend and the result's numbers over it."""
+    page = open_page(browser, studio)
+    page.get_by_role("tab", name="Inspect").click()
+    type_into(page, "Dataset or capture", str(gearbox_dataset))
+    page.get_by_role("button", name="Open data").click()
+    wait_until(lambda: "/inspect/scene" in studio.nodes, "the frame to be shown")
+    page.get_by_role("button", name="Estimate frame").click()
+    wait_until(lambda: "final" in studio.results.i_stage_md.content, "the estimate", timeout=120)
+    page.get_by_role("button", name="Export replay (HTML)").click()
+    name = f"replay_step{studio.state.inspect.step}_frame{studio.inspect.frame.im_id}.html"
+    with page.expect_download(timeout=60000) as dl:  # viser offers the file as a link in a notification
+        page.get_by_text(name).first.click()
+    out = tmp_path / "replay.html"
+    dl.value.save_as(out)
+    assert dl.value.suggested_filename == name
+    studio.server.stop()  # no studio behind the page
+    context = browser.new_context()
+    viewer = context.new_page()
+    requests = []
+    viewer.on("request", lambda r: requests.append(r.url))
+    viewer.goto(out.as_uri())
+    viewer.locator("canvas").first.wait_for(timeout=60000)
+    caption = viewer.locator("#apose-caption")
+    caption.wait_for(timeout=10000)
+    text = caption.inner_text()
+    assert f"step {studio.state.inspect.step}" in text and "MSSD" in text and "truth" in text and "target cloud" in text
+    time.sleep(3.0)  # the replay plays
+    shot(viewer, "exported_replay.png")
+    remote = [u for u in requests if not u.startswith(("file:", "data:", "blob:"))]
+    assert not remote, f"the exported page fetched {remote[:5]}"
+    context.close()

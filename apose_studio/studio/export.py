@@ -1,0 +1,61 @@
+"""`apose export-html`: the studio's Export replay (HTML) without a browser.
+
+A studio is started on loopback with no page connected, the frame opened and estimated as the Inspect
+tab does (its default mask source and settings), and the page its Export replay button would download
+is written to a file. The same code draws it as in the studio: what the file shows is what a user
+inspecting that frame sees.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import socket
+from pathlib import Path
+
+from apose_studio.errors import AposeError
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def export_replay(input_path: str | Path, step: int, frame: int, assembly: str | Path | None = None,
+                  orientation_prior: bool = False) -> tuple[str, object]:
+    """(the replay page's HTML, the registration result) for frame `frame` (image id in a dataset; 0 for a
+    capture) of `step` in `input_path` (a dataset from `apose render`, or a capture folder with `assembly`).
+    AposeError when the input cannot be opened, the step or frame does not exist, or the estimate fails."""
+    from apose_studio.data.dataset import Dataset
+    from apose_studio.studio import serve
+
+    server, st = serve(assembly, input_path, host="127.0.0.1", port=_free_port())
+    try:
+        with st.lock:
+            ins = st.inspect
+            if ins.frames is None:
+                raise AposeError(f"{input_path}: could not be opened as a dataset or capture")
+            steps = list(ins.i_step.options)
+            chosen = [s for s in steps if s.split(".")[0] == str(step)]
+            if not chosen:
+                raise AposeError(f"--step {step}: {input_path} has steps {', '.join(s.split('.')[0] for s in steps)}")
+            ids = ins.frames.image_ids(step) if isinstance(ins.frames, Dataset) else [0]
+            if frame not in ids:
+                raise AposeError(f"--frame {frame}: step {step} of {input_path} has frames {', '.join(map(str, ids))}")
+            ins._syncing = True
+            try:
+                ins.i_step.value = chosen[0]
+                ins.i_frame.value = ids.index(frame)
+                ins.i_prior.value = bool(orientation_prior)
+            finally:
+                ins._syncing = False
+            ins.on_frame_changed()
+            ins.run_estimation(False, None)
+            result = ins.result
+            if result is None or not result.ok:
+                raise AposeError(f"the estimate failed: {getattr(result, 'reason', 'no result')}")
+            return st.results.replay_html(), result
+    finally:
+        with contextlib.redirect_stdout(io.StringIO()):  # viser says "Server stopped" on stdout
+            server.stop()
