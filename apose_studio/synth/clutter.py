@@ -52,22 +52,28 @@ def touching_pose(base_tree: cKDTree, centre_xy: np.ndarray, reach: float, mesh:
     lift = -float((mesh.vertices @ R.T)[:, 2].min())
     d = np.array([math.cos(angle), math.sin(angle)])
 
-    def gap(s: float) -> float:
+    def gap(s: float, bound: float = np.inf) -> float:  # inf when no pair is closer than `bound`
         xy = centre_xy + s * d
-        return float(base_tree.query(pts + [xy[0], xy[1], lift])[0].min())
+        return float(base_tree.query(pts + [xy[0], xy[1], lift], distance_upper_bound=bound)[0].min())
 
     s_far = reach
     s = reach
     while s > 0:
-        if gap(s) < step:
+        g = gap(s)
+        if g < step:
             break
-        s_far, s = s, s - step
+        # the gap closes by at most as much as the object moves (it is 1-Lipschitz in s): the next grid points
+        # closer than (g - step) stay >= step away and would not stop the walk; they are stepped over unasked
+        for _ in range(1 + max(int((g - 1.001 * step) / step), 0)):
+            s_far, s = s, s - step
+            if s <= 0:
+                break
     else:
         return None
     lo, hi = s, s_far  # gap(lo) < step <= gap(hi)
     for _ in range(12):
         mid = (lo + hi) / 2
-        lo, hi = (mid, hi) if gap(mid) < TOUCH_GAP_M else (lo, mid)
+        lo, hi = (mid, hi) if gap(mid, TOUCH_GAP_M) < TOUCH_GAP_M else (lo, mid)
     xy = centre_xy + hi * d
     return se3.make_T(R, (xy[0], xy[1], lift))
 
