@@ -71,8 +71,11 @@ class StepsPanel:
             row.on_click(self.on_step_action)
             self.f_step_part = gui.add_dropdown("Part to place", ("—",))
             self.f_step_part.on_update(self.app.guarded("Part to place")(self.on_step_part))
-            self.f_base = gui.add_text("Base parts", "", hint="comma-separated part ids; the first is the frame of the pose")
-            self.f_base.on_update(self.app.guarded("Base parts")(self.on_base))
+            self.f_base_frame = gui.add_dropdown("Pose relative to", ("—",), hint="the base part whose frame the pose "
+                                                 "below is in; choosing another keeps the part where it is")
+            self.f_base_frame.on_update(self.app.guarded("Pose relative to")(self.on_base_frame))
+            self.base_folder = gui.add_folder("Base parts (in place)", expand_by_default=True)
+            self.base_boxes: dict[str, object] = {}  # candidate part id -> its checkbox in base_folder
             self.f_t = gui.add_vector3("Translation (mm)", (0.0, 0.0, 0.0), step=0.1, **VECTOR_MM)
             self.f_r = gui.add_vector3("Rotation xyz (°)", (0.0, 0.0, 0.0), step=0.1, **VECTOR_DEG)
             self.f_t.on_update(self.app.guarded("Translation")(self.on_typed_pose))
@@ -146,13 +149,54 @@ class StepsPanel:
             return
         self.app.set_assembly(authoring.edit_step(self.app.asm, self.step_index, part=self.f_step_part.value), client)
 
-    def on_base(self, client) -> None:
+    def on_base_box(self, client) -> None:
+        """A base part ticked or unticked: the step's base is its frame part, then the ticked others."""
         if self._syncing or self.step_index is None:
             return
-        base = [b.strip() for b in self.f_base.value.split(",") if b.strip()]
-        if not base:
-            raise AposeError("a step needs at least one base part")
-        self.app.set_assembly(authoring.edit_step(self.app.asm, self.step_index, base=base), client)
+        s = self.app.asm.steps[self.step_index]
+        others = [p for p, box in self.base_boxes.items() if box.value and p != s.base[0]]
+        self.app.set_assembly(authoring.edit_step(self.app.asm, self.step_index, base=[s.base[0], *others]), client)
+
+    def on_base_frame(self, client) -> None:
+        """Another base part as the pose's frame: the step's pose is expressed in it, so the part stays where
+        it is; the former frame part stays in the base."""
+        if self._syncing or self.step_index is None:
+            return
+        asm, i = self.app.asm, self.step_index
+        s, new = asm.steps[i], self.f_base_frame.value
+        if new == s.base[0] or new not in asm.parts:
+            return
+        base = [new, *[b for b in s.base if b != new]]
+        T = s.T_base_part
+        if asm.root_of(new) == asm.root_of(s.base[0]):  # T_new_part = inv(T_root_new) T_root_old T_old_part
+            T = np.linalg.inv(asm.T_root_part(new)) @ asm.T_root_part(s.base[0]) @ s.T_base_part
+        self.app.set_assembly(authoring.edit_step(asm, i, base=base, T_base_part=T), client)
+
+    def base_candidates(self, i: int) -> list[str]:
+        """The parts step `i`'s part may rest on: those in place before it (not placed by any step, or placed
+        by an earlier one), its own part excluded."""
+        asm = self.app.asm
+        placed_later = {s.part for s in asm.steps[i:]}
+        return [p for p in asm.parts if p not in placed_later]
+
+    def refresh_base_boxes(self, i: int | None) -> None:
+        """One checkbox per part step `i` may rest on (rebuilt when that list changes), ticked for its base;
+        the frame part's ticked and fixed (choose another frame above to drop it)."""
+        candidates = self.base_candidates(i) if i is not None else []
+        if list(self.base_boxes) != candidates:
+            for box in self.base_boxes.values():
+                box.remove()
+            with self.base_folder:
+                self.base_boxes = {p: self.app.server.gui.add_checkbox(p, False) for p in candidates}
+            for box in self.base_boxes.values():
+                box.on_update(self.app.guarded("Base parts")(self.on_base_box))
+        base = self.app.asm.steps[i].base if i is not None else ()
+        for p, box in self.base_boxes.items():
+            box.value = p in base
+            box.disabled = bool(base) and p == base[0]
+        self.f_base_frame.options = candidates or ["—"]
+        if base and base[0] in candidates:
+            self.f_base_frame.value = base[0]
 
     def on_typed_pose(self, client) -> None:
         if self._syncing or self.step_index is None:
@@ -286,9 +330,9 @@ class StepsPanel:
                 s = asm.steps[self.step_index]
                 self.f_step.value = steps[self.step_index]
                 self.f_step_part.value = s.part
-                self.f_base.value = ", ".join(s.base)
                 self.make_pose_fields(*authoring.typed_pose(s.T_base_part))
             self.f_upto.max = max(len(asm.steps), 1)
+            self.refresh_base_boxes(self.step_index)
         finally:
             self._syncing = False
         self.refresh_status()

@@ -160,3 +160,28 @@ def test_the_keystrokes_of_a_typed_number_are_one_undo_step(studio, gearbox_copy
     h.record(c, typing="y", now=4.5)  # another field: a new step
     h.record(a, now=4.6)  # an edit that is not typing
     assert h.undo_stack == [a, b, c, a]
+
+
+def test_the_base_is_chosen_from_the_parts_in_place(studio, gearbox_copy):
+    """Base parts are ticked from the parts in place before the step (not typed); the pose's frame part is
+    chosen from a list, and choosing another keeps the part where it is."""
+    st = studio(gearbox_copy)
+    st.steps.step_index = 0
+    st.steps.refresh_steps()
+    assert list(st.steps.base_boxes) == ["casing"]  # step 1 places the pinion: only the casing is in place
+    st.steps.step_index = 1
+    st.steps.refresh_steps()
+    boxes = st.steps.base_boxes
+    assert list(boxes) == ["casing", "pinion"] and boxes["casing"].value and boxes["pinion"].value
+    assert boxes["casing"].disabled and not boxes["pinion"].disabled  # the frame part stays in the base
+    T_root_wheel = st.asm.T_root_part("wheel")
+    st.steps.base_boxes["pinion"].value = False
+    assert st.asm.steps[1].base == ("casing",) and not errors(st)
+    st.steps.base_boxes["pinion"].value = True
+    assert st.asm.steps[1].base == ("casing", "pinion")
+    st.steps.f_base_frame.value = "pinion"
+    assert st.asm.steps[1].base == ("pinion", "casing") and not errors(st)
+    np.testing.assert_allclose(st.asm.T_root_part("wheel"), T_root_wheel, atol=1e-12)  # the wheel did not move
+    assert st.steps.base_boxes["pinion"].disabled and not st.steps.base_boxes["casing"].disabled
+    act(st, st.undo_redo, "Undo")
+    assert st.asm.steps[1].base == ("casing", "pinion")
