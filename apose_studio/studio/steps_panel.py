@@ -205,7 +205,24 @@ class StepsPanel:
         before = self.app.asm
         self.app.history.record(before, typing=("pose", self.step_index))  # a number's keystrokes: one undo step
         self.set_pose(T, client, sync_fields=False, gizmo=True)  # the fields are the user's; the gizmo follows them
+        self.warn_if_far(T, client)
         self.settle_mates(before, client)
+
+    FAR_FACTOR = 10.0  # a typed pose this many times the base's and part's sizes away from the base looks mistyped
+
+    def warn_if_far(self, T_base_part: np.ndarray, client) -> None:
+        """A typed translation far beyond the sizes of the part and its base (1000 typed for 100 mm, a value
+        in the wrong unit) is kept, but said: the view framed on it shows little else."""
+        s = self.app.asm.steps[self.step_index]
+        try:
+            size = sum(self.app.model(p).diameter for p in (s.base[0], s.part))
+        except AposeError:
+            return  # a part that does not load says so itself
+        far = float(np.linalg.norm(T_base_part[:3, 3]))
+        if far > self.FAR_FACTOR * size:
+            self.app.notify(client, "Pose looks wrong", f"step {self.step_index + 1} puts {esc(s.part)} {far * 1000:.4g} mm "
+                            f"from the origin of {esc(s.base[0])}, {far / size:.0f}x the two parts' sizes "
+                            f"({size * 1000:.4g} mm): is a value in the wrong unit? The fields are in mm.", error=True)
 
     def settle_mates(self, before, client) -> None:
         """After a typed pose or a drag: a pose that breaks the step's mates asks whether to drop them or

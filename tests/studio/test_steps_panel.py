@@ -185,3 +185,17 @@ def test_the_base_is_chosen_from_the_parts_in_place(studio, gearbox_copy):
     assert st.steps.base_boxes["pinion"].disabled and not st.steps.base_boxes["casing"].disabled
     act(st, st.undo_redo, "Undo")
     assert st.asm.steps[1].base == ("casing", "pinion")
+
+
+def test_a_typed_pose_far_beyond_the_parts_is_kept_and_said(studio, gearbox_copy):
+    """1,000,000 typed for a translation in mm (a value in metres or a slip) is kept, but a warning names
+    the step, the distance and the sizes; a pose near the parts says nothing."""
+    st = studio(gearbox_copy)
+    st.steps.step_index = 0
+    st.steps.refresh_steps()
+    st.steps.f_t.value = (30.0, 0.0, 14.5)
+    assert not errors(st)
+    st.steps.f_t.value = (1e6, 0.0, 14.5)
+    np.testing.assert_allclose(st.asm.steps[0].T_base_part[:3, 3], [1000.0, 0.0, 0.0145])
+    (title, body, _), = errors(st)
+    assert title == "Pose looks wrong" and "step 1 puts pinion 1e+06 mm from the origin of casing" in body
