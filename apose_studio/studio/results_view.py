@@ -131,13 +131,14 @@ class ResultsView:
         if r is not None and len(r.target_cloud):
             tgt = inspection.thin(r.target_cloud, 20000).astype(np.float32)
             self.app.node("/inspect/target", scene.add_point_cloud("/inspect/target", tgt, inspection.RED, point_size=d / 120,
-                                                                point_shape="circle"))
+                                                                point_shape="circle", precision="float32"))  # float16
+            # (viser's default) rounds positions to 0.25-0.5 mm at half a metre: as much as the fits it shows
             labels.append(("target cloud", tgt[np.argmax(tgt[:, 2])], "bottom-right"))
         self.i_legend.content = legend_html({text for text, _, _ in labels} | ({"source cloud"} if r is not None and r.ok else set()))
         for k, (text, where, anchor) in enumerate(labels):
             name = f"/inspect/label_{k}"
             self.app.node(name, scene.add_label(name, text, position=tuple(float(v) for v in where), anchor=anchor,
-                                             font_screen_scale=0.8))
+                                             font_screen_scale=1.2))
         self.stages = inspection.replay(r) if (r is not None and r.ok) else []
         self._syncing = True
         try:
@@ -159,7 +160,9 @@ class ResultsView:
         fov = 2.0 * np.arctan2(cam.height / 2.0, cam.fy)
         self.app.node("/inspect/camera", scene.add_camera_frustum("/inspect/camera", fov=float(fov), aspect=cam.width / cam.height,
                                                                scale=0.03, image=small, format="jpeg", jpeg_quality=80,
-                                                               wxyz=wxyz(Tc), position=pos(Tc), color=(60, 60, 60)))
+                                                               wxyz=wxyz(Tc), position=pos(Tc), color=(60, 60, 60),
+                                                               thickness=1.5, thickness_units="screen"))  # viser's
+        # default is 2 cm thick in the world: on a 3 cm frustum, a black slab
         if not fr.masks and self._seen_from_sensor != fr.source:  # a capture is seen from its sensor: its own
             self._seen_from_sensor = fr.source  # frustum would sit at the eye and hide the scene (tick it back in Layers)
             self.layers["camera"].value = False
@@ -168,7 +171,8 @@ class ResultsView:
         # about one pixel's footprint at the scene's depth: dense, but never blobs that hide the boxes
         footprint = 0.5 * float(np.median(se3.transform_points(se3.inv(Tc), pts)[:, 2])) / cam.fx * stride if len(pts) else 0.001
         self.app.node("/inspect/scene", scene.add_point_cloud("/inspect/scene", pts, cols, point_size=footprint,
-                                                           point_shape="circle"))
+                                                           point_shape="circle", point_shading="flat"))  # flat
+        # discs read as a surface; the default shading draws every point as a ball
 
     def posed_mesh(self, name: str, mesh, T_world_mesh: np.ndarray, make) -> None:
         """Node `name` showing `mesh` at T_world_mesh: the node already showing that mesh is moved (a pose is a
@@ -313,7 +317,8 @@ class ResultsView:
                 self.app.nodes.pop("/inspect/source").remove()
             d = self.app.state.part_model().diameter
             h = self.app.node("/inspect/source", self.app.server.scene.add_point_cloud(
-                "/inspect/source", s.source_base, inspection.BLUE, point_size=d / 120, point_shape="circle"),
+                "/inspect/source", s.source_base, inspection.BLUE, point_size=d / 120, point_shape="circle",
+                precision="float32"),
                 visible=bool(self.layers["source cloud"].value))
             self._source_of = self.stages
         h.wxyz, h.position = wxyz(s.T_world_base), pos(s.T_world_base)

@@ -29,6 +29,10 @@ def test_inspect_estimate_replay_and_cache(studio, gearbox_dataset):
         T = se3.make_T(se3.quat_wxyz_to_matrix(np.asarray(h.wxyz)), np.asarray(h.position))
         return se3.transform_points(T, np.asarray(h.points if hasattr(h, "points") else np.zeros((1, 3))))
 
+    # the clouds under inspection are drawn where they are, to a micrometre (viser's float16 rounds half a mm)
+    from apose_studio.studio.inspection import thin
+    drawn = np.asarray(st.nodes["/inspect/target"].points, float)
+    assert np.abs(drawn - thin(st.inspect.result.target_cloud, 20000)).max() < 1e-6
     source = st.nodes["/inspect/source"]
     final = {n: world(n) for n in ("/inspect/source", "/inspect/ghost", "/inspect/box_est")}
     np.testing.assert_allclose(final["/inspect/source"], st.results.stages[-1].source_world, atol=1e-4)  # 0.1 mm: as drawn
