@@ -48,6 +48,7 @@ from apose_studio.studio.webguard import Workspace, check_token, new_token, star
 from apose_studio.studio.widgets import ACTIVE, MAX_UPLOAD_BYTES, VIEWS
 
 log = logging.getLogger(__name__)
+RENDER_TIMEOUT_S = 30.0  # for a page's image of its 3D view (software WebGL takes ~1 s)
 
 
 class Studio:
@@ -210,6 +211,8 @@ class Studio:
                                                intensity=1.2, position=(0.0, 0.0, 1.0))
         self.view = gui.add_button_group("3D view", VIEWS)
         self.view.on_click(lambda e: self.guarded("3D view")(lambda c: self.on_view_button(e.target.value))(e))
+        b = gui.add_button("Download image (PNG)", hint="the 3D view as this tab shows it, as a PNG file (for reports)")
+        b.on_click(self.guarded("Download image")(self.on_download_image))
         tabs = gui.add_tab_group()
         with tabs.add_tab("Assembly"):
             self.edit_row = gui.add_button_group("Edit", ("Undo", "Redo"))
@@ -246,6 +249,29 @@ class Studio:
                 handle.visible = want and getattr(handle, "_apose_visible", True)
         for pid, h in self.state.meshes.items():
             h.visible = which == "Assembly" and getattr(h, "_apose_visible", True)
+
+    def on_download_image(self, client) -> None:
+        """The 3D view as `client`'s tab draws it (viser's render API: the page renders a frame at its own view
+        size and sends it back), as a PNG download. The studio lock is let go while the page renders: other
+        tabs go on meanwhile."""
+        import cv2
+
+        if client is None:
+            raise AposeError("no browser to send the image to")
+        w, h = int(client.camera.image_width), int(client.camera.image_height)
+        if not (16 <= w <= 8192 and 16 <= h <= 8192):
+            raise AposeError(f"this tab reports a {w}x{h} view; resize the window and try again")
+        self.lock.release()
+        try:  # a JPEG (viser's quality 80): a PNG of a busy view is over the 1 MiB a page may send (webguard.py)
+            rgb = client.get_render(h, w, transport_format="jpeg", timeout=RENDER_TIMEOUT_S)
+        except TimeoutError:
+            raise AposeError(f"the page did not send its image within {RENDER_TIMEOUT_S:.0f} s; try again") from None
+        finally:
+            self.lock.acquire()
+        ok, png = cv2.imencode(".png", cv2.cvtColor(np.asarray(rgb, np.uint8)[..., :3], cv2.COLOR_RGB2BGR))
+        if not ok:
+            raise AposeError("the image could not be encoded as PNG")
+        client.send_file_download(f"apose_{self.current_view.lower()}_view.png", png.tobytes())
 
     def node(self, name: str, handle, visible: bool = True):
         handle._apose_visible = visible

@@ -313,6 +313,48 @@ def _is_count(v) -> bool:
     return isinstance(v, int) and not isinstance(v, bool) and v >= 0
 
 
+MAX_RENDER_SIDE = 8192  # a page's image of its 3D view, as the studio asks for it (a JPEG: within webguard's
+# MAX_MESSAGE_BYTES, 1 MiB, where a PNG of a busy view is not)
+_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}  # JPEG start-of-frame markers
+
+
+def image_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) from a PNG's or JPEG's header, without decoding it; None when it is neither."""
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR" and len(data) >= 24:
+        return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+    if data[:2] != b"\xff\xd8":
+        return None
+    i = 2
+    while i + 9 <= len(data):
+        if data[i] != 0xFF:
+            return None
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker == 0x01 or 0xD0 <= marker <= 0xD7:  # markers without a length
+            i += 2
+            continue
+        if marker in _SOF:
+            return int.from_bytes(data[i + 7:i + 9], "big"), int.from_bytes(data[i + 5:i + 7], "big")
+        i += 2 + int.from_bytes(data[i + 2:i + 4], "big")
+    return None
+
+
+def render_payload_problem(payload) -> str | None:
+    """Why a page's image of its 3D view is refused, or None: only a PNG or JPEG whose header gives at most
+    MAX_RENDER_SIDE pixels a side, so that no page can hand the decoder a small file that unpacks to
+    gigabytes."""
+    if not isinstance(payload, bytes):
+        return "not bytes"
+    size = image_size(payload)
+    if size is None:
+        return "not a PNG or JPEG"
+    if not (0 < size[0] <= MAX_RENDER_SIDE and 0 < size[1] <= MAX_RENDER_SIDE):
+        return f"a {size[0]}x{size[1]} image"
+    return None
+
+
 def screen_messages(server, notify) -> bool:
     """Check every message from a page before viser's handlers run (the rules of the module doc). `notify`
     (client, title, body, error=True) tells the tab that sent refused widget input why. False (logged) when
@@ -381,6 +423,8 @@ def screen_messages(server, notify) -> bool:
                 return False
             state = gui_api._current_file_upload_states.get(message.transfer_uuid) if gui_api is not None else None
             return state is None or state.get("client_id") == client_id  # parts only from the tab that started it
+        if kind is m.GetRenderResponseMessage:  # a tab's image of its 3D view, which Download image asks for
+            return _is_str(message.render_uuid, 256) and render_payload_problem(message.payload) is None
         if kind in simple:
             if not _is_str(getattr(message, simple[kind]), 4096):
                 return False

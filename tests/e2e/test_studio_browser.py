@@ -771,3 +771,27 @@ def test_an_exported_replay_opens_from_disk_with_no_network(browser, studio, gea
     remote = [u for u in requests if not u.startswith(("file:", "data:", "blob:"))]
     assert not remote, f"the exported page fetched {remote[:5]}"
     context.close()
+
+
+def test_download_image_of_the_3d_view(browser, studio, tmp_path):
+    """Download image (PNG): the 3D view as the tab draws it, at the tab's view size, on white; the parts are
+    in it (not a blank or one-colour frame)."""
+    import cv2
+
+    asm_path = _sample_copy(tmp_path)
+    page = open_page(browser, studio)
+    type_into(page, "Assembly file", str(asm_path))
+    page.get_by_role("button", name="Open").click()
+    wait_until(lambda: len(studio.asm.steps) == 3, "the sample to open")
+    time.sleep(2.0)
+    page.get_by_role("button", name="Download image (PNG)").click()
+    with page.expect_download(timeout=90000) as dl:  # viser offers the file as a link in a notification
+        page.get_by_text("apose_assembly_view.png").first.click()
+    out = tmp_path / "view.png"
+    dl.value.save_as(out)
+    img = cv2.imread(str(out))
+    cam = client_of(studio, page).camera
+    assert img is not None and img.shape[:2] == (cam.image_height, cam.image_width)
+    # the casing (grey-blue, ~(140, 148, 158)) and the lid (green) are drawn: many pixels far from white and grey
+    coloured = np.abs(img.astype(int) - img.mean(axis=2, keepdims=True)).max(axis=2) > 30
+    assert coloured.mean() > 0.01 and (img.min(axis=2) > 240).mean() < 0.98

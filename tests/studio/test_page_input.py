@@ -384,3 +384,25 @@ def test_a_tab_s_own_dialog_takes_input_from_that_tab_only(studio, gearbox_copy)
     assert wait(lambda: (other.parent / "other.yaml.bak").exists())
     a.close()
     b.close()
+
+
+def test_a_page_image_is_taken_only_as_a_png_or_jpeg_of_sane_size():
+    """The page's image of its 3D view (Download image) reaches the decoder only as a PNG or JPEG whose
+    header gives at most 8192 px a side: a small file claiming 60000 x 60000 px (gigabytes once unpacked)
+    or other bytes are refused."""
+    import cv2
+
+    from apose_studio.studio.viser_adapter import image_size, render_payload_problem
+
+    img = np.zeros((48, 64, 3), np.uint8)
+    for ext in (".png", ".jpg"):
+        data = cv2.imencode(ext, img)[1].tobytes()
+        assert image_size(data) == (64, 48) and render_payload_problem(data) is None
+    png = bytearray(cv2.imencode(".png", img)[1].tobytes())
+    png[16:24] = (60000).to_bytes(4, "big") + (60000).to_bytes(4, "big")
+    assert "60000x60000" in render_payload_problem(bytes(png))
+    jpg = cv2.imencode(".jpg", img)[1].tobytes()
+    i = next(k for k in range(2, len(jpg) - 1) if jpg[k] == 0xFF and jpg[k + 1] == 0xC0)  # the frame header
+    bomb = jpg[:i + 5] + (60000).to_bytes(2, "big") + (60000).to_bytes(2, "big") + jpg[i + 9:]
+    assert "60000x60000" in render_payload_problem(bomb)
+    assert render_payload_problem("text") == "not bytes" and render_payload_problem(b"GIF89a....") == "not a PNG or JPEG"
