@@ -459,4 +459,16 @@ class InspectPanel:
         elif unsure:
             self.app.notify(client, "Estimated, not confident", esc("\n".join(unsure[:5])), error=True)
         else:
-            self.app.notify(client, "Estimated", f"{len(ids)} frame(s) in {dt:.1f} s")
+            self.app.notify(client, "Estimated", f"{len(ids)} frame(s) in {dt:.1f} s{self.truth_summary(job, ids)}")
+
+    def truth_summary(self, job: "EstimateJob", ids: list[int]) -> str:
+        """Against the ground truth of a step's frames, where it has one: how many are right (MSSD under 10 %
+        of the part's diameter, the paper's recall) and their median MSSD; '' for one frame or no truth."""
+        scores = [c[1] for c in (self.app.cache.get(job.key(self.app.cache, i)) for i in ids) if c is not None]
+        mssd = [s.mssd for s in scores if s is not None and getattr(s, "mssd", None) is not None]
+        if len(ids) < 2 or not mssd:
+            return ""
+        d = self.app.state.part_model().diameter
+        right = sum(m < 0.1 * d for m in mssd)
+        return (f"; against the truth: {right}/{len(ids)} right (MSSD < 10 % of the part's diameter), "
+                f"median MSSD {float(np.median(mssd)) * 1000:.2f} mm")

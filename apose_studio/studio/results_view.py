@@ -26,6 +26,7 @@ from apose_studio.studio.widgets import LAYERS, esc, legend_html, pos, shaded, w
 log = logging.getLogger(__name__)
 
 REPLAY_SECONDS_PER_STAGE = 0.4  # in an exported replay page
+REPLAY_HOLD_S = 2.0  # ... and how long it holds the final pose before it loops
 
 
 def inject_caption(page: str, caption_html: str) -> str:
@@ -272,15 +273,32 @@ class ResultsView:
             raise AposeError("estimate this frame first (Estimate frame); then its replay can be exported")
         if self.app.current_view != "Inspect":
             self.app.show_view("Inspect")
+        self.set_stage(0)  # the page starts where the registration did
+        label = self.app.server.scene.add_label("/inspect/stage_label", self.stage_text(0), position=self.label_at(),
+                                               anchor="bottom-left", font_screen_scale=1.2)
         serializer = self.app.server.get_scene_serializer()  # from the scene as drawn now
         try:
             self.app.events.emit(Event.FRAMING_ASKED)  # the page opens looking at the object
-            for k in range(len(self.stages)):
+            for k in range(1, len(self.stages)):
                 serializer.insert_sleep(REPLAY_SECONDS_PER_STAGE)
                 self.set_stage(k)
+                label.text = self.stage_text(k)
+            serializer.insert_sleep(REPLAY_HOLD_S)  # the final pose stays a while before the page loops
         finally:
             page = serializer.as_html()  # (also stops the recording when the replay failed)
+            label.remove()
         return inject_caption(page, self.caption())
+
+    def stage_text(self, k: int) -> str:
+        s = self.stages[k]
+        return f"{s.name} ({k + 1}/{len(self.stages)}): fitness {s.fitness:.3f}, inlier RMSE {s.inlier_rmse * 1000:.2f} mm"
+
+    def label_at(self) -> tuple:
+        """Where the exported replay's stage label goes: above the target cloud."""
+        r = self.app.state.inspect.result
+        pts = r.target_cloud if len(r.target_cloud) else r.T_world_part[None, :3, 3]
+        top = pts[np.argmax(pts[:, 2])]
+        return tuple(float(v) for v in top + [0.0, 0.0, 0.25 * self.app.state.part_model().diameter])
 
     def set_stage(self, k: int) -> None:
         """Show replay stage `k`, the slider moved to it without its callback."""
@@ -295,13 +313,16 @@ class ResultsView:
         """What the exported page says over the view: source, step, frame, the legend and the numbers."""
         ins = self.app.state.inspect
         r, score = ins.result, ins.score
+        asm = self.app.state.inspect_assembly()
         verdict = "ok and confident" if r.confident else "not confident"
         numbers = [f"fitness {r.fitness:.3f}", f"inlier RMSE {r.inlier_rmse * 1000:.2f} mm"]
         if score is not None and getattr(score, "mssd", None) is not None:
             numbers.insert(0, f"MSSD {score.mssd * 1000:.2f} mm against the truth")
         shown = {"target cloud", "source cloud", "estimate"} | ({"truth"} if ins.frame.T_world_part is not None else set())
-        return (f"<b>apose studio</b> &middot; {esc(Path(str(ins.frames_path)).name)} &middot; step {ins.step} "
-                f"&middot; frame {int(ins.frame.im_id)}<br>{esc(verdict)}: {esc(', '.join(numbers))}{legend_html(shown)}")
+        part, base = asm.steps[ins.step - 1].part, ", ".join(asm.steps[ins.step - 1].base)
+        return (f"<b>apose studio</b> &middot; {esc(asm.name)} &middot; step {ins.step}: {esc(part)} on {esc(base)}<br>"
+                f"{esc(Path(str(ins.frames_path)).name)} &middot; frame {int(ins.frame.im_id)} &middot; {esc(verdict)}: "
+                f"{esc(', '.join(numbers))}{legend_html(shown)}")
 
     def show_stage(self) -> None:
         if self._syncing:
@@ -329,18 +350,17 @@ class ResultsView:
                         ("/inspect/box_est", s.T_world_base @ T_base_part)):
             if name in self.app.nodes:
                 self.app.nodes[name].wxyz, self.app.nodes[name].position = wxyz(T), pos(T)
-        self.i_stage_md.content = (f"**{s.name}** ({k + 1}/{len(self.stages)}): fitness {s.fitness:.3f}, "
-                                   f"inlier RMSE {s.inlier_rmse * 1000:.2f} mm")
+        self.i_stage_md.content = f"**{s.name}** " + self.stage_text(k)[len(s.name) + 1:]
 
     def on_play_registration(self, client) -> None:
         if len(self.stages) < 2:
             raise AposeError("estimate this frame first; then the registration can be replayed")
         n = len(self.stages)
 
-        def play():
+        def play():  # 0.2-0.4 s a stage (at most ~6 s in all): slow enough to follow the fit
             for k in range(n):
                 self.i_stage.value = k
-                time.sleep(max(0.08, 2.5 / n))
+                time.sleep(max(0.2, min(0.4, 6.0 / n)))
 
         threading.Thread(target=play, daemon=True).start()
 

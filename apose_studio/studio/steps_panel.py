@@ -133,6 +133,8 @@ class StepsPanel:
             return
         before = self.step_index
         self.step_index = int(self.f_step.value.split(".")[0]) - 1
+        if client is not None and self.app.current_view != "Assembly":
+            self.app.show_view("Assembly")  # a step chosen to edit is shown, not the inspection beside its fields
         self.refresh_steps()
         self.app.events.emit(Event.STEP_SELECTED, index=self.step_index)
         self.f_upto.value = self.step_index + 1
@@ -141,8 +143,8 @@ class StepsPanel:
             # edit this step too; say so there, before a value typed into them moves a part their user did not pick
             s = self.app.asm.steps[self.step_index]
             self.app.notify(None, "Step changed in another tab",
-                            f"another tab selected step {self.step_index + 1} ({s.part}): the Step fields and the 3D "
-                            "view here show it too (every tab shares one selection)", others_of=client)
+                            f"another tab selected step {self.step_index + 1} ({s.part}): the Step fields here show it "
+                            "too (every tab shares one selection)", others_of=client)
 
     def on_step_part(self, client) -> None:
         if self._syncing or self.step_index is None:

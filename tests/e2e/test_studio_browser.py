@@ -762,10 +762,13 @@ def test_an_exported_replay_opens_from_disk_with_no_network(browser, studio, gea
     viewer.on("request", lambda r: requests.append(r.url))
     viewer.goto(out.as_uri())
     viewer.locator("canvas").first.wait_for(timeout=60000)
+    shot(viewer, "exported_replay_start.png")  # the registration's start (the source cloud off the target)
     caption = viewer.locator("#apose-caption")
     caption.wait_for(timeout=10000)
     text = caption.inner_text()
-    assert f"step {studio.state.inspect.step}" in text and "MSSD" in text and "truth" in text and "target cloud" in text
+    assert f"step {studio.state.inspect.step}: pinion on casing" in text and "MSSD" in text and "truth" in text
+    assert "target cloud" in text and "helical_gearbox" in text
+
     time.sleep(3.0)  # the replay plays
     shot(viewer, "exported_replay.png")
     remote = [u for u in requests if not u.startswith(("file:", "data:", "blob:"))]

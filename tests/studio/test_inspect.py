@@ -18,6 +18,8 @@ def test_inspect_estimate_replay_and_cache(studio, gearbox_dataset):
     scene, camera = st.nodes["/inspect/scene"], st.nodes["/inspect/camera"]
     act(st, st.inspect.run_estimation, True)  # the whole step: both frames
     assert len(st.cache) == 2 and not errors(st)
+    # the step's summary against the truth: how many frames are right, and their median MSSD
+    assert "against the truth: 2/2 right (MSSD < 10 % of the part's diameter), median MSSD" in st.notes[-1][1]
     # the frame did not change: its scene cloud and camera are not sent again with the estimate
     assert st.nodes["/inspect/scene"] is scene and st.nodes["/inspect/camera"] is camera
     assert {"/inspect/target", "/inspect/source", "/inspect/box_est", "/inspect/box_gt"} <= set(st.nodes)
