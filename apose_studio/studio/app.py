@@ -320,9 +320,18 @@ class Studio:
             log.info("a camera was not moved (%s: %s)", type(e).__name__, e)
 
     def frame_camera_on_assembly(self) -> None:
-        """Frame every part shown in the preview (exploded or not)."""
+        """Frame what the selected step is about: its part and the sub-assembly it goes on (the parts sharing
+        its base's root, as placed up to that step), not the parts waiting aside; every part shown when no
+        step is selected (or none of those is drawn)."""
+        preview = dict(self.state.preview)
+        i, asm = self.state.step_index, self.valid_asm
+        if i is not None and i < len(asm.steps) and asm is self.asm:
+            s = asm.steps[i]
+            root = asm.root_of(s.base[0])
+            wanted = {root, s.part} | {t.part for t in asm.steps[:i + 1] if asm.root_of(t.part) == root}
+            preview = {p: T for p, T in preview.items() if p in wanted} or preview
         spheres = []
-        for pid, T_world_part in self.state.preview.items():
+        for pid, T_world_part in preview.items():
             try:
                 m = self.model(pid, self.valid_asm)
             except (AposeError, KeyError):

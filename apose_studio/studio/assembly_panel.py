@@ -204,6 +204,8 @@ class AssemblyPanel:
 
         self.app.events.emit(Event.MESHES_CHANGED, pid=None)
         self.app.set_assembly(replace(self.app.asm, units=self.f_units.value), client)
+        if self.app.current_view == "Assembly":  # the parts changed size by 10-1000x: the old zoom shows nothing
+            self.app.frame_camera_on_assembly()
         self.warn_units(client)
 
     def add_mesh_file(self, path: Path, client) -> str:

@@ -199,3 +199,34 @@ def test_a_typed_pose_far_beyond_the_parts_is_kept_and_said(studio, gearbox_copy
     np.testing.assert_allclose(st.asm.steps[0].T_base_part[:3, 3], [1000.0, 0.0, 0.0145])
     (title, body, _), = errors(st)
     assert title == "Pose looks wrong" and "step 1 puts pinion 1e+06 mm from the origin of casing" in body
+
+
+def test_framing_follows_the_step_and_the_units(studio, gearbox_copy):
+    """Assembly framing shows the selected step's part and the sub-assembly it goes on, not a part waiting
+    aside; a units change (the parts 1000x larger) frames them anew."""
+    import trimesh
+
+    st = studio(gearbox_copy)
+    trimesh.creation.box((30.0, 30.0, 30.0)).export(gearbox_copy.parent / "spare.stl")
+    st.files.f_mesh.value = str(gearbox_copy.parent / "spare.stl")
+    act(st, st.files.on_add_parts)
+    assert "spare" in st.asm.parts and "spare" in st.steps._preview
+
+    def framed():
+        cam = st.server.initial_camera
+        return np.asarray(cam.look_at, float), float(np.linalg.norm(np.asarray(cam.position) - np.asarray(cam.look_at)))
+
+    st.show_view("Assembly")
+    st.steps.step_index = None
+    st.frame_camera_on_assembly()
+    _, d_all = framed()
+    st.steps.step_index = 0
+    st.frame_camera_on_assembly()
+    centre, d_step = framed()
+    assert d_step < d_all  # tighter: the spare part waiting aside is not in the frame
+    spare = st.steps._preview["spare"][:3, 3]
+    assert np.linalg.norm(spare - centre) > d_step * np.tan(np.radians(25.0))  # outside the view's half-angle
+    st.files.f_units.value = "m"
+    assert st.asm.units == "m"
+    _, d_m = framed()
+    assert d_m > 100 * d_step
