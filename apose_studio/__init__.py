@@ -6,6 +6,23 @@ import os
 # bits; on one thread, its seeded RANSAC repeats exactly. Set before Open3D loads (it reads this once);
 # a value the user set wins. torch sets its own thread count (segment.py).
 os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+
+def _avx2() -> bool:
+    try:
+        with open("/proc/cpuinfo", encoding="ascii", errors="replace") as f:
+            return any(line.startswith("flags") and " avx2" in line for line in f)
+    except OSError:
+        return False
+
+
+# OpenBLAS (inside numpy's and scipy's wheels) picks its kernels by the CPU it finds; its AVX-512 kernels sum
+# in another order than its AVX2 ones, so one frame gave another pose on an AVX-512 machine (a knife-edge test
+# passed on one CI machine and failed on the next; the pose moved from right to wrong-and-unconfident). Its
+# Haswell (AVX2) kernels run on every x86-64 CPU since 2013: the same answers on all of them. Takes effect
+# only when apose_studio loads before numpy (the CLI and the studio; scripts/test.sh sets it for the tests).
+if _avx2():
+    os.environ.setdefault("OPENBLAS_CORETYPE", "Haswell")
 # OpenCV's decoders refuse images over this many pixels (its default is 2^30, 3 GB for a colour image):
 # a second line behind safeio's header check (8192 x 8192). Read when cv2 loads.
 os.environ.setdefault("OPENCV_IO_MAX_IMAGE_PIXELS", str(8192 * 8192))

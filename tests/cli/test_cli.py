@@ -195,7 +195,8 @@ def test_export_html_writes_a_standalone_replay_and_refuses_what_is_not_there(ge
     r = run("export-html", gearbox_dataset, "--step", 1, "--frame", 1, "--orientation-prior", "--out", out)
     assert r.returncode == 0, r.stderr
     page = out.read_text()
-    assert "__VISER_EMBED_DATA__" in page and "id='apose-caption'" in page and "step 1 &middot; frame 1" in page
+    assert "__VISER_EMBED_DATA__" in page and "id='apose-caption'" in page and "step 1: pinion on casing" in page
+    assert "frame 1 &middot;" in page
     assert "wrote" in r.stdout and "Server stopped" not in r.stdout
     for args, said in ((("--step", 4, "--frame", 0), "has steps 1"), (("--step", 1, "--frame", 7), "has frames 0, 1")):
         bad = tmp_path / "bad.html"
