@@ -79,6 +79,7 @@ class InspectPanel:
         self.app = app
         self._syncing = False
         self.contexts: dict = {}  # (assembly, models identity, step) -> (assembly, models, StepContext)
+        self._last_framing: tuple | None = None  # the last framing made (frame_camera_on_frame)
         app.events.on(Event.MASK_SOURCE_CHOSEN, self.on_mask_source_chosen)
         app.events.on(Event.FRAMING_ASKED, self.frame_camera_on_frame)
 
@@ -181,15 +182,32 @@ class InspectPanel:
             self.i_mask.value = PROMPT_SOURCE if typed else ("gt" if truth else "depth")
         self.app.state.inspect.mask_source = self.i_mask.value
 
-    def frame_camera_on_frame(self) -> None:
+    def frame_camera_on_frame(self, again: bool = True) -> None:
         """Frame the object under inspection (its mask, else the estimate's points, else the middle of the
         depth image). A capture is seen from its sensor's pose, as the camera saw it (a real scene seen from
         elsewhere is a wall of points in front of the object); a rendered frame from beside and above its
-        camera, so that the frustum does not block the view."""
+        camera, so that the frustum does not block the view. `again=False` (after an estimate): only when
+        that framing differs from the last one made, so that an estimate neither moves a view the user
+        has turned nor costs the browser the redraws of a camera move."""
         fr = self.frame
         if fr is None:
             return
+        framing = self.framing(fr)
+        if framing is None:
+            return
+        if not again and self._last_framing is not None and self._last_framing[0] == framing[0] \
+                and np.allclose(self._last_framing[1], framing[1], atol=1e-9):
+            return
+        self._last_framing = framing
+        kind, args = framing
+        if kind == "sensor":
+            self.app.view_from(fr.T_world_camera, args[:3], 2.0 * np.arctan2(fr.camera.height / 2.0, fr.camera.fy))
+        else:
+            self.app.look_at(args[:3], args[3], args[4:])
 
+    def framing(self, fr) -> tuple[str, np.ndarray] | None:
+        """How frame_camera_on_frame frames `fr`: ("sensor", centre + the camera's 3x4 pose) or ("beside",
+        centre + radius + direction); None when nothing in the frame has depth."""
         mask = fr.base_mask()
         if not mask.any() and self.result is not None and len(self.result.target_cloud):
             pts = self.result.target_cloud
@@ -200,16 +218,15 @@ class InspectPanel:
                 mask[h // 3: 2 * h // 3, w // 3: 2 * w // 3] = True
             pts = project_to_cloud(fr.depth, mask & np.isfinite(fr.depth) & (fr.depth > 0), fr.camera, fr.T_world_camera)
         if not len(pts):
-            return
+            return None
         centre = np.median(pts, axis=0)
         if not fr.masks:
-            self.app.view_from(fr.T_world_camera, centre, 2.0 * np.arctan2(fr.camera.height / 2.0, fr.camera.fy))
-            return
+            return "sensor", np.concatenate([centre, fr.T_world_camera[:3, :].ravel()])
         radius = max(float(np.percentile(np.linalg.norm(pts - centre, axis=1), 95)), 0.02)
         to_camera = fr.T_world_camera[:3, 3] - centre
         direction = se3.axis_angle_matrix([0.0, 0.0, 1.0], np.radians(35.0)) @ to_camera
         direction[2] = max(direction[2], 0.6 * np.linalg.norm(direction[:2]))  # from above the table
-        self.app.look_at(centre, 1.3 * radius, direction)
+        return "beside", np.concatenate([centre, [1.3 * radius], direction])
 
     def on_mask_source_chosen(self, source: str) -> None:
         if self.i_mask.value != source:
@@ -453,7 +470,7 @@ class InspectPanel:
         self.app.busy.release()
         self.i_progress.visible = False
         self.on_frame_changed()
-        self.frame_camera_on_frame()
+        self.frame_camera_on_frame(again=False)
         if failed:
             self.app.notify(client, "Estimation failed", esc("\n".join(failed[:5])), error=True)
         elif unsure:

@@ -340,3 +340,19 @@ def test_the_legend_lists_only_what_is_drawn(studio, gearbox_dataset, capture):
     act(st, st.inspect.run_estimation, False)
     legend = st.results.i_legend.content
     assert all(name in legend for name in ("truth (dashed)", "estimate", "target cloud", "source cloud")), legend
+
+
+def test_an_estimate_does_not_move_a_view_already_framed(studio, gearbox_dataset):
+    """The frame was framed when it opened: its estimate leaves the camera where the user turned it (and
+    spares the browser a camera move); the Inspect view button frames it again."""
+    st = studio(SAMPLES / "helical_gearbox" / "assembly.yaml", gearbox_dataset)
+    cam = st.server.initial_camera
+    framed = np.asarray(cam.position, float).copy()
+    turned = tuple(float(v) for v in framed + [0.05, -0.02, 0.03])
+    cam.position = turned  # the user turns the view
+    st.inspect.i_prior.value = True
+    act(st, st.inspect.run_estimation, False)
+    assert st.inspect.result is not None and st.inspect.result.ok
+    np.testing.assert_allclose(cam.position, turned)
+    act(st, lambda c: st.on_view_button("Inspect"))
+    np.testing.assert_allclose(cam.position, framed, atol=1e-9)
