@@ -103,15 +103,19 @@ class InspectPanel:
             self.app.state.inspect.mask_source = self.i_mask.value  # shared: the Prompt panel and the overlay read it
             self.i_mask.on_update(self.app.guarded("Mask")(
                 lambda c: setattr(self.app.state.inspect, "mask_source", self.i_mask.value)))
-            self.i_model = gui.add_text("Mask model (.pt)", "", hint="a model from `apose train-seg` for this assembly")
-            b = gui.add_button("Use model")
-            b.on_click(self.app.guarded("Mask model")(self.on_use_model))
-            self.i_crop = gui.add_checkbox("Crop box", False, hint="limit depth masks to a box you drag around the base object")
-            self.i_crop_size = gui.add_vector3("Crop size (mm)", (150.0, 150.0, 100.0), min=(1.0, 1.0, 1.0), max=(1e5,) * 3, step=5.0)
-            self.i_crop_centre = gui.add_vector3("Crop centre (mm)", (0.0, 0.0, 0.0), step=1.0, **VECTOR_MM,
-                                                 hint="world frame; typed, dragged with the box's gizmo, or clicked")
-            b = gui.add_button("Crop around click", hint="then click the base object in the 3D view")
-            b.on_click(self.app.guarded("Crop around click")(self.on_crop_around_click))
+            # the less used settings folded away, so that the Result folder is nearer the Run buttons
+            with gui.add_folder("Mask model", expand_by_default=False):
+                self.i_model = gui.add_text("Mask model (.pt)", "", hint="a model from `apose train-seg` for this assembly")
+                b = gui.add_button("Use model")
+                b.on_click(self.app.guarded("Mask model")(self.on_use_model))
+            with gui.add_folder("Crop box (depth masks)", expand_by_default=False):
+                self.i_crop = gui.add_checkbox("Crop box", False, hint="limit depth masks to a box you drag around the base object")
+                self.i_crop_size = gui.add_vector3("Crop size (mm)", (150.0, 150.0, 100.0), min=(1.0, 1.0, 1.0),
+                                                   max=(1e5,) * 3, step=5.0)
+                self.i_crop_centre = gui.add_vector3("Crop centre (mm)", (0.0, 0.0, 0.0), step=1.0, **VECTOR_MM,
+                                                     hint="world frame; typed, dragged with the box's gizmo, or clicked")
+                b = gui.add_button("Crop around click", hint="then click the base object in the 3D view")
+                b.on_click(self.app.guarded("Crop around click")(self.on_crop_around_click))
             self.i_crop.on_update(self.app.guarded("Crop box")(lambda c: self.show_crop()))
             self.i_crop_size.on_update(self.app.guarded("Crop box")(lambda c: self.show_crop()))
             self.i_crop_centre.on_update(self.app.guarded("Crop box")(lambda c: self.on_crop_centre()))

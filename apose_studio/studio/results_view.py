@@ -56,13 +56,7 @@ class ResultsView:
 
     def build(self) -> None:
         gui = self.app.server.gui
-        with gui.add_folder("Registration replay"):
-            self.i_stage = gui.add_slider("Stage", 0, 1, 1, 0, disabled=True)
-            self.i_stage.on_update(self.app.guarded("Stage")(lambda c: self.show_stage()))
-            b = gui.add_button("Play registration")
-            b.on_click(self.app.guarded("Play registration")(self.on_play_registration))
-            self.i_stage_md = gui.add_markdown("")
-        with gui.add_folder("Result"):
+        with gui.add_folder("Result"):  # first: what the user looks for after Estimate
             self.i_legend = gui.add_html(legend_html())
             self.i_metrics = gui.add_markdown("")
             self.i_pose = gui.add_markdown("")
@@ -74,6 +68,12 @@ class ResultsView:
             self.i_image = gui.add_image(np.zeros((48, 64, 3), np.uint8), label="RGB")
             self.i_full = gui.add_checkbox("Full image", False, hint="show the whole RGB image instead of the part around the object")
             self.i_full.on_update(self.app.guarded("Full image")(lambda c: self.draw_overlay()))
+        with gui.add_folder("Registration replay"):
+            self.i_stage = gui.add_slider("Stage", 0, 1, 1, 0, disabled=True)
+            self.i_stage.on_update(self.app.guarded("Stage")(lambda c: self.show_stage()))
+            b = gui.add_button("Play registration")
+            b.on_click(self.app.guarded("Play registration")(self.on_play_registration))
+            self.i_stage_md = gui.add_markdown("")
         with gui.add_folder("Layers", expand_by_default=False):
             self.layers = {k: gui.add_checkbox(k, True) for k in LAYERS}
             for w in self.layers.values():
