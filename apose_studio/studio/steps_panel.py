@@ -207,24 +207,43 @@ class StepsPanel:
         before = self.app.asm
         self.app.history.record(before, typing=("pose", self.step_index))  # a number's keystrokes: one undo step
         self.set_pose(T, client, sync_fields=False, gizmo=True)  # the fields are the user's; the gizmo follows them
-        self.warn_if_far(T, client)
+        self.warn_if_far(T, client) or self.warn_if_through(client)
         self.settle_mates(before, client)
 
     FAR_FACTOR = 10.0  # a typed pose this many times the base's and part's sizes away from the base looks mistyped
 
-    def warn_if_far(self, T_base_part: np.ndarray, client) -> None:
+    def warn_if_through(self, client) -> bool:
+        """A typed pose that puts the part through one of its base parts is kept, but said (the draft is still
+        valid: the file format does not know solids). True when it warned."""
+        i = self.step_index
+        try:
+            models = {p: self.app.model(p) for p in (self.app.asm.steps[i].part, *self.app.asm.steps[i].base)}
+        except AposeError:
+            return False  # a part that does not load says so itself
+        hits = authoring.penetrations(self.app.asm, i, models)
+        if hits:
+            s = self.app.asm.steps[i]
+            where = "; ".join(f"{esc(b)}: {share:.0%} of its surface, up to {depth * 1000:.3g} mm deep" for b, share, depth
+                              in hits)
+            self.app.notify(client, "Parts go through each other", f"step {i + 1} puts {esc(s.part)} inside {where}. "
+                            "The pose is kept; check the typed values (or drag the part out).", error=True)
+        return bool(hits)
+
+    def warn_if_far(self, T_base_part: np.ndarray, client) -> bool:
         """A typed translation far beyond the sizes of the part and its base (1000 typed for 100 mm, a value
-        in the wrong unit) is kept, but said: the view framed on it shows little else."""
+        in the wrong unit) is kept, but said: the view framed on it shows little else. True when it warned."""
         s = self.app.asm.steps[self.step_index]
         try:
             size = sum(self.app.model(p).diameter for p in (s.base[0], s.part))
         except AposeError:
-            return  # a part that does not load says so itself
+            return False  # a part that does not load says so itself
         far = float(np.linalg.norm(T_base_part[:3, 3]))
-        if far > self.FAR_FACTOR * size:
-            self.app.notify(client, "Pose looks wrong", f"step {self.step_index + 1} puts {esc(s.part)} {far * 1000:.4g} mm "
-                            f"from the origin of {esc(s.base[0])}, {far / size:.0f}x the two parts' sizes "
-                            f"({size * 1000:.4g} mm): is a value in the wrong unit? The fields are in mm.", error=True)
+        if far <= self.FAR_FACTOR * size:
+            return False
+        self.app.notify(client, "Pose looks wrong", f"step {self.step_index + 1} puts {esc(s.part)} {far * 1000:.4g} mm "
+                        f"from the origin of {esc(s.base[0])}, {far / size:.0f}x the two parts' sizes "
+                        f"({size * 1000:.4g} mm): is a value in the wrong unit? The fields are in mm.", error=True)
+        return True
 
     def settle_mates(self, before, client) -> None:
         """After a typed pose or a drag: a pose that breaks the step's mates asks whether to drop them or

@@ -230,3 +230,33 @@ def test_framing_follows_the_step_and_the_units(studio, gearbox_copy):
     assert st.asm.units == "m"
     _, d_m = framed()
     assert d_m > 100 * d_step
+
+
+def test_a_typed_pose_through_the_base_is_kept_and_said(studio, gearbox_copy):
+    """Typing x = 30 mm for the wheel puts it through the casing's wall: the pose is kept and a warning names
+    the base part and how much of the wheel is inside; the sample's own poses (touching, not inside) say
+    nothing."""
+    st = studio(gearbox_copy)
+    st.steps.step_index = 1
+    st.steps.refresh_steps()
+    st.steps.f_t.value = (16.0, 0.0, 14.5)  # the sample's own pose, typed
+    assert not errors(st)
+    st.steps.f_t.value = (30.0, 0.0, 14.5)
+    np.testing.assert_allclose(st.asm.steps[1].T_base_part[:3, 3], [0.030, 0.0, 0.0145])
+    (title, body, _), = errors(st)
+    assert title == "Parts go through each other" and "step 2 puts wheel inside casing:" in body, body
+
+
+def test_no_sample_step_goes_through_its_base():
+    """The check's thresholds against every sample assembly as authored: no step is flagged."""
+    from apose_studio.assembly.mesh import load_parts
+    from apose_studio.assembly.model import load_assembly
+    from apose_studio.studio import authoring
+
+    from ..conftest import SAMPLES
+
+    for path in sorted(SAMPLES.glob("*/assembly.yaml")):
+        asm = load_assembly(path)
+        models = load_parts(asm)
+        for i in range(len(asm.steps)):
+            assert authoring.penetrations(asm, i, models) == [], (path.parent.name, i + 1)
