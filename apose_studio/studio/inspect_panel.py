@@ -10,6 +10,7 @@ comes from the shared state too (the Prompt panel writes it), and a mask source 
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -80,6 +81,7 @@ class InspectPanel:
         self._syncing = False
         self.contexts: dict = {}  # (assembly, models identity, step) -> (assembly, models, StepContext)
         self._last_framing: tuple | None = None  # the last framing made (frame_camera_on_frame)
+        self._warming: tuple | None = None  # (assembly identity, step) last prepared in the background
         app.events.on(Event.MASK_SOURCE_CHOSEN, self.on_mask_source_chosen)
         app.events.on(Event.FRAMING_ASKED, self.frame_camera_on_frame)
 
@@ -308,6 +310,25 @@ class InspectPanel:
         cached = self.app.cache.get(self.cache_key(step, im_id))
         self.result, self.score = cached if cached is not None else (None, None)
         self.app.events.emit(Event.FRAME_CHANGED)
+        self.warm_in_background(step)
+
+    def warm_in_background(self, step: int) -> None:
+        """Prepare the step's base for the estimator (its StepContext and the model's features: seconds, once
+        per step) in a background thread as soon as the step is on show, so that the first Estimate costs only
+        its own work. An estimate that starts meanwhile prepares what is not ready yet itself; the pieces are
+        deterministic, so whichever thread fills a cache fills it with the same values."""
+        if self._warming == (id(self.inspect_assembly()), step):
+            return
+        job = self.job(step, [])
+        self._warming = (id(job.assembly), step)
+
+        def warm():
+            try:
+                self.context(step, job.assembly, job.models).base.warm_up(job.params())
+            except Exception as e:  # a part that does not load says so when estimated
+                log.info("warming step %s up failed: %s", step, e)
+
+        threading.Thread(target=warm, daemon=True, name=f"warm step {step}").start()
 
     def inspect_models(self) -> dict:
         """The inspected assembly's PartModels (`state.inspect_models`)."""

@@ -356,3 +356,22 @@ def test_an_estimate_does_not_move_a_view_already_framed(studio, gearbox_dataset
     np.testing.assert_allclose(cam.position, turned)
     act(st, lambda c: st.on_view_button("Inspect"))
     np.testing.assert_allclose(cam.position, framed, atol=1e-9)
+
+
+def test_the_step_on_show_is_prepared_for_the_estimator_in_the_background(studio, gearbox_dataset):
+    """Opening data prepares the shown step's base (its StepContext, the model's flips and grid) in a
+    background thread, so that the first Estimate costs only its own work (0.7 s -> 0.25 s on the server for
+    a gearbox frame); the estimate then uses that same prepared base."""
+    import time as _time
+
+    st = studio(SAMPLES / "helical_gearbox" / "assembly.yaml", gearbox_dataset)
+    step = st.state.inspect.step
+    end = _time.monotonic() + 60
+    while _time.monotonic() < end and not any(k[2] == step and "flips" in v[2].base._features
+                                              for k, v in list(st.inspect.contexts.items())):
+        _time.sleep(0.05)
+    (ctx,) = [v[2] for k, v in st.inspect.contexts.items() if k[2] == step]
+    assert "flips" in ctx.base._features
+    st.inspect.i_prior.value = True
+    act(st, st.inspect.run_estimation, False)
+    assert st.inspect.result.ok and [v[2] for k, v in st.inspect.contexts.items() if k[2] == step] == [ctx]
