@@ -289,9 +289,11 @@ class ResultsView:
             label.remove()
         return inject_caption(page, self.caption())
 
-    def stage_text(self, k: int) -> str:
+    def stage_text(self, k: int, bold: bool = False) -> str:
+        """Replay stage `k` in words, its name in markdown bold for the panel (`bold`), plain for a 3D label."""
         s = self.stages[k]
-        return f"{s.name} ({k + 1}/{len(self.stages)}): fitness {s.fitness:.3f}, inlier RMSE {s.inlier_rmse * 1000:.2f} mm"
+        name = f"**{s.name}**" if bold else s.name
+        return f"{name} ({k + 1}/{len(self.stages)}): fitness {s.fitness:.3f}, inlier RMSE {s.inlier_rmse * 1000:.2f} mm"
 
     def label_at(self) -> tuple:
         """Where the exported replay's stage label goes: above the target cloud."""
@@ -350,7 +352,7 @@ class ResultsView:
                         ("/inspect/box_est", s.T_world_base @ T_base_part)):
             if name in self.app.nodes:
                 self.app.nodes[name].wxyz, self.app.nodes[name].position = wxyz(T), pos(T)
-        self.i_stage_md.content = f"**{s.name}** " + self.stage_text(k)[len(s.name) + 1:]
+        self.i_stage_md.content = self.stage_text(k, bold=True)
 
     def on_play_registration(self, client) -> None:
         if len(self.stages) < 2:
