@@ -137,7 +137,9 @@ def cmd_export_html(args) -> int:
     check_output_file(out, "--out", inputs=[args.input])
     page, result = export_replay(args.input, args.step, args.frame, args.assembly, args.orientation_prior)
     atomic_write_text(out, page)
-    verdict = "confident" if result.confident else "not confident"
+    from apose_studio.registration import doubts
+
+    verdict = "confident" if result.confident else f"not confident ({doubts(result)})"
     print(f"wrote {out} ({len(page.encode('utf-8')) / 1e6:.1f} MB): step {args.step}, frame {args.frame}, {verdict}, "
           f"{len(result.stages)} stages; open it in any browser (no server, no network)")
     return 0

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import logging
 import socket
 from pathlib import Path
 
@@ -28,9 +29,16 @@ def export_replay(input_path: str | Path, step: int, frame: int, assembly: str |
     capture) of `step` in `input_path` (a dataset from `apose render`, or a capture folder with `assembly`).
     AposeError when the input cannot be opened, the step or frame does not exist, or the estimate fails."""
     from apose_studio.data.dataset import Dataset
+    from apose_studio.data.sources import open_frames
     from apose_studio.studio import serve
 
-    server, st = serve(assembly, input_path, host="127.0.0.1", port=_free_port())
+    if not isinstance(open_frames(Path(input_path)), Dataset) and assembly is None:  # read here: its errors name it
+        raise AposeError(f"{input_path}: a capture has no assembly of its own; give --assembly A.yaml (and --step)")
+    quiet = logging.getLogger("apose_studio.studio")  # the studio's notices are for a page; the CLI says its own
+    level = quiet.level
+    quiet.setLevel(logging.ERROR)
+    with contextlib.redirect_stdout(io.StringIO()):  # viser says "Server stopped" on stdout if the start fails
+        server, st = serve(assembly, input_path, host="127.0.0.1", port=_free_port())
     try:
         with st.lock:
             ins = st.inspect
@@ -57,5 +65,6 @@ def export_replay(input_path: str | Path, step: int, frame: int, assembly: str |
                 raise AposeError(f"the estimate failed: {getattr(result, 'reason', 'no result')}")
             return st.results.replay_html(), result
     finally:
+        quiet.setLevel(level)
         with contextlib.redirect_stdout(io.StringIO()):  # viser says "Server stopped" on stdout
             server.stop()

@@ -202,3 +202,15 @@ def test_export_html_writes_a_standalone_replay_and_refuses_what_is_not_there(ge
         bad = tmp_path / "bad.html"
         r = run("export-html", gearbox_dataset, *args, "--out", bad)
         assert r.returncode == 2 and said in r.stderr and not bad.exists(), r.stderr
+
+
+def test_export_html_of_a_capture_needs_its_assembly(gearbox_dataset, tmp_path):
+    """A capture folder has no assembly: the CLI says so in its own words (not the studio's), exit code 2."""
+    from apose_studio.data.dataset import Dataset
+
+    from ..conftest import write_capture
+
+    cap = write_capture(Dataset(gearbox_dataset).frame(1, 0), tmp_path / "capture")
+    r = run("export-html", cap, "--step", 1, "--out", tmp_path / "x.html")
+    assert r.returncode == 2 and "give --assembly" in r.stderr and "Assembly tab" not in r.stderr, r.stderr
+    assert r.stdout == "" and not (tmp_path / "x.html").exists()

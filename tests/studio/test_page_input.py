@@ -406,3 +406,7 @@ def test_a_page_image_is_taken_only_as_a_png_or_jpeg_of_sane_size():
     bomb = jpg[:i + 5] + (60000).to_bytes(2, "big") + (60000).to_bytes(2, "big") + jpg[i + 9:]
     assert "60000x60000" in render_payload_problem(bomb)
     assert render_payload_problem("text") == "not bytes" and render_payload_problem(b"GIF89a....") == "not a PNG or JPEG"
+    # the header is found however the JPEG is laid out: progressive, or behind an EXIF segment; a cut-off one is refused
+    prog = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_PROGRESSIVE, 1])[1].tobytes()
+    exif = prog[:2] + b"\xff\xe1" + (1002).to_bytes(2, "big") + b"E" * 1000 + prog[2:]
+    assert image_size(prog) == image_size(exif) == (64, 48) and render_payload_problem(prog[:10]) == "not a PNG or JPEG"
