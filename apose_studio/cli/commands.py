@@ -119,6 +119,7 @@ def _serve_studio(assembly, dataset, host: str, port: int, cache=None, root=None
         while True:
             time.sleep(3600)
     except KeyboardInterrupt:
+        studio.inspect.settle()  # a background preparation inside Open3D would abort the exit
         server.stop()
     return 0
 

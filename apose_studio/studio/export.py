@@ -65,6 +65,7 @@ def export_replay(input_path: str | Path, step: int, frame: int, assembly: str |
                 raise AposeError(f"the estimate failed: {getattr(result, 'reason', 'no result')}")
             return st.results.replay_html(), result
     finally:
+        st.inspect.settle()  # its background preparation must not outlive the process's exit
         quiet.setLevel(level)
         with contextlib.redirect_stdout(io.StringIO()):  # viser says "Server stopped" on stdout
             server.stop()

@@ -82,6 +82,7 @@ class InspectPanel:
         self.contexts: dict = {}  # (assembly, models identity, step) -> (assembly, models, StepContext)
         self._last_framing: tuple | None = None  # the last framing made (frame_camera_on_frame)
         self._warming: tuple | None = None  # (assembly identity, step) last prepared in the background
+        self._warm_thread: threading.Thread | None = None
         app.events.on(Event.MASK_SOURCE_CHOSEN, self.on_mask_source_chosen)
         app.events.on(Event.FRAMING_ASKED, self.frame_camera_on_frame)
 
@@ -328,7 +329,14 @@ class InspectPanel:
             except Exception as e:  # a part that does not load says so when estimated
                 log.info("warming step %s up failed: %s", step, e)
 
-        threading.Thread(target=warm, daemon=True, name=f"warm step {step}").start()
+        self._warm_thread = threading.Thread(target=warm, daemon=True, name=f"warm step {step}")
+        self._warm_thread.start()
+
+    def settle(self, timeout: float = 60.0) -> None:
+        """Wait for the background preparation to finish: a process that exits while it runs inside Open3D
+        is aborted by the C++ runtime ('terminate called without an active exception')."""
+        if self._warm_thread is not None:
+            self._warm_thread.join(timeout)
 
     def inspect_models(self) -> dict:
         """The inspected assembly's PartModels (`state.inspect_models`)."""
