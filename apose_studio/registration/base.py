@@ -10,7 +10,7 @@ import numpy as np
 from apose_studio.assembly.mesh import diameter, sample_surface
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
-from apose_studio.geometry.metrics import quick_tree
+from apose_studio.geometry.nn import NearestTree
 from apose_studio.geometry.raycast import raycast_points
 from apose_studio.geometry.symmetry import (
     EXACT_SYMMETRY_MAX_M,
@@ -60,7 +60,7 @@ class BaseObject:
     def samples_tree(self):
         """k-d tree of the surface samples (base frame): a model point's normal is its nearest sample's."""
         if "samples_tree" not in self._features:
-            self._features["samples_tree"] = quick_tree(self.samples)
+            self._features["samples_tree"] = NearestTree(self.samples)
         return self._features["samples_tree"]
 
     def warm_up(self, p: "Params") -> None:
@@ -127,7 +127,7 @@ class NearGrid:
         shape = np.ceil((points.max(axis=0) + radius + cell - origin) / cell).astype(int)
         idx = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), axis=-1).reshape(-1, 3)
         reach = radius + (cell - radius / 4) * np.sqrt(3) / 2  # wider cells err on the near side
-        d = quick_tree(points).query(origin + (idx + 0.5) * cell, distance_upper_bound=reach)[0]
+        d = NearestTree(points).query(origin + (idx + 0.5) * cell, distance_upper_bound=reach)[0]
         return cls(origin, cell, (d < reach).reshape(shape))
 
     def contains(self, points: np.ndarray) -> np.ndarray:

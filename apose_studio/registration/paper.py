@@ -8,7 +8,7 @@ import time
 import numpy as np
 
 from apose_studio.geometry import se3
-from apose_studio.geometry.metrics import quick_tree
+from apose_studio.geometry.nn import NearestTree
 from apose_studio.params import Params
 from apose_studio.registration.base import place_source, raycast_source
 from apose_studio.registration.stages import cloud, global_registration, icp, normals_fpfh, stage
@@ -54,7 +54,7 @@ def estimate_paper(target_pts, cam, T_world_camera, base, T_base_part, p: Params
     T_world_part = T_world_base @ T_base_part
     # coverage as ours reports it: the share of target points within 2 voxels of the model as the camera sees it
     seen = se3.transform_points(T_world_base, src_base)
-    coverage = float(np.mean(quick_tree(seen).query(target_pts, distance_upper_bound=max(thr, 2 * voxel))[0] < np.inf))
+    coverage = float(np.mean(NearestTree(seen).query(target_pts, distance_upper_bound=max(thr, 2 * voxel))[0] < np.inf))
     cand = Candidate(T_world_base, T_world_part, final.fitness, float("nan"), final.inlier_rmse, final.fitness, 0,
                      coverage)
     return RegistrationResult(ok=True, T_world_base=T_world_base, T_world_part=T_world_part,

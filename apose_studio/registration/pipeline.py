@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 
 from apose_studio.geometry import se3
-from apose_studio.geometry.metrics import quick_tree
+from apose_studio.geometry.nn import NearestTree
 from apose_studio.geometry.noise import estimate_depth_noise
 from apose_studio.geometry.sensor import quantisation_step
 from apose_studio.params import Params
@@ -349,7 +349,7 @@ def judge(result: RegistrationResult, view: View, base: BaseObject) -> Registrat
 
         seen, _ = raycast_source(base, result.T_world_base, T_world_camera, cam)
         if len(seen) and len(result.target_cloud):
-            d = quick_tree(seen).query(result.target_cloud, distance_upper_bound=tol)[0]
+            d = NearestTree(seen).query(result.target_cloud, distance_upper_bound=tol)[0]
             coverage = float(np.mean(d < tol))
     if seen is not None and len(seen):
         confirmed, contradicted = evidence(seen, T_world_camera, cam, depth, mask, ~(mask | mask_edge(mask)), tol,

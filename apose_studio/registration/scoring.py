@@ -9,7 +9,7 @@ import numpy as np
 
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
-from apose_studio.geometry.metrics import quick_tree
+from apose_studio.geometry.nn import NearestTree
 from apose_studio.registration.base import raycast_source
 from apose_studio.registration.task import Task
 from apose_studio.registration.types import Candidate
@@ -82,7 +82,7 @@ def score_seen(pb: "Task", T_world_base: np.ndarray, src_w: np.ndarray, symmetry
     query gives the fitness and RMSE (within thr) and the coverage (within 2 voxels)."""
     thr, fine_pts = pb.thr, pb.fine_pts
     loose = max(thr, 2 * pb.voxel, NOISE_SIGMAS * pb.observation.noise)
-    d = quick_tree(src_w).query(fine_pts, distance_upper_bound=loose)[0] if len(src_w) and len(fine_pts) \
+    d = NearestTree(src_w).query(fine_pts, distance_upper_bound=loose)[0] if len(src_w) and len(fine_pts) \
         else np.full(len(fine_pts), np.inf)
     inl = d < thr
     fit, rmse = (float(inl.mean()), float(np.sqrt(np.mean(d[inl] ** 2)))) if inl.any() else (0.0, 0.0)
@@ -111,7 +111,7 @@ def pose_spread(target_world: np.ndarray, T_world_base: np.ndarray, base, sigma:
     p = pts[d < tol]
     if len(p) < 12:
         return float("inf")
-    _, nb = quick_tree(p).query(p, k=12)
+    _, nb = NearestTree(p).query(p, k=12)
     local = p[nb] - p[nb].mean(axis=1, keepdims=True)
     n = np.linalg.eigh(np.einsum("nki,nkj->nij", local, local))[1][:, :, 0]  # each point's smallest spread direction
     radius = base.diameter / 2
@@ -172,7 +172,7 @@ def discriminate(pb: "Task", close: list[int], cands: list[Candidate], traces: l
     observation = pb.observation
     tol = agreement_tolerance(voxel, observation.noise)
     seen = {i: traces[i][2] for i in close}
-    trees = {i: quick_tree(seen[i]) if len(seen[i]) else None for i in close}
+    trees = {i: NearestTree(seen[i]) if len(seen[i]) else None for i in close}
     # target points each placement explains (within thr), and those it misses by more than tol: a point
     # only one explains counts for it when the other misses it clearly (not by a sub-millimetre shift)
     dist = {i: trees[i].query(fine_pts, distance_upper_bound=tol)[0] if trees[i] is not None

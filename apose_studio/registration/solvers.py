@@ -4,7 +4,7 @@ any process (preset setting `deterministic`, on by default).
 Open3D 0.20's ICP sums across threads, and neither its seed nor OMP_NUM_THREADS=1 makes two runs agree
 to the last bit (measured: 0 of 32 frames identical across two processes). This follows Open3D's
 formulation (the same linearised point-to-plane step and convergence criteria) with k-d tree queries
-from scipy. Open3D's RANSAC does repeat once seeded and on one thread (apose_studio/__init__.py sets
+(geometry.nn). Open3D's RANSAC does repeat once seeded and on one thread (apose_studio/__init__.py sets
 OMP_NUM_THREADS=1); a RANSAC of our own in numpy, tried first, found fewer right poses than Open3D's
 (free search, 36 frames: 18-22 against 28), so Open3D's stays.
 """
@@ -12,9 +12,8 @@ OMP_NUM_THREADS=1); a RANSAC of our own in numpy, tried first, found fewer right
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
-QUERY_WORKERS = 1  # more threads cost more than they save on the few thousand points of one ICP step
+from apose_studio.geometry.nn import NearestTree
 
 
 def _small_rotation(a: float, b: float, c: float) -> np.ndarray:
@@ -36,18 +35,18 @@ def _solve_constrained(A: np.ndarray, b: np.ndarray, rcond: float = 1e-7) -> np.
 
 
 def icp_point_to_plane(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.ndarray, T_init: np.ndarray, threshold: float,
-                       iterations: int, trace: list | None = None, tgt_tree: cKDTree | None = None) -> np.ndarray:
+                       iterations: int, trace: list | None = None, tgt_tree: NearestTree | None = None) -> np.ndarray:
     """T_target_source minimising sum ((T s - t) . n_t)^2 over pairs closer than `threshold`; stops when
     the fitness and inlier RMSE change by less than 1e-6 between iterations (Open3D's criteria). With
     `trace`, appends each iteration's T."""
-    tree = tgt_tree if tgt_tree is not None else cKDTree(tgt)
+    tree = tgt_tree if tgt_tree is not None else NearestTree(tgt)
     T = np.array(T_init, dtype=float)
     if len(src) == 0 or len(tgt) == 0:
         return T
 
     def match(T):
         p = src @ T[:3, :3].T + T[:3, 3]
-        d, i = tree.query(p, distance_upper_bound=threshold, workers=QUERY_WORKERS)
+        d, i = tree.query(p, distance_upper_bound=threshold)
         ok = np.isfinite(d)
         fit = float(ok.mean())
         rmse = float(np.sqrt(np.mean(d[ok] ** 2))) if ok.any() else 0.0

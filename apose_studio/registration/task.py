@@ -9,9 +9,9 @@ from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from apose_studio.geometry.camera import CameraIntrinsics
+from apose_studio.geometry.nn import NearestTree
 from apose_studio.params import Params
 from apose_studio.registration.base import BaseObject
 from apose_studio.registration.stages import cloud
@@ -48,7 +48,7 @@ class Task:
     @cached_property
     def target_tree(self):
         """k-d tree of the coarse target's points (built once, for the coarse ICPs)."""
-        return cKDTree(self.tp)  # balanced: queried by many ICP iterations
+        return NearestTree(self.tp)
 
     @property
     def tp(self) -> np.ndarray:
@@ -99,7 +99,7 @@ def prepare_task(target_pts: np.ndarray, cam: CameraIntrinsics, T_world_camera: 
         fine.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=p.normal_radius_factor * voxel, max_nn=30))
         fine.orient_normals_towards_camera_location(T_world_camera[:3, 3])
     return Task(base, T_base_part, p, cam, T_world_camera, observation, voxel, target_pts, target_full, target, fine,
-                   cKDTree(np.asarray(fine.points)), deadline,  # balanced: queried by many ICP iterations
+                   NearestTree(np.asarray(fine.points)), deadline,
                    part_symmetries=part_symmetries)
 
 
