@@ -101,14 +101,14 @@ def cmd_demo(args) -> int:
     return _serve_studio(path, out, args.host, args.port, cache, root=args.root, token=args.token)
 
 
-def _serve_studio(assembly, dataset, host: str, port: int, cache=None, root=None, token=None) -> int:
+def _serve_studio(assembly, dataset, host: str, port: int, cache=None, root=None, token=None, obj_map=None) -> int:
     # loaded per command: `apose --help` loads none of the core
     from apose_studio.studio import serve
     from apose_studio.studio.webguard import is_loopback_bind
 
     if root is not None and not Path(root).is_dir():
         raise AposeError(f"--root {root}: no such folder")
-    server, studio = serve(assembly, dataset, host=host, port=port, cache=cache, root=root, token=token)
+    server, studio = serve(assembly, dataset, host=host, port=port, cache=cache, root=root, token=token, obj_map=obj_map)
     print(f"studio: {studio.url}  (Ctrl-C to stop; open this address: the page needs the token in it)")
     print(f"workspace: the page may open and save files only under {', '.join(str(r) for r in studio.workspace.roots)}")
     if not is_loopback_bind(host):
@@ -124,10 +124,23 @@ def _serve_studio(assembly, dataset, host: str, port: int, cache=None, root=None
     return 0
 
 
+def _check_obj_map(obj_map: list[str] | None, assembly) -> None:
+    """--obj-map read against the assembly's parts now, in the CLI's words (the studio reads it again)."""
+    if obj_map:
+        from apose_studio.assembly.model import load_assembly
+        from apose_studio.data.bop import parse_obj_map
+
+        if assembly is None:
+            raise AposeError("--obj-map names the parts of an assembly: give the assembly file too")
+        parse_obj_map(obj_map, load_assembly(assembly).parts)
+
+
 def cmd_studio(args) -> int:
     if args.assembly and not Path(args.assembly).is_file():
         raise AposeError(f"{args.assembly}: no such assembly file")
-    return _serve_studio(args.assembly, args.dataset, args.host, args.port, root=args.root, token=args.token)
+    _check_obj_map(args.obj_map, args.assembly)
+    return _serve_studio(args.assembly, args.dataset, args.host, args.port, root=args.root, token=args.token,
+                         obj_map=args.obj_map)
 
 
 def cmd_export_html(args) -> int:
@@ -136,7 +149,8 @@ def cmd_export_html(args) -> int:
 
     out = Path(args.out)
     check_output_file(out, "--out", inputs=[args.input])
-    page, result = export_replay(args.input, args.step, args.frame, args.assembly, args.orientation_prior)
+    _check_obj_map(args.obj_map, args.assembly)
+    page, result = export_replay(args.input, args.step, args.frame, args.assembly, args.orientation_prior, args.obj_map)
     atomic_write_text(out, page)
     from apose_studio.registration import doubts
 
@@ -402,7 +416,10 @@ def _add_demo(sub) -> None:
 def _add_studio(sub) -> None:
     p = sub.add_parser("studio", help="open the browser studio: author assemblies, inspect datasets and registrations")
     p.add_argument("assembly", nargs="?", help="assembly YAML file to open (default: a new, empty assembly)")
-    p.add_argument("--dataset", help="dataset folder (from `apose render`) or capture folder to open in the Inspect tab")
+    p.add_argument("--dataset", help="dataset folder (from `apose render`), capture folder or BOP scene folder to open "
+                   "in the Inspect tab")
+    p.add_argument("--obj-map", action="append", metavar="PART=OBJ_ID",
+                   help="BOP scene: which BOP obj_id each part is (repeatable), for the ground truth in scene_gt.json")
     _server_args(p)
     p.set_defaults(func=cmd_studio)
 
@@ -410,11 +427,13 @@ def _add_studio(sub) -> None:
 def _add_export_html(sub) -> None:
     p = sub.add_parser("export-html", help="estimate one frame and write the studio's inspect view and registration "
                        "replay as one HTML page that opens without a server")
-    p.add_argument("input", help="dataset folder from `apose render`, or a capture folder (with --assembly)")
-    p.add_argument("--assembly", help="assembly YAML (needed for a capture; a dataset has its own)")
+    p.add_argument("input", help="dataset folder from `apose render`, or a capture or BOP scene folder (with --assembly)")
+    p.add_argument("--assembly", help="assembly YAML (needed for a capture or BOP scene; a dataset has its own)")
     p.add_argument("--step", type=int, required=True, help="assembly step (1-based)")
-    p.add_argument("--frame", type=int, default=0, help="image id within the step (default 0)")
+    p.add_argument("--frame", type=int, default=0, help="image id within the step or BOP scene (default 0)")
     p.add_argument("--orientation-prior", action="store_true", help="take the CAD orientation as the base's")
+    p.add_argument("--obj-map", action="append", metavar="PART=OBJ_ID",
+                   help="BOP scene: which BOP obj_id each part is (repeatable), for the ground truth in scene_gt.json")
     p.add_argument("--out", required=True, help="the HTML file to write")
     p.set_defaults(func=cmd_export_html)
 

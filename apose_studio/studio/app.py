@@ -70,7 +70,8 @@ class Studio:
     events: Events
 
     def __init__(self, server, assembly: str | Path | None = None, dataset: str | Path | None = None,
-                 cache: inspection.ResultCache | None = None, workspace: Workspace | None = None):
+                 cache: inspection.ResultCache | None = None, workspace: Workspace | None = None,
+                 obj_map: list[str] | None = None):
         import viser  # noqa: F401  (imported here so the core never needs it)
 
         self.server = server
@@ -105,6 +106,8 @@ class Studio:
             if assembly is not None:  # named on the command line: the user's own files, not the page's
                 self.files.open_assembly(Path(assembly), confine=False)
                 self.workspace = self.workspace.trusting(*(p.mesh.parent for p in self.asm.parts.values()))
+            if obj_map:  # a BOP scene's obj_ids (`apose studio --obj-map`), read when it opens
+                self.inspect.i_obj_map.value = ", ".join(obj_map)
             if dataset is not None:
                 self.inspect.open_frames(str(dataset), confine=False)
                 frames = self.inspect.frames
@@ -447,18 +450,19 @@ def default_workspace(assembly=None, dataset=None, root=None) -> Workspace:
 
 
 def serve(assembly=None, dataset=None, host: str = "127.0.0.1", port: int = 8080, cache=None, root=None,
-          token: str | None = None):
+          token: str | None = None, obj_map: list[str] | None = None):
     """Start the studio in the background; returns (server, studio). `server.stop()` ends it.
 
     Only the studio's own page may connect (Origin check), and the page and its websocket need
-    `token` (a new random one when None, on loopback too); `studio.url` is the address to open."""
+    `token` (a new random one when None, on loopback too); `studio.url` is the address to open. `obj_map`:
+    PART=OBJ_ID items for a BOP scene `dataset` (its ground truth)."""
     if not 0 < int(port) < 65536:
         raise AposeError(f"--port {port}: expected a port number from 1 to 65535")
     token = new_token() if token is None else check_token(token)
     ready = threading.Event()  # pages may connect once the studio (and its screen of their messages) is built
     server = start_viser(host, port, token, ready=ready)
     try:
-        studio = Studio(server, assembly, dataset, cache, default_workspace(assembly, dataset, root))
+        studio = Studio(server, assembly, dataset, cache, default_workspace(assembly, dataset, root), obj_map)
     except BaseException:
         server.stop()
         raise

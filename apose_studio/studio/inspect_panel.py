@@ -19,8 +19,8 @@ import numpy as np
 import trimesh
 
 from apose_studio.assembly.model import Assembly
-from apose_studio.data.bop import BopScene
-from apose_studio.data.dataset import Dataset
+from apose_studio.data.bop import BopScene, parse_obj_map
+from apose_studio.data.dataset import Dataset, DatasetError
 from apose_studio.data.sources import open_frames
 from apose_studio.errors import AposeError
 from apose_studio.estimation import MASK_SOURCES, StepContext, check_mask_source, mask_sources_for
@@ -89,9 +89,13 @@ class InspectPanel:
     def build(self) -> None:
         gui = self.app.server.gui
         with gui.add_folder("Data"):
-            self.i_path = gui.add_text("Dataset or capture", "", hint="a folder from `apose render`, or rgb.png + depth.png + camera.json")
+            self.i_path = gui.add_text("Dataset or capture", "", hint="a folder from `apose render`, rgb.png + depth.png + "
+                                       "camera.json, or a BOP scene (scene_camera.json, rgb/, depth/)")
             b = gui.add_button("Open data")
             b.on_click(self.app.guarded("Open data")(lambda c: self.on_open_data(c)))
+            self.i_obj_map = gui.add_text("BOP object ids", "", hint="a BOP scene's ground truth: which obj_id of its "
+                                          "scene_gt.json each part is, PART=OBJ_ID separated by commas (e.g. housing=5)")
+            self.i_obj_map.on_update(self.app.guarded("BOP object ids")(lambda c: self.on_obj_map(c)))
             self.i_step = gui.add_dropdown("Inspect step", ("—",))
             self.i_step.on_update(self.app.guarded("Step")(lambda c: self.on_frame_changed()))
             self.i_frame = gui.add_slider("Frame", 0, 1, 1, 0)
@@ -142,15 +146,29 @@ class InspectPanel:
             if self.frames_path is not None:  # say what stays on screen
                 raise AposeError(f"{e}\n(still showing the data opened before: {self.frames_path})") from None
             raise
-        what = (f"a dataset of {len(self.frames.steps)} step(s)" if isinstance(self.frames, Dataset) else "a capture")
+        if isinstance(self.frames, Dataset):
+            what = f"a dataset of {len(self.frames.steps)} step(s)"
+        elif isinstance(self.frames, BopScene):
+            mapped = ", ".join(f"{k}={v}" for k, v in self.frames.obj_of_part.items())
+            what = (f"a BOP scene of {len(self.frames.image_ids())} image(s); " +
+                    (f"ground truth of {mapped}" if mapped else "type 'BOP object ids' (PART=OBJ_ID) to compare with "
+                     "its ground truth"))
+        else:
+            what = "a capture"
         self.app.notify(client, "Data opened", f"{self.frames_path}: {what}")  # and an older error on screen closes
 
     def open_frames(self, text: str, client=None, confine: bool = True) -> None:
         frames = open_frames(Path(text).expanduser())
         if isinstance(frames, BopScene):
-            raise AposeError(f"{text}: a BOP scene folder; the studio opens apose datasets and single captures "
-                             "(run `apose estimate` on BOP scenes)")
-        if isinstance(frames, Dataset):
+            if not self.app.valid_asm.steps:
+                raise AposeError("a BOP scene needs an assembly: open one in the Assembly tab first")
+            ids = frames.image_ids()
+            if not ids:
+                raise AposeError(f"{text}: its scene_camera.json lists no images")
+            frames.obj_of_part = self.obj_map(self.app.valid_asm)  # the typed ids, checked against these parts
+            frames.frame(ids[0], self.app.valid_asm.steps[0])  # read now: a refusal leaves what is shown as it was
+            steps = [f"{i + 1}. {s.part}" for i, s in enumerate(self.app.valid_asm.steps)]
+        elif isinstance(frames, Dataset):
             if confine:  # a dataset named on the command line at start is the user's choice
                 self.app.workspace.check_assembly(frames.assembly)
             steps = [f"{s}. {frames.assembly.steps[s - 1].part}" for s in frames.steps]
@@ -162,7 +180,8 @@ class InspectPanel:
             if not self.app.valid_asm.steps:
                 raise AposeError("a capture needs an assembly: open one in the Assembly tab first")
             steps = [f"{i + 1}. {s.part}" for i, s in enumerate(self.app.valid_asm.steps)]
-        self.offer_mask_sources(isinstance(frames, Dataset) or bool(frames.masks))
+        self.offer_mask_sources(isinstance(frames, Dataset) or (isinstance(frames, BopScene) and self.bop_truth(frames, 1))
+                                or (not isinstance(frames, BopScene) and bool(frames.masks)))
         self.frames, self.frames_path = frames, str(Path(text).expanduser().resolve())
         self.result = self.score = None
         self.i_path.value = self.frames_path
@@ -175,6 +194,42 @@ class InspectPanel:
         self.app.show_view("Inspect")
         self.on_frame_changed()
         self.frame_camera_on_frame()
+
+    def obj_map(self, asm: Assembly) -> dict[str, int]:
+        """'BOP object ids' read against the assembly's parts (PART=OBJ_ID, commas or spaces between)."""
+        items = [t for t in str(self.i_obj_map.value).replace(",", " ").split() if t]
+        try:
+            return parse_obj_map(items, asm.parts)
+        except DatasetError as e:
+            raise AposeError(str(e).replace("--obj-map ", "BOP object ids: ")) from None
+
+    def bop_truth(self, frames: BopScene, step: int) -> bool:
+        """Whether a BOP scene has ground truth for the step's base (its obj_id typed, scene_gt.json there)."""
+        steps = self.app.valid_asm.steps
+        return bool(frames.gt) and 0 < step <= len(steps) and steps[step - 1].base[0] in frames.obj_of_part
+
+    def on_obj_map(self, client=None) -> None:
+        """New 'BOP object ids': the opened BOP scene's ground truth follows them (masks, poses, scores), and
+        the tab is told in how many of the scene's images each typed object is."""
+        if not isinstance(self.frames, BopScene):
+            if str(self.i_obj_map.value).strip():
+                self.obj_map(self.app.valid_asm)  # checked now all the same: a typo is said where it was typed
+            return
+        had_truth = "gt" in self.i_mask.options
+        self.frames.obj_of_part = self.obj_map(self.app.valid_asm)
+        truth = self.bop_truth(self.frames, self.current_step())
+        self.offer_mask_sources(truth)
+        if truth and not had_truth and self.i_mask.value == "depth":  # the truth just typed: its masks, as a dataset's
+            self.i_mask.value = self.app.state.inspect.mask_source = "gt"
+        self.on_frame_changed()
+        gt, n = self.frames.gt, len(self.frames.image_ids())
+        def images_with(oid: int) -> int:  # scene_gt.json's entries are checked when a frame is read, not here
+            return sum(isinstance(v, list) and any(isinstance(e, dict) and e.get("obj_id") == oid for e in v)
+                       for v in gt.values())
+
+        seen = [f"{part} (obj_id {oid}) in {images_with(oid)} of {n} images"
+                for part, oid in self.frames.obj_of_part.items()]
+        self.app.notify(client, "Ground truth", "; ".join(seen) if seen else "none: no BOP object ids typed")
 
     def offer_mask_sources(self, truth: bool) -> None:
         """The Mask choices that work on the data opened: without ground truth (a capture) neither `gt` nor
@@ -227,7 +282,7 @@ class InspectPanel:
         if not len(pts):
             return None
         centre = np.median(pts, axis=0)
-        if not fr.masks:
+        if not fr.masks or not isinstance(self.frames, Dataset):  # a real frame: as its sensor saw it
             return "sensor", np.concatenate([centre, fr.T_world_camera[:3, :].ravel()])
         radius = max(float(np.percentile(np.linalg.norm(pts - centre, axis=1), 95)), 0.02)
         to_camera = fr.T_world_camera[:3, 3] - centre
@@ -261,7 +316,10 @@ class InspectPanel:
                     np.asarray(self.i_crop_size.value, dtype=float) / 1000.0)
         asm = self.inspect_assembly()
         prompt = prompt_of(self.app.state.inspect.prompt_text) if self.i_mask.value == PROMPT_SOURCE else None
-        return EstimateJob(self.frames, self.frames_path, asm, self.inspect_models(), step, tuple(ids),
+        path = self.frames_path
+        if isinstance(self.frames, BopScene):  # its ground truth (masks, scores) follows the typed ids
+            path += "#" + ",".join(f"{k}={v}" for k, v in sorted(self.frames.obj_of_part.items()))
+        return EstimateJob(self.frames, path, asm, self.inspect_models(), step, tuple(ids),
                            self.i_preset.value, bool(self.i_upright.value), self.confined_mask(self.i_mask.value),
                            bool(self.i_prior.value), crop, prompt)
 
@@ -288,8 +346,10 @@ class InspectPanel:
         if self._syncing or self.frames is None:
             return
         step = self.current_step()
-        if isinstance(self.frames, Dataset):
-            ids = self.frames.image_ids(step)
+        if isinstance(self.frames, BopScene):
+            self.offer_mask_sources(self.bop_truth(self.frames, step))
+        if isinstance(self.frames, (Dataset, BopScene)):
+            ids = self.frames.image_ids(step) if isinstance(self.frames, Dataset) else self.frames.image_ids()
             self._syncing = True
             try:
                 self.i_frame.max = max(len(ids) - 1, 1)
@@ -471,6 +531,8 @@ class InspectPanel:
             step = self.current_step()
             if whole_step and isinstance(self.frames, Dataset):
                 ids = self.frames.image_ids(step)
+            elif whole_step and isinstance(self.frames, BopScene):
+                ids = self.frames.image_ids()
             else:
                 ids = [self.frame.im_id]
             job = self.job(step, ids)  # the settings of this moment, whatever other tabs do meanwhile

@@ -23,6 +23,7 @@ import numpy as np
 
 from apose_studio.assembly.mesh import PartModel, load_parts
 from apose_studio.assembly.model import Assembly
+from apose_studio.data.bop import BopScene
 from apose_studio.data.dataset import Dataset, Frame
 from apose_studio.studio import authoring
 
@@ -147,12 +148,15 @@ class StudioState:
         return self.inspect_models()[self.inspect_assembly().steps[self.inspect.step - 1].part]
 
     def load_frame(self, step: int, im_id: int, frames=None, asm: Assembly | None = None) -> Frame:
-        """Frame `im_id` of `step` from `frames` (default: the opened data); a capture is the one frame,
-        its base parts set from `asm` (default: the last valid draft)."""
+        """Frame `im_id` of `step` from `frames` (default: the opened data); a capture is the one frame and a
+        BOP scene's frames are its images, their base parts set from `asm` (default: the last valid draft)."""
         frames = self.inspect.frames if frames is None else frames
         if isinstance(frames, Dataset):
             return frames.frame(step, im_id)
-        view = (asm or self.valid_asm).steps[step - 1]  # a copy: the opened capture is shared by every tab and job
+        view = (asm or self.valid_asm).steps[step - 1]
+        if isinstance(frames, BopScene):  # read from its files, with the truth of the typed obj_ids
+            return frames.frame(im_id, view)
+        # a copy: the opened capture is shared by every tab and job
         return replace(frames, base=tuple(view.base), part=view.part, step=step)
 
 

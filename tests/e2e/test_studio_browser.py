@@ -270,6 +270,48 @@ def test_inspect_a_capture_with_a_typed_box(browser, studio, tmp_path):
     page.close()
 
 
+def test_inspect_a_bop_scene_with_its_ground_truth(browser, studio, tmp_path):
+    """A BOP scene folder (BOP's files only, from a cluttered Kinect-like render) opens with the assembly of
+    the Assembly tab; its images are the frames; typing 'BOP object ids' gives the base its truth: the gt
+    mask, the truth's box, and the errors in the panel after Estimate frame."""
+    import json
+
+    from apose_studio.assembly.model import load_assembly
+    from apose_studio.synth.frame import RenderSettings
+    from apose_studio.synth.render import render_dataset
+
+    asm_path = _sample_copy(tmp_path)
+    render_dataset(load_assembly(asm_path), tmp_path / "ds", RenderSettings(frames=2, noise="kinect", clutter=True, seed=8),
+                   steps=[1], progress=False)
+    scene = tmp_path / "scene" / "000001"
+    scene.mkdir(parents=True)
+    for name in ("scene_camera.json", "scene_gt.json", "rgb", "depth", "mask_visib"):
+        src = tmp_path / "ds" / "test" / "000001" / name
+        (shutil.copytree if src.is_dir() else shutil.copy)(src, scene / name)
+    obj_ids = json.loads((tmp_path / "ds" / "dataset_info.json").read_text())["obj_ids"]
+    page = open_page(browser, studio)
+    type_into(page, "Assembly file", str(asm_path))
+    page.get_by_role("button", name="Open").click()
+    wait_until(lambda: len(studio.asm.steps) == 3, "the sample to open")
+    page.get_by_role("tab", name="Inspect").click()
+    type_into(page, "Dataset or capture", str(scene))
+    page.get_by_role("button", name="Open data").click()
+    wait_until(lambda: "/inspect/scene" in studio.nodes, "the BOP scene to be shown")
+    assert "gt" not in studio.inspect.i_mask.options and "/inspect/box_gt" not in studio.nodes
+    expect(page.get_by_text("a BOP scene of 2 image(s)", exact=False)).to_be_visible()
+    type_into(page, "BOP object ids", f"casing={obj_ids['casing']}")
+    wait_until(lambda: "/inspect/box_gt" in studio.nodes and studio.inspect.i_mask.value == "gt",
+               "the truth of the typed obj_id")
+    page.get_by_role("button", name="Estimate frame").click()
+    wait_until(lambda: studio.inspect.result is not None, "the estimate", timeout=120)
+    assert studio.inspect.result.ok, studio.inspect.result.reason
+    expect(page.get_by_text("MSSD", exact=True).first).to_be_visible()
+    assert studio.inspect.score.mssd < 0.1 * studio.inspect.part_model().diameter
+    time.sleep(1.0)  # let the software renderer draw
+    shot(page, "bop_scene_inspect.png")
+    page.close()
+
+
 def test_drag_the_gizmo_with_the_mouse_and_save(browser, studio, tmp_path):
     """Drag the translation arrow of the gizmo: the part moves, the typed fields follow, Save writes it
     (keeping the file's comment and mode)."""

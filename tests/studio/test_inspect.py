@@ -375,3 +375,53 @@ def test_the_step_on_show_is_prepared_for_the_estimator_in_the_background(studio
     st.inspect.i_prior.value = True
     act(st, st.inspect.run_estimation, False)
     assert st.inspect.result.ok and [v[2] for k, v in st.inspect.contexts.items() if k[2] == step] == [ctx]
+
+
+def test_a_bop_scene_opens_with_its_images_and_the_typed_obj_ids_give_its_truth(studio, gearbox_dataset, tmp_path):
+    """A BOP scene folder (plain BOP: scene_camera.json, scene_gt.json, rgb/, depth/, mask_visib/) opens in
+    the Inspect tab with the assembly of the Assembly tab: its images are the frames. Until 'BOP object ids'
+    says which obj_id the step's base is, it is a real capture (no gt mask, no truth drawn); once typed, its
+    ground truth gives the gt mask, the amber box and the scores. A typo names the part and the field."""
+    import json
+
+    scene = plain_bop_scene(gearbox_dataset / "test" / "000001", tmp_path / "000007")
+    obj_ids = json.loads((gearbox_dataset / "dataset_info.json").read_text())["obj_ids"]
+    st = studio(SAMPLES / "helical_gearbox" / "assembly.yaml")
+    base = st.asm.steps[0].base[0]
+    st.inspect.i_path.value = str(scene)
+    act(st, lambda c: st.inspect.on_open_data(c))
+    assert not errors(st), st.notes
+    assert "a BOP scene of 2 image(s)" in st.notes[-1][1] and "BOP object ids" in st.notes[-1][1]
+    assert st.inspect.i_frame.max == 1 and not st.inspect.i_frame.disabled
+    assert "gt" not in st.inspect.i_mask.options and "/inspect/box_gt" not in st.nodes
+    st.inspect.i_obj_map.value = "no_such_part=3"
+    act(st, lambda c: st.inspect.on_obj_map())
+    assert "BOP object ids: no_such_part=3" in errors(st)[-1][1] and "no part" in errors(st)[-1][1]
+    st.inspect.i_obj_map.value = f"{base}={obj_ids[base]}"
+    act(st, lambda c: st.inspect.on_obj_map())
+    assert "gt" in st.inspect.i_mask.options and st.inspect.i_mask.value == "gt"
+    assert st.notes[-1][:2] == ("Ground truth", f"{base} (obj_id {obj_ids[base]}) in 2 of 2 images")
+    assert "/inspect/box_gt" in st.nodes and st.inspect.frame.T_world_part is not None
+    st.inspect.i_frame.value = 1  # the scene's second image
+    assert st.inspect.frame.im_id == 1
+    act(st, st.inspect.run_estimation, False)
+    assert st.inspect.result is not None and st.inspect.result.ok, st.notes
+    assert st.inspect.score is not None and st.inspect.score.mssd < 0.1 * st.state.part_model().diameter
+    assert "MSSD" in st.results.i_metrics.content
+
+
+def plain_bop_scene(src, dst):
+    """A copy of a rendered scene folder with only BOP's own files."""
+    import shutil
+
+    dst.mkdir()
+    for name in ("scene_camera.json", "scene_gt.json", "rgb", "depth", "mask_visib"):
+        (shutil.copytree if (src / name).is_dir() else shutil.copy)(src / name, dst / name)
+    return dst
+
+
+def test_a_bop_scene_needs_an_assembly_to_open(studio, gearbox_dataset, tmp_path):
+    st = studio()
+    st.inspect.i_path.value = str(plain_bop_scene(gearbox_dataset / "test" / "000001", tmp_path / "000001"))
+    act(st, lambda c: st.inspect.on_open_data(c))
+    assert "a BOP scene needs an assembly" in errors(st)[-1][1]
