@@ -166,3 +166,13 @@ def rendered_frame(assembly: Path, step: int, im_id: int, **settings):
     return Frame(rgb=rgb, depth=depth, camera=s.camera, T_world_camera=T_world_camera, masks=masks,
                  poses={}, step=step, part=view.part, base=tuple(view.base), T_base_part=view.T_base_part,
                  T_world_base=T_world_base, T_world_part=T_world_base @ view.T_base_part, im_id=im_id)
+
+
+def plain_bop_scene(src: Path, dst: Path) -> Path:
+    """A copy of a rendered scene folder (test/NNNNNN) with BOP's own files only: what a BOP dataset holds."""
+    import shutil
+
+    dst.mkdir(parents=True)
+    for name in ("scene_camera.json", "scene_gt.json", "rgb", "depth", "mask_visib"):
+        (shutil.copytree if (src / name).is_dir() else shutil.copy)(src / name, dst / name)
+    return dst

@@ -219,14 +219,9 @@ def test_export_html_of_a_capture_needs_its_assembly(gearbox_dataset, tmp_path):
 def test_export_html_of_a_bop_scene_with_its_obj_ids(gearbox_dataset, tmp_path):
     """A BOP scene folder with --assembly and --obj-map: the page of its image --frame, scored against its
     scene_gt.json; a part the assembly lacks is refused in the CLI's words (exit code 2, nothing written)."""
-    import json
-    import shutil
+    from ..conftest import plain_bop_scene
 
-    scene = tmp_path / "000003"
-    scene.mkdir()
-    src = gearbox_dataset / "test" / "000001"
-    for name in ("scene_camera.json", "scene_gt.json", "rgb", "depth", "mask_visib"):
-        (shutil.copytree if (src / name).is_dir() else shutil.copy)(src / name, scene / name)
+    scene = plain_bop_scene(gearbox_dataset / "test" / "000001", tmp_path / "000003")
     asm = SAMPLES / "helical_gearbox" / "assembly.yaml"
     obj_ids = json.loads((gearbox_dataset / "dataset_info.json").read_text())["obj_ids"]
     out = tmp_path / "bop.html"

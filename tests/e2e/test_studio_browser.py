@@ -283,11 +283,9 @@ def test_inspect_a_bop_scene_with_its_ground_truth(browser, studio, tmp_path):
     asm_path = _sample_copy(tmp_path)
     render_dataset(load_assembly(asm_path), tmp_path / "ds", RenderSettings(frames=2, noise="kinect", clutter=True, seed=8),
                    steps=[1], progress=False)
-    scene = tmp_path / "scene" / "000001"
-    scene.mkdir(parents=True)
-    for name in ("scene_camera.json", "scene_gt.json", "rgb", "depth", "mask_visib"):
-        src = tmp_path / "ds" / "test" / "000001" / name
-        (shutil.copytree if src.is_dir() else shutil.copy)(src, scene / name)
+    from ..conftest import plain_bop_scene
+
+    scene = plain_bop_scene(tmp_path / "ds" / "test" / "000001", tmp_path / "scene" / "000001")
     obj_ids = json.loads((tmp_path / "ds" / "dataset_info.json").read_text())["obj_ids"]
     page = open_page(browser, studio)
     type_into(page, "Assembly file", str(asm_path))

@@ -6,7 +6,7 @@ import numpy as np
 from apose_studio.geometry import se3
 from apose_studio.studio import serve
 
-from ..conftest import SAMPLES, free_port, mssd_to_truth
+from ..conftest import SAMPLES, free_port, mssd_to_truth, plain_bop_scene
 from .conftest import act, errors, open_capture
 
 
@@ -408,16 +408,6 @@ def test_a_bop_scene_opens_with_its_images_and_the_typed_obj_ids_give_its_truth(
     assert st.inspect.result is not None and st.inspect.result.ok, st.notes
     assert st.inspect.score is not None and st.inspect.score.mssd < 0.1 * st.state.part_model().diameter
     assert "MSSD" in st.results.i_metrics.content
-
-
-def plain_bop_scene(src, dst):
-    """A copy of a rendered scene folder with only BOP's own files."""
-    import shutil
-
-    dst.mkdir()
-    for name in ("scene_camera.json", "scene_gt.json", "rgb", "depth", "mask_visib"):
-        (shutil.copytree if (src / name).is_dir() else shutil.copy)(src / name, dst / name)
-    return dst
 
 
 def test_a_bop_scene_needs_an_assembly_to_open(studio, gearbox_dataset, tmp_path):
