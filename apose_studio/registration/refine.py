@@ -10,7 +10,7 @@ import numpy as np
 
 from apose_studio.geometry import se3
 from apose_studio.registration.base import raycast_source
-from apose_studio.registration.scoring import discriminate, poses_within, score_pose, score_seen
+from apose_studio.registration.scoring import discriminate, is_twin, poses_within, score_pose, score_seen
 from apose_studio.registration.stages import cloud, icp
 from apose_studio.registration.types import MIN_POINTS, TIE_MARGIN, TWIN_TIE_MARGIN, Candidate, Found, Start
 
@@ -131,12 +131,6 @@ def _refine_from(pb, T: np.ndarray) -> np.ndarray:
         return T
     src = cloud(se3.transform_points(se3.inv(T), src_w)).voxel_down_sample(pb.voxel)
     return icp(src, pb.fine, T, pb.vg, pb.params.icp_max_iterations, None, pb.params.deterministic, pb.fine_tree)
-
-
-def is_twin(base, T_a: np.ndarray, T_b: np.ndarray, voxel: float) -> bool:
-    """T_b (T_world_base) is T_a turned by one of the base's symmetries or near-symmetries."""
-    D = se3.inv(T_a) @ T_b
-    return any(poses_within(D, S, 3 * voxel, 5.0) for S in list(base.symmetries[1:]) + list(base.near_symmetries))
 
 
 def tied(base, cands: list[Candidate], voxel: float) -> list[int]:
