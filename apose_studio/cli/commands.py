@@ -124,21 +124,26 @@ def _serve_studio(assembly, dataset, host: str, port: int, cache=None, root=None
     return 0
 
 
-def _check_obj_map(obj_map: list[str] | None, assembly) -> None:
-    """--obj-map read against the assembly's parts now, in the CLI's words (the studio reads it again)."""
+def _check_obj_map(obj_map: list[str] | None, assembly, scene=None, step: int | None = None) -> None:
+    """--obj-map read now, in the CLI's words (the studio reads it again): against the assembly's parts, and
+    when `scene` is a BOP scene folder, against the obj_ids it shows and (with `step`) the step's base."""
     if obj_map:
         from apose_studio.assembly.model import load_assembly
-        from apose_studio.data.bop import parse_obj_map
+        from apose_studio.data.bop import BopScene, is_bop_scene, parse_obj_map
 
         if assembly is None:
             raise AposeError("--obj-map names the parts of an assembly: give the assembly file too")
-        parse_obj_map(obj_map, load_assembly(assembly).parts)
+        asm = load_assembly(assembly)
+        mapped = parse_obj_map(obj_map, asm.parts)
+        if scene is not None and is_bop_scene(Path(scene)):
+            base = asm.steps[step - 1].base[0] if step is not None and 0 < step <= len(asm.steps) else None
+            BopScene(scene).check_obj_map(mapped, base)
 
 
 def cmd_studio(args) -> int:
     if args.assembly and not Path(args.assembly).is_file():
         raise AposeError(f"{args.assembly}: no such assembly file")
-    _check_obj_map(args.obj_map, args.assembly)
+    _check_obj_map(args.obj_map, args.assembly, args.dataset)
     return _serve_studio(args.assembly, args.dataset, args.host, args.port, root=args.root, token=args.token,
                          obj_map=args.obj_map)
 
@@ -149,7 +154,7 @@ def cmd_export_html(args) -> int:
 
     out = Path(args.out)
     check_output_file(out, "--out", inputs=[args.input])
-    _check_obj_map(args.obj_map, args.assembly)
+    _check_obj_map(args.obj_map, args.assembly, args.input, args.step)
     page, result = export_replay(args.input, args.step, args.frame, args.assembly, args.orientation_prior, args.obj_map)
     atomic_write_text(out, page)
     from apose_studio.registration import doubts

@@ -41,6 +41,7 @@ def open_estimate_input(args, path: str) -> tuple[Frame, Assembly, StepContext]:
     _, ctx = step_context(asm, args.step)
     if isinstance(src, BopScene):
         src.obj_of_part = parse_obj_map(args.obj_map, asm.parts)
+        src.check_obj_map(src.obj_of_part, ctx.view.base[0])
         return src.frame(args.frame, ctx.view), asm, ctx
     ignored = [flag for flag, given in (("--frame", args.frame not in (None, 0)), ("--obj-map", bool(args.obj_map))) if given]
     if ignored:

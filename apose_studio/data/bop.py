@@ -82,6 +82,40 @@ class BopScene:
     def image_ids(self) -> list[int]:
         return sorted(int(k) for k in self.camera)
 
+    def images_with(self, obj_id: int) -> int:
+        """In how many images scene_gt.json shows obj_id (its entries are checked when a frame is read)."""
+        return sum(isinstance(v, list) and any(isinstance(e, dict) and e.get("obj_id") == obj_id for e in v)
+                   for v in self.gt.values())
+
+    def obj_ids(self) -> list[int]:
+        """The obj_ids scene_gt.json shows, sorted."""
+        return sorted({e["obj_id"] for v in self.gt.values() if isinstance(v, list) for e in v
+                       if isinstance(e, dict) and isinstance(e.get("obj_id"), int)})
+
+    def check_obj_map(self, obj_of_part: dict[str, int], base: str | None = None, need_base: bool = True,
+                      flag: str = "--obj-map") -> None:
+        """DatasetError where the truth would silently be missing: `base` (the step's base part) mapped to an
+        obj_id that none of the scene's images shows, or (`need_base`) not mapped at all although ids were
+        given; without a base, no mapped obj_id in any image. A part not in this scene is fine (a dataset-wide
+        map names every object)."""
+        if not obj_of_part:
+            return
+        present = ", ".join(map(str, self.obj_ids())) or "none"
+        n = len(self.image_ids())
+        if base is None:
+            if not any(self.images_with(oid) for oid in obj_of_part.values()):
+                items = ", ".join(f"{p}={o}" for p, o in obj_of_part.items())
+                raise DatasetError(f"{flag} {items}: none of these obj_ids is in this scene's {n} images (its "
+                                   f"scene_gt.json shows obj_ids {present})")
+        elif base in obj_of_part:
+            oid = obj_of_part[base]
+            if not self.images_with(oid):
+                raise DatasetError(f"{flag} {base}={oid}: obj_id {oid} is in none of this scene's {n} images (its "
+                                   f"scene_gt.json shows obj_ids {present})")
+        elif need_base:
+            raise DatasetError(f"{flag} names no obj_id for the step's base {base!r}: its ground truth needs "
+                               f"{base}=ID (this scene shows obj_ids {present})")
+
     def _image(self, sub: str, im_id: int) -> Path:
         for ext in (".png", ".jpg", ".tif"):
             p = self.dir / sub / f"{im_id:06d}{ext}"

@@ -20,8 +20,9 @@ from apose_studio.params import PRESET_PARAMS, Params, resolve_params
 from apose_studio.registration.base import BaseObject, NearGrid, place_source, prepare_base, raycast_source
 from apose_studio.registration.pipeline import estimate
 from apose_studio.registration.scoring import MASK_MARGIN_PX, mask_edge
-from apose_studio.registration.searches import table_normal, upright_starts
+from apose_studio.registration.searches import upright_starts
 from apose_studio.registration.stages import global_registration, icp, project_to_cloud
+from apose_studio.registration.table import table_normal
 from apose_studio.registration.task import scale_problem
 from apose_studio.registration.types import (
            CONFIDENT_COVERAGE,

@@ -38,8 +38,9 @@ from apose_studio.registration.scoring import (
     pose_spread,
     twin_placements,
 )
-from apose_studio.registration.searches import ModelSearch, search_poses, table_plane, try_prior
+from apose_studio.registration.searches import ModelSearch, search_poses, try_prior
 from apose_studio.registration.stages import project_to_cloud, trace_stages
+from apose_studio.registration.table import table_plane
 from apose_studio.registration.task import Task, prepare_task, scale_problem
 from apose_studio.registration.types import (
     CONFIDENT_COVERAGE,

@@ -15,6 +15,7 @@ from apose_studio.geometry.nn import NearestTree
 from apose_studio.params import Params
 from apose_studio.registration.base import BaseObject
 from apose_studio.registration.stages import cloud
+from apose_studio.registration.table import table_plane
 from apose_studio.registration.types import Degenerate, Observation
 
 
@@ -54,8 +55,6 @@ class Task:
     def table(self) -> tuple[np.ndarray, float] | None:
         """The plane the base stands on (searches.table_plane of the observation), or None: fitted once per
         frame for the upright search and the judge."""
-        from apose_studio.registration.searches import table_plane
-
         obs = self.observation
         return table_plane(obs.depth, obs.mask, self.cam, self.T_world_camera, seed=self.params.seed,
                            base_size=self.base.diameter)

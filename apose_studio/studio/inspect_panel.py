@@ -83,6 +83,7 @@ class InspectPanel:
         self._last_framing: tuple | None = None  # the last framing made (frame_camera_on_frame)
         self._warming: tuple | None = None  # (assembly identity, step) last prepared in the background
         self._warm_thread: threading.Thread | None = None
+        self._told_step: int | None = None  # a BOP scene's step whose missing truth was last told
         app.events.on(Event.MASK_SOURCE_CHOSEN, self.on_mask_source_chosen)
         app.events.on(Event.FRAMING_ASKED, self.frame_camera_on_frame)
 
@@ -150,9 +151,9 @@ class InspectPanel:
             what = f"a dataset of {len(self.frames.steps)} step(s)"
         elif isinstance(self.frames, BopScene):
             mapped = ", ".join(f"{k}={v}" for k, v in self.frames.obj_of_part.items())
-            what = (f"a BOP scene of {len(self.frames.image_ids())} image(s); " +
-                    (f"ground truth of {mapped}" if mapped else "type 'BOP object ids' (PART=OBJ_ID) to compare with "
-                     "its ground truth"))
+            present = ", ".join(map(str, self.frames.obj_ids())) or "none"
+            what = (f"a BOP scene of {len(self.frames.image_ids())} image(s), obj_ids {present} in its ground truth; " +
+                    (f"mapped: {mapped}" if mapped else "type 'BOP object ids' (PART=OBJ_ID) to compare with it"))
         else:
             what = "a capture"
         self.app.notify(client, "Data opened", f"{self.frames_path}: {what}")  # and an older error on screen closes
@@ -165,7 +166,7 @@ class InspectPanel:
             ids = frames.image_ids()
             if not ids:
                 raise AposeError(f"{text}: its scene_camera.json lists no images")
-            frames.obj_of_part = self.obj_map(self.app.valid_asm)  # the typed ids, checked against these parts
+            frames.obj_of_part = self.obj_map(self.app.valid_asm, frames)  # the typed ids, checked against these parts
             frames.frame(ids[0], self.app.valid_asm.steps[0])  # read now: a refusal leaves what is shown as it was
             steps = [f"{i + 1}. {s.part}" for i, s in enumerate(self.app.valid_asm.steps)]
         elif isinstance(frames, Dataset):
@@ -195,13 +196,19 @@ class InspectPanel:
         self.on_frame_changed()
         self.frame_camera_on_frame()
 
-    def obj_map(self, asm: Assembly) -> dict[str, int]:
-        """'BOP object ids' read against the assembly's parts (PART=OBJ_ID, commas or spaces between)."""
+    def obj_map(self, asm: Assembly, scene: BopScene | None = None) -> dict[str, int]:
+        """'BOP object ids' read against the assembly's parts (PART=OBJ_ID, commas or spaces between), and
+        against the obj_ids `scene` shows. The refusal names the item typed (the notice's title names the field)."""
         items = [t for t in str(self.i_obj_map.value).replace(",", " ").split() if t]
         try:
-            return parse_obj_map(items, asm.parts)
+            mapped = parse_obj_map(items, asm.parts)
+            if scene is not None:  # the step's base mapped to an id the scene does not show: refused
+                k = self.current_step() if str(self.i_step.value).split(".")[0].isdigit() else 1  # none yet: the first
+                base = asm.steps[k - 1].base[0] if 0 < k <= len(asm.steps) else None
+                scene.check_obj_map(mapped, base, need_base=False, flag="")
+            return mapped
         except DatasetError as e:
-            raise AposeError(str(e).replace("--obj-map ", "BOP object ids: ")) from None
+            raise AposeError(str(e).replace("--obj-map ", "").strip()) from None
 
     def bop_truth(self, frames: BopScene, step: int) -> bool:
         """Whether a BOP scene has ground truth for the step's base (its obj_id typed, scene_gt.json there)."""
@@ -216,20 +223,29 @@ class InspectPanel:
                 self.obj_map(self.app.valid_asm)  # checked now all the same: a typo is said where it was typed
             return
         had_truth = "gt" in self.i_mask.options
-        self.frames.obj_of_part = self.obj_map(self.app.valid_asm)
+        self.frames.obj_of_part = self.obj_map(self.app.valid_asm, self.frames)
         truth = self.bop_truth(self.frames, self.current_step())
         self.offer_mask_sources(truth)
         if truth and not had_truth and self.i_mask.value == "depth":  # the truth just typed: its masks, as a dataset's
             self.i_mask.value = self.app.state.inspect.mask_source = "gt"
+        self._told_step = self.current_step()  # told below, not again by the frame change
         self.on_frame_changed()
-        gt, n = self.frames.gt, len(self.frames.image_ids())
-        def images_with(oid: int) -> int:  # scene_gt.json's entries are checked when a frame is read, not here
-            return sum(isinstance(v, list) and any(isinstance(e, dict) and e.get("obj_id") == oid for e in v)
-                       for v in gt.values())
+        self.tell_truth(client)
 
-        seen = [f"{part} (obj_id {oid}) in {images_with(oid)} of {n} images"
-                for part, oid in self.frames.obj_of_part.items()]
-        self.app.notify(client, "Ground truth", "; ".join(seen) if seen else "none: no BOP object ids typed")
+    def tell_truth(self, client=None) -> None:
+        """Say which of the typed obj_ids the scene shows, and whether the step on show has its base's truth."""
+        scene, n = self.frames, len(self.frames.image_ids())
+        seen = [f"{part} (obj_id {oid}) in {scene.images_with(oid)} of {n} images"
+                for part, oid in scene.obj_of_part.items()]
+        base = self.app.valid_asm.steps[self.current_step() - 1].base[0]
+        if not seen:
+            self.app.notify(client, "Ground truth", "none: no BOP object ids typed")
+        elif base not in scene.obj_of_part:
+            self.app.notify(client, "No ground truth for this step",
+                            f"{'; '.join(seen)}; but the step's base {base!r} has no obj_id: type {base}=ID "
+                            f"(this scene shows obj_ids {', '.join(map(str, scene.obj_ids())) or 'none'})", error=True)
+        else:
+            self.app.notify(client, "Ground truth", "; ".join(seen))
 
     def offer_mask_sources(self, truth: bool) -> None:
         """The Mask choices that work on the data opened: without ground truth (a capture) neither `gt` nor
@@ -348,6 +364,10 @@ class InspectPanel:
         step = self.current_step()
         if isinstance(self.frames, BopScene):
             self.offer_mask_sources(self.bop_truth(self.frames, step))
+            if self.frames.obj_of_part and self._told_step != step:  # a step whose base has no obj_id says so
+                self._told_step = step
+                if not self.bop_truth(self.frames, step):
+                    self.tell_truth()
         if isinstance(self.frames, (Dataset, BopScene)):
             ids = self.frames.image_ids(step) if isinstance(self.frames, Dataset) else self.frames.image_ids()
             self._syncing = True
@@ -536,6 +556,9 @@ class InspectPanel:
             else:
                 ids = [self.frame.im_id]
             job = self.job(step, ids)  # the settings of this moment, whatever other tabs do meanwhile
+            if len(ids) > 1 and job.mask == PROMPT_SOURCE:
+                raise AposeError("a prompt marks the base in one frame, and it moves from frame to frame: use "
+                                 "Estimate frame on each, or choose a Mask for the whole step (gt, box, depth or a model)")
         except BaseException:
             self.app.busy.release()
             raise

@@ -231,5 +231,7 @@ def test_export_html_of_a_bop_scene_with_its_obj_ids(gearbox_dataset, tmp_path):
     page = out.read_text()
     assert "frame 1 &middot;" in page and "MSSD" in page
     bad = tmp_path / "bad.html"
-    r = run("export-html", scene, "--assembly", asm, "--step", 1, "--obj-map", "nopart=3", "--out", bad)
-    assert r.returncode == 2 and "--obj-map nopart=3" in r.stderr and not bad.exists(), r.stderr
+    for obj_map, said in (("nopart=3", "--obj-map nopart=3"), ("casing=99", "obj_id 99 is in none of this scene's"),
+                          (f"pinion={obj_ids['pinion']}", "names no obj_id for the step's base 'casing'")):
+        r = run("export-html", scene, "--assembly", asm, "--step", 1, "--obj-map", obj_map, "--out", bad)
+        assert r.returncode == 2 and said in r.stderr and not bad.exists(), r.stderr

@@ -395,8 +395,17 @@ def test_a_bop_scene_opens_with_its_images_and_the_typed_obj_ids_give_its_truth(
     assert st.inspect.i_frame.max == 1 and not st.inspect.i_frame.disabled
     assert "gt" not in st.inspect.i_mask.options and "/inspect/box_gt" not in st.nodes
     st.inspect.i_obj_map.value = "no_such_part=3"
-    act(st, lambda c: st.inspect.on_obj_map())
-    assert "BOP object ids: no_such_part=3" in errors(st)[-1][1] and "no part" in errors(st)[-1][1]
+    act(st, lambda c: st.inspect.on_obj_map(c))
+    assert errors(st)[-1][1].startswith("no_such_part=3") and "no part" in errors(st)[-1][1]
+    st.inspect.i_obj_map.value = f"{base}=99"  # an obj_id the scene does not show: said, nothing changes
+    act(st, lambda c: st.inspect.on_obj_map(c))
+    assert "obj_id 99 is in none of this scene's 2 images" in errors(st)[-1][1], errors(st)[-1]
+    assert "gt" not in st.inspect.i_mask.options
+    part = st.asm.steps[0].part  # the loose part is in the scene's truth, but it is not the step's base
+    st.inspect.i_obj_map.value = f"{part}={obj_ids[part]}"
+    act(st, lambda c: st.inspect.on_obj_map(c))
+    assert errors(st)[-1][0] == "No ground truth for this step" and f"base '{base}' has no obj_id" in errors(st)[-1][1]
+    assert "gt" not in st.inspect.i_mask.options
     st.inspect.i_obj_map.value = f"{base}={obj_ids[base]}"
     act(st, lambda c: st.inspect.on_obj_map())
     assert "gt" in st.inspect.i_mask.options and st.inspect.i_mask.value == "gt"
@@ -408,6 +417,12 @@ def test_a_bop_scene_opens_with_its_images_and_the_typed_obj_ids_give_its_truth(
     assert st.inspect.result is not None and st.inspect.result.ok, st.notes
     assert st.inspect.score is not None and st.inspect.score.mssd < 0.1 * st.state.part_model().diameter
     assert "MSSD" in st.results.i_metrics.content
+    # a prompt marks the base in one image: Estimate step (every image) with it is refused, saying why
+    st.prompt.i_prompt.value = "100,100,300,300"
+    act(st, lambda c: st.prompt.on_prompt_typed())
+    assert st.inspect.i_mask.value == "prompt"
+    act(st, st.inspect.run_estimation, True)
+    assert "a prompt marks the base in one frame" in errors(st)[-1][1]
 
 
 def test_a_bop_scene_needs_an_assembly_to_open(studio, gearbox_dataset, tmp_path):
