@@ -78,7 +78,7 @@ class AssemblyPanel:
             self.app.model(pid, asm)
         self.app.events.emit(Event.MESHES_CHANGED, pid=None)
         self.app.state.step_index = 0 if asm.steps else None
-        self.saved_path = asm.path
+        self.saved_path, self.app.state.saved_how = asm.path, "opened"
         self.f_path.value = str(asm.path)
         self.app.history.clear()  # another file: Undo never brings the previous file's draft back over this one
         self.saved_draft = asm
@@ -151,7 +151,7 @@ class AssemblyPanel:
             self.ask_replace(client, path)
             return
         path = save_assembly(self.app.asm, path, backup=True)
-        self.saved_path = path
+        self.saved_path, self.app.state.saved_how = path, "saved"
         self.app.asm = load_assembly(path)  # what is on disk is what the studio now edits (paths re-anchored)
         self.app.valid_asm = self.saved_draft = self.app.asm
         self.app.events.emit(Event.DRAFT_SAVED)

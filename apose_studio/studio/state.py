@@ -115,6 +115,7 @@ class StudioState:
     meshes: dict[str, object] = field(default_factory=dict)  # part id -> its mesh handle in the 3D view
     picks: dict[str, tuple] = field(default_factory=dict)  # "part" / "base" -> (part id, Feature in its frame)
     saved_path: Path | None = None  # the file the draft was opened from or last saved to
+    saved_how: str = "saved"  # "opened" or "saved": what last made saved_path hold the draft (the status says it)
     saved_draft: Assembly | None = None  # the draft as it was opened or last saved (drafts are never changed in
     # place: `asm is saved_draft` means nothing is unsaved, Undo back to it included)
     inspect: InspectState = field(default_factory=InspectState)

@@ -391,10 +391,12 @@ class StepsPanel:
         st = self.app.state
         if st.saved_path is None:
             saved = " Not saved yet."
-        elif self.app.asm is st.saved_draft:
-            saved = f" Saved as {esc(st.saved_path)}."
+        elif self.app.asm is st.saved_draft:  # as on disk: opened and not changed, or saved
+            saved = (f" Opened from {esc(st.saved_path)}; no changes." if st.saved_how == "opened"
+                     else f" Saved as {esc(st.saved_path)}.")
         else:
-            saved = f" **Unsaved changes** (last saved as {esc(st.saved_path)})."
+            saved = f" **Unsaved changes** ({'opened from' if st.saved_how == 'opened' else 'last saved as'} " \
+                    f"{esc(st.saved_path)})."
         if not self.app.problems:
             self.status_md.content = f"✅ **Valid**: {len(self.app.asm.parts)} parts, {len(self.app.asm.steps)} steps.{saved}"
         else:
