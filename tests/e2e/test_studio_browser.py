@@ -218,6 +218,19 @@ def _sample_copy(tmp_path) -> Path:
     return asm_path
 
 
+def open_sample_and_data(browser, studio, asm_path: Path, data: Path, what: str):
+    """A page with the gearbox sample copy opened in the Assembly tab and `data` opened in the Inspect tab."""
+    page = open_page(browser, studio)
+    type_into(page, "Assembly file", str(asm_path))
+    page.get_by_role("button", name="Open").click()
+    wait_until(lambda: len(studio.asm.steps) == 3, "the sample to open")
+    page.get_by_role("tab", name="Inspect").click()
+    type_into(page, "Dataset or capture", str(data))
+    page.get_by_role("button", name="Open data").click()
+    wait_until(lambda: "/inspect/scene" in studio.nodes, what)
+    return page
+
+
 def test_inspect_a_capture_with_a_typed_box(browser, studio, tmp_path):
     """A real-capture folder (made from a cluttered Kinect-like render, with a BOP camera.json): the Mask
     offers no ground-truth source and starts on depth; a box typed into Prompt (px) and sent with Enter
@@ -237,14 +250,7 @@ def test_inspect_a_capture_with_a_typed_box(browser, studio, tmp_path):
                    steps=[1], progress=False)
     fr = Dataset(tmp_path / "ds").frame(1, 0)
     cap = write_capture(fr, tmp_path / "bench", {"cam_K": fr.camera.K.reshape(-1).tolist(), "depth_scale": 1.0})
-    page = open_page(browser, studio)
-    type_into(page, "Assembly file", str(asm_path))
-    page.get_by_role("button", name="Open").click()
-    wait_until(lambda: len(studio.asm.steps) == 3, "the sample to open")
-    page.get_by_role("tab", name="Inspect").click()
-    type_into(page, "Dataset or capture", str(cap))
-    page.get_by_role("button", name="Open data").click()
-    wait_until(lambda: "/inspect/scene" in studio.nodes, "the capture to be shown")
+    page = open_sample_and_data(browser, studio, asm_path, cap, "the capture to be shown")
     assert "gt" not in studio.inspect.i_mask.options and studio.inspect.i_mask.value == "depth"
     cam = client_of(studio, page).camera
     T = studio.inspect.frame.T_world_camera
@@ -287,14 +293,7 @@ def test_inspect_a_bop_scene_with_its_ground_truth(browser, studio, tmp_path):
 
     scene = plain_bop_scene(tmp_path / "ds" / "test" / "000001", tmp_path / "scene" / "000001")
     obj_ids = json.loads((tmp_path / "ds" / "dataset_info.json").read_text())["obj_ids"]
-    page = open_page(browser, studio)
-    type_into(page, "Assembly file", str(asm_path))
-    page.get_by_role("button", name="Open").click()
-    wait_until(lambda: len(studio.asm.steps) == 3, "the sample to open")
-    page.get_by_role("tab", name="Inspect").click()
-    type_into(page, "Dataset or capture", str(scene))
-    page.get_by_role("button", name="Open data").click()
-    wait_until(lambda: "/inspect/scene" in studio.nodes, "the BOP scene to be shown")
+    page = open_sample_and_data(browser, studio, asm_path, scene, "the BOP scene to be shown")
     assert "gt" not in studio.inspect.i_mask.options and "/inspect/box_gt" not in studio.nodes
     expect(page.get_by_text("a BOP scene of 2 image(s)", exact=False)).to_be_visible()
     type_into(page, "BOP object ids", f"casing={obj_ids['casing']}")
