@@ -118,17 +118,17 @@ class Studio:
     valid_asm = shared("valid_asm", "the last draft without problems, what the preview shows (`state.valid_asm`)")
     problems = shared("problems", "the draft's problems (`state.problems`)")
 
-    def notify(self, client, title: str, body: str, error: bool = False, others_of=None) -> None:
+    def notify(self, client, title: str, body: str, error: bool = False, others_of=None, keep: bool = False) -> None:
         """Tell the tab that acted (or every tab when no one did). An error stays until closed, but only until
         the tab's next message: an old error beside a newer success reads as if the success had failed.
         `others_of`: tell every tab but that one (what another tab's action changed here), in yellow, kept
-        as an error is."""
+        as an error is. `keep`: a success kept the same way (a result to read, such as a step's summary)."""
         (log.warning if error else log.info)("%s: %s", title, body)
         if others_of is not None:
             clients = [c for c in self.server.get_clients().values() if c.client_id != others_of.client_id]
         else:
             clients = [client] if client is not None else list(self.server.get_clients().values())
-        lasting = error or others_of is not None
+        lasting = error or keep or others_of is not None
         for c in clients:
             try:
                 for old in self._errors_shown.pop(c.client_id, []):

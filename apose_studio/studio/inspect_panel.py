@@ -594,7 +594,9 @@ class InspectPanel:
         elif unsure:
             self.app.notify(client, "Estimated, not confident", esc("\n".join(unsure[:5])), error=True)
         else:
-            self.app.notify(client, "Estimated", f"{len(ids)} frame(s) in {dt:.1f} s{self.truth_summary(job, ids)}")
+            # a step's summary is a result to read: it stays (until the tab's next message), a frame's fades
+            self.app.notify(client, "Estimated", f"{len(ids)} frame(s) in {dt:.1f} s{self.truth_summary(job, ids)}",
+                            keep=len(ids) > 1)
 
     def truth_summary(self, job: "EstimateJob", ids: list[int]) -> str:
         """Against the ground truth of a step's frames, where it has one: how many are right (MSSD under 10 %

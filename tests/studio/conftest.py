@@ -22,7 +22,7 @@ def studio(monkeypatch, tmp_path):
     def start(assembly=None, dataset=None, root=tmp_path):
         server, st = serve(assembly, dataset, host="127.0.0.1", port=free_port(), root=root)
         st.notes = []
-        monkeypatch.setattr(st, "notify", lambda client, title, body, error=False, others_of=None:
+        monkeypatch.setattr(st, "notify", lambda client, title, body, error=False, others_of=None, keep=False:
                             st.notes.append((title, body, error)))
         made.append(server)
         return st

@@ -150,6 +150,13 @@ def test_a_tab_s_next_message_closes_its_older_error():
     st.notify(a, "Estimated", "1 frame(s) in 0.5 s")
     assert a_log == [("shown", "Prompt"), ("removed", "Prompt"), ("shown", "Estimated")]
     assert b_log == [("shown", "Save")]  # the other tab's error is left alone
+    # a step's summary (keep=True) stays as an error does, until the tab's next message; a plain success fades
+    closes = []
+    c = SimpleNamespace(client_id=3, add_notification=lambda t, b, **k: (closes.append((t, k["auto_close_seconds"])),
+                                                                         Handle(closes, t))[1])
+    st.notify(c, "Estimated", "3 frame(s) in 0.6 s; against the truth: 3/3 right", keep=True)
+    st.notify(c, "Estimated", "1 frame(s) in 0.2 s")
+    assert closes == [("Estimated", None), ("removed", "Estimated"), ("Estimated", 4.0)]
 
 
 def test_one_tab_s_flood_of_presses_never_holds_the_others(studio):
