@@ -131,11 +131,14 @@ def _check_obj_map(obj_map: list[str] | None, assembly, scene=None, step: int | 
         from apose_studio.assembly.model import load_assembly
         from apose_studio.data.bop import BopScene, is_bop_scene, parse_obj_map
 
+        if scene is not None and not is_bop_scene(Path(scene)):
+            raise AposeError(f"--obj-map maps the parts to a BOP scene's obj_ids; {scene} is not a BOP scene folder "
+                             "(scene_camera.json, depth/): remove --obj-map")
         if assembly is None:
             raise AposeError("--obj-map names the parts of an assembly: give the assembly file too")
         asm = load_assembly(assembly)
         mapped = parse_obj_map(obj_map, asm.parts)
-        if scene is not None and is_bop_scene(Path(scene)):
+        if scene is not None:
             base = asm.steps[step - 1].base[0] if step is not None and 0 < step <= len(asm.steps) else None
             BopScene(scene).check_obj_map(mapped, base)
 

@@ -29,6 +29,8 @@ class NearestTree:
         """(distances, indices) of the k nearest points of each row of x, within distance_upper_bound (a
         neighbour beyond it: distance inf, index len(points)). Shapes as scipy's: (M,) for k=1, else (M, k)."""
         q = np.ascontiguousarray(x, dtype=np.float64).reshape(-1, 3)
+        if not np.isfinite(q).all():  # pykdtree would answer a far, wrong neighbour; scipy refuses, and so do we
+            raise ValueError("nearest-neighbour query with non-finite points (NaN or inf)")
         shape = (len(q),) if k == 1 else (len(q), k)
         if self.n == 0 or len(q) == 0:
             return np.full(shape, np.inf), np.full(shape, self.n, dtype=np.intp)

@@ -9,6 +9,7 @@ comes from the shared state too (the Prompt panel writes it), and a mask source 
 
 from __future__ import annotations
 
+import copy
 import logging
 import threading
 import time
@@ -202,10 +203,9 @@ class InspectPanel:
         items = [t for t in str(self.i_obj_map.value).replace(",", " ").split() if t]
         try:
             mapped = parse_obj_map(items, asm.parts)
-            if scene is not None:  # the step's base mapped to an id the scene does not show: refused
-                k = self.current_step() if str(self.i_step.value).split(".")[0].isdigit() else 1  # none yet: the first
-                base = asm.steps[k - 1].base[0] if 0 < k <= len(asm.steps) else None
-                scene.check_obj_map(mapped, base, need_base=False, flag="")
+            if scene is not None:  # none of the typed ids in this scene: refused (a map naming every object of a
+                # dataset is fine; the step on show is told whether its base has a truth: tell_truth)
+                scene.check_obj_map(mapped, flag="")
             return mapped
         except DatasetError as e:
             raise AposeError(str(e).replace("--obj-map ", "").strip()) from None
@@ -213,7 +213,8 @@ class InspectPanel:
     def bop_truth(self, frames: BopScene, step: int) -> bool:
         """Whether a BOP scene has ground truth for the step's base (its obj_id typed, scene_gt.json there)."""
         steps = self.app.valid_asm.steps
-        return bool(frames.gt) and 0 < step <= len(steps) and steps[step - 1].base[0] in frames.obj_of_part
+        base = steps[step - 1].base[0] if 0 < step <= len(steps) else None
+        return bool(frames.gt) and base in frames.obj_of_part and frames.images_with(frames.obj_of_part[base]) > 0
 
     def on_obj_map(self, client=None) -> None:
         """New 'BOP object ids': the opened BOP scene's ground truth follows them (masks, poses, scores), and
@@ -223,7 +224,10 @@ class InspectPanel:
                 self.obj_map(self.app.valid_asm)  # checked now all the same: a typo is said where it was typed
             return
         had_truth = "gt" in self.i_mask.options
-        self.frames.obj_of_part = self.obj_map(self.app.valid_asm, self.frames)
+        mapped = self.obj_map(self.app.valid_asm, self.frames)
+        # a new scene object: an estimate running now keeps the map (and the cache key) it started with
+        self.frames = copy.copy(self.frames)
+        self.frames.obj_of_part = mapped
         truth = self.bop_truth(self.frames, self.current_step())
         self.offer_mask_sources(truth)
         if truth and not had_truth and self.i_mask.value == "depth":  # the truth just typed: its masks, as a dataset's
@@ -237,13 +241,19 @@ class InspectPanel:
         scene, n = self.frames, len(self.frames.image_ids())
         seen = [f"{part} (obj_id {oid}) in {scene.images_with(oid)} of {n} images"
                 for part, oid in scene.obj_of_part.items()]
-        base = self.app.valid_asm.steps[self.current_step() - 1].base[0]
+        steps, k = self.app.valid_asm.steps, self.current_step()
+        base = steps[k - 1].base[0] if 0 < k <= len(steps) else None
+        present = ", ".join(map(str, scene.obj_ids())) or "none"
         if not seen:
             self.app.notify(client, "Ground truth", "none: no BOP object ids typed")
-        elif base not in scene.obj_of_part:
+        elif base is not None and base not in scene.obj_of_part:
             self.app.notify(client, "No ground truth for this step",
                             f"{'; '.join(seen)}; but the step's base {base!r} has no obj_id: type {base}=ID "
-                            f"(this scene shows obj_ids {', '.join(map(str, scene.obj_ids())) or 'none'})", error=True)
+                            f"(this scene shows obj_ids {present})", error=True)
+        elif base is not None and not scene.images_with(scene.obj_of_part[base]):
+            self.app.notify(client, "No ground truth for this step",
+                            f"{'; '.join(seen)}: the step's base {base!r} (obj_id {scene.obj_of_part[base]}) is in "
+                            f"none of this scene's images (it shows obj_ids {present})", error=True)
         else:
             self.app.notify(client, "Ground truth", "; ".join(seen))
 

@@ -235,3 +235,5 @@ def test_export_html_of_a_bop_scene_with_its_obj_ids(gearbox_dataset, tmp_path):
                           (f"pinion={obj_ids['pinion']}", "names no obj_id for the step's base 'casing'")):
         r = run("export-html", scene, "--assembly", asm, "--step", 1, "--obj-map", obj_map, "--out", bad)
         assert r.returncode == 2 and said in r.stderr and not bad.exists(), r.stderr
+    r = run("export-html", gearbox_dataset, "--step", 1, "--obj-map", "casing=1", "--out", bad)  # not a BOP scene
+    assert r.returncode == 2 and "is not a BOP scene folder" in r.stderr and not bad.exists(), r.stderr

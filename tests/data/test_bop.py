@@ -89,3 +89,31 @@ def test_a_hand_written_results_file_with_a_known_offset(gearbox_dataset, tmp_pa
         assert f["ok"] and abs(f["mssd"] - 0.010) < 1e-6 and abs(f["te"] - 0.010) < 1e-6 and f["re_deg"] < 1e-4, f
     d = doc["steps"][0]["part_diameter"]
     assert doc["steps"][0]["recall_mssd"] == (1.0 if 0.010 < 0.1 * d else 0.0)  # recall at 0.1 x diameter
+
+
+def test_obj_map_items_are_checked_and_a_scene_checks_what_it_shows(gearbox_dataset, tmp_path):
+    """--obj-map / 'BOP object ids': PART=OBJ_ID with ASCII digits (a superscript two was an internal error);
+    a scene refuses a base mapped to an obj_id none of its images shows, and a map with no id it shows,
+    but takes a dataset-wide map that names objects it lacks."""
+    import pytest
+
+    from apose_studio.data.bop import BopScene, parse_obj_map
+    from apose_studio.errors import DatasetError
+
+    from ..conftest import plain_bop_scene
+
+    parts = {"casing": None, "pinion": None}
+    assert parse_obj_map(["casing=1", "pinion=2"], parts) == {"casing": 1, "pinion": 2}
+    for bad in ("casing=\u00b2", "casing=", "casing=1.5", "casing=-1", "casing=1234567890"):
+        with pytest.raises(DatasetError, match="expected PART=OBJ_ID"):
+            parse_obj_map([bad], parts)
+    scene = BopScene(plain_bop_scene(gearbox_dataset / "test" / "000001", tmp_path / "000001"))
+    shown = scene.obj_ids()
+    assert shown and all(scene.images_with(o) == 2 for o in shown)
+    scene.check_obj_map({"casing": shown[0], "pinion": 99}, "casing")  # pinion absent here: fine
+    with pytest.raises(DatasetError, match="obj_id 99 is in none of this scene's 2 images"):
+        scene.check_obj_map({"casing": 99}, "casing")
+    with pytest.raises(DatasetError, match="names no obj_id for the step's base 'casing'"):
+        scene.check_obj_map({"pinion": shown[0]}, "casing")
+    with pytest.raises(DatasetError, match="none of these obj_ids"):
+        scene.check_obj_map({"casing": 98, "pinion": 99})

@@ -49,3 +49,12 @@ def test_local_normals_agree_with_eigh_of_the_same_neighbourhoods(shape):
     well_defined = w[:, 1] > 4 * w[:, 0]  # a plane's normal, not a tie between two directions
     assert well_defined.mean() > 0.5
     assert np.degrees(np.arccos(np.clip(cos[well_defined], 0, 1))).max() < 1e-3
+
+
+def test_a_non_finite_query_is_refused_as_scipy_refuses_it():
+    """pykdtree answers a NaN or inf query point with a far, wrong neighbour (index 2**32 - 1); the wrapper
+    refuses it, as scipy's cKDTree does, so that no such answer reaches a registration."""
+    tree = NearestTree(np.random.default_rng(0).random((50, 3)))
+    for bad in (np.nan, np.inf):
+        with pytest.raises(ValueError, match="non-finite"):
+            tree.query(np.array([[0.5, bad, 0.5]]))

@@ -399,7 +399,12 @@ def test_a_bop_scene_opens_with_its_images_and_the_typed_obj_ids_give_its_truth(
     assert errors(st)[-1][1].startswith("no_such_part=3") and "no part" in errors(st)[-1][1]
     st.inspect.i_obj_map.value = f"{base}=99"  # an obj_id the scene does not show: said, nothing changes
     act(st, lambda c: st.inspect.on_obj_map(c))
-    assert "obj_id 99 is in none of this scene's 2 images" in errors(st)[-1][1], errors(st)[-1]
+    assert "none of these obj_ids is in this scene's 2 images" in errors(st)[-1][1], errors(st)[-1]
+    assert "gt" not in st.inspect.i_mask.options
+    # a map naming more objects than this scene shows (a dataset-wide one) is fine; the step is told
+    st.inspect.i_obj_map.value = f"{base}=99, {st.asm.steps[0].part}={obj_ids[st.asm.steps[0].part]}"
+    act(st, lambda c: st.inspect.on_obj_map(c))
+    assert errors(st)[-1][0] == "No ground truth for this step" and "is in none of this scene's images" in errors(st)[-1][1]
     assert "gt" not in st.inspect.i_mask.options
     part = st.asm.steps[0].part  # the loose part is in the scene's truth, but it is not the step's base
     st.inspect.i_obj_map.value = f"{part}={obj_ids[part]}"
