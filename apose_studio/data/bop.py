@@ -56,7 +56,8 @@ def parse_obj_map(items: list[str] | None, parts) -> dict[str, int]:
     out: dict[str, int] = {}
     for item in items or []:
         name, _, num = item.partition("=")
-        if not (num.strip().isascii() and num.strip().isdigit()) or len(num.strip()) > 9:
+        num = num.strip()
+        if not (num.isascii() and num.isdigit()) or len(num) > 9:  # a superscript digit passes isdigit alone
             raise DatasetError(f"--obj-map {item}: expected PART=OBJ_ID, e.g. can=5")
         if name not in parts:
             raise DatasetError(f"--obj-map {item}: the assembly has no part {name!r}; parts: {', '.join(parts)}")

@@ -133,7 +133,7 @@ def estimate_mask(view: View, base: BaseObject, T_base_part: np.ndarray, params:
     except Degenerate as e:
         return failed(str(e), target_cloud=target_pts, timings=timings, preset=params.preset, voxel=voxel)
     # ok only when the data supports the pose (the table fitted once per frame, where the search fitted it)
-    result = judge(replace(result, depth_noise=noise), view, base, *([pb.table] if pb is not None else []))
+    result = judge(replace(result, depth_noise=noise), view, base, plane=pb.table if pb is not None else _FIT)
     if result.ok and params.use_symmetries:
         result = replace(result, equivalent=twin_placements(result.T_world_base, result.T_world_part, base.symmetries))
     if params.second_look and result.ok and not result.confident:
@@ -287,7 +287,7 @@ TABLE_SLACK = 0.05  # the base's lowest point may lie this share of its diameter
 def off_table(result: RegistrationResult, view: View, base: BaseObject, tol: float,
               plane: tuple[np.ndarray, float] | None) -> float:
     """How far the base at the result's pose lies above (+) or in (-) the table it stands on (`plane`, from
-    `searches.table_plane`), beyond TABLE_SLACK of its diameter or 3 tolerances: 0 when it rests on it, NaN
+    `table.table_plane`), beyond TABLE_SLACK of its diameter or 3 tolerances: 0 when it rests on it, NaN
     when no table is seen. A wrong pose fitted to an object in front of the base hangs in the air; a twin
     turned over may sink into the table."""
     if plane is None:
@@ -340,7 +340,7 @@ def judge(result: RegistrationResult, view: View, base: BaseObject, plane=_FIT) 
     where there is table), or that puts the base where the camera cannot have seen it (behind it,
     outside the image, beyond the farthest depth) becomes ok=False with the reason; its pose stays in
     the result for inspection. The judged copy also carries `contradiction`, which `confident` reads.
-    `plane`: the table (searches.table_plane of this view), when the caller has fitted it.
+    `plane`: the table (table.table_plane of this view), when the caller has fitted it.
 
     Measured on 50 RealSense-like renders (benchmarks/tune.py frames): right poses contradict 0-2 % of
     their view; a base placed on the wrong object 7-100 % (CONFIDENT_CONTRADICTION is 5 %)."""

@@ -68,18 +68,23 @@ def poses_within(A: np.ndarray, B: np.ndarray, metres: float, degrees: float) ->
     return bool(np.linalg.norm(A[:3, 3] - B[:3, 3]) < metres and se3.rotation_angle_deg(A[:3, :3].T @ B[:3, :3]) < degrees)
 
 
+def turned_by(T_a: np.ndarray, T_b: np.ndarray, turns, voxel: float, either_way: bool = False) -> bool:
+    """T_b (T_world_base) is T_a turned by one of `turns` (T_base_base), within 3 voxels and 5 degrees;
+    `either_way`: or T_a is T_b turned so."""
+    D = se3.inv(T_a) @ T_b
+    return any(poses_within(D, S, 3 * voxel, 5.0) or (either_way and poses_within(se3.inv(D), S, 3 * voxel, 5.0))
+               for S in turns)
+
+
 def is_twin(base, T_a: np.ndarray, T_b: np.ndarray, voxel: float) -> bool:
     """T_b (T_world_base) is T_a turned by one of the base's symmetries or near-symmetries."""
-    D = se3.inv(T_a) @ T_b
-    return any(poses_within(D, S, 3 * voxel, 5.0) for S in list(base.symmetries[1:]) + list(base.near_symmetries))
+    return turned_by(T_a, T_b, list(base.symmetries[1:]) + list(base.near_symmetries), voxel)
 
 
 def is_close_twin(base, T_a: np.ndarray, T_b: np.ndarray, voxel: float) -> bool:
-    """T_b (T_world_base) is T_a turned by one of the base's close twins (BaseObject.close_twins: a turn that
-    maps it onto itself but for a small feature)."""
-    D = se3.inv(T_a) @ T_b
-    return any(poses_within(D, S, 3 * voxel, 5.0) or poses_within(se3.inv(D), S, 3 * voxel, 5.0)
-               for S in base.close_twins)
+    """T_a and T_b (T_world_base) differ by one of the base's close twins (BaseObject.close_twins: a turn that
+    maps it onto itself but for a small feature), either way round."""
+    return turned_by(T_a, T_b, base.close_twins, voxel, either_way=True)
 
 
 NOISE_SIGMAS = 3.0  # a point within this many sigmas of the frame's depth noise agrees with it

@@ -53,7 +53,7 @@ class Task:
 
     @cached_property
     def table(self) -> tuple[np.ndarray, float] | None:
-        """The plane the base stands on (searches.table_plane of the observation), or None: fitted once per
+        """The plane the base stands on (table.table_plane of the observation), or None: fitted once per
         frame for the upright search and the judge."""
         obs = self.observation
         return table_plane(obs.depth, obs.mask, self.cam, self.T_world_camera, seed=self.params.seed,

@@ -182,8 +182,8 @@ class InspectPanel:
             if not self.app.valid_asm.steps:
                 raise AposeError("a capture needs an assembly: open one in the Assembly tab first")
             steps = [f"{i + 1}. {s.part}" for i, s in enumerate(self.app.valid_asm.steps)]
-        self.offer_mask_sources(isinstance(frames, Dataset) or (isinstance(frames, BopScene) and self.bop_truth(frames, 1))
-                                or (not isinstance(frames, BopScene) and bool(frames.masks)))
+        self.offer_mask_sources(self.bop_truth(frames, 1) if isinstance(frames, BopScene) else
+                                isinstance(frames, Dataset) or bool(frames.masks))
         self.frames, self.frames_path = frames, str(Path(text).expanduser().resolve())
         self.result = self.score = None
         self.i_path.value = self.frames_path
@@ -223,17 +223,12 @@ class InspectPanel:
             if str(self.i_obj_map.value).strip():
                 self.obj_map(self.app.valid_asm)  # checked now all the same: a typo is said where it was typed
             return
-        had_truth = "gt" in self.i_mask.options
         mapped = self.obj_map(self.app.valid_asm, self.frames)
         # a new scene object: an estimate running now keeps the map (and the cache key) it started with
         self.frames = copy.copy(self.frames)
         self.frames.obj_of_part = mapped
-        truth = self.bop_truth(self.frames, self.current_step())
-        self.offer_mask_sources(truth)
-        if truth and not had_truth and self.i_mask.value == "depth":  # the truth just typed: its masks, as a dataset's
-            self.i_mask.value = self.app.state.inspect.mask_source = "gt"
         self._told_step = self.current_step()  # told below, not again by the frame change
-        self.on_frame_changed()
+        self.on_frame_changed()  # offers the masks the truth allows
         self.tell_truth(client)
 
     def tell_truth(self, client=None) -> None:
@@ -260,14 +255,17 @@ class InspectPanel:
     def offer_mask_sources(self, truth: bool) -> None:
         """The Mask choices that work on the data opened: without ground truth (a capture) neither `gt` nor
         `box` (both read the truth's masks); a capture starts on the typed prompt when there is one, else
-        on depth. Models added with 'Use model' stay."""
+        on depth, and moves from that default to `gt` when a truth comes. Models added with 'Use model' stay."""
         models = [o for o in self.i_mask.options if o not in MASK_SOURCES and o != PROMPT_SOURCE]
         options = list(mask_sources_for(truth)) + [PROMPT_SOURCE] + models
+        had_truth = "gt" in self.i_mask.options
         if list(self.i_mask.options) != options:
             self.i_mask.options = options
         if self.i_mask.value not in options or (not truth and self.i_mask.value == "depth"):
             typed = self.app.state.inspect.prompt_text.strip()
             self.i_mask.value = PROMPT_SOURCE if typed else ("gt" if truth else "depth")
+        elif truth and not had_truth and self.i_mask.value == "depth":  # a truth just came (a BOP scene's typed
+            self.i_mask.value = "gt"  # ids): its masks, as a dataset opens on them
         self.app.state.inspect.mask_source = self.i_mask.value
 
     def frame_camera_on_frame(self, again: bool = True) -> None:
@@ -373,11 +371,11 @@ class InspectPanel:
             return
         step = self.current_step()
         if isinstance(self.frames, BopScene):
-            self.offer_mask_sources(self.bop_truth(self.frames, step))
-            if self.frames.obj_of_part and self._told_step != step:  # a step whose base has no obj_id says so
+            truth = self.bop_truth(self.frames, step)
+            self.offer_mask_sources(truth)
+            if self.frames.obj_of_part and self._told_step != step and not truth:  # a step without its truth says so
                 self._told_step = step
-                if not self.bop_truth(self.frames, step):
-                    self.tell_truth()
+                self.tell_truth()
         if isinstance(self.frames, (Dataset, BopScene)):
             ids = self.frames.image_ids(step) if isinstance(self.frames, Dataset) else self.frames.image_ids()
             self._syncing = True
