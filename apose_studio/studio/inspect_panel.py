@@ -608,9 +608,10 @@ class InspectPanel:
 
     def truth_summary(self, job: "EstimateJob", ids: list[int]) -> str:
         """Against the ground truth of a step's frames, where it has one: how many are right (MSSD under 10 %
-        of the part's diameter, the paper's recall) and their median MSSD; '' for one frame or no truth."""
+        of the part's diameter, the paper's recall, modulo the base's exact symmetries as `apose eval` counts
+        it) and their median MSSD; '' for one frame or no truth."""
         scores = [c[1] for c in (self.app.cache.get(job.key(self.app.cache, i)) for i in ids) if c is not None]
-        mssd = [s.mssd for s in scores if s is not None and getattr(s, "mssd", None) is not None]
+        mssd = [m for m in map(inspection.placement_mssd, scores) if m is not None]  # modulo exact symmetries
         if len(ids) < 2 or not mssd:
             return ""
         d = self.app.state.part_model().diameter

@@ -318,8 +318,8 @@ class ResultsView:
         asm = self.app.state.inspect_assembly()
         verdict = "ok and confident" if r.confident else "not confident"
         numbers = [f"fitness {r.fitness:.3f}", f"inlier RMSE {r.inlier_rmse * 1000:.2f} mm"]
-        if score is not None and getattr(score, "mssd", None) is not None:
-            numbers.insert(0, f"MSSD {score.mssd * 1000:.2f} mm against the truth")
+        if inspection.placement_mssd(score) is not None:
+            numbers.insert(0, f"MSSD {inspection.mssd_text(score)} against the truth")
         shown = {"target cloud", "source cloud", "estimate"} | ({"truth"} if ins.frame.T_world_part is not None else set())
         part, base = asm.steps[ins.step - 1].part, ", ".join(asm.steps[ins.step - 1].base)
         return (f"<b>apose studio</b> &middot; {esc(asm.name)} &middot; step {ins.step}: {esc(part)} on {esc(base)}<br>"

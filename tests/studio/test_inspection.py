@@ -65,3 +65,19 @@ def test_point_on_ray_takes_the_nearest_hit():
     pts = np.array([[0, 0, 2.0], [0, 0, 1.0], [0.5, 0, 0.5], [0, 0, -1.0]])
     np.testing.assert_allclose(inspection.point_on_ray(pts, np.zeros(3), np.array([0, 0, 3.0]), 0.01), [0, 0, 1.0])
     assert inspection.point_on_ray(pts, np.zeros(3), np.array([0, 1.0, 0]), 0.01) is None
+
+
+def test_the_mssd_shown_forgives_the_base_s_exact_symmetry_and_says_so():
+    """A right estimate of a part on a base with an exact half-turn symmetry (the fidget's casing) is the
+    same assembly as the truth turned half round; the panel, the step summary and the exported caption
+    showed the strict 48 mm and read as wrong. They show the placement's MSSD, and the strict one beside it."""
+    from types import SimpleNamespace
+
+    from apose_studio.studio.inspection import mssd_text, placement_mssd
+
+    twin = SimpleNamespace(mssd=0.04808, mssd_mod_base_sym=0.000048)
+    assert placement_mssd(twin) == 0.000048
+    assert mssd_text(twin).startswith("0.05 mm (48.08 mm to the truth's own orientation")
+    plain = SimpleNamespace(mssd=0.0012, mssd_mod_base_sym=0.0012)
+    assert placement_mssd(plain) == 0.0012 and mssd_text(plain) == "1.20 mm"
+    assert placement_mssd(None) is None and placement_mssd(SimpleNamespace(mssd=None)) is None
