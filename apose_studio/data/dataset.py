@@ -265,11 +265,17 @@ def check_scene_images(doc, where: str, entry: str) -> dict:
     return doc
 
 
+MAX_OBJECTS_PER_IMAGE = 1000  # scene_gt.json entries of one image (BOP's busiest scenes show a few dozen)
+
+
 def gt_entries(doc: dict, key: str, where: str) -> list[tuple[int, np.ndarray]]:
     """(obj_id, T_camera_object in metres) per entry of scene_gt.json's image `key`, checked."""
     items = doc.get(key, [])
     if not isinstance(items, list):
         raise DatasetError(f"{where}: {key}: expected a list of objects ({{obj_id, cam_R_m2c, cam_t_m2c}})")
+    if len(items) > MAX_OBJECTS_PER_IMAGE:  # each is checked in Python: 400,000 held the studio for over 10 s
+        raise DatasetError(f"{where}: {key}: lists {len(items)} objects; a BOP image shows at most a few dozen "
+                           f"(over {MAX_OBJECTS_PER_IMAGE} is refused): is this file a scene_gt.json?")
     out = []
     for i, g in enumerate(items):
         at = f"{key}[{i}]"

@@ -117,3 +117,22 @@ def test_obj_map_items_are_checked_and_a_scene_checks_what_it_shows(gearbox_data
         scene.check_obj_map({"pinion": shown[0]}, "casing")
     with pytest.raises(DatasetError, match="none of these obj_ids"):
         scene.check_obj_map({"casing": 98, "pinion": 99})
+
+
+def test_a_scene_gt_with_an_absurd_number_of_objects_in_an_image_is_refused(gearbox_dataset, tmp_path):
+    """400,000 objects in one image of a scene_gt.json (36 MB, under the JSON size limit) held the studio's
+    lock for over 10 s while each entry was checked; more than MAX_OBJECTS_PER_IMAGE is refused, naming the
+    file and the image."""
+    import pytest
+
+    from apose_studio.data.bop import BopScene
+    from apose_studio.data.dataset import MAX_OBJECTS_PER_IMAGE
+    from apose_studio.errors import DatasetError
+
+    from ..conftest import plain_bop_scene
+
+    scene = plain_bop_scene(gearbox_dataset / "test" / "000001", tmp_path / "000001")
+    entry = {"obj_id": 1, "cam_R_m2c": [1, 0, 0, 0, 1, 0, 0, 0, 1], "cam_t_m2c": [0, 0, 500]}
+    (scene / "scene_gt.json").write_text(json.dumps({"0": [entry] * (MAX_OBJECTS_PER_IMAGE + 1)}))
+    with pytest.raises(DatasetError, match=r"scene_gt.json: 0: lists 1001 objects"):
+        BopScene(scene, {"casing": 1}).frame(0)
