@@ -19,6 +19,24 @@ def test_nearest_tree_answers_as_scipy_does_with_missing_neighbours_marked_alike
     assert np.isinf(NearestTree(pts).query(q, distance_upper_bound=1e-6)[0]).any()  # the bound was used
 
 
+def test_the_answer_is_the_same_on_one_thread_and_on_several(monkeypatch):
+    """pykdtree answers a batch with an OpenMP loop; the registration's determinism rests on each query
+    point being answered on its own, whatever the thread count (nn.NN_THREADS, set per query)."""
+    from apose_studio.geometry import nn
+
+    if nn._SET_THREADS is None:
+        pytest.skip("this pykdtree build bundles no OpenMP runtime of its own: its thread count is not ours to set")
+    rng = np.random.default_rng(5)
+    pts, q = rng.random((20000, 3)), rng.random((20000, 3))
+    answers = []
+    for threads in (1, 2, 4):
+        monkeypatch.setattr(nn, "NN_THREADS", threads)
+        answers.append(NearestTree(pts).query(q, k=3, distance_upper_bound=0.05))
+    for d, i in answers[1:]:
+        np.testing.assert_array_equal(d, answers[0][0])
+        np.testing.assert_array_equal(i, answers[0][1])
+
+
 def test_nearest_tree_of_nothing_and_of_too_few_points():
     d, i = NearestTree(np.zeros((0, 3))).query(np.ones((2, 3)))
     assert np.isinf(d).all() and (i == 0).all()
