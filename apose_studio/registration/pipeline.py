@@ -77,14 +77,23 @@ def estimate(view: View, base: BaseObject, T_base_part: np.ndarray, params: Para
     best, best_score, best_mask = first, first_score, view.mask
     # each reading once, upright where a table is seen; the chosen one gets the second look below
     quick = replace(params, second_look=False, free_after_upright=table is None)
-    for name, mask in readings(view, base, table, tol):
-        other = estimate_mask(replace(view, mask=mask), base, T_base_part, quick, prior_T_world_base,
-                              trace_iterations, part_symmetries)
-        score = explained(other, view, base)
-        if score > best_score or (not best.ok and other.ok):
-            best, best_score, best_mask = replace(other, reading=name), score, mask
-        if best.confident and best_score >= first_score:
-            break  # a confident reading that explains the frame at least as well: the others cannot do better
+    todo = readings(view, base, table, tol)
+    for round_ in range(2):
+        for name, mask in todo:
+            other = estimate_mask(replace(view, mask=mask), base, T_base_part, quick, prior_T_world_base,
+                                  trace_iterations, part_symmetries)
+            score = explained(other, view, base)
+            if score > best_score or (not best.ok and other.ok):
+                best, best_score, best_mask = replace(other, reading=name), score, mask
+            if best.confident and best_score >= first_score:
+                break  # a confident reading that explains the frame at least as well: the others cannot do better
+        if round_ or best is first or best.confident:
+            break
+        # a mask with two things in it (a tin on the base and a box in front): the best reading read again, by
+        # depth only (hypotheses.py: what colour splits now is mostly the base's own colours)
+        prefix = best.reading
+        todo = [(f"{prefix}, {name}", m) for name, m in readings(replace(view, mask=best_mask), base, table, tol,
+                                                                  colour=False)]
     if best is not first and best.ok and not best.confident and params.second_look:
         best = replace(second_look(best, replace(view, mask=best_mask), base, T_base_part, params, prior_T_world_base,
                                    trace_iterations, part_symmetries), reading=best.reading)
