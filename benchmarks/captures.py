@@ -269,9 +269,12 @@ def main() -> int:
     told = [r for r in all_rows if not hidden(r)]
     cw = sum(r["confident"] and not r["right"] for r in all_rows)
     ur = sum(not r["confident"] and r["right"] for r in all_rows) / max(len(all_rows), 1)
+    ur_told = sum(not r["confident"] and r["right"] for r in told) / max(len(told), 1)
     print(f"\ngoals over all {len(all_rows)} frames: confident-and-wrong {cw} (goal 0), unconfident-and-right {ur:.1%} "
-          f"(goal <= 10 %), recall where the view can tell {np.mean([r['right'] for r in told]) if told else float('nan'):.3f} "
-          f"(goal >= 0.95), median s/frame {np.median([r['seconds'] for r in all_rows]):.3f} (goal <= 0.3)")
+          f"(goal <= 10 %; {ur_told:.1%} of the {len(told)} frames whose view can tell the base from its twins: where it "
+          f"cannot, 'not confident' is the honest answer and a right pose is luck), recall where the view can tell "
+          f"{np.mean([r['right'] for r in told]) if told else float('nan'):.3f} (goal >= 0.95), median s/frame "
+          f"{np.median([r['seconds'] for r in all_rows]):.3f} (goal <= 0.3)")
     print(f"the base objects' own poses (as a real-frame check scores an object prompted as the base): right "
           f"{np.mean([r['base_right'] for r in all_rows]):.3f}, confident-and-wrong "
           f"{sum(r['confident'] and not r['base_right'] for r in all_rows)}")
