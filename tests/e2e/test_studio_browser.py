@@ -338,6 +338,58 @@ def test_drag_the_gizmo_with_the_mouse_and_save(browser, studio, tmp_path):
     page.close()
 
 
+def _drawn(handle) -> np.ndarray:
+    """A scene node's pose as the page was told it (world)."""
+    from apose_studio.geometry import se3
+
+    return se3.make_T(se3.quat_wxyz_to_matrix(np.asarray(handle.wxyz)), np.asarray(handle.position))
+
+
+def test_typed_pose_then_drag_then_undo_and_redo_keep_the_view_with_the_draft(browser, studio, tmp_path):
+    """#28 majors 1 and 2, in the browser. Type x = 30 mm on step 1 and press Enter: the part and the gizmo
+    move there, and a mouse drag of the gizmo's x arrow starts from 30 (before: from the gizmo's old place,
+    the typed value thrown away). Undo, Undo, Redo with the buttons: each time the page's fields, the part
+    drawn and the gizmo are where the draft says (before: after Undo the fields and the gizmo went back while
+    the part stayed drawn at the typed pose)."""
+    asm_path = _sample_copy(tmp_path)
+    page = open_page(browser, studio)
+    type_into(page, "Assembly file", str(asm_path))
+    page.get_by_role("button", name="Open").click()
+    wait_until(lambda: len(studio.asm.steps) == 3 and "/assembly/gizmo" in studio.nodes, "the sample to open")
+    expect(field(page, "Step").first).to_have_value("1. pinion", timeout=10000)
+    original = studio.asm.steps[0].T_base_part.copy()
+    assert abs(original[0, 3] * 1000 - 30.0) > 5.0  # typing 30 moves it
+
+    def in_step(what: str) -> None:  # the fields, the drawn part and the gizmo all show the draft
+        T_base_part = studio.asm.steps[0].T_base_part
+        want = studio.steps._preview["casing"] @ T_base_part
+        for name, get in (("the part drawn", lambda: studio.steps.mesh_handles.get("pinion")),
+                          ("the gizmo", lambda: studio.nodes.get("/assembly/gizmo"))):
+            wait_until(lambda: get() is not None and np.allclose(_drawn(get()), want, atol=1e-6),
+                       lambda: f"{name} at the draft's pose {what} "
+                               f"({None if get() is None else _drawn(get())[:3, 3]} vs {want[:3, 3]})", 20)
+        expect(field(page, "Translation (mm)").nth(0)).to_have_value(f"{T_base_part[0, 3] * 1000:g}", timeout=10000)
+
+    type_into(page, "Translation (mm)", "30", 0)
+    wait_until(lambda: abs(studio.asm.steps[0].T_base_part[0, 3] - 0.030) < 1e-12, "x = 30 mm in the draft")
+    typed = studio.asm.steps[0].T_base_part.copy()
+    in_step("after typing")
+    cam = client_of(studio, page).camera
+    time.sleep(1.5)  # the page settles its camera
+    drag_gizmo_x(page, studio, cam, turn=False)
+    wait_until(lambda: studio.asm.steps[0].T_base_part[0, 3] > 0.030 + 0.004,
+               lambda: f"the drag to move on from x = 30 mm (at {studio.asm.steps[0].T_base_part[:3, 3] * 1000} mm)")
+    dragged = studio.asm.steps[0].T_base_part.copy()
+    np.testing.assert_allclose(dragged[1:3, 3], typed[1:3, 3], atol=1e-12)  # only x moved
+    in_step("after the drag")
+    for button, want in (("Undo", typed), ("Undo", original), ("Redo", typed)):
+        page.get_by_role("button", name=button, exact=True).click()
+        wait_until(lambda: np.allclose(studio.asm.steps[0].T_base_part, want, atol=1e-12), f"{button} to take effect")
+        in_step(f"after {button}")
+    shot(page, "typed_drag_undo_redo.png")
+    page.close()
+
+
 def test_type_poses_into_two_new_steps_and_save(browser, studio, tmp_path):
     """The reported loss: New, a folder of three meshes, Add + typed translation, twice; Save keeps both."""
     meshes = tmp_path / "meshes"
