@@ -7,7 +7,7 @@ Every time is wall time from the click in the page to the moment the page shows 
 own text, read by Playwright), so it holds what the user waits for: the server's work, the messages to
 the browser and their drawing in software WebGL (this machine has no GPU):
 
-- open: typing a sample assembly's path and pressing Open, until the status line reads "Saved as ...";
+- open: typing a sample assembly's path and pressing Open, until the status line reads "Opened from ...";
 - estimate: pressing Estimate frame on a rendered frame of that sample (a fresh frame each time: no
   cache), until the replay's last stage ("final") is shown; set beside the compute the estimate reports
   (the result's `timings`, which the panel shows) and the rest (wall - compute);
@@ -97,7 +97,7 @@ def main() -> int:
                 f.press("Enter")
                 t0 = time.perf_counter()
                 page.get_by_role("button", name="Open").click()
-                page.get_by_text(re.compile(r"Saved as .*assembly\.yaml")).first.wait_for(timeout=60000)
+                page.get_by_text(re.compile(r"Opened from .*assembly\.yaml")).first.wait_for(timeout=60000)
                 opens.append(time.perf_counter() - t0)
             page.get_by_role("tab", name="Inspect").click()
             f = field(page, "Dataset or capture")
