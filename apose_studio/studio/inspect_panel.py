@@ -30,6 +30,7 @@ from apose_studio.geometry import se3
 from apose_studio.masks.segment import depth_mask
 from apose_studio.params import PRESETS, resolve_params
 from apose_studio.registration import doubts, project_to_cloud
+from apose_studio.registration.next_view import next_view
 from apose_studio.studio import inspection
 from apose_studio.studio.prompt_panel import PROMPT_SOURCE, prompt_of, prompted_mask
 from apose_studio.studio.state import Event, shared
@@ -597,6 +598,10 @@ class InspectPanel:
         self.i_progress.visible = False
         self.on_frame_changed()
         self.frame_camera_on_frame(again=False)
+        if len(ids) == 1 and unsure and self.advise(job):
+            a = self.app.state.inspect.advice
+            unsure[-1] += (f"; look again from where the orange frustum in the 3D view shows: from there about {a.pixels} "
+                           f"pixels tell the placements apart (from here {a.pixels_now})")
         if failed:
             self.app.notify(client, "Estimation failed", esc("\n".join(failed[:5])), error=True)
         elif unsure:
@@ -605,6 +610,19 @@ class InspectPanel:
             # a step's summary is a result to read: it stays (until the tab's next message), a frame's fades
             self.app.notify(client, "Estimated", f"{len(ids)} frame(s) in {dt:.1f} s{self.truth_summary(job, ids)}",
                             keep=len(ids) > 1)
+
+    def advise(self, job: "EstimateJob") -> bool:
+        """For an ambiguous result on show: the camera from which its rival placements look most different
+        (registration.next_view), into `state.inspect.advice` and drawn (RESULT_READY). True when advised."""
+        ins = self.app.state.inspect
+        r = ins.result
+        if r is None or not r.ok or not r.ambiguous or ins.frame is None:
+            return False
+        ins.advice = next_view(r, self.context(job.step).base, [ins.frame.T_world_camera], ins.frame.camera)
+        if ins.advice is None:
+            return False
+        self.app.events.emit(Event.RESULT_READY)
+        return True
 
     def truth_summary(self, job: "EstimateJob", ids: list[int]) -> str:
         """Against the ground truth of a step's frames, where it has one: how many are right (MSSD under 10 %

@@ -94,6 +94,7 @@ class InspectState:
     frame: Frame | None = None  # the frame on show
     result: object | None = None  # the registration result for `frame` (None: not estimated)
     score: object | None = None  # its score against the truth (None: no truth or no result)
+    advice: object | None = None  # where to look from to settle `result` (registration.next_view.NextView), or None
     mask_source: str = ""  # the Mask dropdown's choice (gt, depth, box, prompt, or a model path)
     prompt_text: str = ""  # the Prompt field: a box x0,y0,x1,y1 or a point u,v, in pixels
     prompt_masks: dict = field(default_factory=dict)  # (frame source, im_id, step, prompt) -> mask

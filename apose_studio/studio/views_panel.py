@@ -1,7 +1,9 @@
 """Inspect tab, *Views (one placement)*: tick frames that show the base at one placement (a dataset
 rendered with `--views-per-scene`, or an eye-in-hand camera's looks) and estimate them together
 (registration.fusion). Where the result is ambiguous or not confident, the camera to look from next
-(registration.next_view) is drawn as an orange frustum labelled "look from here".
+(registration.next_view) is drawn as an orange frustum labelled "look from here": this panel's fused
+estimates and the Inspect panel's ambiguous single frames put it in `state.inspect.advice`, and it is
+drawn on RESULT_READY (cleared when the frame changes).
 
 The frame on show comes from the studio's shared state (`state.inspect`): the ticks follow it on
 FRAME_CHANGED. A fused estimate goes into the state as the frame's result (RESULT_READY), with the
@@ -27,8 +29,8 @@ class ViewsPanel:
     def __init__(self, app):
         self.app = app
         self.ticks: dict[int, object] = {}  # im_id -> checkbox
-        self.advice = None
         app.events.on(Event.FRAME_CHANGED, self.refresh)
+        app.events.on(Event.RESULT_READY, self.draw_advice)  # a result may come with advice (`state.inspect.advice`)
 
     def build(self) -> None:
         gui = self.app.server.gui
@@ -44,7 +46,7 @@ class ViewsPanel:
         for h in self.ticks.values():
             h.remove()
         self.ticks = {}
-        self.advice = None
+        self.app.state.inspect.advice = None
         self.draw_advice()
         ins = self.app.state.inspect
         if not isinstance(ins.frames, Dataset) or ins.frame is None:
@@ -80,14 +82,13 @@ class ViewsPanel:
         ins.frame = frames[0]
         ins.result = r
         ins.score = score_frame(frames[0], r, ctx.part, None, ctx.base.symmetries) if frames[0].T_world_part is not None else None
-        self.advice = next_view(r, ctx.base, [v.T_world_camera for v in views], views[0].camera) if r.ok else None
+        ins.advice = next_view(r, ctx.base, [v.T_world_camera for v in views], views[0].camera) if r.ok else None
         self.app.events.emit(Event.RESULT_READY)
-        self.draw_advice()
         if not r.ok:
             self.app.notify(client, "Views not fused" if "not fused" in r.reason else "Estimation failed", r.reason,
                             error=True)
-        elif self.advice is not None:
-            self.app.notify(client, "Estimated, look again", f"{len(ids)} view(s): {self.advice.why}; the orange "
+        elif ins.advice is not None:
+            self.app.notify(client, "Estimated, look again", f"{len(ids)} view(s): {ins.advice.why}; the orange "
                             "frustum shows where from", error=True)
         else:
             self.app.notify(client, "Estimated", f"{len(ids)} view(s) fused, confident")
@@ -97,9 +98,10 @@ class ViewsPanel:
         for name in ("/inspect/next_view", "/inspect/next_view_label"):
             if name in self.app.nodes:
                 self.app.nodes.pop(name).remove()
-        if self.advice is None or self.app.state.inspect.frame is None:
+        advice = self.app.state.inspect.advice
+        if advice is None or self.app.state.inspect.frame is None:
             return
-        T_world_camera, cam = self.advice.T_world_camera, self.app.state.inspect.frame.camera
+        T_world_camera, cam = advice.T_world_camera, self.app.state.inspect.frame.camera
         scene = self.app.server.scene
         wxyz = tuple(float(v) for v in se3.matrix_to_quat_wxyz(T_world_camera[:3, :3]))
         pos = tuple(float(v) for v in T_world_camera[:3, 3])

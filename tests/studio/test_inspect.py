@@ -281,6 +281,7 @@ def test_views_of_one_placement_are_ticked_and_fused(studio, tmp_path):
     from apose_studio.assembly.model import load_assembly
     from apose_studio.geometry import se3
     from apose_studio.registration.next_view import NextView
+    from apose_studio.studio.state import Event
     from apose_studio.synth.frame import RenderSettings
     from apose_studio.synth.render import render_dataset
 
@@ -298,11 +299,39 @@ def test_views_of_one_placement_are_ticked_and_fused(studio, tmp_path):
     st.views.ticks[1].value = False
     act(st, st.views.on_estimate)
     assert st.inspect.result.views == 1
-    st.views.advice = NextView(se3.look_at(np.array([0.3, 0.0, 0.3]), np.zeros(3)), 12.0, 500, 10, "test")
-    st.views.draw_advice()
+    st.state.inspect.advice = NextView(se3.look_at(np.array([0.3, 0.0, 0.3]), np.zeros(3)), 12.0, 500, 10, "test")
+    st.events.emit(Event.RESULT_READY)
     assert "/inspect/next_view" in st.nodes and "/inspect/next_view_label" in st.nodes
     st.inspect.i_frame.value = 2  # another placement: its own frames, no advice
     assert sorted(st.views.ticks) == [2, 3] and "/inspect/next_view" not in st.nodes
+
+
+def test_an_ambiguous_frame_is_told_which_view_would_settle_it(studio, gearbox_dataset, monkeypatch):
+    """#28: the notice of an ambiguous single frame says where to look from to tell the placements apart,
+    and the 3D view draws that camera (the orange frustum "look from here"); a frame changed clears it."""
+    from dataclasses import replace
+
+    from apose_studio.registration import Candidate
+
+    from apose_studio.studio import inspect_panel
+
+    st = studio(SAMPLES / "helical_gearbox" / "assembly.yaml", gearbox_dataset)
+    real = inspect_panel.estimate_and_score
+
+    def ambiguous(*args, **kw):  # the casing turned half round about its vertical axis fits alike
+        r, score = real(*args, **kw)
+        T_base = r.T_world_base @ se3.make_T(se3.axis_angle_matrix(np.array([0.0, 0.0, 1.0]), np.pi))
+        T_part = T_base @ se3.inv(r.T_world_base) @ r.T_world_part
+        return replace(r, ambiguous=True, alternatives=[Candidate(T_base, T_part, 0.99, 0.99, 0.001, 0.99, 1)]), score
+
+    monkeypatch.setattr(inspect_panel, "estimate_and_score", ambiguous)  # the result cached as the estimator gives it
+    act(st, st.inspect.run_estimation, False)
+    title, body, error = st.notes[-1]
+    assert title == "Estimated, not confident" and error, st.notes[-1]
+    assert "2 placements fit the data equally" in body and "look again from" in body and "orange frustum" in body, body
+    assert st.state.inspect.advice is not None and "/inspect/next_view" in st.nodes
+    st.inspect.i_frame.value = 1
+    assert st.state.inspect.advice is None and "/inspect/next_view" not in st.nodes
 
 
 def test_a_notice_gives_the_actual_doubt(studio, gearbox_dataset, monkeypatch):
