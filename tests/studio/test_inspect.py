@@ -312,7 +312,6 @@ def test_an_ambiguous_frame_is_told_which_view_would_settle_it(studio, gearbox_d
     from dataclasses import replace
 
     from apose_studio.registration import Candidate
-
     from apose_studio.studio import inspect_panel
 
     st = studio(SAMPLES / "helical_gearbox" / "assembly.yaml", gearbox_dataset)
