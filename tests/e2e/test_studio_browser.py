@@ -95,6 +95,14 @@ def open_page(browser, st, url: str | None = None):
     return page
 
 
+def open_data(page, st, data: Path) -> None:
+    """The Inspect tab, the dataset's path typed and Open data pressed, until its frame is shown."""
+    page.get_by_role("tab", name="Inspect").click()
+    type_into(page, "Dataset or capture", str(data))
+    page.get_by_role("button", name="Open data").click()
+    wait_until(lambda: "/inspect/scene" in st.nodes, "the frame to be shown")
+
+
 def shot(page, name: str) -> None:
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     page.screenshot(path=str(ARTIFACTS / name))
@@ -170,10 +178,7 @@ def test_author_a_step_and_save(browser, studio, tmp_path):
 
 def test_inspect_estimate_a_frame(browser, studio, gearbox_dataset):
     page = open_page(browser, studio)
-    page.get_by_role("tab", name="Inspect").click()
-    type_into(page, "Dataset or capture", str(gearbox_dataset))
-    page.get_by_role("button", name="Open data").click()
-    wait_until(lambda: "/inspect/scene" in studio.nodes, "the frame to be shown")
+    open_data(page, studio, gearbox_dataset)
     field(page, "Orientation prior").first.check()
     wait_until(lambda: studio.inspect.i_prior.value, "the prior checkbox")
     page.get_by_role("button", name="Estimate frame").click()
@@ -232,10 +237,7 @@ def test_an_ambiguous_frame_says_where_to_look_from(browser, studio, gearbox_dat
     monkeypatch.setattr(inspect_panel, "estimate_and_score", ambiguous)
     studio.cache.entries.clear()  # no earlier test's estimate of this frame
     page = open_page(browser, studio)
-    page.get_by_role("tab", name="Inspect").click()
-    type_into(page, "Dataset or capture", str(gearbox_dataset))
-    page.get_by_role("button", name="Open data").click()
-    wait_until(lambda: "/inspect/scene" in studio.nodes, "the frame to be shown")
+    open_data(page, studio, gearbox_dataset)
     page.get_by_role("button", name="Estimate frame").click()
     notice = page.get_by_text(re.compile("look again from"))
     notice.first.wait_for(timeout=120000)
@@ -347,15 +349,21 @@ def test_inspect_a_bop_scene_with_its_ground_truth(browser, studio, tmp_path):
     page.close()
 
 
+def open_sample_on_step_1(browser, st, tmp_path):
+    """(the sample's copy, a page) with the copy opened, step 1 selected and its gizmo drawn."""
+    asm_path = _sample_copy(tmp_path)
+    page = open_page(browser, st)
+    type_into(page, "Assembly file", str(asm_path))
+    page.get_by_role("button", name="Open").click()
+    wait_until(lambda: len(st.asm.steps) == 3 and "/assembly/gizmo" in st.nodes, "the sample to open")
+    expect(field(page, "Step").first).to_have_value("1. pinion", timeout=10000)
+    return asm_path, page
+
+
 def test_drag_the_gizmo_with_the_mouse_and_save(browser, studio, tmp_path):
     """Drag the translation arrow of the gizmo: the part moves, the typed fields follow, Save writes it
     (keeping the file's comment and mode)."""
-    asm_path = _sample_copy(tmp_path)
-    page = open_page(browser, studio)
-    type_into(page, "Assembly file", str(asm_path))
-    page.get_by_role("button", name="Open").click()
-    wait_until(lambda: len(studio.asm.steps) == 3 and "/assembly/gizmo" in studio.nodes, "the sample to open")
-    expect(field(page, "Step").first).to_have_value("1. pinion", timeout=10000)
+    asm_path, page = open_sample_on_step_1(browser, studio, tmp_path)
     before = studio.asm.steps[0].T_base_part[:3, 3].copy()
     cam = client_of(studio, page).camera
     time.sleep(1.5)  # the page settles its camera on the assembly
@@ -389,12 +397,7 @@ def test_typed_pose_then_drag_then_undo_and_redo_keep_the_view_with_the_draft(br
     the typed value thrown away). Undo, Undo, Redo with the buttons: each time the page's fields, the part
     drawn and the gizmo are where the draft says (before: after Undo the fields and the gizmo went back while
     the part stayed drawn at the typed pose)."""
-    asm_path = _sample_copy(tmp_path)
-    page = open_page(browser, studio)
-    type_into(page, "Assembly file", str(asm_path))
-    page.get_by_role("button", name="Open").click()
-    wait_until(lambda: len(studio.asm.steps) == 3 and "/assembly/gizmo" in studio.nodes, "the sample to open")
-    expect(field(page, "Step").first).to_have_value("1. pinion", timeout=10000)
+    asm_path, page = open_sample_on_step_1(browser, studio, tmp_path)
     original = studio.asm.steps[0].T_base_part.copy()
     assert abs(original[0, 3] * 1000 - 30.0) > 5.0  # typing 30 moves it
 
@@ -871,10 +874,7 @@ def test_an_exported_replay_opens_from_disk_with_no_network(browser, studio, gea
     Chromium with no server, makes no network request, draws the scene (the 3D canvas) and shows the
     legend and the result's numbers over it."""
     page = open_page(browser, studio)
-    page.get_by_role("tab", name="Inspect").click()
-    type_into(page, "Dataset or capture", str(gearbox_dataset))
-    page.get_by_role("button", name="Open data").click()
-    wait_until(lambda: "/inspect/scene" in studio.nodes, "the frame to be shown")
+    open_data(page, studio, gearbox_dataset)
     page.get_by_role("button", name="Estimate frame").click()
     wait_until(lambda: "final" in studio.results.i_stage_md.content, "the estimate", timeout=120)
     page.get_by_role("button", name="Export replay (HTML)").click()
