@@ -63,6 +63,7 @@ def studio(tmp_path_factory):
 def expect(locator):
     from playwright.sync_api import expect as pw_expect
 
+    pw_expect.set_options(timeout=20000)  # not Playwright's 5 s: on two loaded cores a page can redraw that long
     return pw_expect(locator)
 
 
@@ -673,7 +674,7 @@ def test_tick_the_views_of_a_placement_and_fuse_them(browser, studio, tmp_path_f
     page.get_by_role("button", name="Open data").click()
     wait_until(lambda: "/inspect/scene" in studio.nodes, "the frame to be shown")
     page.get_by_text("Views (one placement)", exact=True).click()
-    expect(page.get_by_text("frame 1", exact=True)).to_be_visible()
+    expect(page.get_by_text("frame 1", exact=True)).to_be_visible(timeout=30000)  # the folder opens in a busy page
     assert sorted(studio.views.ticks) == [0, 1] and studio.views.ticked() == [0, 1]
     page.get_by_role("button", name="Estimate views together").click()
     wait_until(lambda: studio.inspect.result is not None and studio.inspect.result.views == 2, "the fused estimate",
