@@ -27,13 +27,16 @@ from pykdtree.kdtree import KDTree
 
 
 def _thread_count() -> int:
-    wanted = os.environ.get("APOSE_NN_THREADS", "")
-    if wanted.strip().isdigit() and int(wanted) > 0:
-        return int(wanted)
+    """APOSE_NN_THREADS when it is a whole number from 1 to the CPUs this process may use (more threads than
+    CPUs only wait on each other; 99999 would try to start as many), else up to 4 of those CPUs."""
     try:
-        return max(1, min(4, len(os.sched_getaffinity(0))))
+        cpus = len(os.sched_getaffinity(0))
     except (AttributeError, OSError):
-        return max(1, min(4, os.cpu_count() or 1))
+        cpus = os.cpu_count() or 1
+    wanted = os.environ.get("APOSE_NN_THREADS", "").strip()
+    if wanted.isascii() and wanted.isdigit() and int(wanted) > 0:
+        return min(int(wanted), max(cpus, 1))
+    return max(1, min(4, cpus))
 
 
 def _pykdtree_openmp():

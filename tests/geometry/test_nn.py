@@ -37,6 +37,18 @@ def test_the_answer_is_the_same_on_one_thread_and_on_several(monkeypatch):
         np.testing.assert_array_equal(i, answers[0][1])
 
 
+@pytest.mark.parametrize("value", ["99999", "abc", "0", "-2", "1e3", "\uff13"])
+def test_the_thread_count_setting_stays_within_the_cpus(monkeypatch, value):
+    """APOSE_NN_THREADS: a mistyped or huge value never starts more threads than the process has CPUs."""
+    import os
+
+    from apose_studio.geometry import nn
+
+    monkeypatch.setenv("APOSE_NN_THREADS", value)
+    n = nn._thread_count()
+    assert 1 <= n <= len(os.sched_getaffinity(0))
+
+
 def test_nearest_tree_of_nothing_and_of_too_few_points():
     d, i = NearestTree(np.zeros((0, 3))).query(np.ones((2, 3)))
     assert np.isinf(d).all() and (i == 0).all()
