@@ -29,7 +29,7 @@ def _states(st):
     return st.server.gui._current_file_upload_states
 
 
-def _wait(cond, timeout=10.0):
+def _wait(cond, timeout=30.0):  # generous: a loaded CI machine once missed 10 s
     t0 = time.time()
     while time.time() - t0 < timeout and not cond():
         time.sleep(0.02)
