@@ -17,16 +17,20 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from apose_studio.assembly.grasps import Grasp
+from apose_studio.assembly.model import Assembly
 from apose_studio.errors import AposeError
-from apose_studio.estimation import StepContext, array_mask, check_mask, estimate_view, step_context
+from apose_studio.estimation import StepContext, array_mask, check_mask, estimate_pick, estimate_view, step_context
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.geometry.plane import table_frame
 from apose_studio.registration import Params, doubts, resolve_params
 from apose_studio.registration.types import RegistrationResult, View
+from apose_studio.robot.handeye import HandEye, read_hand_eye
+from apose_studio.robot.targets import Targets, add_pick, place_targets
 
-__all__ = ["PoseEstimate", "camera_from_K", "check_mask", "estimate_pose", "pose_estimate", "run_registration",
-           "step_context"]
+__all__ = ["PoseEstimate", "camera_from_K", "check_mask", "estimate_pose", "pose_estimate", "read_hand_eye",
+           "robot_targets", "run_registration", "step_context"]
 
 
 @dataclass
@@ -49,6 +53,8 @@ class PoseEstimate:
     equivalent: list[np.ndarray] = field(default_factory=list)  # T_world_part of the placements an exact symmetry of
     # the base makes the same assembly (the part may equally go there)
     T_world_part_approach: np.ndarray | None = None  # where the step's `approach` starts (None: the step has none)
+    targets: object = None  # robot.targets.Targets: gripper poses in the robot's frame, when a hand-eye calibration
+    # was given (robot_targets)
 
     def to_json(self) -> dict:
         def m(T):
@@ -62,7 +68,8 @@ class PoseEstimate:
                 "doubts": self.doubts, "ambiguous": self.ambiguous, "alternatives": [m(T) for T in self.alternatives],
                 "equivalent": [m(T) for T in self.equivalent],
                 "mask": {"source": self.mask_source, "pixels": int(self.mask.sum())},
-                "timings_s": {k: round(v, 4) for k, v in self.timings.items()}}
+                "timings_s": {k: round(v, 4) for k, v in self.timings.items()},
+                **(self.targets.to_json() if self.targets is not None else {})}
 
 
 def camera_from_K(K, width: int, height: int) -> CameraIntrinsics:
@@ -76,9 +83,14 @@ def camera_from_K(K, width: int, height: int) -> CameraIntrinsics:
 
 def estimate_pose(rgb: np.ndarray, depth: np.ndarray, K, assembly, step: int, *, T_world_camera=None,
                   mask=None, box=None, point=None, preset: str = "default", orientation_prior: bool = False,
+                  hand_eye=None, grasp: str | None = None, pick_box=None, pick_point=None, T_robot_flange=None,
                   **params) -> PoseEstimate:
     """The assembly pose of `step`'s part from one frame. rgb (H, W, 3) uint8; depth (H, W) metres (0 or
-    NaN where missing); K 3x3. Raises AposeError on bad input; a failed estimate is ok=False with a reason."""
+    NaN where missing); K 3x3. Raises AposeError on bad input; a failed estimate is ok=False with a reason.
+
+    With `hand_eye` (a HandEye, or the path of a calibration file: robot.handeye) the estimate also carries
+    `targets`: the gripper's poses in the robot's frame for `grasp` (default: the part's first), and with a
+    `pick_box` / `pick_point` around the loose part in the same frame, where to pick it (robot_targets)."""
     t0 = time.perf_counter()
     depth = np.asarray(depth, np.float32)
     if depth.ndim != 2:
@@ -99,7 +111,53 @@ def estimate_pose(rgb: np.ndarray, depth: np.ndarray, K, assembly, step: int, *,
         T_world_camera = np.eye(4) if T_world_camera is None else T_world_camera
     m, source = array_mask(rgb, depth, cam, mask, box, point)
     view = View(depth, m, cam, np.asarray(T_world_camera, float), rgb=rgb, box=box)
-    return run_registration(view, source, ctx, p, orientation_prior, t0, time.perf_counter() - t1, t_load=t_load)
+    est = run_registration(view, source, ctx, p, orientation_prior, t0, time.perf_counter() - t1, t_load=t_load)
+    if hand_eye is None:
+        return est
+    pick = None
+    if pick_box is not None or pick_point is not None:
+        pick_mask, _ = array_mask(rgb, depth, cam, box=pick_box, point=pick_point)
+        pick = estimate_pick(View(depth, pick_mask, cam, view.T_world_camera, rgb=rgb, box=pick_box), ctx.part, p)
+    est.targets = robot_targets(est, asm, ctx, hand_eye, grasp, pick, T_robot_flange)
+    return est
+
+
+def grasp_of(asm: Assembly, part: str, name: str | None) -> Grasp | None:
+    """The part's grasp called `name` (None: its first; None when it has none); AposeError for an unknown name."""
+    grasps = asm.parts[part].grasps
+    if name is None:
+        return grasps[0] if grasps else None
+    for g in grasps:
+        if g.name == name:
+            return g
+    have = ", ".join(g.name for g in grasps) if grasps else "none (add parts.<id>.grasps to the assembly file)"
+    raise AposeError(f"--grasp {name}: {part} has no grasp of that name; its grasps: {have}"[:300])
+
+
+def robot_targets(est: PoseEstimate, asm: Assembly, ctx: StepContext, hand_eye, grasp: str | None = None,
+                  pick: RegistrationResult | None = None, T_robot_flange=None) -> Targets:
+    """The pick-and-place targets of an estimate in the robot's frame (robot.targets): `hand_eye` a HandEye
+    or a calibration file's path; `grasp` a grasp name of the step's part (default its first); `pick` the
+    part's own estimate where it lies (estimation.estimate_pick) in the same frame; `T_robot_flange` the arm's
+    pose at the capture (eye-in-hand)."""
+    he = hand_eye if isinstance(hand_eye, HandEye) else read_hand_eye(hand_eye)
+    g = grasp_of(asm, ctx.view.part, grasp)
+    T_robot_camera = he.T_robot_camera(T_robot_flange)
+    T_camera_world = se3.inv(est.T_world_camera)
+    if est.ok:
+        t = place_targets(T_robot_camera, T_camera_world @ est.T_world_base, est.T_camera_part, g, ctx.view.approach,
+                          asm.parts[ctx.view.part].symmetry, [T_camera_world @ E for E in est.equivalent],
+                          he.robot_frame, he.camera_frame)
+    else:
+        t = Targets(he.robot_frame, he.camera_frame, T_robot_camera, grasp=g.name if g else None,
+                    notes=["no assembly pose in this frame: no place targets"])
+    t.notes += list(he.notes)
+    if pick is not None:
+        t.pick = {"ok": bool(pick.ok), "confident": bool(pick.confident), "reason": pick.reason,
+                  "doubts": "" if pick.confident or not pick.ok else doubts(pick)}
+        if pick.ok:
+            add_pick(t, T_robot_camera @ T_camera_world @ pick.T_world_base, g)
+    return t
 
 
 def run_registration(view: View, source: str, ctx: StepContext, params: Params, orientation_prior: bool, t0: float,

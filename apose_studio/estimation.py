@@ -207,6 +207,27 @@ def estimate_frame(frame: Frame, ctx: StepContext, params: Params, mask_source: 
     return estimate_view(replace(View.of(frame, mask), box=box), ctx, params, orientation_prior, trace_iterations)
 
 
+_PICK_BASES: dict = {}
+
+
+def pick_base(part: PartModel) -> BaseObject:
+    """The part's own CAD prepared as a base object, to find where the part lies before it is picked (cached)."""
+    key = id(part.mesh)
+    if key not in _PICK_BASES or _PICK_BASES[key][0] is not part.mesh:
+        if len(_PICK_BASES) > 8:
+            _PICK_BASES.clear()
+        _PICK_BASES[key] = (part.mesh, prepare_base(part.mesh))
+    return _PICK_BASES[key][1]
+
+
+def estimate_pick(view: View, part: PartModel, params: Params) -> RegistrationResult:
+    """Where a loose part lies, before it is picked: the same registration with the part's CAD as the base
+    (its T_world_base is T_world_part), no orientation prior (a loose part may lie on any side)."""
+    base = pick_base(part)
+    base.warm_up(params)
+    return held_to_part(estimate(view, base, np.eye(4), params, part_symmetries=part.symmetries), part)
+
+
 def estimate_frames(views: list[View], ctx: StepContext, params: Params,
                     orientation_prior: bool = False) -> RegistrationResult:
     """One fused estimate from several views of one placement (registration.fusion)."""

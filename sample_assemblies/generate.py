@@ -337,16 +337,39 @@ parts:
   sun_gear:               # hidden inside the ring housing once that is on: occluded in later steps
     mesh: sun_gear.ply
     color: [0.90, 0.62, 0.0]
+    grasps:               # T_part_gripper: the TCP's z points into the part, y is the jaws' closing direction
+      - name: teeth       # from above, the jaws on the tooth tips (14 mm across) at mid-face
+        pose_in_part: {translation: [0, 0, 0], rotation: {euler_deg: [180, 0, 0], order: xyz}}
+        width: 14
   housing:                # square flange, four ribs, 36-tooth ring: a quarter turn maps it onto itself
     mesh: housing.ply
     color: [0.55, 0.58, 0.62]
     symmetry: {axis: [0, 0, 1], order: 4}
+    grasps:
+      - name: ring        # from above, across the ring (50 mm) between two ribs
+        pose_in_part: {translation: [0, 0, 13], rotation: {euler_deg: [180, 0, 45], order: xyz}}
+        width: 50
   carrier:                # planet carrier with its three planets, one rigid part
     mesh: carrier.ply
     color: [0.34, 0.71, 0.91]
+    grasps:
+      - name: shaft       # from above, on the 8 mm output shaft
+        pose_in_part: {translation: [0, 0, 16], rotation: {euler_deg: [180, 0, 0], order: xyz}}
+        width: 8
   cover:
     mesh: cover.stl
     color: [0.0, 0.62, 0.45]
+    grasps:
+      - name: boss        # from above, on the 16 mm bearing boss
+        pose_in_part: {translation: [0, 0, 5.5], rotation: {euler_deg: [180, 0, 0], order: xyz}}
+        width: 16
+      - name: rim         # across the whole cover (50 mm), turned a quarter
+        pose_in_part: {translation: [0, 0, 1.5], rotation: {euler_deg: [180, 0, 90], order: xyz}}
+        width: 50
+gripper:                  # a parallel-jaw gripper, for the width checks and for drawing
+  type: parallel
+  max_width: 80
+  finger_length: 45
 steps:
   - part: sun_gear
     base: [motor]

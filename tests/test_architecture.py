@@ -19,7 +19,7 @@ LAYERS = [
     ["apose_studio.geometry"],
     ["apose_studio.params"],
     ["apose_studio.assembly"],
-    ["apose_studio.masks", "apose_studio.data"],
+    ["apose_studio.masks", "apose_studio.data", "apose_studio.robot"],
     ["apose_studio.synth", "apose_studio.registration"],
     ["apose_studio.estimation"],
     ["apose_studio.evaluate"],

@@ -18,6 +18,7 @@ from apose_studio import safeio
 from apose_studio.assembly import mates as mt
 from apose_studio.assembly.fileio import atomic_write_text, describe_path, parse_yaml, roundtrip_yaml
 from apose_studio.assembly.fileio import yaml_number as _num
+from apose_studio.assembly.grasps import Grasp, Gripper, check_widths, grasp_to_dict, gripper_to_dict, parse_grasps, parse_gripper
 from apose_studio.assembly.mates import Approach, Mate, MateError, approach_to_dict, mate_to_dict, parse_approach, parse_mates
 from apose_studio.assembly.yamlcheck import Checker, kind, rotation
 from apose_studio.errors import AposeError, AssemblyError, Problem
@@ -27,8 +28,8 @@ from apose_studio.geometry.units import MAX_COORDINATE_M, UNIT_TO_M, unit_name
 from apose_studio.params import RegistrationConfig, registration_from_dict, registration_to_dict
 
 FORMAT = "apose-assembly/1"
-_TOP_KEYS = ("format", "name", "units", "parts", "steps", "camera", "registration")
-_PART_KEYS = ("mesh", "solid", "color", "symmetry")
+_TOP_KEYS = ("format", "name", "units", "parts", "steps", "camera", "registration", "gripper")
+_PART_KEYS = ("mesh", "solid", "color", "symmetry", "grasps")
 _SYM_KEYS = ("axis", "origin", "order")
 _STEP_KEYS = ("part", "base", "pose_in_base", "mates", "approach")
 _POSE_KEYS = ("translation", "rotation")
@@ -56,6 +57,7 @@ class Part:
     color: tuple[float, float, float] | None = None
     symmetry: Symmetry | None = None
     solid: str | None = None  # the named solid of a STEP file with several (None: the whole file)
+    grasps: tuple[Grasp, ...] = ()  # how the gripper holds it (assembly/grasps.py); the first is the default
 
 
 @dataclass(frozen=True, eq=False)
@@ -97,6 +99,7 @@ class Assembly:
     camera: CameraIntrinsics | None = None
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     path: Path | None = field(default=None, compare=False)  # the file it was loaded from
+    gripper: Gripper | None = None  # the end effector, for drawing and width checks (assembly/grasps.py)
 
     @property
     def unit_scale(self) -> float:
@@ -198,7 +201,8 @@ def _parse_parts(c: Checker, parts_raw, folder: Path, scale: float) -> dict[str,
         if solid is not None and not (isinstance(solid, str) and solid):
             c.add(f"{key}.solid", f"expected the name of a solid in the STEP file, got {kind(solid)}")
             solid = None
-        parts[pid] = Part(pid, mesh_path, color, symmetry, solid)
+        grasps = parse_grasps(c, spec["grasps"], f"{key}.grasps", scale) if spec.get("grasps") is not None else ()
+        parts[pid] = Part(pid, mesh_path, color, symmetry, solid, grasps)
     return parts
 
 
@@ -370,12 +374,14 @@ def assembly_from_dict(data, file: str | Path, folder: Path | None = None) -> As
         _check_order(c, steps, parts)
     if not c.problems:
         _solve_mates(c, steps, parts, given)
+    gripper = parse_gripper(c, data["gripper"], folder, scale) if data.get("gripper") is not None else None
+    check_widths(c, parts, gripper)
     camera, cam_problems = camera_from_dict(data.get("camera"), file)
     registration, reg_problems = registration_from_dict(data.get("registration"), file)
     c.problems += cam_problems + reg_problems
     if c.problems:
         raise AssemblyError(c.problems)
-    return Assembly(name, units, parts, tuple(steps), camera, registration, Path(file).resolve())
+    return Assembly(name, units, parts, tuple(steps), camera, registration, Path(file).resolve(), gripper)
 
 
 def load_assembly(path: str | Path) -> Assembly:
@@ -413,6 +419,8 @@ def assembly_to_dict(asm: Assembly, folder: Path) -> dict:
             if any(p.symmetry.origin):
                 sym["origin"] = [_num(v / s) for v in p.symmetry.origin]
             spec["symmetry"] = sym
+        if p.grasps:
+            spec["grasps"] = [grasp_to_dict(g, s) for g in p.grasps]
         parts[pid] = spec
     steps = []
     for st in asm.steps:
@@ -428,6 +436,8 @@ def assembly_to_dict(asm: Assembly, folder: Path) -> dict:
     out = {"format": FORMAT, "name": asm.name, "units": asm.units, "parts": parts, "steps": steps}
     if asm.camera is not None:
         out["camera"] = camera_to_dict(asm.camera)
+    if asm.gripper is not None:
+        out["gripper"] = gripper_to_dict(asm.gripper, s, folder)
     registration = registration_to_dict(asm.registration)
     if registration:  # defaults are not written
         out["registration"] = registration
@@ -440,9 +450,11 @@ def dump_assembly(asm: Assembly, folder: Path) -> str:
 
 
 def _same_pose(path: tuple, old, new) -> bool:
-    """A step's pose written another way (Euler angles, a matrix, another unit's rounding) but equal
+    """A step's (or a grasp's) pose written another way (Euler angles, a matrix, another unit's rounding) but equal
     to what would be written now: keep the user's way of writing it."""
-    if len(path) != 3 or path[0] != "steps" or path[2] != "pose_in_base" or not isinstance(old, dict):
+    step_pose = len(path) == 3 and path[0] == "steps" and path[2] == "pose_in_base"
+    grasp_pose = len(path) == 5 and path[0] == "parts" and path[2] == "grasps" and path[4] == "pose_in_part"
+    if not (step_pose or grasp_pose) or not isinstance(old, dict):
         return False
     c = Checker("")
     t_old = c.numbers(old.get("translation"), "", 3)

@@ -369,7 +369,21 @@ def _add_estimate(sub) -> None:
     p.add_argument("--obj-map", action="append", metavar="PART=OBJ_ID",
                    help="BOP scene: which BOP obj_id each part is (repeatable), for the ground truth in scene_gt.json")
     p.add_argument("--json", action="store_true", help="print JSON (metres): ok, reason, T_world_base, T_world_part, "
-                   "T_camera_part, confident, coverage, ambiguous, alternatives, mask, timings, stages")
+                   "T_camera_part, confident, coverage, ambiguous, alternatives, mask, timings, stages (and with "
+                   "--hand-eye the robot targets: T_robot_part, T_robot_gripper_place, ...)")
+    robot = p.add_argument_group("robot targets (docs/ROBOT.md)")
+    robot.add_argument("--hand-eye", metavar="FILE", help="the camera in the robot's frame: JSON/YAML with T_robot_camera "
+                       "(eye-to-hand) or T_flange_camera (eye-in-hand; the arm's T_robot_flange in the capture's "
+                       "camera.json or in FILE), an easy_handeye2 calibration, or a 4x4 matrix; adds the gripper's "
+                       "place, pre-place (and pick, lift) poses in the robot's frame")
+    robot.add_argument("--grasp", metavar="NAME", help="which of the part's grasps (default: its first)")
+    robot.add_argument("--pick-box", metavar="X0,Y0,X1,Y1", help="a box around the loose part in the same frame: "
+                       "where to pick it (T_robot_part_pick, T_robot_gripper_pick, T_robot_gripper_lift)")
+    robot.add_argument("--pick-point", metavar="U,V", help="a click on the loose part (instead of --pick-box)")
+    robot.add_argument("--mcap", metavar="OUT.mcap", help="also write the targets as ROS 2 messages (/tf_static, "
+                       "PoseStamped, PoseArray) in an MCAP file: ros2 bag play OUT.mcap, or open it in Foxglove")
+    robot.add_argument("--tf-prefix", default="", metavar="PREFIX", help="prefix of the target frames in /tf_static "
+                       "(default none: apose_gripper_place, ...)")
     estimator_args(p, mask_default=None)
     p.set_defaults(func=cmd_estimate)
 

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from apose_studio.api import run_registration
+from apose_studio.api import grasp_of, robot_targets, run_registration
 from apose_studio.assembly.model import Assembly, load_assembly
 from apose_studio.cli.common import check_output_file, finite, params_of, parse_prompt, pose_lines
 from apose_studio.cli.views import cmd_estimate_views
@@ -19,10 +19,13 @@ from apose_studio.data.bop import BopScene, parse_obj_map, read_results_csv, res
 from apose_studio.data.dataset import Dataset, Frame, write_json
 from apose_studio.data.sources import open_frames
 from apose_studio.errors import AposeError
-from apose_studio.estimation import MaskRequest, StepContext, find_mask, step_context
+from apose_studio.estimation import MaskRequest, StepContext, array_mask, estimate_pick, find_mask, step_context
 from apose_studio.evaluate import evaluate, evaluate_split, format_table, score_frame, score_results
 from apose_studio.geometry import se3
+from apose_studio.masks.prompt import parse_box, parse_point
 from apose_studio.registration.types import View
+from apose_studio.robot.handeye import HandEye, capture_flange, read_hand_eye
+from apose_studio.robot.ros2 import write_mcap
 
 
 def open_estimate_input(args, path: str) -> tuple[Frame, Assembly, StepContext]:
@@ -50,18 +53,64 @@ def open_estimate_input(args, path: str) -> tuple[Frame, Assembly, StepContext]:
     return replace(src, base=tuple(ctx.view.base), part=ctx.view.part, step=args.step), asm, ctx
 
 
+def _robot_args(args) -> HandEye | None:
+    """--hand-eye read and the robot flags checked before any work (None: no robot targets asked for)."""
+    robot_flags = [f for f in ("grasp", "pick_box", "pick_point", "mcap") if getattr(args, f, None)]
+    if not getattr(args, "hand_eye", None):
+        if robot_flags:
+            raise AposeError(f"--{robot_flags[0].replace('_', '-')} needs --hand-eye FILE (the camera's pose in the robot's "
+                             "frame): the targets are given in the robot's frame")
+        return None
+    if args.pick_box and args.pick_point:
+        raise AposeError("--pick-box and --pick-point: give one way to find the loose part")
+    if args.mcap:
+        check_output_file(Path(args.mcap), "--mcap", args.input)
+    if args.tf_prefix and not all(c.isascii() and (c.isalnum() or c in "_/") for c in args.tf_prefix):
+        raise AposeError(f"--tf-prefix {args.tf_prefix!r}: a ROS frame prefix is letters, digits, '_' and '/'"[:200])
+    return read_hand_eye(args.hand_eye)
+
+
+def _flange_of(frame: Frame, hand_eye: HandEye, path: str):
+    """The arm's T_robot_flange at the capture (eye-in-hand): the capture's camera.json, else the calibration file's."""
+    if hand_eye.kind != "eye_in_hand":
+        return None
+    flange = capture_flange(Path(path)) if Path(path, "camera.json").is_file() else None
+    return flange if flange is not None else hand_eye.T_robot_flange
+
+
+def _pick(args, frame: Frame, ctx, params):
+    """The loose part's own estimate (--pick-box / --pick-point), or None."""
+    if not (args.pick_box or args.pick_point):
+        return None
+    box = parse_box(args.pick_box) if args.pick_box else None
+    point = parse_point(args.pick_point) if args.pick_point else None
+    mask, _ = array_mask(frame.rgb, frame.depth, frame.camera, box=box, point=point)
+    return estimate_pick(replace(View.of(frame, mask), box=box), ctx.part, params)
+
+
 def cmd_estimate(args) -> int:
     if len(args.input) > 1 or args.views > 1:
+        if getattr(args, "hand_eye", None):
+            raise AposeError("--hand-eye takes one frame (one capture); fused views give no robot targets yet")
         return cmd_estimate_views(args)
+    hand_eye = _robot_args(args)
     request = MaskRequest(args.mask, *(parse_prompt(args, flag) for flag in ("box", "point")))
     t0 = time.perf_counter()
     frame, asm, ctx = open_estimate_input(args, args.input[0])
+    if hand_eye is not None:  # a wrong grasp name or pick prompt is said before any work
+        grasp_of(asm, ctx.view.part, args.grasp)
+        _ = (parse_box(args.pick_box) if args.pick_box else None, parse_point(args.pick_point) if args.pick_point else None)
     params = params_of(args, asm.registration)
     ctx.base.warm_up(params)
     t1 = time.perf_counter()
     mask, source = find_mask(frame, request, asm, args.input[0])
     est = run_registration(replace(View.of(frame, mask), box=request.box), source, ctx, params, args.orientation_prior, t0,
                            time.perf_counter() - t1, trace_iterations=True, t_load=t1 - t0)
+    if hand_eye is not None:
+        est.targets = robot_targets(est, asm, ctx, hand_eye, args.grasp, _pick(args, frame, ctx, params),
+                                    _flange_of(frame, hand_eye, args.input[0]))
+        if args.mcap:
+            write_mcap(args.mcap, est.targets, args.tf_prefix)
     r = est.result
     sc = (score_frame(frame, r, ctx.part, None if source == "gt" else mask, ctx.base.symmetries)
           if frame.T_world_part is not None else None)
@@ -76,6 +125,8 @@ def cmd_estimate(args) -> int:
             doc["truth"] = sc.to_json()
             doc.update({k: v for k, v in doc["truth"].items() if k not in doc})
         print(json.dumps(doc, indent=1))
+        if args.mcap:
+            print(f"wrote {args.mcap}", file=sys.stderr)
         return 0 if r.ok else 1
     print(f"step {args.step}, frame {args.frame}: place {ctx.part.id} on [{', '.join(ctx.view.base)}]  (preset {params.preset})")
     print(f"mask: {source}, {int(mask.sum())} pixels ({est.timings['mask'] * 1000:.0f} ms)")
@@ -104,7 +155,28 @@ def cmd_estimate(args) -> int:
     if sc is not None:
         print(f"against ground truth: ADI {sc.adi * 1000:.3f} mm, MSSD {sc.mssd * 1000:.3f} mm, "
               f"te {sc.te * 1000:.3f} mm, re {sc.re_deg:.3f}°")
+    if est.targets is not None:
+        _print_targets(est.targets)
+        if args.mcap:
+            print(f"wrote {args.mcap} (ROS 2 messages: /tf_static, /apose/place/gripper, ...)")
     return 0
+
+
+def _print_targets(t) -> None:
+    print(f"robot targets in {t.robot_frame} (metres inside; shown in mm; q is w,x,y,z, ROS's x,y,z,w is in --json):")
+    for name, T in t.poses().items():
+        if name != "T_robot_camera":
+            print(f"{name}:" + (f" (grasp {t.grasp})" if "gripper" in name else ""))
+            print("\n".join(pose_lines(T)[-2:]))
+    if t.gripper_alternatives:
+        print(f"{len(t.gripper_alternatives)} other gripper targets at the place (symmetries; 'gripper_alternatives' "
+              "in --json)")
+    if t.pick is not None and not t.pick["ok"]:
+        print(f"pick: no pose: {t.pick['reason']}")
+    elif t.pick is not None and not t.pick["confident"]:
+        print(f"pick: not confident: {t.pick['doubts']}")
+    for note in t.notes:
+        print(f"note: {note}")
 
 
 def _print_alternatives(r, part: str) -> None:
