@@ -399,7 +399,11 @@ def check_image_header(path, head: ImageHeader | None, what: str, depth: bool = 
 def read_image(path: str | os.PathLike, flags: int, what: str = "an image", depth: bool = False):
     """A PNG, JPEG or TIFF decoded by OpenCV (`flags` as cv2.imread), after its header has been checked
     (`check_image_header`; `depth`: one 16-bit channel); returns (array, header)."""
-    data = read_bytes(path, what, LIMITS.image_bytes)
+    return decode_image(read_bytes(path, what, LIMITS.image_bytes), path, flags, what, depth)
+
+
+def decode_image(data: bytes, path, flags: int, what: str = "an image", depth: bool = False):
+    """read_image on bytes already in memory (a request's image): `path` names them in errors."""
     try:
         head = image_header(data)
     except _Crafted as e:

@@ -24,7 +24,7 @@ LAYERS = [
     ["apose_studio.estimation"],
     ["apose_studio.evaluate"],
     ["apose_studio.api"],
-    ["apose_studio.cli", "apose_studio.studio"],
+    ["apose_studio.cli", "apose_studio.studio", "apose_studio.service"],
 ]
 
 

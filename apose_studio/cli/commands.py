@@ -151,6 +151,42 @@ def cmd_studio(args) -> int:
                          obj_map=args.obj_map)
 
 
+def cmd_serve(args) -> int:
+    from apose_studio.cli.common import param_overrides, params_of
+    from apose_studio.service import EstimationService, is_loopback, make_server
+
+    if not Path(args.assembly).is_file():
+        raise AposeError(f"{args.assembly}: no such assembly file")
+    if args.token is not None and (len(args.token) < 16 or not all(c.isascii() and (c.isalnum() or c in "-_")
+                                                                    for c in args.token)):
+        raise AposeError("--token: at least 16 characters of A-Z a-z 0-9 - _")
+    from apose_studio.assembly.model import load_assembly
+
+    asm = load_assembly(args.assembly)
+    overrides = param_overrides(args)
+    params_of(args, asm.registration)  # a bad --param is said now, not on the first request
+    t0 = time.perf_counter()
+    service = EstimationService(asm, args.preset, overrides, queue=args.queue)
+    try:
+        server = make_server(service, args.host, args.port, args.token)
+    except OSError as e:
+        raise AposeError(f"--host {args.host} --port {args.port}: cannot listen there ({e.strerror or e}); choose "
+                         "another port") from None
+    host, port = server.server_address[:2]
+    print(f"serve: http://{host}:{port} ({asm.name}: steps 1..{len(asm.steps)} warm in {time.perf_counter() - t0:.1f} s; "
+          "GET /health, POST /estimate; docs/ROBOT.md)", flush=True)
+    if server.token is not None:
+        print(f"serve: token {server.token} (send 'Authorization: Bearer {server.token}')"
+              + ("" if is_loopback(args.host) else "; required beyond loopback"), flush=True)
+    try:
+        server.serve_forever()
+    except KeyboardInterrupt:
+        print("serve: stopped")
+    finally:
+        server.server_close()
+    return 0
+
+
 def cmd_export_html(args) -> int:
     from apose_studio.assembly.fileio import atomic_write_text
     from apose_studio.studio.export import export_replay
@@ -293,7 +329,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("-v", "--verbose", action="store_true", help="show debug logging and tracebacks")
     sub = ap.add_subparsers(dest="command", metavar="COMMAND")
     for add in (_add_show, _add_render, _add_estimate, _add_eval, _add_train_seg, _add_demo, _add_studio,
-                _add_export_html):
+                _add_export_html, _add_serve):
         add(sub)
     return ap
 
@@ -444,6 +480,22 @@ def _add_studio(sub) -> None:
                    help="BOP scene: which BOP obj_id each part is (repeatable), for the ground truth in scene_gt.json")
     _server_args(p)
     p.set_defaults(func=cmd_studio)
+
+
+def _add_serve(sub) -> None:
+    p = sub.add_parser("serve", help="a warm estimation service over HTTP/JSON for robot programs (POST /estimate)",
+                       description="Loads ASSEMBLY once and keeps every step warm; answers POST /estimate with the "
+                       "JSON of `apose estimate --json` (docs/ROBOT.md#apose-serve).")
+    p.add_argument("assembly", help="assembly YAML file")
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1: this machine only; "
+                   "any other address requires the token)")
+    p.add_argument("--port", type=_port, default=8765, help="port (default 8765)")
+    p.add_argument("--token", default=None, help="the token clients send as 'Authorization: Bearer TOKEN' (at least 16 "
+                   "characters of A-Z a-z 0-9 - _); default: none on loopback, a new random one otherwise")
+    p.add_argument("--queue", type=_count(1, 256), default=8, help="requests in the service at once (one estimating, the "
+                   "rest waiting); the next gets 503 (default 8)")
+    estimator_args(p, per_frame=False)
+    p.set_defaults(func=cmd_serve)
 
 
 def _add_export_html(sub) -> None:

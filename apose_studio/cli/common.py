@@ -17,16 +17,19 @@ from apose_studio.params import FIELDS, PRESETS, Params, parse_param, resolve_pa
 from apose_studio.safeio import escaped
 
 
-def estimator_args(p: argparse.ArgumentParser, mask_default: str | None = "gt") -> None:
-    """--preset, --mask, --orientation-prior, --upright and --param: every estimating command's flags."""
+def estimator_args(p: argparse.ArgumentParser, mask_default: str | None = "gt", per_frame: bool = True) -> None:
+    """--preset, --mask, --orientation-prior, --upright and --param: every estimating command's flags
+    (`per_frame` False: no --mask and --orientation-prior, for `apose serve`, whose requests carry their own)."""
     p.add_argument("--preset", default="default", choices=list(PRESETS), help="estimator settings (default: ours)")
-    p.add_argument("--mask", default=mask_default, metavar="gt|depth|box|MODEL.pt|MASK.png",
-                   help="the base object's mask: gt (the data's ground truth; the default where there is one), depth "
-                   "(table-plane removal and 3D clustering, no training; the default for captures), box (eval: the "
-                   "prompted mask from the ground truth's visible box, as a detector would give), a model from "
-                   "`apose train-seg`, or a mask image")
-    p.add_argument("--orientation-prior", action="store_true",
-                   help="take the CAD's orientation as the base's orientation in the world (true for --base-pose fixed renders)")
+    if per_frame:
+        p.add_argument("--mask", default=mask_default, metavar="gt|depth|box|MODEL.pt|MASK.png",
+                       help="the base object's mask: gt (the data's ground truth; the default where there is one), depth "
+                       "(table-plane removal and 3D clustering, no training; the default for captures), box (eval: the "
+                       "prompted mask from the ground truth's visible box, as a detector would give), a model from "
+                       "`apose train-seg`, or a mask image")
+        p.add_argument("--orientation-prior", action="store_true",
+                       help="take the CAD's orientation as the base's orientation in the world (true for --base-pose fixed "
+                       "renders)")
     p.add_argument("--upright", action=argparse.BooleanOptionalAction, default=None,
                    help="where a table is seen, first search the yaw of the base standing on it as modelled (its CAD "
                    "z axis along the table's normal), then freely if that fits poorly: on by default in the default "
@@ -40,6 +43,11 @@ def estimator_args(p: argparse.ArgumentParser, mask_default: str | None = "gt") 
 def params_of(args, registration) -> Params:
     """The Params a command runs with: --preset, then the assembly file's `registration` section, then
     --upright and each --param (the later flag wins)."""
+    return resolve_params(args.preset, registration, **param_overrides(args))
+
+
+def param_overrides(args) -> dict:
+    """--upright and each --param as overrides of the preset (checked: a bad name or value raises)."""
     over: dict = {}
     if args.upright is not None:
         if args.preset == "paper" and args.upright:
@@ -50,7 +58,7 @@ def params_of(args, registration) -> Params:
         if name == "preset":
             raise AposeError("--param preset=...: use --preset")
         over[name] = value
-    return resolve_params(args.preset, registration, **over)
+    return over
 
 
 def finite(x: float) -> float | None:

@@ -121,6 +121,11 @@ def read_rgb(path: Path) -> np.ndarray:
 def read_depth(path: Path, depth_scale_mm: float) -> np.ndarray:
     """uint16 depth PNG -> metres (float32); NaN, negative and missing become 0."""
     raw, head = read_image(path, cv2.IMREAD_UNCHANGED, "the depth image", header=True, depth=True)
+    return depth_metres(raw, head, depth_scale_mm, path)
+
+
+def depth_metres(raw: np.ndarray, head, depth_scale_mm: float, path) -> np.ndarray:
+    """A decoded depth image (checked: one uint16 channel, mm-scaled) in metres; `path` names it in errors."""
     if raw.ndim != 2:  # the header said one channel (checked before decoding); the decoder disagrees
         raise DatasetError(f"{path}: its {head.format} header says one channel but it decodes to {raw.shape[2]}; "
                            "the file is damaged or crafted: save the depth image again as a 16-bit PNG")

@@ -1,0 +1,311 @@
+"""`apose serve`: a warm estimation service for robot programs in any language, over HTTP and JSON.
+
+It loads one assembly, prepares every step's base object and keeps them (and the estimator's caches)
+warm, and answers:
+
+- `GET /health`: `{"ok": true, "assembly", "steps", "busy", "queue"}`;
+- `POST /estimate` with a JSON body: `rgb_png_b64` (PNG/JPEG, base64), `depth_png_b64` (16-bit PNG, depth in
+  mm = value x camera.depth_scale), `camera` (as a capture's camera.json: `cam_K` or `fx, fy, cx, cy`,
+  `depth_scale`, optional BOP `cam_R_w2c` / `cam_t_w2c`), `step`, `box` [x0, y0, x1, y1] or `point` [u, v],
+  optional `hand_eye` (a calibration as robot/handeye.py reads it, inline), `T_robot_flange`, `grasp`,
+  `pick_box` / `pick_point`, `orientation_prior`. The answer is the JSON `apose estimate --json` prints
+  (with the robot targets when `hand_eye` is given).
+
+Rules, and why:
+- **Loopback by default**; on any other address every request needs the token (`Authorization: Bearer
+  TOKEN`), as the studio's page does: a robot cell's network is shared.
+- **Bounded**: a body over `max_body` bytes is refused from its Content-Length (413) before it is read;
+  at most `queue` requests are in the service at once (one estimating, the rest waiting), the next gets 503
+  with Retry-After at once; at most `MAX_CONNECTIONS` connections, each read with a timeout (a client that
+  sends nothing is dropped).
+- **A bad request gets a 4xx** whose `error` is the same one line the CLI prints (naming the key and the
+  fix); an unexpected failure is a 500 with a short reason, logged; the service keeps answering.
+- **One estimate at a time**: on a 2-core machine the estimator already uses both cores (its nearest-
+  neighbour queries), and answers are deterministic whatever the load.
+"""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import hmac
+import ipaddress
+import json
+import logging
+import secrets
+import threading
+import time
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+import cv2
+import numpy as np
+
+from apose_studio import safeio
+from apose_studio.api import estimate_pose
+from apose_studio.assembly.model import Assembly, load_assembly
+from apose_studio.data.dataset import check_camera_entry, depth_metres
+from apose_studio.errors import AposeError
+from apose_studio.estimation import step_context
+from apose_studio.params import Params, resolve_params
+from apose_studio.robot.handeye import hand_eye_from_data, matrix
+
+log = logging.getLogger(__name__)
+
+MAX_BODY = 64 * 2 ** 20  # a 1280 x 720 frame as PNGs in base64 is ~4 MB; 64 MB leaves room for 4K
+MAX_CONNECTIONS = 32
+READ_TIMEOUT_S = 30.0
+REQUEST_KEYS = ("rgb_png_b64", "depth_png_b64", "camera", "step", "box", "point", "hand_eye", "T_robot_flange", "grasp",
+                "pick_box", "pick_point", "orientation_prior")
+
+
+class BadRequest(AposeError):
+    """A request the service cannot use: answered 4xx with its message."""
+
+    def __init__(self, message: str, status: int = 400):
+        super().__init__(message)
+        self.status = status
+
+
+class EstimationService:
+    """The warm part: one assembly, every step prepared, one estimate at a time, at most `queue` waiting."""
+
+    def __init__(self, assembly: Assembly | str, preset: str = "default", overrides: dict | None = None, queue: int = 8):
+        self.asm = assembly if isinstance(assembly, Assembly) else load_assembly(assembly)
+        if not self.asm.steps:
+            raise AposeError(f"{self.asm.path}: the assembly has no steps; nothing to estimate")
+        self.preset, self.overrides = preset, dict(overrides or {})
+        self.params: Params = resolve_params(preset, self.asm.registration, **self.overrides)
+        for k in range(1, len(self.asm.steps) + 1):  # warm: every step's base prepared now, not on the first call
+            step_context(self.asm, k)[1].base.warm_up(self.params)
+        self.lock = threading.Lock()
+        self.queue = max(int(queue), 1)
+        self._slots = threading.BoundedSemaphore(self.queue)
+        self._busy = 0
+        self.served = 0
+
+    def health(self) -> dict:
+        return {"ok": True, "assembly": self.asm.name, "steps": len(self.asm.steps), "busy": self._busy,
+                "queue": self.queue, "served": self.served}
+
+    def estimate(self, body: bytes) -> dict:
+        """The answer to one POST /estimate body; raises BadRequest (4xx), and 503 when the queue is full."""
+        if not self._slots.acquire(blocking=False):
+            raise BadRequest(f"busy: {self.queue} requests are in the service; retry in a moment", 503)
+        try:
+            self._busy += 1
+            req = parse_request(body, len(self.asm.steps))
+            with self.lock:
+                est = estimate_pose(req["rgb"], req["depth"], req["K"], self.asm, req["step"], box=req["box"],
+                                    point=req["point"], T_world_camera=req["T_world_camera"],
+                                    orientation_prior=req["orientation_prior"], hand_eye=req["hand_eye"],
+                                    grasp=req["grasp"], pick_box=req["pick_box"], pick_point=req["pick_point"],
+                                    T_robot_flange=req["T_robot_flange"], preset=self.preset, **self.overrides)
+                self.served += 1
+            view = step_context(self.asm, req["step"])[1].view
+            return {**est.to_json(), "step": req["step"], "part": view.part, "base": list(view.base),
+                    "preset": self.params.preset}
+        finally:
+            self._busy -= 1
+            self._slots.release()
+
+
+def _b64(value, key: str) -> bytes:
+    if not isinstance(value, str) or not value:
+        raise BadRequest(f"{key}: expected the image's bytes in base64 (a string), got {type(value).__name__}")
+    try:
+        return base64.b64decode(value, validate=True)
+    except (binascii.Error, ValueError):
+        raise BadRequest(f"{key}: not valid base64; send the PNG file's bytes base64-encoded") from None
+
+
+def _pixels(value, key: str, n: int):
+    """A box (4) or point (2) in pixels: a list of numbers or the CLI's "x0,y0,x1,y1" text."""
+    if value is None:
+        return None
+    if isinstance(value, str):
+        value = value.split(",")
+    try:
+        out = tuple(int(round(float(v))) for v in value)
+    except (TypeError, ValueError):
+        out = ()
+    if len(out) != n or not all(np.isfinite(float(v)) for v in value):
+        raise BadRequest(f"{key}: expected {n} numbers in pixels ({'x0, y0, x1, y1' if n == 4 else 'u, v'})")
+    return out
+
+
+def parse_request(body: bytes, n_steps: int) -> dict:
+    """A POST /estimate body as estimate_pose's arguments; BadRequest naming the key otherwise."""
+    try:
+        text = body.decode("utf-8")
+    except UnicodeDecodeError:
+        raise BadRequest("the body is not UTF-8 text; send JSON") from None
+    try:
+        req = safeio.parse_json(text, "the request body")
+    except AposeError as e:
+        raise BadRequest(str(e)) from None
+    if not isinstance(req, dict):
+        raise BadRequest("the request body must be a JSON object (rgb_png_b64, depth_png_b64, camera, step, box)")
+    unknown = [k for k in req if k not in REQUEST_KEYS]
+    if unknown:
+        raise BadRequest(f"{str(unknown[0])[:60]}: unknown key; expected {', '.join(REQUEST_KEYS)}")
+    for k in ("rgb_png_b64", "depth_png_b64", "camera", "step"):
+        if k not in req:
+            raise BadRequest(f"{k}: missing")
+    step = req["step"]
+    if isinstance(step, bool) or not isinstance(step, int) or not 1 <= step <= n_steps:
+        raise BadRequest(f"step: {str(step)[:20]} does not exist; the assembly has steps 1..{n_steps}")
+    try:
+        bgr, _ = safeio.decode_image(_b64(req["rgb_png_b64"], "rgb_png_b64"), "rgb_png_b64", cv2.IMREAD_COLOR,
+                                     "the colour image")
+        raw, head = safeio.decode_image(_b64(req["depth_png_b64"], "depth_png_b64"), "depth_png_b64", cv2.IMREAD_UNCHANGED,
+                                        "the depth image", depth=True)
+        h, w = raw.shape[:2]
+        if bgr.shape[:2] != (h, w):
+            raise BadRequest(f"rgb_png_b64 is {bgr.shape[1]}x{bgr.shape[0]} but depth_png_b64 is {w}x{h}; align depth "
+                             "to colour first")
+        cam, depth_scale, T_world_camera = check_camera_entry(req["camera"], "camera", w, h)
+        depth = depth_metres(raw, head, depth_scale, "depth_png_b64")
+        hand_eye = hand_eye_from_data(req["hand_eye"], "hand_eye") if req.get("hand_eye") is not None else None
+        flange = matrix(req["T_robot_flange"], "request", "T_robot_flange") if req.get("T_robot_flange") is not None else None
+    except BadRequest:
+        raise
+    except AposeError as e:
+        raise BadRequest(str(e)) from None
+    if req.get("box") is not None and req.get("point") is not None:
+        raise BadRequest("box and point: give one way to find the base object")
+    grasp = req.get("grasp")
+    if grasp is not None and not isinstance(grasp, str):
+        raise BadRequest("grasp: expected a grasp's name")
+    prior = req.get("orientation_prior", False)
+    if not isinstance(prior, bool):
+        raise BadRequest("orientation_prior: expected true or false")
+    return {"rgb": bgr[..., ::-1].copy(), "depth": depth,
+            "K": cam.K, "step": step, "box": _pixels(req.get("box"), "box", 4), "point": _pixels(req.get("point"), "point", 2),
+            "T_world_camera": T_world_camera, "hand_eye": hand_eye, "T_robot_flange": flange, "grasp": grasp,
+            "pick_box": _pixels(req.get("pick_box"), "pick_box", 4), "pick_point": _pixels(req.get("pick_point"), "pick_point", 2),
+            "orientation_prior": prior}
+
+
+def is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+class _Server(ThreadingHTTPServer):
+    daemon_threads = True
+    allow_reuse_address = True
+
+    def __init__(self, address, service: EstimationService, token: str | None, max_body: int):
+        self.service, self.token, self.max_body = service, token, max_body
+        self._open = 0
+        self._open_lock = threading.Lock()
+        super().__init__(address, _Handler)
+
+    def process_request(self, request, client_address):
+        with self._open_lock:
+            if self._open >= MAX_CONNECTIONS:
+                self.shutdown_request(request)  # over the cap: closed at once, before a thread is started
+                return
+            self._open += 1
+        super().process_request(request, client_address)
+
+    def process_request_thread(self, request, client_address):
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            with self._open_lock:
+                self._open -= 1
+
+
+class _Handler(BaseHTTPRequestHandler):
+    server: _Server
+    timeout = READ_TIMEOUT_S
+    protocol_version = "HTTP/1.1"
+    server_version = "apose-serve"
+    sys_version = ""
+
+    def log_message(self, fmt, *args):  # one line per request on the service's log, not stderr noise
+        log.info("%s %s", self.address_string(), fmt % args)
+
+    def _reply(self, status: int, doc: dict, headers: dict | None = None) -> None:
+        data = json.dumps(doc).encode()
+        self.send_response(status)
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(data)))
+        for k, v in (headers or {}).items():
+            self.send_header(k, v)
+        self.end_headers()
+        self.wfile.write(data)
+
+    def _authorised(self) -> bool:
+        token = self.server.token
+        if token is None:
+            return True
+        given = self.headers.get("Authorization", "")
+        if hmac.compare_digest(given.encode(), f"Bearer {token}".encode()):
+            return True
+        self._reply(401, {"error": "missing or wrong token: send the header 'Authorization: Bearer TOKEN' with the token "
+                                   "`apose serve` printed"})
+        return False
+
+    def do_GET(self):
+        if not self._authorised():
+            return
+        if self.path.split("?")[0] == "/health":
+            return self._reply(200, self.server.service.health())
+        self._reply(404, {"error": f"{self.path[:80]}: not found; GET /health or POST /estimate"})
+
+    def do_POST(self):
+        if not self._authorised():
+            self.close_connection = True
+            return
+        if self.path.split("?")[0] != "/estimate":
+            self.close_connection = True
+            return self._reply(404, {"error": f"{self.path[:80]}: not found; POST /estimate"})
+        length = self.headers.get("Content-Length")
+        if length is None or not length.strip().isdigit():
+            self.close_connection = True
+            return self._reply(411, {"error": "Content-Length: missing or not a number; send the body with its length"})
+        n = int(length)
+        if n > self.server.max_body:
+            self.close_connection = True  # the body is never read: the connection goes
+            return self._reply(413, {"error": f"the body is {n} bytes, over the {self.server.max_body} the service takes; "
+                                              "send PNG images of the frame (not raw arrays), or crop it"})
+        t0 = time.perf_counter()
+        try:
+            body = self.rfile.read(n)
+            if len(body) != n:
+                self.close_connection = True
+                return self._reply(400, {"error": f"the body ended after {len(body)} of {n} bytes"})
+            doc = self.server.service.estimate(body)
+            doc.setdefault("timings_s", {})["service"] = round(time.perf_counter() - t0, 4)
+            self._reply(200, doc)
+        except BadRequest as e:
+            self._reply(e.status, {"error": str(e)}, {"Retry-After": "1"} if e.status == 503 else None)
+        except AposeError as e:
+            self._reply(400, {"error": str(e)})
+        except (TimeoutError, ConnectionError):
+            self.close_connection = True
+        except Exception as e:  # noqa: BLE001 - the service outlives any one request
+            log.exception("POST /estimate failed")
+            self._reply(500, {"error": f"internal error ({type(e).__name__}); the service goes on. Please report it "
+                                       "with the request"})
+
+    def do_PUT(self):
+        self.close_connection = True
+        self._reply(405, {"error": "method not allowed; GET /health or POST /estimate"})
+
+    do_DELETE = do_PATCH = do_PUT
+
+
+def make_server(service: EstimationService, host: str = "127.0.0.1", port: int = 8765, token: str | None = None,
+                max_body: int = MAX_BODY) -> _Server:
+    """The HTTP server of a service (not yet serving: call serve_forever). Beyond loopback a token is required
+    (one is made when none is given)."""
+    if token is None and not is_loopback(host):
+        token = secrets.token_urlsafe(18)
+    return _Server((host, port), service, token, max_body)

@@ -1,0 +1,169 @@
+"""`apose serve` (apose_studio/service.py): a good request answers what the API answers for the same frame;
+bad requests (bad JSON, wrong sizes, NaN intrinsics, a huge body, an unknown step or key) each get a 4xx with
+the CLI's one-line message and the service keeps answering; a full queue answers 503 at once; a token, when
+set, is required; the command itself starts, prints its address and serves."""
+
+import base64
+import http.client
+import json
+import subprocess
+import sys
+import threading
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from apose_studio.estimation import truth_box
+
+from .conftest import SAMPLES, free_port, rendered_frame, write_capture
+
+PLANETARY = SAMPLES / "planetary_reducer" / "assembly.yaml"
+
+
+def png_b64(img) -> str:
+    return base64.b64encode(cv2.imencode(".png", img)[1].tobytes()).decode()
+
+
+@pytest.fixture(scope="module")
+def frame():
+    return rendered_frame(PLANETARY, 2, 0, noise="realsense", seed=11)
+
+
+def request_body(frame, **extra) -> dict:
+    cam = frame.camera
+    return {"rgb_png_b64": png_b64(frame.rgb[..., ::-1]), "depth_png_b64": png_b64((frame.depth * 1000).astype(np.uint16)),
+            "camera": {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy, "depth_scale": 1.0},
+            "step": 2, "box": list(truth_box(frame.base_mask())), **extra}
+
+
+@pytest.fixture(scope="module")
+def server():
+    from apose_studio.service import EstimationService, make_server
+
+    service = EstimationService(PLANETARY, queue=2)
+    srv = make_server(service, "127.0.0.1", 0)
+    t = threading.Thread(target=srv.serve_forever, daemon=True)
+    t.start()
+    yield srv
+    srv.shutdown()
+    srv.server_close()
+
+
+def call(srv, method, path, body=None, headers=None, raw: bytes | None = None):
+    conn = http.client.HTTPConnection(*srv.server_address[:2], timeout=120)
+    data = raw if raw is not None else (json.dumps(body).encode() if body is not None else None)
+    conn.request(method, path, body=data, headers=headers or {})
+    r = conn.getresponse()
+    doc = json.loads(r.read() or b"{}")
+    conn.close()
+    return r.status, doc
+
+
+def test_a_good_request_answers_as_the_api_does(server, frame, tmp_path):
+    from apose_studio.api import estimate_pose
+    from apose_studio.data.dataset import load_capture
+    from apose_studio.robot.handeye import hand_eye_from_data
+
+    he = {"T_robot_camera": np.eye(4).tolist()}
+    status, doc = call(server, "POST", "/estimate", request_body(frame, hand_eye=he))
+    assert status == 200, doc
+    capture = load_capture(write_capture(frame, tmp_path / "c"))  # the same frame as files: what the request carried
+    est = estimate_pose(capture.rgb, capture.depth, capture.K, PLANETARY, 2, box=truth_box(frame.base_mask()),
+                        hand_eye=hand_eye_from_data(he, "he"))
+    assert doc["ok"] and doc["ok"] == est.ok and doc["confident"] == est.confident
+    np.testing.assert_array_equal(np.asarray(doc["T_camera_part"]), est.T_camera_part)  # deterministic: the same bits
+    np.testing.assert_array_equal(np.asarray(doc["T_robot_gripper_place"]), est.targets.T_robot_gripper_place)
+    assert doc["part"] == "housing" and doc["step"] == 2 and "service" in doc["timings_s"]
+    status, health = call(server, "GET", "/health")
+    assert status == 200 and health["served"] >= 1 and health["steps"] == 4
+
+
+def test_bad_requests_get_a_4xx_naming_the_problem_and_the_service_goes_on(server, frame):
+    good = request_body(frame)
+    bad_nan = json.dumps(good).replace('"fx": ' + str(frame.camera.fx), '"fx": NaN').encode()
+    half = dict(good, depth_png_b64=png_b64((frame.depth[::2, ::2] * 1000).astype(np.uint16)))
+    cases = [
+        (b"{not json", 400, "not valid JSON"),
+        (json.dumps([1, 2]).encode(), 400, "JSON object"),
+        (json.dumps(dict(good, step=9)).encode(), 400, "steps 1..4"),
+        (json.dumps(dict(good, step="2")).encode(), 400, "does not exist"),
+        (json.dumps(dict(good, colour="red")).encode(), 400, "colour: unknown key"),
+        (json.dumps(half).encode(), 400, "align depth"),
+        (bad_nan, 400, "NaN"),
+        (json.dumps(dict(good, camera=dict(good["camera"], fx=-5))).encode(), 400, "positive"),
+        (json.dumps(dict(good, rgb_png_b64="%%%")).encode(), 400, "base64"),
+        (json.dumps(dict(good, depth_png_b64=good["rgb_png_b64"])).encode(), 400, "depth"),
+        (json.dumps(dict(good, box=[1, 2, 3])).encode(), 400, "4 numbers"),
+        (json.dumps(dict(good, hand_eye={"T_robot_camera": [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]})).encode(),
+         400, "not orthonormal"),
+        (json.dumps(dict(good, hand_eye={"T_robot_camera": np.eye(4).tolist()}, grasp="handle")).encode(), 400,
+         "its grasps: ring"),
+        (b"\xff\xfe", 400, "UTF-8"),
+    ]
+    for raw, status, words in cases:
+        got, doc = call(server, "POST", "/estimate", raw=raw, headers={"Content-Type": "application/json"})
+        assert got == status and words in doc.get("error", ""), (raw[:80], got, doc)
+        assert "Traceback" not in doc.get("error", "")
+    got, doc = call(server, "POST", "/estimate", raw=b"x", headers={"Content-Length": str(10 ** 9)})
+    assert got == 413 and "over the" in doc["error"]  # refused from the header: the gigabyte is never read
+    assert call(server, "GET", "/nowhere")[0] == 404 and call(server, "PUT", "/estimate", {})[0] == 405
+    got, doc = call(server, "POST", "/estimate", good)
+    assert got == 200 and doc["ok"]
+
+
+def test_a_full_queue_answers_503_at_once(server, frame):
+    body = request_body(frame)
+    server.service.lock.acquire()  # an estimate under way: the next requests wait for it
+    try:
+        results = []
+        threads = [threading.Thread(target=lambda: results.append(call(server, "POST", "/estimate", body)))
+                   for _ in range(2)]
+        for t in threads:
+            t.start()
+        deadline = time.time() + 60
+        while server.service._busy < 2 and time.time() < deadline:
+            time.sleep(0.05)
+        t0 = time.perf_counter()
+        status, doc = call(server, "POST", "/estimate", body)  # the queue (2) is full
+        assert status == 503 and "busy" in doc["error"] and time.perf_counter() - t0 < 10
+    finally:
+        server.service.lock.release()
+    for t in threads:
+        t.join(120)
+    assert [s for s, _ in results] == [200, 200]
+
+
+def test_a_token_when_set_is_required(frame):
+    from apose_studio.service import EstimationService, make_server
+
+    srv = make_server(EstimationService(PLANETARY, queue=1), "127.0.0.1", 0, token="t" * 20)
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    try:
+        assert call(srv, "GET", "/health")[0] == 401
+        assert call(srv, "GET", "/health", headers={"Authorization": "Bearer " + "u" * 20})[0] == 401
+        assert call(srv, "GET", "/health", headers={"Authorization": "Bearer " + "t" * 20})[0] == 200
+        assert call(srv, "POST", "/estimate", request_body(frame))[0] == 401
+    finally:
+        srv.shutdown()
+        srv.server_close()
+    assert make_server(EstimationService(PLANETARY, queue=1), "0.0.0.0", 0).token  # beyond loopback: always a token
+
+
+def test_the_command_serves_and_stops():
+    port = free_port()
+    p = subprocess.Popen([sys.executable, "-m", "apose_studio.cli.commands", "serve", str(PLANETARY), "--port", str(port)],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = p.stdout.readline()
+        assert line.startswith(f"serve: http://127.0.0.1:{port}"), (line, p.stderr.read() if p.poll() is not None else "")
+        conn = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
+        conn.request("GET", "/health")
+        assert json.loads(conn.getresponse().read())["assembly"] == "planetary_reducer"
+    finally:
+        p.terminate()
+        p.wait(30)
+    bad = subprocess.run([sys.executable, "-m", "apose_studio.cli.commands", "serve", str(PLANETARY), "--param", "nope=1"],
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "nope" in bad.stderr and "Traceback" not in bad.stderr
