@@ -26,7 +26,6 @@ Rules, and why:
 
 from __future__ import annotations
 
-import base64
 import binascii
 import hmac
 import ipaddress
@@ -54,8 +53,9 @@ log = logging.getLogger(__name__)
 MAX_BODY = 64 * 2 ** 20  # a 1280 x 720 frame as PNGs in base64 is ~4 MB; 64 MB leaves room for 4K
 MAX_CONNECTIONS = 32
 READ_TIMEOUT_S = 30.0
-REQUEST_KEYS = ("rgb_png_b64", "depth_png_b64", "camera", "step", "box", "point", "hand_eye", "T_robot_flange", "grasp",
-                "pick_box", "pick_point", "orientation_prior")
+REQUEST_KEYS = ("rgb_png_b64", "depth_png_b64", "rgb_npy_b64", "depth_npy_b64", "camera", "step", "box", "point", "hand_eye",
+                "T_robot_flange", "grasp", "pick_box", "pick_point", "orientation_prior")
+MAX_SIDE = 8192  # pixels a side of an array frame (as safeio's images)
 
 
 class BadRequest(AposeError):
@@ -113,9 +113,35 @@ def _b64(value, key: str) -> bytes:
     if not isinstance(value, str) or not value:
         raise BadRequest(f"{key}: expected the image's bytes in base64 (a string), got {type(value).__name__}")
     try:
-        return base64.b64decode(value, validate=True)
+        return binascii.a2b_base64(value, strict_mode=True)  # strict: a stray character is an error, not skipped
     except (binascii.Error, ValueError):
         raise BadRequest(f"{key}: not valid base64; send the PNG file's bytes base64-encoded") from None
+
+
+def _npy(value, key: str, dtype, ndim: int) -> np.ndarray:
+    """A .npy array (no pickles) of `dtype` and `ndim` dimensions (H x W x 3 colour, H x W depth), its shape
+    checked from its header before its data is read."""
+    import io
+
+    f = io.BytesIO(_b64(value, key))
+    try:
+        version = np.lib.format.read_magic(f)
+        read_header = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}.get(version)
+        if read_header is None:
+            raise ValueError(f".npy format version {version}")
+        shape, _, dt = read_header(f)  # the header alone: nothing allocated yet
+    except (ValueError, OSError, SyntaxError) as e:
+        raise BadRequest(f"{key}: not a .npy array ({str(e)[:80]}); send numpy.save's bytes, base64-encoded") from None
+    want = "H x W x 3" if ndim == 3 else "H x W"
+    if np.dtype(dt) != np.dtype(dtype) or len(shape) != ndim or (ndim == 3 and shape[2] != 3) or \
+            not all(0 < n <= MAX_SIDE for n in shape[:2]):
+        raise BadRequest(f"{key}: a {np.dtype(dt).name} array of shape {tuple(shape)}; expected {np.dtype(dtype).name} "
+                         f"{want} (at most {MAX_SIDE} a side)" + (", depth in mm x camera.depth_scale" if ndim == 2 else ""))
+    f.seek(0)
+    try:
+        return np.load(f, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as e:
+        raise BadRequest(f"{key}: a damaged .npy array ({str(e)[:80]})") from None
 
 
 def _pixels(value, key: str, n: int):
@@ -148,23 +174,35 @@ def parse_request(body: bytes, n_steps: int) -> dict:
     unknown = [k for k in req if k not in REQUEST_KEYS]
     if unknown:
         raise BadRequest(f"{str(unknown[0])[:60]}: unknown key; expected {', '.join(REQUEST_KEYS)}")
-    for k in ("rgb_png_b64", "depth_png_b64", "camera", "step"):
+    for k in ("camera", "step"):
         if k not in req:
             raise BadRequest(f"{k}: missing")
+    for what in ("rgb", "depth"):
+        given = [k for k in (f"{what}_png_b64", f"{what}_npy_b64") if k in req]
+        if len(given) != 1:
+            raise BadRequest(f"{what}_png_b64: missing (or {what}_npy_b64: a .npy array)" if not given else
+                             f"{given[0]} and {given[1]}: give the {what} image once")
     step = req["step"]
     if isinstance(step, bool) or not isinstance(step, int) or not 1 <= step <= n_steps:
         raise BadRequest(f"step: {str(step)[:20]} does not exist; the assembly has steps 1..{n_steps}")
     try:
-        bgr, _ = safeio.decode_image(_b64(req["rgb_png_b64"], "rgb_png_b64"), "rgb_png_b64", cv2.IMREAD_COLOR,
-                                     "the colour image")
-        raw, head = safeio.decode_image(_b64(req["depth_png_b64"], "depth_png_b64"), "depth_png_b64", cv2.IMREAD_UNCHANGED,
-                                        "the depth image", depth=True)
+        if "rgb_npy_b64" in req:
+            rgb = _npy(req["rgb_npy_b64"], "rgb_npy_b64", np.uint8, 3)
+        else:
+            rgb = safeio.decode_image(_b64(req["rgb_png_b64"], "rgb_png_b64"), "rgb_png_b64", cv2.IMREAD_COLOR,
+                                      "the colour image")[0][..., ::-1]
+        if "depth_npy_b64" in req:
+            raw, head, dkey = _npy(req["depth_npy_b64"], "depth_npy_b64", np.uint16, 2), None, "depth_npy_b64"
+        else:
+            raw, head = safeio.decode_image(_b64(req["depth_png_b64"], "depth_png_b64"), "depth_png_b64",
+                                            cv2.IMREAD_UNCHANGED, "the depth image", depth=True)
+            dkey = "depth_png_b64"
         h, w = raw.shape[:2]
-        if bgr.shape[:2] != (h, w):
-            raise BadRequest(f"rgb_png_b64 is {bgr.shape[1]}x{bgr.shape[0]} but depth_png_b64 is {w}x{h}; align depth "
+        if rgb.shape[:2] != (h, w):
+            raise BadRequest(f"the colour image is {rgb.shape[1]}x{rgb.shape[0]} but {dkey} is {w}x{h}; align depth "
                              "to colour first")
         cam, depth_scale, T_world_camera = check_camera_entry(req["camera"], "camera", w, h)
-        depth = depth_metres(raw, head, depth_scale, "depth_png_b64")
+        depth = depth_metres(raw, head, depth_scale, dkey)
         hand_eye = hand_eye_from_data(req["hand_eye"], "hand_eye") if req.get("hand_eye") is not None else None
         flange = matrix(req["T_robot_flange"], "request", "T_robot_flange") if req.get("T_robot_flange") is not None else None
     except BadRequest:
@@ -179,7 +217,7 @@ def parse_request(body: bytes, n_steps: int) -> dict:
     prior = req.get("orientation_prior", False)
     if not isinstance(prior, bool):
         raise BadRequest("orientation_prior: expected true or false")
-    return {"rgb": bgr[..., ::-1].copy(), "depth": depth,
+    return {"rgb": np.ascontiguousarray(rgb), "depth": depth,
             "K": cam.K, "step": step, "box": _pixels(req.get("box"), "box", 4), "point": _pixels(req.get("point"), "point", 2),
             "T_world_camera": T_world_camera, "hand_eye": hand_eye, "T_robot_flange": flange, "grasp": grasp,
             "pick_box": _pixels(req.get("pick_box"), "pick_box", 4), "pick_point": _pixels(req.get("pick_point"), "pick_point", 2),

@@ -167,3 +167,26 @@ def test_the_command_serves_and_stops():
     bad = subprocess.run([sys.executable, "-m", "apose_studio.cli.commands", "serve", str(PLANETARY), "--param", "nope=1"],
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "nope" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_arrays_as_npy_answer_as_pngs_do_and_pickles_are_refused(server, frame):
+    import io
+
+    def npy(a) -> str:
+        f = io.BytesIO()
+        np.save(f, a, allow_pickle=True)
+        return base64.b64encode(f.getvalue()).decode()
+
+    png = request_body(frame)
+    arrays = {k: v for k, v in png.items() if not k.endswith("_png_b64")}
+    arrays.update(rgb_npy_b64=npy(np.ascontiguousarray(frame.rgb)), depth_npy_b64=npy((frame.depth * 1000).astype(np.uint16)))
+    s1, d1 = call(server, "POST", "/estimate", png)
+    s2, d2 = call(server, "POST", "/estimate", arrays)
+    assert s1 == s2 == 200
+    np.testing.assert_array_equal(np.asarray(d1["T_camera_part"]), np.asarray(d2["T_camera_part"]))
+    for bad, words in ((dict(arrays, depth_npy_b64=npy(frame.depth)), "expected uint16"),
+                       (dict(arrays, rgb_npy_b64=npy(np.array([{"a": 1}], dtype=object))), "expected uint8"),
+                       (dict(arrays, rgb_npy_b64=base64.b64encode(b"not an array").decode()), "not a .npy"),
+                       (dict(arrays, rgb_png_b64=png["rgb_png_b64"]), "give the rgb image once")):
+        status, doc = call(server, "POST", "/estimate", bad)
+        assert status == 400 and words in doc["error"], doc

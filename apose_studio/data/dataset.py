@@ -132,7 +132,7 @@ def depth_metres(raw: np.ndarray, head, depth_scale_mm: float, path) -> np.ndarr
     if raw.dtype != np.uint16:
         raise DatasetError(f"{path}: a {raw.dtype} depth image; expected 16-bit integers (depth in mm = value x "
                            "depth_scale), as RealSense, Kinect and BOP write them")
-    valid = raw[raw > 0]
+    valid = raw[::4, ::4][raw[::4, ::4] > 0]  # every 16th pixel: the median of a sanity check, at a 16th of the cost
     if len(valid) and np.median(valid) * depth_scale_mm < 20.0:
         raise DatasetError(f"{path}: the median depth is {np.median(valid) * depth_scale_mm:g} mm: the PNG looks "
                            "metre-scaled (or depth_scale far too small); write depth in mm (or 0.1 mm) steps")
