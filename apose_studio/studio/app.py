@@ -36,6 +36,7 @@ from apose_studio.geometry import se3
 from apose_studio.safeio import reads_within
 from apose_studio.studio import authoring, inspection
 from apose_studio.studio.assembly_panel import AssemblyPanel
+from apose_studio.studio.grasps_panel import GraspsPanel
 from apose_studio.studio.inspect_panel import EstimateJob, InspectPanel
 from apose_studio.studio.mates_panel import MatesPanel
 from apose_studio.studio.prompt_panel import PromptPanel
@@ -56,12 +57,13 @@ class Studio:
     `workspace` holds the folders whose files the page may name (default: see `default_workspace`).
 
     Panels (each owns its folders; only the app calls them): `files` (File, Parts), `steps` (Steps,
-    Preview), `mates` (Mates, Approach), `inspect` (Data, Estimate), `prompt` (Prompt), `views` (Views),
+    Preview), `mates` (Mates, Approach), `grasps` (Grasps), `inspect` (Data, Estimate), `prompt` (Prompt), `views` (Views),
     `results` (replay, Result, Layers). Shared: `state` (the data) and `events` (the hub)."""
 
     files: AssemblyPanel
     steps: StepsPanel
     mates: MatesPanel
+    grasps: GraspsPanel
     inspect: InspectPanel
     prompt: PromptPanel
     views: ViewsPanel
@@ -93,6 +95,7 @@ class Studio:
         self.files = AssemblyPanel(self)
         self.steps = StepsPanel(self)
         self.mates = MatesPanel(self)
+        self.grasps = GraspsPanel(self)
         self.history = authoring.History()
         self.inspect = InspectPanel(self)
         self.prompt = PromptPanel(self)
@@ -226,6 +229,7 @@ class Studio:
             self.files.build()
             self.steps.build()
             self.mates.build()
+            self.grasps.build()
         with tabs.add_tab("Inspect"):
             self.inspect.build()
             self.prompt.build()

@@ -413,3 +413,24 @@ def penetrations(asm: Assembly, index: int, models: dict) -> list[tuple[str, flo
         if share > PENETRATION_SHARE:
             out.append((b, share, float(-sd.min())))
     return out
+
+
+def add_grasp(asm: Assembly, part_id: str, grasp) -> Assembly:
+    """The part with one more grasp (assembly.grasps.Grasp); its name made unique within the part."""
+    part = asm.parts[part_id]
+    taken = {g.name for g in part.grasps}
+    name, k = grasp.name, 2
+    while name in taken:
+        name, k = f"{grasp.name}_{k}", k + 1
+    parts = dict(asm.parts)
+    parts[part_id] = replace(part, grasps=part.grasps + (replace(grasp, name=name),))
+    return replace(asm, parts=parts)
+
+
+def delete_grasp(asm: Assembly, part_id: str, name: str) -> Assembly:
+    part = asm.parts[part_id]
+    if name not in {g.name for g in part.grasps}:
+        raise AposeError(f"{part_id} has no grasp {name!r}")
+    parts = dict(asm.parts)
+    parts[part_id] = replace(part, grasps=tuple(g for g in part.grasps if g.name != name))
+    return replace(asm, parts=parts)

@@ -1,0 +1,50 @@
+"""The Grasps folder without a browser: a grasp made from a picked face of the step's part, drawn as a
+gripper at the place and the pre-place, listed, undone, deleted and saved with the assembly."""
+
+import shutil
+
+import numpy as np
+
+from ..conftest import SAMPLES
+from .conftest import act, errors
+
+
+def test_a_grasp_from_a_picked_face_is_drawn_saved_and_undone(studio, tmp_path):
+    from apose_studio.assembly.model import load_assembly
+
+    shutil.copytree(SAMPLES / "planetary_reducer", tmp_path / "pr")
+    st = studio(tmp_path / "pr" / "assembly.yaml", root=tmp_path)
+    st.steps.step_index = 2  # the carrier (grasp "shaft" in the sample), with a 30 mm approach
+    st.refresh_assembly_widgets()
+    assert st.grasps.f_grasp.options == ("shaft",)
+    assert {"/assembly/gripper/place", "/assembly/gripper/preplace"} <= set(st.nodes)
+    place = st.nodes["/assembly/gripper/place"]
+    T_world_carrier = st.state.T_world_shown("carrier")
+    np.testing.assert_allclose(place.position, (T_world_carrier @ st.asm.parts["carrier"].grasps[0].T_part_gripper)[:3, 3],
+                               atol=1e-6)
+    # no pick yet: said, nothing added
+    act(st, st.grasps.on_add)
+    assert "pick a face of carrier first" in errors(st)[-1][1]
+    # a click on the side of the carrier's output shaft (in the carrier's frame): its round face, 8 mm across
+    feature = st.mates.picker("carrier").pick(np.array([0.05, 0.0, 0.012]), np.array([-1.0, 0.0, 0.0]))
+    assert feature is not None and feature.kind == "cylinder", feature
+    st.state.picks["part"] = ("carrier", feature)
+    st.grasps.f_from.value = "from +z"
+    act(st, st.grasps.on_add)
+    grasps = st.asm.parts["carrier"].grasps
+    assert [g.name for g in grasps] == ["shaft", "grasp"] and st.grasps.f_grasp.value == "grasp"
+    assert abs(grasps[1].width - 0.008) < 2e-4  # the shaft's diameter
+    np.testing.assert_allclose(grasps[1].T_part_gripper[:3, 2], (0, 0, -1), atol=1e-9)  # the gripper comes down
+    act(st, lambda c: st.undo_redo("Undo", c))
+    assert [g.name for g in st.asm.parts["carrier"].grasps] == ["shaft"]
+    act(st, lambda c: st.undo_redo("Redo", c))
+    st.grasps.f_grasp.value = "shaft"
+    act(st, st.grasps.on_delete)
+    assert [g.name for g in st.asm.parts["carrier"].grasps] == ["grasp"]
+    from apose_studio.assembly.model import save_assembly
+
+    save_assembly(st.asm, tmp_path / "pr" / "again.yaml")
+    assert [g.name for g in load_assembly(tmp_path / "pr" / "again.yaml").parts["carrier"].grasps] == ["grasp"]
+    st.steps.step_index = None
+    st.refresh_assembly_widgets()
+    assert "/assembly/gripper/place" not in st.nodes
