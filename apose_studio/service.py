@@ -27,6 +27,7 @@ Rules, and why:
 from __future__ import annotations
 
 import binascii
+import ctypes
 import hmac
 import ipaddress
 import json
@@ -340,10 +341,25 @@ class _Handler(BaseHTTPRequestHandler):
     do_DELETE = do_PATCH = do_PUT
 
 
+M_ARENA_MAX = -8  # glibc's mallopt parameter
+
+
+def fewer_malloc_arenas(n: int = 2) -> bool:
+    """At most `n` glibc malloc arenas in this process. glibc gives each new thread an arena of its own (up
+    to 8 per core) and keeps what was freed in it: with a thread per connection the service grew 63 MB
+    over its first 1,000 requests, none of it leaked (benchmarks/serve.py; with two arenas, +2 MB over 120
+    requests where the default grew 22 MB). False where the C library is not glibc."""
+    try:
+        return bool(ctypes.CDLL("libc.so.6").mallopt(M_ARENA_MAX, n))
+    except (OSError, AttributeError):
+        return False
+
+
 def make_server(service: EstimationService, host: str = "127.0.0.1", port: int = 8765, token: str | None = None,
                 max_body: int = MAX_BODY) -> _Server:
     """The HTTP server of a service (not yet serving: call serve_forever). Beyond loopback a token is required
     (one is made when none is given)."""
     if token is None and not is_loopback(host):
         token = secrets.token_urlsafe(18)
+    fewer_malloc_arenas()
     return _Server((host, port), service, token, max_body)
