@@ -19,6 +19,7 @@ from apose_studio.studio.widgets import pos, wxyz
 
 GRIPPER_COLOUR = (60, 60, 72)  # dark steel: in no part palette, apart from the pick colours
 NONE = "—"
+CARRY = "/assembly/gripper/carry"  # the gripper that carries each part in Play sequence
 
 
 class GraspsPanel:
@@ -120,3 +121,28 @@ class GraspsPanel:
                 opacity=1.0 if what == "place" else 0.35, flat_shading=True,
                 wxyz=wxyz(T), position=pos(T))
             self.app.node(name, h)
+
+    def carry(self, pid: str, T_world_part: np.ndarray) -> None:
+        """Play sequence: the gripper holding part `pid` (by its first grasp) at T_world_part; nothing when the
+        part has no grasp."""
+        part = self.app.valid_asm.parts.get(pid)
+        if part is None or not part.grasps:
+            self.drop()
+            return
+        g = part.grasps[0]
+        T = T_world_part @ g.T_part_gripper
+        h = self.app.nodes.get(CARRY)
+        if h is None or getattr(h, "_apose_for", None) != (pid, g.name):
+            self.drop()
+            mesh = gripper_mesh(g.width, self.app.valid_asm.gripper)
+            h = self.app.server.scene.add_mesh_simple(CARRY, np.asarray(mesh.vertices, np.float32),
+                                                      np.asarray(mesh.faces, np.uint32), color=GRIPPER_COLOUR,
+                                                      flat_shading=True, wxyz=wxyz(T), position=pos(T))
+            h._apose_for = (pid, g.name)
+            self.app.node(CARRY, h)
+        else:
+            h.wxyz, h.position = wxyz(T), pos(T)
+
+    def drop(self) -> None:
+        if CARRY in self.app.nodes:
+            self.app.nodes.pop(CARRY).remove()

@@ -335,7 +335,8 @@ class StepsPanel:
         self.make_pose_fields(*authoring.typed_pose(self.app.asm.steps[self.step_index].T_base_part))
 
     def on_play_sequence(self, client) -> None:
-        """Play the assembly for a demo: each step's part comes in along its approach (when it has one)."""
+        """Play the assembly for a demo: each step's part comes in along its approach (when it has one), held by
+        the gripper where the part has a grasp."""
         asm = self.app.valid_asm
         n = len(asm.steps)
         if n == 0:
@@ -351,9 +352,17 @@ class StepsPanel:
                     T_end, T_base = self._preview.get(s.part), self._preview.get(s.base[0])
                 if s.approach is not None and h is not None and T_end is not None and T_base is not None:
                     for a in np.linspace(1.0, 0.0, 16):
-                        h.position = pos(s.approach.start(T_end, T_base) * a + T_end * (1 - a))
+                        T_now = s.approach.start(T_end, T_base) * a + T_end * (1 - a)  # a translation: blending is exact
+                        h.position = pos(T_now)
+                        with self.app.lock:
+                            self.app.grasps.carry(s.part, T_now)  # the gripper brings it in (its first grasp)
                         time.sleep(0.04)
+                elif T_end is not None:
+                    with self.app.lock:
+                        self.app.grasps.carry(s.part, T_end)
                 time.sleep(0.5)
+            with self.app.lock:
+                self.app.grasps.drop()
 
         threading.Thread(target=play, daemon=True).start()
 

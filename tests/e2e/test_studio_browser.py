@@ -928,3 +928,44 @@ def test_download_image_of_the_3d_view(browser, studio, tmp_path):
     # the casing (grey-blue, ~(140, 148, 158)) and the lid (green) are drawn: many pixels far from white and grey
     coloured = np.abs(img.astype(int) - img.mean(axis=2, keepdims=True)).max(axis=2) > 30
     assert coloured.mean() > 0.01 and (img.min(axis=2) > 240).mean() < 0.98
+
+
+def test_author_a_grasp_by_clicking_the_part(browser, studio, tmp_path):
+    """#29 in the studio: on the planetary sample's carrier step, click the side of the output shaft, choose
+    where the gripper comes from, press Grasp at picked face: a grasp across the 8 mm shaft is added and a
+    gripper drawn there (and at the pre-place), and Save writes it into the file."""
+    from apose_studio.assembly.model import load_assembly
+
+    shutil.copytree(SAMPLES / "planetary_reducer", tmp_path / "pr")
+    path = tmp_path / "pr" / "assembly.yaml"
+    page = open_page(browser, studio)
+    type_into(page, "Assembly file", str(path))
+    page.get_by_role("button", name="Open").click()
+    wait_until(lambda: len(studio.asm.steps) == 4, "the sample to open")
+    field(page, "Step").first.click()
+    page.get_by_role("option", name="3. carrier", exact=True).click()
+    wait_until(lambda: "/assembly/gripper/place" in studio.nodes, "the sample's grasp to be drawn")
+    page.get_by_text("Grasps", exact=True).click()  # the folder opens
+    expect(page.get_by_role("button", name="Grasp at picked face")).to_be_visible()
+    cam = client_of(studio, page).camera
+    time.sleep(1.5)
+    T = studio.steps.T_world_shown("carrier")
+    th = np.radians(200)  # a side of the shaft that is round (its flat faces +y)
+    p = T[:3, :3] @ (np.array([4.0 * np.cos(th), 4.0 * np.sin(th), 11.0]) / 1000) + T[:3, 3]
+    d = T[:3, :3] @ np.array([np.cos(th), np.sin(th), 0.3])
+    turn_view(cam, p + 0.12 * d / np.linalg.norm(d), p)
+    time.sleep(0.8)
+    shot(page, "grasp_view.png")
+    studio.mates.picks.pop("part", None)
+    page.mouse.click(*to_screen(page, cam, p[None])[0])
+    wait_until(lambda: "part" in studio.mates.picks, "the pick of the shaft")
+    assert studio.mates.picks["part"][0] == "carrier" and studio.mates.picks["part"][1].kind == "cylinder"
+    page.get_by_role("button", name="Grasp at picked face").click()
+    wait_until(lambda: len(studio.asm.parts["carrier"].grasps) == 2, "the grasp")
+    g = studio.asm.parts["carrier"].grasps[1]
+    assert abs(g.width - 0.008) < 3e-4 and np.allclose(g.T_part_gripper[:3, 2], (0, 0, -1), atol=1e-9)
+    expect(field(page, "Grasp").first).to_have_value(g.name, timeout=10000)
+    shot(page, "grasp_added.png")
+    page.get_by_role("button", name="Save").click()
+    wait_until(lambda: len(load_assembly(path).parts["carrier"].grasps) == 2, "the file to hold the grasp")
+    page.close()

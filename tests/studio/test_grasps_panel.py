@@ -48,3 +48,27 @@ def test_a_grasp_from_a_picked_face_is_drawn_saved_and_undone(studio, tmp_path):
     st.steps.step_index = None
     st.refresh_assembly_widgets()
     assert "/assembly/gripper/place" not in st.nodes
+
+
+def test_play_sequence_carries_each_part_in_the_gripper(studio):
+    import time
+
+    from apose_studio.studio.grasps_panel import CARRY
+
+    st = studio(SAMPLES / "planetary_reducer" / "assembly.yaml")
+    seen = []
+    original = st.grasps.carry
+
+    def spy(pid, T):
+        original(pid, T)
+        g = st.asm.parts[pid].grasps[0]
+        seen.append((pid, np.asarray(st.nodes[CARRY].position) - (T @ g.T_part_gripper)[:3, 3]))
+
+    st.grasps.carry = spy
+    act(st, st.steps.on_play_sequence)
+    t0 = time.time()
+    while time.time() - t0 < 60 and not (seen and seen[-1][0] == "cover" and CARRY not in st.nodes):
+        time.sleep(0.1)
+    assert [p for p in dict.fromkeys(p for p, _ in seen)] == ["sun_gear", "housing", "carrier", "cover"]
+    assert max(np.abs(d).max() for _, d in seen) < 1e-6  # the gripper where the grasp puts it on the moving part
+    assert CARRY not in st.nodes  # put away after the last step
