@@ -17,7 +17,7 @@ from apose_studio.studio import authoring
 from apose_studio.studio.state import Event
 from apose_studio.studio.widgets import pos, wxyz
 
-GRIPPER_COLOUR = (60, 60, 72)  # dark steel: in no part palette, apart from the pick colours
+GRIPPER_COLOUR = (150, 156, 170)  # light steel: apart from the part palette and the pick colours
 NONE = "—"
 CARRY = "/assembly/gripper/carry"  # the gripper that carries each part in Play sequence
 

@@ -951,7 +951,7 @@ def test_author_a_grasp_by_clicking_the_part(browser, studio, tmp_path):
     time.sleep(1.5)
     T = studio.steps.T_world_shown("carrier")
     th = np.radians(200)  # a side of the shaft that is round (its flat faces +y)
-    p = T[:3, :3] @ (np.array([4.0 * np.cos(th), 4.0 * np.sin(th), 11.0]) / 1000) + T[:3, 3]
+    p = T[:3, :3] @ (np.array([4.0 * np.cos(th), 4.0 * np.sin(th), 17.0]) / 1000) + T[:3, 3]  # above the ring
     d = T[:3, :3] @ np.array([np.cos(th), np.sin(th), 0.3])
     turn_view(cam, p + 0.12 * d / np.linalg.norm(d), p)
     time.sleep(0.8)
