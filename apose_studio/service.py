@@ -35,6 +35,7 @@ import logging
 import secrets
 import threading
 import time
+from contextlib import contextmanager
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import cv2
@@ -82,32 +83,41 @@ class EstimationService:
         self.queue = max(int(queue), 1)
         self._slots = threading.BoundedSemaphore(self.queue)
         self._busy = 0
+        self._count = threading.Lock()
         self.served = 0
 
     def health(self) -> dict:
         return {"ok": True, "assembly": self.asm.name, "steps": len(self.asm.steps), "busy": self._busy,
                 "queue": self.queue, "served": self.served}
 
-    def estimate(self, body: bytes) -> dict:
-        """The answer to one POST /estimate body; raises BadRequest (4xx), and 503 when the queue is full."""
+    @contextmanager
+    def slot(self):
+        """One of the `queue` places in the service, held from before the body is read until the answer: at
+        most `queue` bodies are in memory at once. BadRequest 503 at once when none is free."""
         if not self._slots.acquire(blocking=False):
             raise BadRequest(f"busy: {self.queue} requests are in the service; retry in a moment", 503)
-        try:
+        with self._count:
             self._busy += 1
-            req = parse_request(body, len(self.asm.steps))
-            with self.lock:
-                est = estimate_pose(req["rgb"], req["depth"], req["K"], self.asm, req["step"], box=req["box"],
-                                    point=req["point"], T_world_camera=req["T_world_camera"],
-                                    orientation_prior=req["orientation_prior"], hand_eye=req["hand_eye"],
-                                    grasp=req["grasp"], pick_box=req["pick_box"], pick_point=req["pick_point"],
-                                    T_robot_flange=req["T_robot_flange"], preset=self.preset, **self.overrides)
-                self.served += 1
-            view = step_context(self.asm, req["step"])[1].view
-            return {**est.to_json(), "step": req["step"], "part": view.part, "base": list(view.base),
-                    "preset": self.params.preset}
+        try:
+            yield
         finally:
-            self._busy -= 1
+            with self._count:
+                self._busy -= 1
             self._slots.release()
+
+    def estimate(self, body: bytes) -> dict:
+        """The answer to one POST /estimate body (the caller holds a `slot`); raises BadRequest (4xx)."""
+        req = parse_request(body, len(self.asm.steps))
+        with self.lock:
+            est = estimate_pose(req["rgb"], req["depth"], req["K"], self.asm, req["step"], box=req["box"],
+                                point=req["point"], T_world_camera=req["T_world_camera"],
+                                orientation_prior=req["orientation_prior"], hand_eye=req["hand_eye"],
+                                grasp=req["grasp"], pick_box=req["pick_box"], pick_point=req["pick_point"],
+                                T_robot_flange=req["T_robot_flange"], preset=self.preset, **self.overrides)
+            self.served += 1
+        view = step_context(self.asm, req["step"])[1].view
+        return {**est.to_json(), "step": req["step"], "part": view.part, "base": list(view.base),
+                "preset": self.params.preset}
 
 
 def _b64(value, key: str) -> bytes:
@@ -234,15 +244,26 @@ def is_loopback(host: str) -> bool:
         return False
 
 
+class _AnyHost:
+    """Every Host header (a service on all interfaces is reached by many names; its token guards it)."""
+
+    def __contains__(self, _) -> bool:
+        return True
+
+
 class _Server(ThreadingHTTPServer):
     daemon_threads = True
     allow_reuse_address = True
 
     def __init__(self, address, service: EstimationService, token: str | None, max_body: int):
         self.service, self.token, self.max_body = service, token, max_body
+        super().__init__(address, _Handler)
+        host, port = address[0], self.server_address[1]
+        # on loopback (no token) only this address's own names: a page that rebinds its name to 127.0.0.1
+        # still sends its name; beyond loopback the token guards every name the machine is reached by
+        self.hosts = {f"{h}:{port}" for h in {host, "127.0.0.1", "localhost"}} if is_loopback(host) else _AnyHost()
         self._open = 0
         self._open_lock = threading.Lock()
-        super().__init__(address, _Handler)
 
     def process_request(self, request, client_address):
         with self._open_lock:
@@ -280,50 +301,57 @@ class _Handler(BaseHTTPRequestHandler):
         self.end_headers()
         self.wfile.write(data)
 
-    def _authorised(self) -> bool:
+    def _unauthorised(self):
+        """(status, doc) unless the request comes from a robot program: no web page (a request with an Origin
+        header: browsers send one on every cross-site POST and fetch), only this service's own address in
+        Host (a page that rebinds its own name to 127.0.0.1 sends that name), and the token where one is set."""
+        if self.headers.get("Origin") is not None:
+            return 403, {"error": "a request from a web page (Origin header) is refused: the service answers programs, "
+                                  "not pages"}
+        host = (self.headers.get("Host") or "").strip().lower()
+        if host not in self.server.hosts:
+            return 403, {"error": f"Host {host[:60]!r} is not this service's address; call it by "
+                                  f"{sorted(self.server.hosts)[0]}"}
         token = self.server.token
-        if token is None:
-            return True
-        given = self.headers.get("Authorization", "")
-        if hmac.compare_digest(given.encode(), f"Bearer {token}".encode()):
-            return True
-        self._reply(401, {"error": "missing or wrong token: send the header 'Authorization: Bearer TOKEN' with the token "
-                                   "`apose serve` printed"})
-        return False
+        if token is not None and not hmac.compare_digest((self.headers.get("Authorization") or "").encode(),
+                                                         f"Bearer {token}".encode()):
+            return 401, {"error": "missing or wrong token: send the header 'Authorization: Bearer TOKEN' with the token "
+                                  "`apose serve` printed"}
+        return None
 
     def do_GET(self):
-        if not self._authorised():
-            return
+        why = self._unauthorised()
+        if why is not None:
+            return self._reply(*why)
         if self.path.split("?")[0] == "/health":
             return self._reply(200, self.server.service.health())
         self._reply(404, {"error": f"{self.path[:80]}: not found; GET /health or POST /estimate"})
 
     def do_POST(self):
-        if not self._authorised():
+        length = (self.headers.get("Content-Length") or "").strip()
+        n = int(length) if length.isdigit() and len(length) <= 12 else None
+        # a refused request's body is read past (the client sends it whole before it reads the answer), in
+        # chunks and only up to max_body; the connection then closes
+        refused = self._refusal(n)
+        if refused is not None:
             self.close_connection = True
-            return
-        if self.path.split("?")[0] != "/estimate":
-            self.close_connection = True
-            return self._reply(404, {"error": f"{self.path[:80]}: not found; POST /estimate"})
-        length = self.headers.get("Content-Length")
-        if length is None or not length.strip().isdigit():
-            self.close_connection = True
-            return self._reply(411, {"error": "Content-Length: missing or not a number; send the body with its length"})
-        n = int(length)
-        if n > self.server.max_body:
-            self.close_connection = True  # the body is never read: the connection goes
-            return self._reply(413, {"error": f"the body is {n} bytes, over the {self.server.max_body} the service takes; "
-                                              "send PNG images of the frame (not raw arrays), or crop it"})
+            if n is not None and n <= self.server.max_body:
+                self._drain(n)
+            return self._reply(*refused)
         t0 = time.perf_counter()
         try:
-            body = self.rfile.read(n)
-            if len(body) != n:
-                self.close_connection = True
-                return self._reply(400, {"error": f"the body ended after {len(body)} of {n} bytes"})
-            doc = self.server.service.estimate(body)
+            with self.server.service.slot():
+                body = self.rfile.read(n)
+                if len(body) != n:
+                    self.close_connection = True
+                    return self._reply(400, {"error": f"the body ended after {len(body)} of {n} bytes"})
+                doc = self.server.service.estimate(body)
             doc.setdefault("timings_s", {})["service"] = round(time.perf_counter() - t0, 4)
             self._reply(200, doc)
         except BadRequest as e:
+            if e.status == 503:  # no place in the service: the body was not read
+                self.close_connection = True
+                self._drain(n)
             self._reply(e.status, {"error": str(e)}, {"Retry-After": "1"} if e.status == 503 else None)
         except AposeError as e:
             self._reply(400, {"error": str(e)})
@@ -333,6 +361,33 @@ class _Handler(BaseHTTPRequestHandler):
             log.exception("POST /estimate failed")
             self._reply(500, {"error": f"internal error ({type(e).__name__}); the service goes on. Please report it "
                                        "with the request"})
+
+    def _refusal(self, n: int | None):
+        """(status, doc) when the request is refused before its body is read, else None."""
+        why = self._unauthorised()
+        if why is not None:
+            return why
+        if self.path.split("?")[0] != "/estimate":
+            return 404, {"error": f"{self.path[:80]}: not found; POST /estimate"}
+        if n is None:
+            return 411, {"error": "Content-Length: missing or not a number; send the body with its length"}
+        if n > self.server.max_body:
+            return 413, {"error": f"the body is {n} bytes, over the {self.server.max_body} the service takes; send PNG "
+                                  "images of the frame (not raw arrays), or crop it"}
+        ctype = self.headers.get("Content-Type", "").split(";")[0].strip().lower()
+        if ctype != "application/json":  # a browser's form or text/plain post (no CORS preflight) is not ours
+            return 415, {"error": f"Content-Type {ctype[:40] or 'missing'}: send application/json"}
+        return None
+
+    def _drain(self, n: int) -> None:
+        try:
+            while n > 0:
+                chunk = self.rfile.read(min(n, 2 ** 20))
+                if not chunk:
+                    break
+                n -= len(chunk)
+        except (TimeoutError, ConnectionError):
+            self.close_connection = True
 
     def do_PUT(self):
         self.close_connection = True

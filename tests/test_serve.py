@@ -54,7 +54,7 @@ def server():
 def call(srv, method, path, body=None, headers=None, raw: bytes | None = None):
     conn = http.client.HTTPConnection(*srv.server_address[:2], timeout=120)
     data = raw if raw is not None else (json.dumps(body).encode() if body is not None else None)
-    conn.request(method, path, body=data, headers=headers or {})
+    conn.request(method, path, body=data, headers={"Content-Type": "application/json", **(headers or {})})
     r = conn.getresponse()
     doc = json.loads(r.read() or b"{}")
     conn.close()
@@ -190,3 +190,21 @@ def test_arrays_as_npy_answer_as_pngs_do_and_pickles_are_refused(server, frame):
                        (dict(arrays, rgb_png_b64=png["rgb_png_b64"]), "give the rgb image once")):
         status, doc = call(server, "POST", "/estimate", bad)
         assert status == 400 and words in doc["error"], doc
+
+
+def test_web_pages_and_other_names_are_refused(server, frame):
+    """A page in a browser can post to 127.0.0.1 (a form or text/plain needs no CORS preflight) and can rebind
+    its own name to 127.0.0.1: the service answers programs only, by its own address."""
+    body = request_body(frame)
+    port = server.server_address[1]
+    for headers, status, words in (({"Origin": "https://evil.example"}, 403, "web page"),
+                                   ({"Origin": "null"}, 403, "web page"),
+                                   ({"Host": f"evil.example:{port}"}, 403, "not this service's address"),
+                                   ({"Host": "127.0.0.1:1"}, 403, "not this service's address"),
+                                   ({"Content-Type": "text/plain"}, 415, "application/json"),
+                                   ({"Content-Type": "application/x-www-form-urlencoded"}, 415, "application/json")):
+        got, doc = call(server, "POST", "/estimate", body, headers=headers)
+        assert got == status and words in doc["error"], (headers, got, doc)
+    assert call(server, "GET", "/health", headers={"Origin": "https://evil.example"})[0] == 403
+    assert call(server, "GET", "/health", headers={"Host": f"localhost:{port}"})[0] == 200
+    assert call(server, "POST", "/estimate", body)[0] == 200
