@@ -27,6 +27,7 @@ class GraspsPanel:
         self.app = app
         app.events.on(Event.DRAFT_CHANGED, self.refresh)
         app.events.on(Event.STEP_SELECTED, lambda index: self.refresh())
+        app.events.on(Event.PLAYED, lambda pid, T_world_part: self.drop() if pid is None else self.carry(pid, T_world_part))
 
     def build(self) -> None:
         gui = self.app.server.gui

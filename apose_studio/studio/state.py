@@ -42,6 +42,7 @@ class Event(str, Enum):
     MASK_SOURCE_CHOSEN = "mask source chosen"  # the user chose mask source `source` outside the Mask dropdown
     OVERLAY_CHANGED = "overlay changed"  # what the RGB overlay shows changed (a prompt's mask): redraw it
     FRAMING_ASKED = "framing asked"  # the cameras should look at the object under inspection (an export records them)
+    PLAYED = "played"  # Play sequence put part `pid` at `T_world_part` (pid None: the play ended)
 
 
 PAYLOAD: dict[Event, tuple[str, ...]] = {
@@ -56,6 +57,7 @@ PAYLOAD: dict[Event, tuple[str, ...]] = {
     Event.MASK_SOURCE_CHOSEN: ("source",),
     Event.OVERLAY_CHANGED: (),
     Event.FRAMING_ASKED: (),
+    Event.PLAYED: ("pid", "T_world_part"),
 }
 
 

@@ -354,15 +354,15 @@ class StepsPanel:
                     for a in np.linspace(1.0, 0.0, 16):
                         T_now = s.approach.start(T_end, T_base) * a + T_end * (1 - a)  # a translation: blending is exact
                         h.position = pos(T_now)
-                        with self.app.lock:
-                            self.app.grasps.carry(s.part, T_now)  # the gripper brings it in (its first grasp)
+                        with self.app.lock:  # the Grasps folder draws the gripper bringing it in
+                            self.app.events.emit(Event.PLAYED, pid=s.part, T_world_part=T_now)
                         time.sleep(0.04)
                 elif T_end is not None:
                     with self.app.lock:
-                        self.app.grasps.carry(s.part, T_end)
+                        self.app.events.emit(Event.PLAYED, pid=s.part, T_world_part=T_end)
                 time.sleep(0.5)
             with self.app.lock:
-                self.app.grasps.drop()
+                self.app.events.emit(Event.PLAYED, pid=None, T_world_part=None)
 
         threading.Thread(target=play, daemon=True).start()
 
