@@ -13,11 +13,11 @@ import numpy as np
 
 from apose_studio.errors import AposeError
 from apose_studio.robot.grasping import APPROACHES, grasp_at_face, gripper_mesh
-from apose_studio.studio import authoring
+from apose_studio.studio import authoring, inspection
 from apose_studio.studio.state import Event
 from apose_studio.studio.widgets import pos, wxyz
 
-GRIPPER_COLOUR = (150, 156, 170)  # light steel: apart from the part palette and the pick colours
+GRIPPER_COLOUR = inspection.GRIPPER
 NONE = "—"
 CARRY = "/assembly/gripper/carry"  # the gripper that carries each part in Play sequence
 

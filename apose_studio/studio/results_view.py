@@ -18,6 +18,7 @@ import numpy as np
 from apose_studio.assembly.mesh import base_mesh
 from apose_studio.errors import AposeError
 from apose_studio.geometry import se3
+from apose_studio.robot.grasping import gripper_mesh
 from apose_studio.studio import inspection
 from apose_studio.studio.prompt_panel import overlay_mask
 from apose_studio.studio.state import Event
@@ -47,6 +48,7 @@ class ResultsView:
         self._seen_from_sensor = None  # the capture whose camera layer was turned off (its view is the sensor's)
         self._base_mesh: tuple = (None, None)  # ((assembly identity, step), its base mesh)
         self._ghost: tuple = (None, None)  # (the part's mesh, widgets.shaded of it): the ghost drawn at the estimate
+        self._gripper: tuple = (None, None)  # ((grasp width, gripper), (vertices, faces)): the gripper drawn at the grasp
         self._drawn_frame: tuple | None = None  # what identifies the frame whose camera and scene cloud are drawn
         self._meshes_drawn: dict = {}  # node name -> the mesh it shows (posed_mesh)
         self._source_of: list | None = None  # the replay whose source cloud the "/inspect/source" node holds
@@ -125,8 +127,11 @@ class ResultsView:
                 wireframe=True))
             self.posed_mesh("/inspect/ghost", self._ghost[1], r.T_world_part, lambda: self.app.server.scene.add_mesh_simple(
                 "/inspect/ghost", *self._ghost[1], color=inspection.GREEN, opacity=0.45))
+            grasp = self.draw_gripper(r.T_world_part)
+            if grasp is not None:
+                labels.append(("gripper", (r.T_world_part @ grasp.T_part_gripper)[:3, 3], "top-left"))
         else:
-            for name in ("/inspect/base_est", "/inspect/ghost"):
+            for name in ("/inspect/base_est", "/inspect/ghost", "/inspect/gripper"):
                 if name in self.app.nodes:
                     self.app.nodes.pop(name).remove()
         if r is not None and len(r.target_cloud):
@@ -174,6 +179,25 @@ class ResultsView:
         self.app.node("/inspect/scene", scene.add_point_cloud("/inspect/scene", pts, cols, point_size=footprint,
                                                            point_shape="circle", point_shading="flat"))  # flat
         # discs read as a surface; the default shading draws every point as a ball
+
+    def draw_gripper(self, T_world_part: np.ndarray):
+        """The gripper holding the inspected step's part at T_world_part by its first grasp (the assembly file's
+        `grasps`): where the robot's gripper goes to place it. Returns that grasp, or None (none drawn)."""
+        asm = self.app.state.inspect_assembly()
+        part = asm.parts.get(asm.steps[self.app.state.inspect.step - 1].part)
+        if part is None or not part.grasps:
+            if "/inspect/gripper" in self.app.nodes:
+                self.app.nodes.pop("/inspect/gripper").remove()
+            return None
+        g = part.grasps[0]
+        key = (g.width, asm.gripper)
+        if self._gripper[0] != key:
+            m = gripper_mesh(g.width, asm.gripper)
+            self._gripper = (key, (np.asarray(m.vertices, np.float32), np.asarray(m.faces, np.uint32)))
+        mesh = self._gripper[1]
+        self.posed_mesh("/inspect/gripper", mesh, T_world_part @ g.T_part_gripper, lambda: self.app.server.scene.add_mesh_simple(
+            "/inspect/gripper", *mesh, color=inspection.GRIPPER, flat_shading=True))
+        return g
 
     def posed_mesh(self, name: str, mesh, T_world_mesh: np.ndarray, make) -> None:
         """Node `name` showing `mesh` at T_world_mesh: the node already showing that mesh is moved (a pose is a
@@ -369,7 +393,8 @@ class ResultsView:
     def apply_layers(self) -> None:
         which = {"/inspect/scene": "scene cloud", "/inspect/target": "target cloud", "/inspect/source": "source cloud",
                  "/inspect/box_gt": "boxes", "/inspect/box_est": "boxes", "/inspect/box_alt": "boxes",
-                 "/inspect/ghost": "part at estimate", "/inspect/base_est": "base at estimate", "/inspect/camera": "camera"}
+                 "/inspect/ghost": "part at estimate", "/inspect/base_est": "base at estimate", "/inspect/camera": "camera",
+                 "/inspect/gripper": "gripper"}
         which.update({n: "labels" for n in self.app.nodes if n.startswith("/inspect/label_")})
         for name, layer in which.items():
             if name in self.app.nodes:

@@ -72,3 +72,29 @@ def test_play_sequence_carries_each_part_in_the_gripper(studio):
     assert [p for p in dict.fromkeys(p for p, _ in seen)] == ["sun_gear", "housing", "carrier", "cover"]
     assert max(np.abs(d).max() for _, d in seen) < 1e-6  # the gripper where the grasp puts it on the moving part
     assert CARRY not in st.nodes  # put away after the last step
+
+
+def test_an_estimate_shows_the_gripper_where_it_places_the_part(studio, tmp_path):
+    """Inspect: with a grasp in the assembly, the estimate's part is drawn held by the gripper (legend, layer)."""
+    from apose_studio.assembly.model import load_assembly
+    from apose_studio.geometry import se3
+    from apose_studio.synth.frame import RenderSettings
+    from apose_studio.synth.render import render_dataset
+
+    asm_path = SAMPLES / "planetary_reducer" / "assembly.yaml"
+    render_dataset(load_assembly(asm_path), tmp_path / "ds", RenderSettings(frames=1, seed=4, base_pose="fixed"),
+                   steps=[3], progress=False)
+    st = studio(asm_path, tmp_path / "ds")
+    assert "/inspect/gripper" not in st.nodes  # nothing estimated yet
+    st.inspect.i_prior.value = True
+    act(st, st.inspect.run_estimation, False)
+    r = st.inspect.result
+    assert r is not None and r.ok, st.notes
+    h = st.nodes["/inspect/gripper"]
+    G = st.state.inspect_assembly().parts["carrier"].grasps[0].T_part_gripper
+    T = se3.make_T(se3.quat_wxyz_to_matrix(np.asarray(h.wxyz)), np.asarray(h.position))
+    np.testing.assert_allclose(T, r.T_world_part @ G, atol=1e-5)
+    assert "gripper" in st.results.i_legend.content
+    st.results.layers["gripper"].value = False
+    st.results.apply_layers()
+    assert not st.nodes["/inspect/gripper"].visible
