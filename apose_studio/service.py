@@ -162,10 +162,10 @@ def _pixels(value, key: str, n: int):
     if isinstance(value, str):
         value = value.split(",")
     try:
-        out = tuple(int(round(float(v))) for v in value)
-    except (TypeError, ValueError):
+        out = tuple(int(round(float(v))) for v in value if not isinstance(v, bool))  # NaN: ValueError; inf: Overflow
+    except (TypeError, ValueError, OverflowError):
         out = ()
-    if len(out) != n or not all(np.isfinite(float(v)) for v in value):
+    if len(out) != n or len(value) != n or any(abs(v) > MAX_SIDE * 4 for v in out):
         raise BadRequest(f"{key}: expected {n} numbers in pixels ({'x0, y0, x1, y1' if n == 4 else 'u, v'})")
     return out
 
