@@ -122,8 +122,9 @@ def estimate_pose(rgb: np.ndarray, depth: np.ndarray, K, assembly, step: int, *,
     return est
 
 
-def grasp_of(asm: Assembly, part: str, name: str | None) -> Grasp | None:
-    """The part's grasp called `name` (None: its first; None when it has none); AposeError for an unknown name."""
+def grasp_of(asm: Assembly, part: str, name: str | None, key: str = "--grasp") -> Grasp | None:
+    """The part's grasp called `name` (None: its first; None when it has none); AposeError for an unknown name,
+    which starts with `key` (the flag or request key that gave it)."""
     grasps = asm.parts[part].grasps
     if name is None:
         return grasps[0] if grasps else None
@@ -131,7 +132,7 @@ def grasp_of(asm: Assembly, part: str, name: str | None) -> Grasp | None:
         if g.name == name:
             return g
     have = ", ".join(g.name for g in grasps) if grasps else "none (add parts.<id>.grasps to the assembly file)"
-    raise AposeError(f"--grasp {name}: {part} has no grasp of that name; its grasps: {have}"[:300])
+    raise AposeError(f"{key} {name}: {part} has no grasp of that name; its grasps: {have}"[:300])
 
 
 def robot_targets(est: PoseEstimate, asm: Assembly, ctx: StepContext, hand_eye, grasp: str | None = None,

@@ -33,6 +33,7 @@ import ipaddress
 import json
 import logging
 import secrets
+import socket
 import threading
 import time
 from contextlib import contextmanager
@@ -42,7 +43,7 @@ import cv2
 import numpy as np
 
 from apose_studio import safeio
-from apose_studio.api import estimate_pose
+from apose_studio.api import estimate_pose, grasp_of
 from apose_studio.assembly.model import Assembly, load_assembly
 from apose_studio.data.dataset import check_camera_entry, depth_metres
 from apose_studio.errors import AposeError
@@ -53,8 +54,11 @@ from apose_studio.robot.handeye import hand_eye_from_data, matrix
 log = logging.getLogger(__name__)
 
 MAX_BODY = 64 * 2 ** 20  # a 1280 x 720 frame as PNGs in base64 is ~4 MB; 64 MB leaves room for 4K
-MAX_CONNECTIONS = 32
-READ_TIMEOUT_S = 30.0
+MAX_CONNECTIONS = 32  # connections at once; beyond them a 503 at once
+MAX_PER_ADDRESS = 8  # ... from one address (one remote host cannot take them all)
+ARRIVAL_S = 30.0  # a request's headers and body must arrive within this of its connection (a slow client goes)
+BODIES_IN_FLIGHT = 4  # bodies being read at once, at most this many times max_body bytes declared in all
+MAX_PIXELS = 1920 * 1200  # a frame's pixels (--max-pixels): depth cameras give at most ~1 MP aligned to colour
 REQUEST_KEYS = ("rgb_png_b64", "depth_png_b64", "rgb_npy_b64", "depth_npy_b64", "camera", "step", "box", "point", "hand_eye",
                 "T_robot_flange", "grasp", "pick_box", "pick_point", "orientation_prior")
 MAX_SIDE = 8192  # pixels a side of an array frame (as safeio's images)
@@ -69,9 +73,11 @@ class BadRequest(AposeError):
 
 
 class EstimationService:
-    """The warm part: one assembly, every step prepared, one estimate at a time, at most `queue` waiting."""
+    """The warm part: one assembly, every step prepared, one estimate at a time, at most `queue` requests in it
+    (read, decoded and waiting for the estimator), frames of at most `max_pixels`."""
 
-    def __init__(self, assembly: Assembly | str, preset: str = "default", overrides: dict | None = None, queue: int = 8):
+    def __init__(self, assembly: Assembly | str, preset: str = "default", overrides: dict | None = None, queue: int = 8,
+                 max_pixels: int = MAX_PIXELS):
         self.asm = assembly if isinstance(assembly, Assembly) else load_assembly(assembly)
         if not self.asm.steps:
             raise AposeError(f"{self.asm.path}: the assembly has no steps; nothing to estimate")
@@ -81,6 +87,7 @@ class EstimationService:
             step_context(self.asm, k)[1].base.warm_up(self.params)
         self.lock = threading.Lock()
         self.queue = max(int(queue), 1)
+        self.max_pixels = int(max_pixels)
         self._slots = threading.BoundedSemaphore(self.queue)
         self._busy = 0
         self._count = threading.Lock()
@@ -92,8 +99,8 @@ class EstimationService:
 
     @contextmanager
     def slot(self):
-        """One of the `queue` places in the service, held from before the body is read until the answer: at
-        most `queue` bodies are in memory at once. BadRequest 503 at once when none is free."""
+        """One of the `queue` places in the service, taken once a body has arrived and held until its answer:
+        at most `queue` decoded frames are in memory at once. BadRequest 503 at once when none is free."""
         if not self._slots.acquire(blocking=False):
             raise BadRequest(f"busy: {self.queue} requests are in the service; retry in a moment", 503)
         with self._count:
@@ -107,7 +114,13 @@ class EstimationService:
 
     def estimate(self, body: bytes) -> dict:
         """The answer to one POST /estimate body (the caller holds a `slot`); raises BadRequest (4xx)."""
-        req = parse_request(body, len(self.asm.steps))
+        req = parse_request(body, len(self.asm.steps), self.max_pixels)
+        view = step_context(self.asm, req["step"])[1].view
+        if req["hand_eye"] is not None:  # a wrong grasp name is said before the estimate, by its request key
+            try:
+                grasp_of(self.asm, view.part, req["grasp"], key="grasp:")
+            except AposeError as e:
+                raise BadRequest(str(e)) from None
         with self.lock:
             est = estimate_pose(req["rgb"], req["depth"], req["K"], self.asm, req["step"], box=req["box"],
                                 point=req["point"], T_world_camera=req["T_world_camera"],
@@ -115,21 +128,21 @@ class EstimationService:
                                 grasp=req["grasp"], pick_box=req["pick_box"], pick_point=req["pick_point"],
                                 T_robot_flange=req["T_robot_flange"], preset=self.preset, **self.overrides)
             self.served += 1
-        view = step_context(self.asm, req["step"])[1].view
         return {**est.to_json(), "step": req["step"], "part": view.part, "base": list(view.base),
                 "preset": self.params.preset}
 
 
 def _b64(value, key: str) -> bytes:
     if not isinstance(value, str) or not value:
-        raise BadRequest(f"{key}: expected the image's bytes in base64 (a string), got {type(value).__name__}")
+        got = "an empty text" if value == "" else type(value).__name__
+        raise BadRequest(f"{key}: expected the image's bytes in base64 (a non-empty string), got {got}")
     try:
         return binascii.a2b_base64(value, strict_mode=True)  # strict: a stray character is an error, not skipped
     except (binascii.Error, ValueError):
         raise BadRequest(f"{key}: not valid base64; send the PNG file's bytes base64-encoded") from None
 
 
-def _npy(value, key: str, dtype, ndim: int) -> np.ndarray:
+def _npy(value, key: str, dtype, ndim: int, max_pixels: int) -> np.ndarray:
     """A .npy array (no pickles) of `dtype` and `ndim` dimensions (H x W x 3 colour, H x W depth), its shape
     checked from its header before its data is read."""
     import io
@@ -146,8 +159,10 @@ def _npy(value, key: str, dtype, ndim: int) -> np.ndarray:
     want = "H x W x 3" if ndim == 3 else "H x W"
     if np.dtype(dt) != np.dtype(dtype) or len(shape) != ndim or (ndim == 3 and shape[2] != 3) or \
             not all(0 < n <= MAX_SIDE for n in shape[:2]):
-        raise BadRequest(f"{key}: a {np.dtype(dt).name} array of shape {tuple(shape)}; expected {np.dtype(dtype).name} "
-                         f"{want} (at most {MAX_SIDE} a side)" + (", depth in mm x camera.depth_scale" if ndim == 2 else ""))
+        raise BadRequest(f"{key}: a {np.dtype(dt).str} array of shape {tuple(shape)}; expected {np.dtype(dtype).str} "
+                         f"(little-endian {np.dtype(dtype).name}) {want}, at most {MAX_SIDE} a side"
+                         + (", depth in mm x camera.depth_scale" if ndim == 2 else ""))
+    _check_pixels(shape[1], shape[0], key, max_pixels)
     f.seek(0)
     try:
         return np.load(f, allow_pickle=False)
@@ -155,10 +170,32 @@ def _npy(value, key: str, dtype, ndim: int) -> np.ndarray:
         raise BadRequest(f"{key}: a damaged .npy array ({str(e)[:80]})") from None
 
 
+def _check_pixels(w: int, h: int, key: str, max_pixels: int) -> None:
+    """A frame of at most `max_pixels` (`apose serve --max-pixels`): the estimate's work and memory grow with
+    the frame (an 8192 x 6144 frame kept the estimator busy for minutes and took 5 GB)."""
+    if w * h > max_pixels:
+        raise BadRequest(f"{key}: a {w}x{h} frame, over the {max_pixels / 1e6:.1f} million pixels this service takes "
+                         "(apose serve --max-pixels); send the camera's own resolution (depth aligned to colour)", 413)
+
+
+def _image(data: bytes, key: str, flags: int, what: str, max_pixels: int, depth: bool = False):
+    """An image's bytes decoded (safeio.decode_image), its size checked against `max_pixels` from its header first."""
+    try:
+        head = safeio.image_header(data)
+    except ValueError as e:  # a TIFF whose tags contradict each other
+        raise BadRequest(f"{key}: {e}; the image is damaged or crafted") from None
+    if head is not None:
+        _check_pixels(head.width, head.height, key, max_pixels)
+    return safeio.decode_image(data, key, flags, what, depth=depth)
+
+
 def _pixels(value, key: str, n: int):
     """A box (4) or point (2) in pixels: a list of numbers or the CLI's "x0,y0,x1,y1" text."""
     if value is None:
         return None
+    if not isinstance(value, (list, str)):
+        example = "10,20,200,180" if n == 4 else "120,90"
+        raise BadRequest(f"{key}: expected {n} numbers in pixels (a list, or text such as '{example}')")
     if isinstance(value, str):
         value = value.split(",")
     try:
@@ -170,7 +207,7 @@ def _pixels(value, key: str, n: int):
     return out
 
 
-def parse_request(body: bytes, n_steps: int) -> dict:
+def parse_request(body: bytes, n_steps: int, max_pixels: int = 1920 * 1200) -> dict:
     """A POST /estimate body as estimate_pose's arguments; BadRequest naming the key otherwise."""
     try:
         text = body.decode("utf-8")
@@ -197,17 +234,17 @@ def parse_request(body: bytes, n_steps: int) -> dict:
     if isinstance(step, bool) or not isinstance(step, int) or not 1 <= step <= n_steps:
         raise BadRequest(f"step: {str(step)[:20]} does not exist; the assembly has steps 1..{n_steps}")
     try:
-        if "rgb_npy_b64" in req:
-            rgb = _npy(req["rgb_npy_b64"], "rgb_npy_b64", np.uint8, 3)
+        if "depth_npy_b64" in req:  # depth first: its size is checked before the colour is decoded
+            raw, head, dkey = _npy(req["depth_npy_b64"], "depth_npy_b64", np.uint16, 2, max_pixels), None, "depth_npy_b64"
         else:
-            rgb = safeio.decode_image(_b64(req["rgb_png_b64"], "rgb_png_b64"), "rgb_png_b64", cv2.IMREAD_COLOR,
-                                      "the colour image")[0][..., ::-1]
-        if "depth_npy_b64" in req:
-            raw, head, dkey = _npy(req["depth_npy_b64"], "depth_npy_b64", np.uint16, 2), None, "depth_npy_b64"
-        else:
-            raw, head = safeio.decode_image(_b64(req["depth_png_b64"], "depth_png_b64"), "depth_png_b64",
-                                            cv2.IMREAD_UNCHANGED, "the depth image", depth=True)
+            raw, head = _image(_b64(req["depth_png_b64"], "depth_png_b64"), "depth_png_b64", cv2.IMREAD_UNCHANGED,
+                               "the depth image", max_pixels, depth=True)
             dkey = "depth_png_b64"
+        if "rgb_npy_b64" in req:
+            rgb = _npy(req["rgb_npy_b64"], "rgb_npy_b64", np.uint8, 3, max_pixels)
+        else:
+            rgb = _image(_b64(req["rgb_png_b64"], "rgb_png_b64"), "rgb_png_b64", cv2.IMREAD_COLOR, "the colour image",
+                         max_pixels)[0][..., ::-1]
         h, w = raw.shape[:2]
         if rgb.shape[:2] != (h, w):
             raise BadRequest(f"the colour image is {rgb.shape[1]}x{rgb.shape[0]} but {dkey} is {w}x{h}; align depth "
@@ -216,6 +253,12 @@ def parse_request(body: bytes, n_steps: int) -> dict:
         depth = depth_metres(raw, head, depth_scale, dkey)
         hand_eye = hand_eye_from_data(req["hand_eye"], "hand_eye") if req.get("hand_eye") is not None else None
         flange = matrix(req["T_robot_flange"], "request", "T_robot_flange") if req.get("T_robot_flange") is not None else None
+        if flange is not None and hand_eye is not None and hand_eye.T_robot_flange is not None:
+            raise BadRequest("T_robot_flange is given twice (at the top and in hand_eye); give the arm's pose at the "
+                             "capture once")
+        if hand_eye is not None and hand_eye.kind == "eye_in_hand" and flange is None and hand_eye.T_robot_flange is None:
+            raise BadRequest("T_robot_flange: missing: an eye-in-hand calibration (T_flange_camera) needs the arm's pose "
+                             "at the capture (4x4, metres)")
     except BadRequest:
         raise
     except AposeError as e:
@@ -225,7 +268,8 @@ def parse_request(body: bytes, n_steps: int) -> dict:
     grasp = req.get("grasp")
     if grasp is not None and not isinstance(grasp, str):
         raise BadRequest("grasp: expected a grasp's name")
-    prior = req.get("orientation_prior", False)
+    prior = req.get("orientation_prior")
+    prior = False if prior is None else prior  # null is absent, as for the other optional keys
     if not isinstance(prior, bool):
         raise BadRequest("orientation_prior: expected true or false")
     return {"rgb": np.ascontiguousarray(rgb), "depth": depth,
@@ -257,36 +301,95 @@ class _Server(ThreadingHTTPServer):
 
     def __init__(self, address, service: EstimationService, token: str | None, max_body: int):
         self.service, self.token, self.max_body = service, token, max_body
+        if ":" in address[0]:  # an IPv6 address
+            self.address_family = socket.AF_INET6
         super().__init__(address, _Handler)
         host, port = address[0], self.server_address[1]
+        names = {host if ":" not in host else f"[{host}]", "localhost"} | ({"127.0.0.1"} if ":" not in host else set())
         # on loopback (no token) only this address's own names: a page that rebinds its name to 127.0.0.1
         # still sends its name; beyond loopback the token guards every name the machine is reached by
-        self.hosts = {f"{h}:{port}" for h in {host, "127.0.0.1", "localhost"}} if is_loopback(host) else _AnyHost()
-        self._open = 0
+        self.hosts = {f"{h}:{port}" for h in names} if is_loopback(host) else _AnyHost()
+        self._open: dict[str, int] = {}  # connections open per client address
         self._open_lock = threading.Lock()
+        self._declared = 0  # body bytes declared by the requests being read
+        self._arrivals: dict[int, threading.Timer] = {}  # id(socket) -> the timer that closes it if it dawdles
 
     def process_request(self, request, client_address):
+        who = client_address[0]
         with self._open_lock:
-            if self._open >= MAX_CONNECTIONS:
-                self.shutdown_request(request)  # over the cap: closed at once, before a thread is started
-                return
-            self._open += 1
-        super().process_request(request, client_address)
+            total = sum(self._open.values())
+            full = total >= MAX_CONNECTIONS or self._open.get(who, 0) >= MAX_PER_ADDRESS
+            if not full:
+                self._open[who] = self._open.get(who, 0) + 1
+        if full:  # told at once, before a thread is started or anything is read
+            try:
+                body = json.dumps({"error": "too many connections; retry in a moment"}).encode()
+                request.sendall(b"HTTP/1.0 503 Service Unavailable\r\nContent-Type: application/json\r\nRetry-After: 1\r\n"
+                                b"Content-Length: " + str(len(body)).encode() + b"\r\n\r\n" + body)
+            except OSError:
+                pass
+            self.shutdown_request(request)
+            return
+        timer = threading.Timer(ARRIVAL_S, _cut, (request,))
+        timer.daemon = True
+        self._arrivals[id(request)] = timer
+        timer.start()
+        try:
+            super().process_request(request, client_address)
+        except Exception:
+            self._done(request, who)
+            raise
+
+    def arrived(self, request) -> None:
+        """The request has arrived whole: its connection is no longer cut at ARRIVAL_S."""
+        timer = self._arrivals.pop(id(request), None)
+        if timer is not None:
+            timer.cancel()
+
+    def _done(self, request, who: str) -> None:
+        self.arrived(request)
+        with self._open_lock:
+            self._open[who] -= 1
+            if not self._open[who]:
+                del self._open[who]
 
     def process_request_thread(self, request, client_address):
         try:
             super().process_request_thread(request, client_address)
         finally:
+            self._done(request, client_address[0])
+
+    @contextmanager
+    def declared(self, n: int):
+        """Room for a body of n bytes among those being read (at most BODIES_IN_FLIGHT x max_body declared in
+        all); BadRequest 503 when there is none."""
+        with self._open_lock:
+            if self._declared + n > BODIES_IN_FLIGHT * self.max_body:
+                raise BadRequest("busy: too many request bodies are arriving; retry in a moment", 503)
+            self._declared += n
+        try:
+            yield
+        finally:
             with self._open_lock:
-                self._open -= 1
+                self._declared -= n
+
+
+def _cut(sock) -> None:
+    """Close a connection whose request did not arrive in time (a slow or silent client)."""
+    try:
+        sock.shutdown(socket.SHUT_RDWR)
+    except OSError:
+        pass
 
 
 class _Handler(BaseHTTPRequestHandler):
     server: _Server
-    timeout = READ_TIMEOUT_S
-    protocol_version = "HTTP/1.1"
+    timeout = ARRIVAL_S
+    protocol_version = "HTTP/1.0"  # one request per connection: each connection's arrival is timed once
     server_version = "apose-serve"
     sys_version = ""
+    error_content_type = "application/json"
+    error_message_format = '{"error": "%(code)d %(message)s: %(explain)s"}'  # http.server's own errors, as JSON
 
     def log_message(self, fmt, *args):  # one line per request on the service's log, not stderr noise
         log.info("%s %s", self.address_string(), fmt % args)
@@ -304,7 +407,11 @@ class _Handler(BaseHTTPRequestHandler):
     def _unauthorised(self):
         """(status, doc) unless the request comes from a robot program: no web page (a request with an Origin
         header: browsers send one on every cross-site POST and fetch), only this service's own address in
-        Host (a page that rebinds its own name to 127.0.0.1 sends that name), and the token where one is set."""
+        Host (a page that rebinds its own name to 127.0.0.1 sends that name), and the token where one is set.
+        A header these rules read may appear once."""
+        for name in ("Host", "Origin", "Authorization", "Content-Type", "Content-Length", "Transfer-Encoding"):
+            if len(self.headers.get_all(name) or ()) > 1:
+                return 400, {"error": f"{name} is given twice; send it once"}
         if self.headers.get("Origin") is not None:
             return 403, {"error": "a request from a web page (Origin header) is refused: the service answers programs, "
                                   "not pages"}
@@ -320,6 +427,7 @@ class _Handler(BaseHTTPRequestHandler):
         return None
 
     def do_GET(self):
+        self.server.arrived(self.request)
         why = self._unauthorised()
         if why is not None:
             return self._reply(*why)
@@ -327,35 +435,36 @@ class _Handler(BaseHTTPRequestHandler):
             return self._reply(200, self.server.service.health())
         self._reply(404, {"error": f"{self.path[:80]}: not found; GET /health or POST /estimate"})
 
-    def do_POST(self):
+    def _length(self) -> int | None:
         length = (self.headers.get("Content-Length") or "").strip()
-        n = int(length) if length.isdigit() and len(length) <= 12 else None
+        return int(length) if length.isascii() and length.isdigit() and len(length) <= 12 else None
+
+    def do_POST(self):
+        n = self._length()
         # a refused request's body is read past (the client sends it whole before it reads the answer), in
         # chunks and only up to max_body; the connection then closes
         refused = self._refusal(n)
         if refused is not None:
-            self.close_connection = True
-            if n is not None and n <= self.server.max_body:
+            self.server.arrived(self.request)
+            if n is not None and n <= self.server.max_body and refused[0] != 400:
                 self._drain(n)
             return self._reply(*refused)
         t0 = time.perf_counter()
         try:
-            with self.server.service.slot():
+            with self.server.declared(n):
                 body = self.rfile.read(n)
-                if len(body) != n:
-                    self.close_connection = True
-                    return self._reply(400, {"error": f"the body ended after {len(body)} of {n} bytes"})
+            self.server.arrived(self.request)
+            if len(body) != n:
+                return self._reply(400, {"error": f"the body ended after {len(body)} of {n} bytes"})
+            with self.server.service.slot():
                 doc = self.server.service.estimate(body)
             doc.setdefault("timings_s", {})["service"] = round(time.perf_counter() - t0, 4)
             self._reply(200, doc)
         except BadRequest as e:
-            if e.status == 503:  # no place in the service: the body was not read
-                self.close_connection = True
-                self._drain(n)
             self._reply(e.status, {"error": str(e)}, {"Retry-After": "1"} if e.status == 503 else None)
         except AposeError as e:
             self._reply(400, {"error": str(e)})
-        except (TimeoutError, ConnectionError):
+        except (TimeoutError, ConnectionError, OSError):
             self.close_connection = True
         except Exception as e:  # noqa: BLE001 - the service outlives any one request
             log.exception("POST /estimate failed")
@@ -369,6 +478,8 @@ class _Handler(BaseHTTPRequestHandler):
             return why
         if self.path.split("?")[0] != "/estimate":
             return 404, {"error": f"{self.path[:80]}: not found; POST /estimate"}
+        if self.headers.get("Transfer-Encoding") is not None:
+            return 400, {"error": "Transfer-Encoding is not taken (a body with its Content-Length only)"}
         if n is None:
             return 411, {"error": "Content-Length: missing or not a number; send the body with its length"}
         if n > self.server.max_body:
@@ -386,11 +497,11 @@ class _Handler(BaseHTTPRequestHandler):
                 if not chunk:
                     break
                 n -= len(chunk)
-        except (TimeoutError, ConnectionError):
+        except OSError:
             self.close_connection = True
 
     def do_PUT(self):
-        self.close_connection = True
+        self.server.arrived(self.request)
         self._reply(405, {"error": "method not allowed; GET /health or POST /estimate"})
 
     do_DELETE = do_PATCH = do_PUT

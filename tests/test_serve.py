@@ -187,8 +187,8 @@ def test_arrays_as_npy_answer_as_pngs_do_and_pickles_are_refused(server, frame):
     s2, d2 = call(server, "POST", "/estimate", arrays)
     assert s1 == s2 == 200
     np.testing.assert_array_equal(np.asarray(d1["T_camera_part"]), np.asarray(d2["T_camera_part"]))
-    for bad, words in ((dict(arrays, depth_npy_b64=npy(frame.depth)), "expected uint16"),
-                       (dict(arrays, rgb_npy_b64=npy(np.array([{"a": 1}], dtype=object))), "expected uint8"),
+    for bad, words in ((dict(arrays, depth_npy_b64=npy(frame.depth)), "little-endian uint16"),
+                       (dict(arrays, rgb_npy_b64=npy(np.array([{"a": 1}], dtype=object))), "little-endian uint8"),
                        (dict(arrays, rgb_npy_b64=base64.b64encode(b"not an array").decode()), "not a .npy"),
                        (dict(arrays, rgb_png_b64=png["rgb_png_b64"]), "give the rgb image once")):
         status, doc = call(server, "POST", "/estimate", bad)
@@ -211,3 +211,80 @@ def test_web_pages_and_other_names_are_refused(server, frame):
     assert call(server, "GET", "/health", headers={"Origin": "https://evil.example"})[0] == 403
     assert call(server, "GET", "/health", headers={"Host": f"localhost:{port}"})[0] == 200
     assert call(server, "POST", "/estimate", body)[0] == 200
+
+
+def raw_request(srv, data: bytes, read: bool = True) -> bytes:
+    import socket
+
+    with socket.create_connection(srv.server_address[:2], timeout=60) as s:
+        s.sendall(data)
+        if not read:
+            return b""
+        out = b""
+        while chunk := s.recv(65536):
+            out += chunk
+        return out
+
+
+def test_header_tricks_and_oversized_frames_are_refused(server, frame):
+    host = f"127.0.0.1:{server.server_address[1]}"
+    body = json.dumps(request_body(frame)).encode()
+    head = f"POST /estimate HTTP/1.1\r\nHost: {host}\r\nContent-Type: application/json\r\n"
+    answers = {
+        "chunked": raw_request(server, (head + "Content-Length: 5\r\nTransfer-Encoding: chunked\r\n\r\n").encode()
+                               + b"0\r\n\r\nGET /health HTTP/1.1\r\n\r\n"),
+        "two hosts": raw_request(server, (head + f"Host: {host}\r\nContent-Length: {len(body)}\r\n\r\n").encode() + body),
+        "superscript length": raw_request(server, (head + "Content-Length: \u00b2\r\n\r\n").encode("latin-1") + b"xx"),
+    }
+    assert answers["chunked"].count(b"HTTP/1.") == 1 and b" 400 " in answers["chunked"]  # one answer: nothing smuggled
+    assert b" 400 " in answers["two hosts"] and b"given twice" in answers["two hosts"]
+    assert b" 411 " in answers["superscript length"]
+    big = (np.ones((1300, 1900)) * 800).astype(np.uint16)  # 2.5 MP, over the default 2.3 MP
+    status, doc = call(server, "POST", "/estimate", dict(request_body(frame), depth_png_b64=png_b64(big),
+                                                         rgb_png_b64=png_b64(np.zeros((1300, 1900, 3), np.uint8))))
+    assert status == 413 and "million pixels" in doc["error"]
+    he = {"T_flange_camera": np.eye(4).tolist(), "T_robot_flange": np.eye(4).tolist()}
+    status, doc = call(server, "POST", "/estimate", request_body(frame, hand_eye=he, T_robot_flange=np.eye(4).tolist()))
+    assert status == 400 and "given twice" in doc["error"]
+    status, doc = call(server, "POST", "/estimate", request_body(frame, hand_eye={"T_flange_camera": np.eye(4).tolist()}))
+    assert status == 400 and doc["error"].startswith("T_robot_flange: missing")
+    status, doc = call(server, "POST", "/estimate", request_body(frame, hand_eye={"T_robot_camera": np.eye(4).tolist()},
+                                                                  grasp="handle"))
+    assert status == 400 and doc["error"].startswith("grasp: handle")
+    assert call(server, "POST", "/estimate", request_body(frame, orientation_prior=None))[0] == 200  # null: absent
+
+
+def test_slow_and_many_connections_do_not_lock_clients_out(frame, monkeypatch):
+    """A client that sends its request a byte at a time is cut once ARRIVAL_S has passed since it connected; one
+    address cannot hold more than MAX_PER_ADDRESS connections (the next is told 503 at once)."""
+    import socket
+
+    from apose_studio import service as svc
+
+    monkeypatch.setattr(svc, "ARRIVAL_S", 1.5)
+    srv = svc.make_server(svc.EstimationService(PLANETARY, queue=2), "127.0.0.1", 0)
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    try:
+        slow = socket.create_connection(srv.server_address[:2], timeout=30)
+        slow.sendall(b"POST /estimate HTTP/1.1\r\n")
+        t0 = time.time()
+        try:
+            while time.time() - t0 < 20:
+                slow.sendall(b"X")  # a header that never ends, a byte a while: each read is quick, the whole never comes
+                time.sleep(0.3)
+        except OSError:
+            pass
+        assert time.time() - t0 < 10, "the dawdling client was not cut"
+        slow.close()
+        held = [socket.create_connection(srv.server_address[:2], timeout=30) for _ in range(svc.MAX_PER_ADDRESS)]
+        time.sleep(0.3)
+        extra = raw_request(srv, b"GET /health HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+        assert b" 503 " in extra and b"too many connections" in extra
+        for s in held:
+            s.close()
+        time.sleep(2.0)
+        assert call(srv, "GET", "/health")[0] == 200
+        assert call(srv, "POST", "/estimate", request_body(frame))[0] == 200
+    finally:
+        srv.shutdown()
+        srv.server_close()

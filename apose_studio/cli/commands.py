@@ -166,7 +166,8 @@ def cmd_serve(args) -> int:
     overrides = param_overrides(args)
     params_of(args, asm.registration)  # a bad --param is said now, not on the first request
     t0 = time.perf_counter()
-    service = EstimationService(asm, args.preset, overrides, queue=args.queue)
+    service = EstimationService(asm, args.preset, overrides, queue=args.queue,
+                                **({"max_pixels": args.max_pixels} if args.max_pixels else {}))
     try:
         server = make_server(service, args.host, args.port, args.token)
     except OSError as e:
@@ -494,6 +495,8 @@ def _add_serve(sub) -> None:
                    "characters of A-Z a-z 0-9 - _); default: none on loopback, a new random one otherwise")
     p.add_argument("--queue", type=_count(1, 256), default=8, help="requests in the service at once (one estimating, the "
                    "rest waiting); the next gets 503 (default 8)")
+    p.add_argument("--max-pixels", type=_count(10_000, 50_000_000), default=None, metavar="N",
+                   help="the largest frame taken, in pixels (default 2304000: 1920x1200); a bigger one gets 413")
     estimator_args(p, per_frame=False)
     p.set_defaults(func=cmd_serve)
 

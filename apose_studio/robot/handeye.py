@@ -116,8 +116,11 @@ def matrix(value, where: str, key: str) -> np.ndarray:
     """A 4x4 rigid transform in metres, checked: 16 finite numbers, last row 0 0 0 1, a rotation (orthonormal,
     determinant +1), a translation within MAX_REACH_M."""
     try:
+        kind = np.asarray(value).dtype.kind  # true/false or text are not numbers, whatever float() makes of them
         T = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
+        kind = "?"
+    if kind not in "iuf":
         raise AposeError(f"{where}: {key} must be a 4x4 matrix of numbers (4 rows of 4)") from None
     if T.shape == (16,):
         T = T.reshape(4, 4)

@@ -74,6 +74,9 @@ def test_our_forms_and_a_bare_matrix(tmp_path):
     ("T_robot_camera: [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0.5, 0, 0, 1]]", "transposed"),
     ("T_robot_camera: [[1, 0, 0, .nan], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]", "NaN"),
     ("camera: {x: 1}", "missing T_robot_camera"),
+    ("T_robot_camera: [[true, false, false, false], [false, true, false, false], [false, false, true, false], "
+     "[false, false, false, true]]", "matrix of numbers"),
+    ("T_robot_camera: [['1', 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]", "matrix of numbers"),
     ("parameters: {calibration_type: eye_on_base}\ntransform: {translation: {x: 0, y: 0}, rotation: {x: 0, y: 0, z: 0, "
      "w: 1}}", "transform.translation.z"),
     ("parameters: {calibration_type: eye_on_base}\ntransform: {translation: {x: 0, y: 0, z: 0}, rotation: {x: 0, y: 0, "
