@@ -41,6 +41,7 @@ from apose_studio.studio.inspect_panel import EstimateJob, InspectPanel
 from apose_studio.studio.mates_panel import MatesPanel
 from apose_studio.studio.prompt_panel import PromptPanel
 from apose_studio.studio.results_view import ResultsView
+from apose_studio.studio.robot_panel import RobotPanel
 from apose_studio.studio.state import Event, Events, StudioState, shared
 from apose_studio.studio.steps_panel import StepsPanel
 from apose_studio.studio.views_panel import ViewsPanel
@@ -58,7 +59,7 @@ class Studio:
 
     Panels (each owns its folders; only the app calls them): `files` (File, Parts), `steps` (Steps,
     Preview), `mates` (Mates, Approach), `grasps` (Grasps), `inspect` (Data, Estimate), `prompt` (Prompt), `views` (Views),
-    `results` (replay, Result, Layers). Shared: `state` (the data) and `events` (the hub)."""
+    `results` (replay, Result, Layers), `robot` (Robot). Shared: `state` (the data) and `events` (the hub)."""
 
     files: AssemblyPanel
     steps: StepsPanel
@@ -67,6 +68,7 @@ class Studio:
     inspect: InspectPanel
     prompt: PromptPanel
     views: ViewsPanel
+    robot: RobotPanel
     results: ResultsView
     state: StudioState
     events: Events
@@ -101,6 +103,7 @@ class Studio:
         self.prompt = PromptPanel(self)
         self.views = ViewsPanel(self)  # before results: a frame change refreshes the views, then draws
         self.results = ResultsView(self)
+        self.robot = RobotPanel(self)  # after results: its targets are listed once the view is drawn
         with self.lock:  # a page that connects while the start-up files load waits for them
             screen_messages(server, lambda *a, **k: self.notify(*a, **k))  # before any page's message is handled
             self.build_gui()
@@ -235,6 +238,7 @@ class Studio:
             self.prompt.build()
             self.views.build()
             self.results.build()
+            self.robot.build()
         self.server.scene.add_grid("/grid", width=1.0, height=1.0, cell_size=0.01, section_size=0.1,
                                    plane="xy", position=(0.0, 0.0, -0.0005))
         self.show_view("Assembly")

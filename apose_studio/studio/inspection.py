@@ -13,10 +13,12 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from apose_studio.api import pose_estimate, robot_targets
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.geometry.raycast import raycast_depth
 from apose_studio.registration import RegistrationResult, doubts
+from apose_studio.robot.targets import Targets
 
 RED = (220, 40, 40)
 BLUE = (40, 90, 230)
@@ -294,3 +296,23 @@ def box_from_view_rect(points_world: np.ndarray, T_world_view: np.ndarray, fov: 
         return None
     lo, hi = np.floor(uv.min(axis=0)), np.ceil(uv.max(axis=0)) + 1
     return (int(max(lo[0], 0)), int(max(lo[1], 0)), int(min(hi[0], cam.width)), int(min(hi[1], cam.height)))
+
+
+def robot_targets_shown(ins, asm, ctx):
+    """The pick-and-place targets of what the Inspect tab shows, in the robot's frame (api.robot_targets): the
+    estimate on show (`ins.result`) placed, the loose part's estimate in this frame (`ins.picks`) picked, by the
+    part's first grasp, with the Robot folder's calibration (`ins.hand_eye`, `ins.T_robot_flange`). None
+    without a calibration or a frame; without an estimate, only T_robot_camera (the robot base's axes)."""
+    he, fr = ins.hand_eye, ins.frame
+    if he is None or fr is None:
+        return None
+    pick = ins.picks.get((fr.source, fr.im_id, ins.step))
+    r = ins.result
+    if r is None:
+        t = Targets(he.robot_frame, he.camera_frame, he.T_robot_camera(ins.T_robot_flange),
+                    notes=["not estimated yet: Estimate frame gives the place targets"])
+        if pick is None:
+            return t
+        r = RegistrationResult(ok=False, reason="not estimated yet")
+    est = pose_estimate(r, fr.T_world_camera, ctx.view, None, "", {})
+    return robot_targets(est, asm, ctx, he, None, pick, ins.T_robot_flange)

@@ -134,13 +134,16 @@ class ResultsView:
             for name in ("/inspect/base_est", "/inspect/ghost", "/inspect/gripper"):
                 if name in self.app.nodes:
                     self.app.nodes.pop(name).remove()
+        labels += self.draw_robot(fr)
         if r is not None and len(r.target_cloud):
             tgt = inspection.thin(r.target_cloud, 20000).astype(np.float32)
             self.app.node("/inspect/target", scene.add_point_cloud("/inspect/target", tgt, inspection.RED, point_size=d / 120,
                                                                 point_shape="circle", precision="float32"))  # float16
             # (viser's default) rounds positions to 0.25-0.5 mm at half a metre: as much as the fits it shows
             labels.append(("target cloud", tgt[np.argmax(tgt[:, 2])], "bottom-right"))
-        self.i_legend.content = legend_html({text for text, _, _ in labels} | ({"source cloud"} if r is not None and r.ok else set()))
+        grippers = {"gripper"} if {"/inspect/gripper_pick", "/inspect/gripper_preplace"} & set(self.app.nodes) else set()
+        self.i_legend.content = legend_html({text for text, _, _ in labels} | grippers |
+                                            ({"source cloud"} if r is not None and r.ok else set()))
         for k, (text, where, anchor) in enumerate(labels):
             name = f"/inspect/label_{k}"
             self.app.node(name, scene.add_label(name, text, position=tuple(float(v) for v in where), anchor=anchor,
@@ -198,6 +201,52 @@ class ResultsView:
         self.posed_mesh("/inspect/gripper", mesh, T_world_part @ g.T_part_gripper, lambda: self.app.server.scene.add_mesh_simple(
             "/inspect/gripper", *mesh, color=inspection.GRIPPER, flat_shading=True))
         return g
+
+    def draw_robot(self, fr) -> list[tuple]:
+        """What the robot does about the step's part, in the world: the gripper (by the part's first grasp) at the
+        pre-place where the step has an approach, and at the pick where the Robot folder found the loose part;
+        the robot base's axes where it has a hand-eye calibration. Returns their labels."""
+        ins, scene = self.app.state.inspect, self.app.server.scene
+        asm = self.app.state.inspect_assembly()
+        step = asm.steps[ins.step - 1]
+        part = asm.parts.get(step.part)
+        grasp = part.grasps[0] if part is not None and part.grasps else None
+        r, pick = ins.result, ins.picks.get((fr.source, fr.im_id, ins.step))
+        poses = {}
+        if grasp is not None and r is not None and r.ok and step.approach is not None:
+            poses["/inspect/gripper_preplace"] = step.approach.start(r.T_world_part, r.T_world_base) @ grasp.T_part_gripper
+        if grasp is not None and pick is not None and pick.ok:  # the loose part's estimate: its base is the part
+            poses["/inspect/gripper_pick"] = pick.T_world_base @ grasp.T_part_gripper
+        labels = []
+        for name in ("/inspect/gripper_preplace", "/inspect/gripper_pick"):
+            if name not in poses:
+                if name in self.app.nodes:
+                    self.app.nodes.pop(name).remove()
+                continue
+            key = (grasp.width, asm.gripper)
+            if self._gripper[0] != key:
+                m = gripper_mesh(grasp.width, asm.gripper)
+                self._gripper = (key, (np.asarray(m.vertices, np.float32), np.asarray(m.faces, np.uint32)))
+            mesh = self._gripper[1]
+            opacity = 0.35 if name.endswith("preplace") else 1.0  # the approach's start: fainter, as in the Assembly tab
+            self.posed_mesh(name, mesh, poses[name], lambda name=name, mesh=mesh, opacity=opacity: scene.add_mesh_simple(
+                name, *mesh, color=inspection.GRIPPER, flat_shading=True, opacity=opacity))
+            labels.append(("pre-place" if name.endswith("preplace") else "pick", poses[name][:3, 3], "top-left"))
+        T_world_robot = None
+        if ins.hand_eye is not None:
+            try:
+                T_world_robot = fr.T_world_camera @ se3.inv(ins.hand_eye.T_robot_camera(ins.T_robot_flange))
+            except AposeError:  # eye-in-hand without the arm's pose for this frame: the Robot folder says so
+                T_world_robot = None
+        if T_world_robot is None:
+            if "/inspect/robot" in self.app.nodes:
+                self.app.nodes.pop("/inspect/robot").remove()
+        else:
+            length = max(0.1, 1.5 * self.app.state.part_model().diameter)
+            self.app.node("/inspect/robot", scene.add_frame("/inspect/robot", axes_length=length, axes_radius=length / 40,
+                                                         wxyz=wxyz(T_world_robot), position=pos(T_world_robot)))
+            labels.append((f"robot base ({ins.hand_eye.robot_frame})", T_world_robot[:3, 3], "top-left"))
+        return labels
 
     def posed_mesh(self, name: str, mesh, T_world_mesh: np.ndarray, make) -> None:
         """Node `name` showing `mesh` at T_world_mesh: the node already showing that mesh is moved (a pose is a
@@ -394,7 +443,8 @@ class ResultsView:
         which = {"/inspect/scene": "scene cloud", "/inspect/target": "target cloud", "/inspect/source": "source cloud",
                  "/inspect/box_gt": "boxes", "/inspect/box_est": "boxes", "/inspect/box_alt": "boxes",
                  "/inspect/ghost": "part at estimate", "/inspect/base_est": "base at estimate", "/inspect/camera": "camera",
-                 "/inspect/gripper": "gripper"}
+                 "/inspect/gripper": "gripper", "/inspect/gripper_preplace": "gripper", "/inspect/gripper_pick": "gripper",
+                 "/inspect/robot": "robot base"}
         which.update({n: "labels" for n in self.app.nodes if n.startswith("/inspect/label_")})
         for name, layer in which.items():
             if name in self.app.nodes:

@@ -88,7 +88,8 @@ class Events:
 @dataclass
 class InspectState:
     """The Inspect tab's data. Written by the Inspect panel (data, step, frame, estimate, mask source),
-    the Views panel (a fused estimate) and the Prompt panel (prompt text); read by the others."""
+    the Views panel (a fused estimate), the Prompt panel (prompt text) and the Robot panel (hand-eye, pick
+    estimates); read by the others."""
 
     frames: Dataset | Frame | None = None  # the opened dataset, or a capture (one Frame)
     frames_path: str | None = None  # where it was opened from (results are cached under it)
@@ -101,6 +102,9 @@ class InspectState:
     prompt_text: str = ""  # the Prompt field: a box x0,y0,x1,y1 or a point u,v, in pixels
     prompt_masks: dict = field(default_factory=dict)  # (frame source, im_id, step, prompt) -> mask
     part_models: dict = field(default_factory=dict)  # id(assembly) -> its PartModels (one assembly's)
+    hand_eye: object | None = None  # the cell's calibration (robot.handeye.HandEye) from the Robot folder, or None
+    T_robot_flange: np.ndarray | None = None  # eye-in-hand: the arm at the capture (its camera.json, else the file's)
+    picks: dict = field(default_factory=dict)  # (frame source, im_id, step) -> the loose part's estimate there
 
 
 @dataclass

@@ -22,7 +22,7 @@ DEG_RANGE = {"min": -MAX_ANGLE_DEG, "max": MAX_ANGLE_DEG}  # a typed angle in de
 VECTOR_MM = {k: (v,) * 3 for k, v in MM_RANGE.items()}
 VECTOR_DEG = {k: (v,) * 3 for k, v in DEG_RANGE.items()}
 LAYERS = ("scene cloud", "target cloud", "source cloud", "boxes", "part at estimate", "base at estimate", "gripper",
-          "labels", "camera")
+          "robot base", "labels", "camera")
 
 
 SHARP_EDGE_DEG = 30.0  # faces meeting at a sharper angle than this are drawn with a crease, not smoothed over

@@ -1,6 +1,7 @@
 """End to end: the real studio page in headless Chromium (Debian's, driven by Playwright), as a user
 would use it. Screenshots land in artifacts/e2e/ (look at them: they are the review of the page)."""
 
+import json
 import os
 import re
 import shutil
@@ -968,4 +969,53 @@ def test_author_a_grasp_by_clicking_the_part(browser, studio, tmp_path):
     shot(page, "grasp_added.png")
     page.get_by_role("button", name="Save").click()
     wait_until(lambda: len(load_assembly(path).parts["carrier"].grasps) == 2, "the file to hold the grasp")
+    page.close()
+
+
+def test_robot_targets_of_a_capture_in_the_robot_frame(browser, studio, tmp_path):
+    """#29 in the Inspect tab: a capture of a loose part beside its place (two carriers: the loose twin has the
+    base's shape), a hand-eye file, a typed box, Estimate frame, then the Robot folder's pick prompt and Estimate
+    pick: the robot base's axes, the gripper at the place, pre-place and pick are drawn, and the targets are listed
+    in the robot's frame."""
+    from apose_studio.estimation import truth_box
+    from apose_studio.geometry import se3
+
+    from ..conftest import rendered_frame, write_capture
+    from ..studio.test_robot_panel import T_ROBOT_WORLD, two_carriers
+
+    asm = two_carriers(tmp_path)
+    frame = rendered_frame(asm, 1, 0, noise="realsense", seed=3)
+    cap = write_capture(frame, tmp_path / "capture")
+    T_robot_camera = T_ROBOT_WORLD @ frame.T_world_camera
+    (tmp_path / "cell.json").write_text(json.dumps({"T_robot_camera": T_robot_camera.tolist(), "robot_frame": "ur_base"}))
+    page = open_page(browser, studio)
+    type_into(page, "Assembly file", str(asm))
+    page.get_by_role("button", name="Open").click()
+    wait_until(lambda: len(studio.asm.steps) == 1, "the assembly to open")
+    open_data(page, studio, cap)
+    box = ",".join(map(str, truth_box(frame.base_mask())))
+    type_into(page, "Prompt (px)", box)
+    wait_until(lambda: studio.inspect.i_mask.value == "prompt", "Mask to switch to prompt")
+    page.get_by_role("button", name="Estimate frame").click()
+    wait_until(lambda: studio.inspect.result is not None, "the estimate", timeout=120)
+    page.get_by_text("Robot", exact=True).click()  # the folder opens
+    type_into(page, "Hand-eye file", str(tmp_path / "cell.json"))
+    page.get_by_role("button", name="Use hand-eye").click()
+    wait_until(lambda: "/inspect/robot" in studio.nodes, "the robot base's axes")
+    type_into(page, "Pick prompt (px)", box)
+    page.get_by_role("button", name="Estimate pick").click()
+    wait_until(lambda: "/inspect/gripper_pick" in studio.nodes, "the gripper at the pick", timeout=120)
+    expect(page.get_by_text("ur_base", exact=False).first).to_be_visible()
+    expect(page.get_by_role("cell", name="pre-place")).to_be_visible()
+    expect(page.get_by_role("cell", name="pick", exact=True)).to_be_visible()
+    assert {"/inspect/gripper", "/inspect/gripper_preplace"} <= set(studio.nodes)
+    # the robot base as the calibration puts it, in the studio's world of the capture
+    T = se3.make_T(se3.quat_wxyz_to_matrix(np.asarray(studio.nodes["/inspect/robot"].wxyz)),
+                   np.asarray(studio.nodes["/inspect/robot"].position))
+    np.testing.assert_allclose(T, studio.inspect.frame.T_world_camera @ se3.inv(T_robot_camera), atol=1e-6)
+    cam = client_of(studio, page).camera
+    p = studio.inspect.result.T_world_part[:3, 3]
+    turn_view(cam, p + np.array([0.25, -0.25, 0.3]), p)  # beside and above: the grippers and the robot's axes
+    time.sleep(1.5)
+    shot(page, "robot_targets.png")
     page.close()

@@ -1,0 +1,162 @@
+"""The Inspect tab's Robot folder: the cell's hand-eye calibration, where to pick the loose part, and the
+pick-and-place targets of the estimate on show in the robot's frame (docs/ROBOT.md).
+
+'Use hand-eye' reads a calibration file (robot.handeye: ours, a bare 4x4, easy_handeye2's); an eye-in-hand
+calibration takes the arm's T_robot_flange from the capture's camera.json, else from the file. 'Estimate
+pick' finds the step's part where it lies in this frame, prompted by a box or a point around it (the same
+registration with the part's own CAD as the base: estimation.estimate_pick). The targets (place, pre-place,
+pick, lift: the gripper's TCP by the part's first grasp) are listed here in the robot's frame, in mm and
+wxyz, and can be downloaded as the JSON `apose estimate --hand-eye --json` adds; the 3D view (results_view)
+draws the robot base's axes and the gripper at each target.
+
+The calibration and the pick estimates live in the shared state (`state.inspect.hand_eye`,
+`T_robot_flange`, `picks`); a change emits RESULT_READY, on which the 3D view and this folder redraw."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from apose_studio.data.dataset import Dataset
+from apose_studio.errors import AposeError
+from apose_studio.estimation import estimate_pick
+from apose_studio.geometry import se3
+from apose_studio.registration import doubts
+from apose_studio.registration.types import View
+from apose_studio.robot.handeye import capture_flange, read_hand_eye
+from apose_studio.studio import inspection
+from apose_studio.studio.prompt_panel import parse_prompt, prompted_mask
+from apose_studio.studio.state import Event
+from apose_studio.studio.widgets import esc
+
+ROWS = (("T_robot_gripper_place", "place"), ("T_robot_gripper_preplace", "pre-place"),
+        ("T_robot_gripper_pick", "pick"), ("T_robot_gripper_lift", "lift"), ("T_robot_part", "part placed"),
+        ("T_robot_part_pick", "part where it lies"))
+
+
+def targets_markdown(t) -> str:
+    """The targets as a table: position (mm) and quaternion (wxyz) in the robot's frame, with the frame's name,
+    the grasp, how many symmetry-equivalent placements there are, and the notes."""
+    if t is None:
+        return ""
+    rows = []
+    for key, label in ROWS:
+        T = getattr(t, key)
+        if T is not None:
+            p, q = T[:3, 3] * 1000.0, se3.matrix_to_quat_wxyz(T[:3, :3])
+            rows.append(f"| {label} | {p[0]:.1f}, {p[1]:.1f}, {p[2]:.1f} | {q[0]:.4f}, {q[1]:.4f}, {q[2]:.4f}, {q[3]:.4f} |")
+    head = f"In **{esc(t.robot_frame)}** (robot base), gripper TCP" + (f" by grasp **{esc(t.grasp)}**" if t.grasp else "")
+    lines = [head + ":"]
+    if rows:
+        lines.append("| target | t (mm) | q (wxyz) |\n|---|---|---|\n" + "\n".join(rows))
+    if t.gripper_alternatives:
+        lines.append(f"{len(t.gripper_alternatives)} other place target(s), one per symmetry-equivalent placement "
+                     "(in the download)")
+    if t.pick is not None and not t.pick.get("ok"):
+        lines.append(f"Pick: {esc(str(t.pick.get('reason', '')))}")
+    elif t.pick is not None and not t.pick.get("confident"):
+        lines.append(f"Pick not confident: {esc(str(t.pick.get('doubts', '')))}")
+    lines += [esc(n) for n in t.notes]
+    return "\n\n".join(lines)
+
+
+class RobotPanel:
+    def __init__(self, app):
+        self.app = app
+        app.events.on(Event.FRAME_CHANGED, self.show_targets)
+        app.events.on(Event.RESULT_READY, self.show_targets)
+
+    def build(self) -> None:
+        gui = self.app.server.gui
+        with gui.add_folder("Robot", expand_by_default=False):
+            self.i_hand_eye = gui.add_text("Hand-eye file", "", hint="the camera in the robot's frame: JSON/YAML with "
+                                           "T_robot_camera or T_flange_camera, a bare 4x4, or easy_handeye2's calibration")
+            b = gui.add_button("Use hand-eye", hint="draw the robot base's axes and list the gripper's targets in its frame")
+            b.on_click(self.app.guarded("Hand-eye")(self.on_use_hand_eye))
+            self.i_pick = gui.add_text("Pick prompt (px)", "", hint="a box x0,y0,x1,y1 or a point u,v on the loose part in "
+                                       "this frame: where the robot picks it")
+            b = gui.add_button("Estimate pick", hint="find the loose part where it lies (its own CAD as the base)")
+            b.on_click(self.app.guarded("Estimate pick")(self.on_estimate_pick))
+            self.i_targets = gui.add_markdown("")
+            b = gui.add_button("Download targets (JSON)", hint="the targets as `apose estimate --hand-eye --json` "
+                               "gives them: 4x4 in metres, both quaternion orders")
+            b.on_click(self.app.guarded("Download targets")(self.on_download))
+
+    def on_use_hand_eye(self, client) -> None:
+        ins = self.app.state.inspect
+        text = self.i_hand_eye.value.strip()
+        if not text:
+            ins.hand_eye = ins.T_robot_flange = None
+            if ins.frame is not None:
+                self.app.events.emit(Event.RESULT_READY)
+            self.app.notify(client, "Hand-eye", "none: the robot frame is no longer shown")
+            return
+        he = read_hand_eye(self.app.workspace.resolve(text, "hand-eye calibration file"))
+        flange = None
+        if he.kind == "eye_in_hand":
+            if ins.frames is not None and not isinstance(ins.frames, Dataset) and ins.frames_path:
+                flange = capture_flange(Path(ins.frames_path))  # the arm's pose when this capture was taken
+            if flange is None and he.T_robot_flange is None:
+                raise AposeError(f"{text}: an eye-in-hand calibration needs the arm's T_robot_flange at the capture: put "
+                                 "it in the capture's camera.json (key T_robot_flange) or in the calibration file")
+        ins.hand_eye, ins.T_robot_flange = he, flange
+        if ins.frame is not None:  # else drawn when a frame opens (FRAME_CHANGED)
+            self.app.events.emit(Event.RESULT_READY)
+        where = "the capture's camera.json" if flange is not None else "the file" if he.kind == "eye_in_hand" else ""
+        self.app.notify(client, "Hand-eye", f"{he.kind.replace('_', '-')} calibration, robot frame {he.robot_frame}"
+                        + (f"; the arm's pose from {where}" if where else "") + "; the robot base's axes are drawn")
+
+    def on_estimate_pick(self, client) -> None:
+        ins = self.app.state.inspect
+        fr = ins.frame
+        if fr is None:
+            raise AposeError("open a capture or dataset first, then box the loose part in 'Pick prompt (px)'")
+        text = self.i_pick.value.strip()
+        if not text:
+            raise AposeError("type a box x0,y0,x1,y1 or a point u,v around the loose part into 'Pick prompt (px)'")
+        prompt = parse_prompt(text)
+        mask = prompted_mask(ins.prompt_masks, fr, prompt)
+        if not mask.any():
+            raise AposeError("the pick prompt gives an empty mask: box the loose part itself")
+        ctx = self.app.step_context(ins.step)
+        params = self.app.estimate_job(ins.step, [fr.im_id]).params()
+        view = View(fr.depth, mask, fr.camera, fr.T_world_camera, rgb=fr.rgb, box=prompt[0])
+        r = estimate_pick(view, ctx.part, params)
+        ins.picks[(fr.source, fr.im_id, ins.step)] = r
+        self.app.events.emit(Event.RESULT_READY)
+        if not r.ok:
+            self.app.notify(client, "Pick not found", r.reason, error=True)
+        elif not r.confident:
+            self.app.notify(client, "Pick found, not confident", doubts(r), error=True)
+        else:
+            self.app.notify(client, "Pick found", "the gripper is drawn where it picks the part"
+                            + ("" if ins.hand_eye is not None else "; use a hand-eye file for its pose in the robot's frame"))
+
+    def targets(self):
+        """The targets of what is on show (inspection.robot_targets_shown), or None."""
+        ins = self.app.state.inspect
+        if ins.hand_eye is None or ins.frame is None or ins.step is None:
+            return None
+        return inspection.robot_targets_shown(ins, self.app.state.inspect_assembly(), self.app.step_context(ins.step))
+
+    def show_targets(self) -> None:
+        try:
+            t = self.targets()
+        except AposeError as e:  # e.g. an eye-in-hand calibration and a frame without the arm's pose
+            self.i_targets.content = esc(str(e))
+            return
+        self.i_targets.content = targets_markdown(t)
+
+    def on_download(self, client) -> None:
+        t = self.targets()
+        if t is None:
+            raise AposeError("use a hand-eye file first (and Estimate frame): the targets are in the robot's frame")
+        if t.T_robot_gripper_place is None and t.T_robot_gripper_pick is None:
+            raise AposeError("no target yet: Estimate frame (place) or Estimate pick first")
+        if client is None:
+            raise AposeError("no browser to send the download to")
+        ins = self.app.state.inspect
+        doc = {"source": ins.frames_path, "step": ins.step, "frame": int(ins.frame.im_id), **t.to_json()}
+        client.send_file_download(f"targets_step{ins.step}_frame{ins.frame.im_id}.json",
+                                  json.dumps(doc, indent=1).encode("utf-8"))
+

@@ -1,0 +1,112 @@
+"""The Inspect tab's Robot folder: a hand-eye file draws the robot base where the calibration puts it, the
+estimate's targets are listed in the robot's frame, and 'Estimate pick' finds the loose part and draws the
+gripper where it picks it. Checked against the frame's own truth (the renderer's poses), not the code's."""
+
+import json
+import shutil
+
+import numpy as np
+
+from apose_studio.estimation import truth_box
+from apose_studio.geometry import se3
+
+from ..conftest import SAMPLES, rendered_frame, write_capture
+from .conftest import act, errors
+
+# the robot's base in the rendered world: 0.6 m along x, turned 30 deg about z
+T_ROBOT_WORLD = se3.make_T(se3.axis_angle_matrix([0, 0, 1], np.radians(30)), [0.6, -0.2, 0.05])
+GRASP = se3.make_T(np.diag([1.0, -1.0, -1.0]), [0, 0, 0.016])  # the twin's grasp below: 16 mm up, fingers down
+
+
+def two_carriers(folder):
+    """A part with its base's shape (two carriers): where the loose one lies is the base's true pose."""
+    shutil.copy(SAMPLES / "planetary_reducer" / "carrier.ply", folder / "carrier.ply")
+    (folder / "two.yaml").write_text(
+        "format: apose-assembly/1\nname: two\nunits: mm\nparts:\n  carrier: {mesh: carrier.ply}\n  twin:\n"
+        "    mesh: carrier.ply\n    grasps:\n      - name: shaft\n        pose_in_part: {translation: [0, 0, 16], "
+        "rotation: {euler_deg: [180, 0, 0], order: xyz}}\n        width: 8\nsteps:\n  - part: twin\n    base: [carrier]\n"
+        "    pose_in_base: {translation: [60, 0, 0]}\n    approach: {direction: [0, 0, -1], distance: 40}\n")
+    return folder / "two.yaml"
+
+
+def node_T(node) -> np.ndarray:
+    return se3.make_T(se3.quat_wxyz_to_matrix(np.asarray(node.wxyz)), np.asarray(node.position))
+
+
+def test_robot_folder_draws_the_cell_and_the_gripper_at_place_preplace_and_pick(studio, tmp_path):
+    asm = two_carriers(tmp_path)
+    frame = rendered_frame(asm, 1, 0, noise="realsense", seed=3)
+    cap = write_capture(frame, tmp_path / "capture")
+    T_robot_camera = T_ROBOT_WORLD @ frame.T_world_camera
+    (tmp_path / "cell.json").write_text(json.dumps({"T_robot_camera": T_robot_camera.tolist(), "robot_frame": "ur_base"}))
+    st = studio(asm)
+    st.inspect.i_path.value = str(cap)
+    act(st, st.inspect.on_open_data)
+    box = ",".join(map(str, truth_box(frame.base_mask())))
+    st.prompt.i_prompt.value = box
+    st.robot.i_hand_eye.value = str(tmp_path / "cell.json")
+    act(st, st.robot.on_use_hand_eye)
+    assert errors(st) == []
+    # the robot base where the calibration puts it, before any estimate (the studio's world of a capture is its
+    # own choice: the table level, seen from the camera)
+    Tc = st.state.inspect.frame.T_world_camera
+    np.testing.assert_allclose(node_T(st.nodes["/inspect/robot"]), Tc @ se3.inv(T_robot_camera), atol=1e-6)
+    assert "ur_base" in st.robot.i_targets.content and "Estimate frame gives the place targets" in st.robot.i_targets.content
+
+    act(st, lambda c: st.inspect.run_estimation(False, c))
+    assert st.state.inspect.result is not None and st.state.inspect.result.ok
+    md = st.robot.i_targets.content
+    assert "| place |" in md and "| pre-place |" in md and "| pick |" not in md
+    # the listed place is the truth's (mm): the part's true pose in the robot frame composed with the grasp
+    T_camera_part_true = se3.inv(frame.T_world_camera) @ frame.T_world_part
+    true_place = T_robot_camera @ T_camera_part_true @ GRASP
+    row = next(line for line in md.splitlines() if line.startswith("| place |"))
+    listed = np.array([float(v) for v in row.split("|")[2].split(",")])
+    assert np.linalg.norm(listed - true_place[:3, 3] * 1000) < 5.0, (listed, true_place[:3, 3] * 1000)
+    # the gripper drawn at the pre-place: 40 mm back along the approach from the place, fainter
+    pre = node_T(st.nodes["/inspect/gripper_preplace"])
+    place = node_T(st.nodes["/inspect/gripper"])
+    np.testing.assert_allclose(pre[:3, :3], place[:3, :3], atol=1e-5)
+    assert abs(np.linalg.norm(pre[:3, 3] - place[:3, 3]) - 0.040) < 1e-4
+
+    # the pick: the loose part (here the base's twin) found where it lies, the gripper drawn by its grasp
+    st.robot.i_pick.value = box
+    act(st, st.robot.on_estimate_pick)
+    assert [n for n in errors(st) if "Pick" in n[0] and "not confident" not in n[0]] == []
+    picked = node_T(st.nodes["/inspect/gripper_pick"])
+    truth = Tc @ se3.inv(frame.T_world_camera) @ frame.T_world_base @ GRASP
+    assert np.linalg.norm(picked[:3, 3] - truth[:3, 3]) < 0.005
+    md = st.robot.i_targets.content
+    assert "| pick |" in md and "| lift |" in md
+    assert "gripper" in st.results.i_legend.content
+    # the Layers checkbox hides the robot base
+    st.results.layers["robot base"].value = False
+    st.results.apply_layers()
+    assert st.nodes["/inspect/robot"]._apose_visible is False
+
+
+def test_robot_folder_refusals_name_the_fix(studio, tmp_path):
+    asm = two_carriers(tmp_path)
+    frame = rendered_frame(asm, 1, 0, noise="realsense", seed=3)
+    cap = write_capture(frame, tmp_path / "capture")
+    st = studio(asm)
+    act(st, st.robot.on_estimate_pick)
+    assert "open a capture" in errors(st)[-1][1]
+    st.inspect.i_path.value = str(cap)
+    act(st, st.inspect.on_open_data)
+    act(st, st.robot.on_estimate_pick)
+    assert "Pick prompt (px)" in errors(st)[-1][1]
+    # eye-in-hand without the arm's pose at the capture: says where to put it
+    (tmp_path / "hand.json").write_text(json.dumps({"T_flange_camera": np.eye(4).tolist()}))
+    st.robot.i_hand_eye.value = str(tmp_path / "hand.json")
+    act(st, st.robot.on_use_hand_eye)
+    assert "T_robot_flange" in errors(st)[-1][1] and "camera.json" in errors(st)[-1][1]
+    assert st.state.inspect.hand_eye is None and "/inspect/robot" not in st.nodes
+    # a millimetre calibration: refused by the reader, naming the key
+    bad = se3.make_T(np.eye(3), [600.0, 0, 50.0])
+    (tmp_path / "mm.json").write_text(json.dumps({"T_robot_camera": bad.tolist()}))
+    st.robot.i_hand_eye.value = str(tmp_path / "mm.json")
+    act(st, st.robot.on_use_hand_eye)
+    assert "T_robot_camera" in errors(st)[-1][1]
+    act(st, st.robot.on_download)
+    assert "hand-eye" in errors(st)[-1][1]
