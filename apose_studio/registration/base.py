@@ -3,6 +3,8 @@ samples, symmetries, and the per-step caches the searches use (model features, n
 
 from __future__ import annotations
 
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -21,6 +23,9 @@ from apose_studio.geometry.symmetry import (
 )
 from apose_studio.params import Params
 from apose_studio.registration.stages import cloud, normals_fpfh
+
+RAYS_KEPT = 8  # the last casts of a base kept (raycast_source): a frame casts ~8, the last one again
+_RAYS_LOCK = threading.Lock()
 
 
 @dataclass(frozen=True, eq=False)
@@ -176,4 +181,14 @@ def raycast_source(base: BaseObject, T_world_source: np.ndarray, T_world_camera:
     at the target's centre); otherwise it is the real camera. Returns world points and normals.
     """
     T_cam = T_world_camera if look_at is None else se3.look_at(T_world_camera[:3, 3], look_at)
-    return raycast_points(base.mesh, T_world_source, T_cam, cam)
+    key = (np.asarray(T_world_source, float).tobytes(), np.asarray(T_cam, float).tobytes(), cam)
+    with _RAYS_LOCK:
+        rays = base._features.setdefault("rays", OrderedDict())
+        hit = rays.get(key)
+    if hit is None:  # else the same cast again (the judge's at the chosen pose, then the mask cut there): ~4 ms
+        hit = raycast_points(base.mesh, T_world_source, T_cam, cam)
+        with _RAYS_LOCK:
+            rays[key] = hit
+            while len(rays) > RAYS_KEPT:
+                rays.popitem(last=False)
+    return hit[0].copy(), hit[1].copy()  # copies: a caller may change its arrays
