@@ -408,7 +408,7 @@ def decode_image(data: bytes, path, flags: int, what: str = "an image", depth: b
         head = image_header(data)
     except _Crafted as e:
         raise AposeError(f"{path}: {e}; the file is damaged or crafted: save {what} again as PNG") from None
-    out = {cv2.IMREAD_COLOR: 3, cv2.IMREAD_GRAYSCALE: 1}.get(flags, 0)
+    out = {cv2.IMREAD_COLOR: 3, getattr(cv2, "IMREAD_COLOR_RGB", cv2.IMREAD_COLOR): 3, cv2.IMREAD_GRAYSCALE: 1}.get(flags, 0)
     check_image_header(path, head, what, depth, out)
     fmt, w, h = head.format, head.width, head.height
     try:

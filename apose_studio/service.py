@@ -20,8 +20,13 @@ Rules, and why:
   sends nothing is dropped).
 - **A bad request gets a 4xx** whose `error` is the same one line the CLI prints (naming the key and the
   fix); an unexpected failure is a 500 with a short reason, logged; the service keeps answering.
-- **One estimate at a time**: on a 2-core machine the estimator already uses both cores (its nearest-
-  neighbour queries), and answers are deterministic whatever the load.
+- **`workers` estimates at a time** (default 2, 1 on one core): the estimator's nearest-neighbour queries
+  already use both cores of a 2-core machine, but much of an estimate runs on one, so two at once answer
+  waiting clients ~1.3x sooner; answers are the same bits whatever runs beside them (Open3D's seeded RANSAC,
+  whose random engine is the process's, runs one at a time: registration/stages.py).
+- **Bodies**: JSON with the images as base64 PNG (or .npy), or an NPZ archive (`Content-Type:
+  application/x-npz`: numpy.savez of `rgb`, `depth` and `request`, the other keys as JSON text), which spares
+  the base64 and PNG decoding (~8 ms of a 640x480 frame's ~13 ms overhead; benchmarks/serve.py).
 """
 
 from __future__ import annotations
@@ -29,13 +34,16 @@ from __future__ import annotations
 import binascii
 import ctypes
 import hmac
+import io
 import ipaddress
 import json
 import logging
+import os
 import secrets
 import socket
 import threading
 import time
+import zipfile
 from contextlib import contextmanager
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
@@ -58,10 +66,14 @@ MAX_CONNECTIONS = 32  # connections at once; beyond them a 503 at once
 MAX_PER_ADDRESS = 8  # ... from one address (one remote host cannot take them all)
 ARRIVAL_S = 30.0  # a request's headers and body must arrive within this of its connection (a slow client goes)
 BODIES_IN_FLIGHT = 4  # bodies being read at once, at most this many times max_body bytes declared in all
+DEFAULT_WORKERS = min(2, os.cpu_count() or 1)  # estimates at once (--workers): on 2 cores, two at a time answer
+# 4 waiting clients ~1.3x sooner than one (benchmarks/serve.py); more only share the same cores
 MAX_PIXELS = 1920 * 1200  # a frame's pixels (--max-pixels): depth cameras give at most ~1 MP aligned to colour
 REQUEST_KEYS = ("rgb_png_b64", "depth_png_b64", "rgb_npy_b64", "depth_npy_b64", "camera", "step", "box", "point", "hand_eye",
                 "T_robot_flange", "grasp", "pick_box", "pick_point", "orientation_prior")
 MAX_SIDE = 8192  # pixels a side of an array frame (as safeio's images)
+NPZ_TYPE = "application/x-npz"  # a body of numpy.savez(rgb=, depth=, request=json text): no base64, no PNG decoding
+RGB_FLAG = getattr(cv2, "IMREAD_COLOR_RGB", cv2.IMREAD_COLOR)  # decoded as RGB (OpenCV >= 4.10); see _rgb_of
 
 
 class BadRequest(AposeError):
@@ -73,11 +85,11 @@ class BadRequest(AposeError):
 
 
 class EstimationService:
-    """The warm part: one assembly, every step prepared, one estimate at a time, at most `queue` requests in it
-    (read, decoded and waiting for the estimator), frames of at most `max_pixels`."""
+    """The warm part: one assembly, every step prepared, `workers` estimates at a time, at most `queue` requests
+    in it (read, decoded and waiting for the estimator), frames of at most `max_pixels`."""
 
     def __init__(self, assembly: Assembly | str, preset: str = "default", overrides: dict | None = None, queue: int = 8,
-                 max_pixels: int = MAX_PIXELS):
+                 max_pixels: int = MAX_PIXELS, workers: int = DEFAULT_WORKERS):
         self.asm = assembly if isinstance(assembly, Assembly) else load_assembly(assembly)
         if not self.asm.steps:
             raise AposeError(f"{self.asm.path}: the assembly has no steps; nothing to estimate")
@@ -85,8 +97,9 @@ class EstimationService:
         self.params: Params = resolve_params(preset, self.asm.registration, **self.overrides)
         for k in range(1, len(self.asm.steps) + 1):  # warm: every step's base prepared now, not on the first call
             step_context(self.asm, k)[1].base.warm_up(self.params)
-        self.lock = threading.Lock()
-        self.queue = max(int(queue), 1)
+        self.workers = max(int(workers), 1)
+        self.lock = threading.BoundedSemaphore(self.workers)  # estimates at once (each answer the same whatever runs beside it)
+        self.queue = max(int(queue), self.workers)
         self.max_pixels = int(max_pixels)
         self._slots = threading.BoundedSemaphore(self.queue)
         self._busy = 0
@@ -95,7 +108,7 @@ class EstimationService:
 
     def health(self) -> dict:
         return {"ok": True, "assembly": self.asm.name, "steps": len(self.asm.steps), "busy": self._busy,
-                "queue": self.queue, "served": self.served}
+                "queue": self.queue, "workers": self.workers, "served": self.served}
 
     @contextmanager
     def slot(self):
@@ -112,9 +125,10 @@ class EstimationService:
                 self._busy -= 1
             self._slots.release()
 
-    def estimate(self, body: bytes) -> dict:
-        """The answer to one POST /estimate body (the caller holds a `slot`); raises BadRequest (4xx)."""
-        req = parse_request(body, len(self.asm.steps), self.max_pixels)
+    def estimate(self, body: bytes, npz: bool = False) -> dict:
+        """The answer to one POST /estimate body (JSON, or an NPZ archive: parse_request) (the caller holds a
+        `slot`); raises BadRequest (4xx)."""
+        req = parse_request(body, len(self.asm.steps), self.max_pixels, npz)
         view = step_context(self.asm, req["step"])[1].view
         if req["hand_eye"] is not None:  # a wrong grasp name is said before the estimate, by its request key
             try:
@@ -127,6 +141,7 @@ class EstimationService:
                                 orientation_prior=req["orientation_prior"], hand_eye=req["hand_eye"],
                                 grasp=req["grasp"], pick_box=req["pick_box"], pick_point=req["pick_point"],
                                 T_robot_flange=req["T_robot_flange"], preset=self.preset, **self.overrides)
+        with self._count:
             self.served += 1
         return {**est.to_json(), "step": req["step"], "part": view.part, "base": list(view.base),
                 "preset": self.params.preset}
@@ -143,19 +158,28 @@ def _b64(value, key: str) -> bytes:
 
 
 def _npy(value, key: str, dtype, ndim: int, max_pixels: int) -> np.ndarray:
-    """A .npy array (no pickles) of `dtype` and `ndim` dimensions (H x W x 3 colour, H x W depth), its shape
-    checked from its header before its data is read."""
-    import io
+    """A base64 .npy array (no pickles) of `dtype` and `ndim` dimensions (H x W x 3 colour, H x W depth), its
+    shape checked from its header before its data is read."""
+    return _npy_bytes(_b64(value, key), key, dtype, ndim, max_pixels)
 
-    f = io.BytesIO(_b64(value, key))
+
+def _npy_header(f) -> tuple:
+    """A .npy file's (shape, dtype) from its header alone (nothing allocated yet); ValueError otherwise."""
+    version = np.lib.format.read_magic(f)
+    read_header = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}.get(version)
+    if read_header is None:
+        raise ValueError(f".npy format version {version}")
+    shape, _, dt = read_header(f)
+    return shape, dt
+
+
+def _npy_bytes(data: bytes, key: str, dtype, ndim: int, max_pixels: int) -> np.ndarray:
+    """_npy on the .npy file's bytes."""
+    f = io.BytesIO(data)
     try:
-        version = np.lib.format.read_magic(f)
-        read_header = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}.get(version)
-        if read_header is None:
-            raise ValueError(f".npy format version {version}")
-        shape, _, dt = read_header(f)  # the header alone: nothing allocated yet
+        shape, dt = _npy_header(f)
     except (ValueError, OSError, SyntaxError) as e:
-        raise BadRequest(f"{key}: not a .npy array ({str(e)[:80]}); send numpy.save's bytes, base64-encoded") from None
+        raise BadRequest(f"{key}: not a .npy array ({str(e)[:80]}); send numpy.save's bytes") from None
     want = "H x W x 3" if ndim == 3 else "H x W"
     if np.dtype(dt) != np.dtype(dtype) or len(shape) != ndim or (ndim == 3 and shape[2] != 3) or \
             not all(0 < n <= MAX_SIDE for n in shape[:2]):
@@ -207,25 +231,123 @@ def _pixels(value, key: str, n: int):
     return out
 
 
-def parse_request(body: bytes, n_steps: int, max_pixels: int = 1920 * 1200) -> dict:
-    """A POST /estimate body as estimate_pose's arguments; BadRequest naming the key otherwise."""
+def _depth_of(req: dict, max_pixels: int) -> tuple:
+    """The request's depth image: (raw array, PNG header or None, its key)."""
+    if "depth_npy_b64" in req:
+        return _npy(req["depth_npy_b64"], "depth_npy_b64", np.uint16, 2, max_pixels), None, "depth_npy_b64"
+    raw, head = _image(_b64(req["depth_png_b64"], "depth_png_b64"), "depth_png_b64", cv2.IMREAD_UNCHANGED,
+                       "the depth image", max_pixels, depth=True)
+    return raw, head, "depth_png_b64"
+
+
+def _rgb_of(req: dict, max_pixels: int) -> np.ndarray:
+    """The request's colour image, H x W x 3 RGB."""
+    if "rgb_npy_b64" in req:
+        return _npy(req["rgb_npy_b64"], "rgb_npy_b64", np.uint8, 3, max_pixels)
+    img = _image(_b64(req["rgb_png_b64"], "rgb_png_b64"), "rgb_png_b64", RGB_FLAG, "the colour image", max_pixels)[0]
+    return img if RGB_FLAG != cv2.IMREAD_COLOR else img[..., ::-1]
+
+
+def _decode_both(req: dict, max_pixels: int) -> tuple:
+    """The depth (as _depth_of) and the colour image, decoded at the same time: the colour in a second thread
+    (OpenCV's decoders and base64 run without the GIL: of a 640x480 frame's ~12 ms, ~4 ms saved). Each image's
+    size is checked from its own header before it is decoded; the depth's refusal is said first."""
+    got: dict = {}
+
+    def colour() -> None:
+        try:
+            got["rgb"] = _rgb_of(req, max_pixels)
+        except BaseException as e:  # re-raised in the caller, after the depth's own refusal if it has one
+            got["error"] = e
+
+    t = threading.Thread(target=colour, name="decode colour", daemon=True)
+    t.start()
     try:
-        text = body.decode("utf-8")
-    except UnicodeDecodeError:
-        raise BadRequest("the body is not UTF-8 text; send JSON") from None
+        depth = _depth_of(req, max_pixels)
+    finally:
+        t.join()
+    if "error" in got:
+        raise got["error"]
+    return depth, got["rgb"]
+
+
+def _json_object(text: str, what: str) -> dict:
     try:
-        req = safeio.parse_json(text, "the request body")
+        req = safeio.parse_json(text, what)
     except AposeError as e:
         raise BadRequest(str(e)) from None
     if not isinstance(req, dict):
-        raise BadRequest("the request body must be a JSON object (rgb_png_b64, depth_png_b64, camera, step, box)")
+        raise BadRequest(f"{what} must be a JSON object (rgb_png_b64, depth_png_b64, camera, step, box)")
+    return req
+
+
+def _npz_request(body: bytes, max_pixels: int) -> tuple[dict, tuple]:
+    """An NPZ body (numpy.savez: `rgb` H x W x 3 uint8, `depth` H x W uint16 in mm x camera.depth_scale, `request`
+    the other keys as JSON text in a 0-d string array) as (request keys, ((depth, None, key), rgb)). Each member's
+    size is checked from the archive's directory before it is inflated."""
+    limits = {"rgb.npy": 3 * max_pixels + 4096, "depth.npy": 2 * max_pixels + 4096, "request.npy": 4 * 2 ** 20}
+    end = body.rfind(b"PK\x05\x06", max(0, len(body) - 2 ** 16 - 22))  # the end record: how many members, before
+    # zipfile reads them all (a 64 MB directory of empty members is a million of its objects, ~0.5 GB)
+    if end >= 0 and len(body) >= end + 12 and int.from_bytes(body[end + 10:end + 12], "little") > len(limits):
+        raise BadRequest(f"the NPZ holds {int.from_bytes(body[end + 10:end + 12], 'little')} members; expected exactly "
+                         "rgb, depth and request")
+    try:
+        zf = zipfile.ZipFile(io.BytesIO(body))
+        names = [i.filename for i in zf.infolist()]
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError) as e:
+        raise BadRequest(f"the body is not an NPZ archive ({str(e)[:60]}); send numpy.savez(rgb=, depth=, request=)'s "
+                         "bytes, or JSON") from None
+    if sorted(names) != sorted(limits):
+        raise BadRequest(f"the NPZ holds {', '.join(n[:40] for n in names[:6]) or 'nothing'}; expected exactly rgb, depth "
+                         "and request (numpy.savez(buf, rgb=..., depth=..., request=json.dumps({...})))")
+    data = {}
+    for info in zf.infolist():
+        key = f"{info.filename[:-4]} (NPZ)"
+        if info.file_size > limits[info.filename] or info.compress_type not in (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED):
+            raise BadRequest(f"{key}: {info.file_size} bytes; at most {limits[info.filename]} (a frame of at most "
+                             f"{max_pixels} pixels, apose serve --max-pixels), stored or deflated", 413)
+        try:  # zipfile inflates no more than the entry's declared size, then checks its CRC: a member that lies fails
+            with zf.open(info) as f:
+                data[info.filename] = f.read(limits[info.filename])
+        except (zipfile.BadZipFile, ValueError, OSError, EOFError, RuntimeError, NotImplementedError) as e:
+            raise BadRequest(f"{key}: a damaged archive member ({str(e)[:60]})") from None
+    f = io.BytesIO(data["request.npy"])
+    try:
+        shape, dt = _npy_header(f)
+        if np.dtype(dt).kind != "U" or shape != () or np.dtype(dt).itemsize > limits["request.npy"]:
+            raise BadRequest("request (NPZ): expected the request's JSON as one text (numpy.savez(..., "
+                             "request=json.dumps(...)))")
+        f.seek(0)
+        text = np.load(f, allow_pickle=False)
+    except (ValueError, OSError, EOFError, SyntaxError) as e:
+        raise BadRequest(f"request (NPZ): not a .npy array ({str(e)[:60]}); put json.dumps({{...}}) there") from None
+    req = _json_object(str(text[()]), "request (NPZ)")
+    images = [k for k in req if k.startswith(("rgb_", "depth_"))]
+    if images:
+        raise BadRequest(f"{images[0][:40]}: the NPZ's rgb and depth arrays are the images; leave them out of request")
+    depth = _npy_bytes(data["depth.npy"], "depth (NPZ)", np.uint16, 2, max_pixels)
+    rgb = _npy_bytes(data["rgb.npy"], "rgb (NPZ)", np.uint8, 3, max_pixels)
+    return req, ((depth, None, "depth (NPZ)"), rgb)
+
+
+def parse_request(body: bytes, n_steps: int, max_pixels: int = 1920 * 1200, npz: bool = False) -> dict:
+    """A POST /estimate body (JSON, or with `npz` an NPZ archive: _npz_request) as estimate_pose's arguments;
+    BadRequest naming the key otherwise."""
+    if npz:
+        req, images = _npz_request(body, max_pixels)
+    else:
+        try:
+            text = body.decode("utf-8")
+        except UnicodeDecodeError:
+            raise BadRequest("the body is not UTF-8 text; send JSON") from None
+        req, images = _json_object(text, "the request body"), None
     unknown = [k for k in req if k not in REQUEST_KEYS]
     if unknown:
         raise BadRequest(f"{str(unknown[0])[:60]}: unknown key; expected {', '.join(REQUEST_KEYS)}")
     for k in ("camera", "step"):
         if k not in req:
             raise BadRequest(f"{k}: missing")
-    for what in ("rgb", "depth"):
+    for what in ("rgb", "depth") if images is None else ():
         given = [k for k in (f"{what}_png_b64", f"{what}_npy_b64") if k in req]
         if len(given) != 1:
             raise BadRequest(f"{what}_png_b64: missing (or {what}_npy_b64: a .npy array)" if not given else
@@ -234,17 +356,7 @@ def parse_request(body: bytes, n_steps: int, max_pixels: int = 1920 * 1200) -> d
     if isinstance(step, bool) or not isinstance(step, int) or not 1 <= step <= n_steps:
         raise BadRequest(f"step: {str(step)[:20]} does not exist; the assembly has steps 1..{n_steps}")
     try:
-        if "depth_npy_b64" in req:  # depth first: its size is checked before the colour is decoded
-            raw, head, dkey = _npy(req["depth_npy_b64"], "depth_npy_b64", np.uint16, 2, max_pixels), None, "depth_npy_b64"
-        else:
-            raw, head = _image(_b64(req["depth_png_b64"], "depth_png_b64"), "depth_png_b64", cv2.IMREAD_UNCHANGED,
-                               "the depth image", max_pixels, depth=True)
-            dkey = "depth_png_b64"
-        if "rgb_npy_b64" in req:
-            rgb = _npy(req["rgb_npy_b64"], "rgb_npy_b64", np.uint8, 3, max_pixels)
-        else:
-            rgb = _image(_b64(req["rgb_png_b64"], "rgb_png_b64"), "rgb_png_b64", cv2.IMREAD_COLOR, "the colour image",
-                         max_pixels)[0][..., ::-1]
+        (raw, head, dkey), rgb = _decode_both(req, max_pixels) if images is None else images
         h, w = raw.shape[:2]
         if rgb.shape[:2] != (h, w):
             raise BadRequest(f"the colour image is {rgb.shape[1]}x{rgb.shape[0]} but {dkey} is {w}x{h}; align depth "
@@ -457,7 +569,7 @@ class _Handler(BaseHTTPRequestHandler):
             if len(body) != n:
                 return self._reply(400, {"error": f"the body ended after {len(body)} of {n} bytes"})
             with self.server.service.slot():
-                doc = self.server.service.estimate(body)
+                doc = self.server.service.estimate(body, npz=self._content_type() == NPZ_TYPE)
             doc.setdefault("timings_s", {})["service"] = round(time.perf_counter() - t0, 4)
             self._reply(200, doc)
         except BadRequest as e:
@@ -485,10 +597,14 @@ class _Handler(BaseHTTPRequestHandler):
         if n > self.server.max_body:
             return 413, {"error": f"the body is {n} bytes, over the {self.server.max_body} the service takes; send PNG "
                                   "images of the frame (not raw arrays), or crop it"}
-        ctype = self.headers.get("Content-Type", "").split(";")[0].strip().lower()
-        if ctype != "application/json":  # a browser's form or text/plain post (no CORS preflight) is not ours
-            return 415, {"error": f"Content-Type {ctype[:40] or 'missing'}: send application/json"}
+        ctype = self._content_type()
+        if ctype not in ("application/json", NPZ_TYPE):  # a browser's form or text/plain post (no CORS preflight)
+            return 415, {"error": f"Content-Type {ctype[:40] or 'missing'}: send application/json (or {NPZ_TYPE}: "
+                                  "numpy.savez's bytes)"}
         return None
+
+    def _content_type(self) -> str:
+        return self.headers.get("Content-Type", "").split(";")[0].strip().lower()
 
     def _drain(self, n: int) -> None:
         try:

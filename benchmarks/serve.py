@@ -8,7 +8,9 @@ Starts `apose serve` on the planetary reducer sample as its own process (its mem
 
 1. sequential: one client, one request after the other. Per request: the client's latency, the
    estimate's own compute (`timings_s.total`, from reading the images to the answer) and the service's
-   overhead (latency - compute: HTTP, JSON, base64, PNG decoding).
+   overhead (latency - compute: HTTP, JSON, base64, PNG decoding), split into what the service spends
+   (`timings_s.service` - compute) and the rest (connection, transfer, client); each request is sent twice,
+   as JSON with PNGs and as an NPZ body of raw arrays (Content-Type application/x-npz), interleaved.
 2. concurrent: `--clients` clients, `--per-client` requests each, all at once (the queue is sized for
    them): latency, failures. The service estimates one frame at a time (both cores serve that one's
    queries), so a request waits for those ahead of it: the p95 latency of k concurrent clients is about
@@ -73,6 +75,21 @@ def frames(n: int) -> list[dict]:
     return out
 
 
+def npz_of(doc: dict) -> bytes:
+    """The same request as an NPZ body (Content-Type application/x-npz): raw arrays, no base64, no PNG."""
+    import io
+
+    f = io.BytesIO()
+    rgb = cv2.imdecode(np.frombuffer(base64.b64decode(doc["rgb_png_b64"]), np.uint8), cv2.IMREAD_COLOR)[..., ::-1]
+    depth = cv2.imdecode(np.frombuffer(base64.b64decode(doc["depth_png_b64"]), np.uint8), cv2.IMREAD_UNCHANGED)
+    keys = {k: v for k, v in doc.items() if not k.endswith("_png_b64")}
+    np.savez(f, rgb=np.ascontiguousarray(rgb), depth=depth, request=np.array(json.dumps(keys)))
+    return f.getvalue()
+
+
+NPZ = {"Content-Type": "application/x-npz"}
+
+
 def post(port: int, body: bytes, headers: dict | None = None) -> tuple[int, dict, float]:
     t = time.perf_counter()
     conn = http.client.HTTPConnection("127.0.0.1", port, timeout=600)
@@ -114,14 +131,27 @@ def main() -> int:
         for b in bodies:  # warm-up: the first call of each frame size and the imports behind the first answer
             post(port, b)
         rss0 = rss_mb(proc.pid)
-        seq_lat, seq_compute, seq_over, failed = [], [], [], 0
+        seq_lat, seq_compute, seq_over, seq_in, failed = [], [], [], [], 0
+        npz_over, npz_in = [], []
+        npz_bodies = [npz_of(json.loads(b)) for b in bodies]
+        post(port, npz_bodies[0], NPZ)
         for i in range(args.sequential):
-            status, doc, lat = post(port, bodies[i % len(bodies)])
-            failed += status != 200
-            if status == 200:
+            for fmt in ("json", "npz"):  # interleaved: both formats see the same machine
+                status, doc, lat = (post(port, bodies[i % len(bodies)]) if fmt == "json" else
+                                    post(port, npz_bodies[i % len(bodies)], NPZ))
+                failed += status != 200
+                if status != 200:
+                    continue
+                over = lat - doc["timings_s"]["total"]
+                inside = doc["timings_s"]["service"] - doc["timings_s"]["total"]  # reading, decoding, answering
+                if fmt == "npz":
+                    npz_over.append(over)
+                    npz_in.append(inside)
+                    continue
                 seq_lat.append(lat)
                 seq_compute.append(doc["timings_s"]["total"])
-                seq_over.append(lat - doc["timings_s"]["total"])
+                seq_over.append(over)
+                seq_in.append(inside)
         conc_lat: list[float] = []
         conc_failed = [0]
         lock = threading.Lock()
@@ -141,7 +171,7 @@ def main() -> int:
             t.join()
         wall = time.perf_counter() - t0
         rss1 = rss_mb(proc.pid)
-        n_total = len(bodies) + args.sequential + args.clients * args.per_client
+        n_total = len(bodies) + 1 + 2 * args.sequential + args.clients * args.per_client
         good = json.loads(bodies[0])
         kinds = [
             b"{not json", json.dumps([1]).encode(), json.dumps(dict(good, step=99)).encode(),
@@ -171,12 +201,18 @@ def main() -> int:
     print("| measure | value | goal |\n|---|---|---|")
     print(f"| sequential: latency median / p95 | {statistics.median(seq_lat) * 1000:.0f} / {pct(seq_lat, 95) * 1000:.0f} ms | |")
     print(f"| sequential: compute median (timings_s.total) | {compute * 1000:.0f} ms | |")
-    print(f"| sequential: overhead (latency - compute) median / p95 | {statistics.median(seq_over) * 1000:.1f} / "
+    print(f"| sequential, JSON body (PNGs in base64): overhead (latency - compute) median / p95 | {statistics.median(seq_over) * 1000:.1f} / "
           f"{pct(seq_over, 95) * 1000:.1f} ms | <= 10 ms: {'met' if statistics.median(seq_over) <= 0.010 else 'NOT met'} |")
+    print(f"| sequential, NPZ body (raw arrays: no base64, no PNG): overhead median / p95; in the service | "
+          f"{statistics.median(npz_over) * 1000:.1f} / {pct(npz_over, 95) * 1000:.1f} ms; "
+          f"{statistics.median(npz_in) * 1000:.1f} ms | <= 10 ms: {'met' if statistics.median(npz_over) <= 0.010 else 'NOT met'} |")
+    inside = statistics.median(seq_in)
+    print(f"| overhead: in the service (body read, base64, PNG decoding, JSON) / outside it (connection, transfer, "
+          f"client) median | {inside * 1000:.1f} / {(statistics.median(seq_over) - inside) * 1000:.1f} ms | |")
     print(f"| {args.clients} clients x {args.per_client}: latency median / p95 | {statistics.median(conc_lat) * 1000:.0f} / "
           f"{pct(conc_lat, 95) * 1000:.0f} ms ({args.clients * args.per_client / wall:.1f} requests/s) | p95 <= 1.5 x compute "
           f"= {goal_p95 * 1000:.0f} ms: {'met' if pct(conc_lat, 95) <= goal_p95 else 'NOT met'} |")
-    print(f"| failed good requests | {failed + conc_failed[0]} of {args.sequential + args.clients * args.per_client} | 0: "
+    print(f"| failed good requests | {failed + conc_failed[0]} of {2 * args.sequential + args.clients * args.per_client} | 0: "
           f"{'met' if failed + conc_failed[0] == 0 else 'NOT met'} |")
     print(f"| memory: after warm-up, after {n_total} requests, after the bad ones | {rss0:.0f} / {rss1:.0f} / {rss2:.0f} MB "
           f"(growth {rss1 - rss0:+.0f} MB) | <= 50 MB: {'met' if rss1 - rss0 <= 50 else 'NOT met'} |")

@@ -195,6 +195,64 @@ def test_arrays_as_npy_answer_as_pngs_do_and_pickles_are_refused(server, frame):
         assert status == 400 and words in doc["error"], doc
 
 
+def npz_body(frame, keys: dict | None = None, compressed: bool = False, **arrays) -> bytes:
+    """numpy.savez's bytes: the frame's rgb and depth (mm) and the other keys as JSON text."""
+    import io
+
+    f = io.BytesIO()
+    keys = {k: v for k, v in request_body(frame).items() if not k.endswith("_png_b64")} if keys is None else keys
+    parts = {"rgb": np.ascontiguousarray(frame.rgb), "depth": (frame.depth * 1000).astype(np.uint16),
+             "request": np.array(json.dumps(keys)), **arrays}
+    (np.savez_compressed if compressed else np.savez)(f, **{k: v for k, v in parts.items() if v is not None})
+    return f.getvalue()
+
+
+def test_an_npz_body_answers_as_the_json_one_and_bad_archives_are_refused(server, frame):
+    """The lowest-overhead body (no base64, no PNG decoding): the same answer, to the bit; archives that are not
+    what they say are refused by what is wrong, before their members are decompressed past their limits."""
+    import io
+    import zipfile
+
+    npz = {"Content-Type": "application/x-npz"}
+    s1, d1 = call(server, "POST", "/estimate", request_body(frame))
+    s2, d2 = call(server, "POST", "/estimate", raw=npz_body(frame), headers=npz)
+    s3, d3 = call(server, "POST", "/estimate", raw=npz_body(frame, compressed=True), headers=npz)
+    assert s1 == s2 == s3 == 200, (d2, d3)
+    np.testing.assert_array_equal(np.asarray(d1["T_camera_part"]), np.asarray(d2["T_camera_part"]))
+    np.testing.assert_array_equal(np.asarray(d1["T_camera_part"]), np.asarray(d3["T_camera_part"]))
+
+    bomb = io.BytesIO()  # 200 MB of zeros deflated to ~200 kB, declared honestly: refused from the directory
+    with zipfile.ZipFile(bomb, "w", zipfile.ZIP_DEFLATED) as z:
+        z.writestr("rgb.npy", b"\0" * (200 * 2 ** 20))
+        z.writestr("depth.npy", b"")
+        z.writestr("request.npy", b"")
+    liar = io.BytesIO()  # 20 MB, its directory entry claiming 1 kB: zipfile inflates no more than that, then its CRC fails
+    with zipfile.ZipFile(liar, "w", zipfile.ZIP_DEFLATED) as z:
+        z.writestr("depth.npy", b"")
+        z.writestr("request.npy", b"")
+        z.writestr("rgb.npy", b"\0" * (20 * 2 ** 20))
+    data = bytearray(liar.getvalue())
+    cd = data.rindex(b"PK\x01\x02")  # the last central-directory entry (rgb.npy): its uncompressed size at +24
+    data[cd + 24: cd + 28] = (1024).to_bytes(4, "little")
+    many = io.BytesIO()  # a directory of many empty members: refused from the archive's end record
+    with zipfile.ZipFile(many, "w") as z:
+        for i in range(5000):
+            z.writestr(f"{i}", b"")
+    keys = {k: v for k, v in request_body(frame).items() if not k.endswith("_png_b64")}
+    for body, status, words in (
+            (many.getvalue(), 400, "holds 5000 members"), (b"PK not a zip", 400, "not an NPZ archive"),
+            (npz_body(frame, extra=np.zeros(3)), 400, "expected exactly rgb, depth and request"),
+            (npz_body(frame, depth=frame.depth), 400, "little-endian uint16"),
+            (npz_body(frame, dict(keys, rgb_png_b64="x")), 400, "leave them out of request"),
+            (npz_body(frame, dict(keys, step=9)), 400, "step: 9 does not exist"),
+            (npz_body(frame, request=np.array([1, 2])), 400, "the request's JSON as one text"),
+            (bomb.getvalue(), 413, "at most"),
+            (bytes(data), 400, "damaged archive member")):
+        got, doc = call(server, "POST", "/estimate", raw=body, headers=npz)
+        assert got == status and words in doc["error"], (words, got, doc)
+    assert call(server, "POST", "/estimate", raw=npz_body(frame), headers=npz)[0] == 200  # and it goes on
+
+
 def test_web_pages_and_other_names_are_refused(server, frame):
     """A page in a browser can post to 127.0.0.1 (a form or text/plain needs no CORS preflight) and can rebind
     its own name to 127.0.0.1: the service answers programs only, by its own address."""
@@ -285,6 +343,38 @@ def test_slow_and_many_connections_do_not_lock_clients_out(frame, monkeypatch):
         time.sleep(2.0)
         assert call(srv, "GET", "/health")[0] == 200
         assert call(srv, "POST", "/estimate", request_body(frame))[0] == 200
+    finally:
+        srv.shutdown()
+        srv.server_close()
+
+
+def test_estimates_at_once_answer_the_same_bits_as_one_at_a_time(frame):
+    """Two workers: frames estimated side by side (several rounds, so that their stages overlap in different
+    ways; the cluttered one goes through Open3D's seeded RANSAC) answer exactly what each answers alone."""
+    from apose_studio.service import EstimationService, make_server
+
+    other = rendered_frame(PLANETARY, 2, 1, noise="kinect", clutter=True, seed=5)
+    bodies = [request_body(frame), request_body(other)]
+    service = EstimationService(PLANETARY, queue=4, workers=2)
+    srv = make_server(service, "127.0.0.1", 0)
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    try:
+        alone = [call(srv, "POST", "/estimate", b)[1] for b in bodies]
+        assert all(d["ok"] for d in alone) and call(srv, "GET", "/health")[1]["workers"] == 2
+        got: list = []
+
+        def send(k: int) -> None:
+            got.append((k, call(srv, "POST", "/estimate", bodies[k])[1]))
+
+        for _ in range(3):
+            threads = [threading.Thread(target=send, args=(k,)) for k in (0, 1, 1, 0)]
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join()
+        assert len(got) == 12
+        for k, doc in got:
+            assert doc["T_camera_part"] == alone[k]["T_camera_part"] and doc["confident"] == alone[k]["confident"]
     finally:
         srv.shutdown()
         srv.server_close()

@@ -167,7 +167,8 @@ def cmd_serve(args) -> int:
     params_of(args, asm.registration)  # a bad --param is said now, not on the first request
     t0 = time.perf_counter()
     service = EstimationService(asm, args.preset, overrides, queue=args.queue,
-                                **({"max_pixels": args.max_pixels} if args.max_pixels else {}))
+                                **({"max_pixels": args.max_pixels} if args.max_pixels else {}),
+                                **({"workers": args.workers} if args.workers else {}))
     try:
         server = make_server(service, args.host, args.port, args.token)
     except OSError as e:
@@ -175,7 +176,7 @@ def cmd_serve(args) -> int:
                          "another port") from None
     host, port = server.server_address[:2]
     print(f"serve: http://{host}:{port} ({asm.name}: steps 1..{len(asm.steps)} warm in {time.perf_counter() - t0:.1f} s; "
-          "GET /health, POST /estimate; docs/ROBOT.md)", flush=True)
+          f"{service.workers} estimate(s) at once; GET /health, POST /estimate; docs/ROBOT.md)", flush=True)
     if server.token is not None:
         print(f"serve: token {server.token} (send 'Authorization: Bearer {server.token}')"
               + ("" if is_loopback(args.host) else "; required beyond loopback"), flush=True)
@@ -493,8 +494,10 @@ def _add_serve(sub) -> None:
     p.add_argument("--port", type=_port, default=8765, help="port (default 8765)")
     p.add_argument("--token", default=None, help="the token clients send as 'Authorization: Bearer TOKEN' (at least 16 "
                    "characters of A-Z a-z 0-9 - _); default: none on loopback, a new random one otherwise")
-    p.add_argument("--queue", type=_count(1, 256), default=8, help="requests in the service at once (one estimating, the "
-                   "rest waiting); the next gets 503 (default 8)")
+    p.add_argument("--queue", type=_count(1, 256), default=8, help="requests in the service at once (--workers estimating, "
+                   "the rest waiting); the next gets 503 (default 8)")
+    p.add_argument("--workers", type=_count(1, 16), default=None, metavar="N", help="estimates at once (default: 2, or 1 "
+                   "on one core); each answer is the same whatever runs beside it")
     p.add_argument("--max-pixels", type=_count(10_000, 50_000_000), default=None, metavar="N",
                    help="the largest frame taken, in pixels (default 2304000: 1920x1200); a bigger one gets 413")
     estimator_args(p, per_frame=False)

@@ -4,6 +4,8 @@ replay's stage records. Open3D is imported where it is used."""
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -14,6 +16,8 @@ from apose_studio.geometry.metrics import fitness_rmse
 from apose_studio.params import Params
 from apose_studio.registration.solvers import icp_point_to_plane
 from apose_studio.registration.types import Candidate, Stage
+
+_RANSAC = threading.Lock()  # global_registration: Open3D's seeded random engine is shared by every thread
 
 
 def project_to_cloud(depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray) -> np.ndarray:
@@ -57,6 +61,11 @@ def global_registration(source, target, f_source, f_target, voxel: float, p: Par
     import open3d as o3d  # heavy (~0.9 s to import): loaded where it is used
 
     reg = o3d.pipelines.registration
+    with _RANSAC:  # Open3D's random engine is one for the process: seeded and drawn by one estimate at a time
+        return _ransac(reg, o3d, source, target, f_source, f_target, voxel, p)
+
+
+def _ransac(reg, o3d, source, target, f_source, f_target, voxel: float, p: Params) -> np.ndarray:
     o3d.utility.random.seed(p.seed)
     dist = p.ransac_distance_factor * voxel
     checkers = [reg.CorrespondenceCheckerBasedOnEdgeLength(p.ransac_edge_length), reg.CorrespondenceCheckerBasedOnDistance(dist)]
