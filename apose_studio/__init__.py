@@ -6,6 +6,11 @@ import os
 # bits; on one thread, its seeded RANSAC repeats exactly. Set before Open3D loads (it reads this once);
 # a value the user set wins. torch sets its own thread count (segment.py).
 os.environ.setdefault("OMP_NUM_THREADS", "1")
+# pykdtree's OpenMP threads (geometry/nn.py: ICP's nearest neighbours) wait for work asleep, not spinning: with
+# the cores busy with other work, spinning threads took them from each other and from the work (a 2,500-point
+# query: 4.4 ms spinning, 0.85 ms asleep, 0.82 ms on one thread; benchmarks/nn_threads.py). Read when an
+# OpenMP runtime loads; a value the user set wins.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
 def _avx2() -> bool:

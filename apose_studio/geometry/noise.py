@@ -91,6 +91,13 @@ def estimate_depth_noise(depth: np.ndarray, region: np.ndarray | None = None) ->
     """The frame's own axial depth noise (metres, one sigma), from second differences along rows and
     columns: on a smooth surface d[i-1] - 2 d[i] + d[i+1] is noise with sigma * sqrt(6). The median
     absolute value over `region` (default all) ignores edges and curvature. NaN when too few pixels."""
+    if region is not None:  # only the region's box and a pixel around it: the same values, not the whole frame's work
+        rows, cols = np.flatnonzero(region.any(axis=1)), np.flatnonzero(region.any(axis=0))
+        if not len(rows):
+            return float("nan")
+        y0, y1 = max(rows[0] - 1, 0), rows[-1] + 2
+        x0, x1 = max(cols[0] - 1, 0), cols[-1] + 2
+        depth, region = depth[y0:y1, x0:x1], region[y0:y1, x0:x1]
     z = np.where(np.isfinite(depth), depth, 0.0)
     parts = []
     for a in (z, z.T):

@@ -216,6 +216,23 @@ def test_frame_noise_is_measured_from_the_depth_itself():
         assert estimate_depth_noise(noisy) == pytest.approx(sigma, rel=0.15)
     assert estimate_depth_noise(plane) < 1e-4
     assert np.isnan(estimate_depth_noise(np.zeros((10, 10), np.float32)))
+    # in a region: the median of the second differences centred there, as the whole frame's give them (the
+    # function works on the region's box only); two noise levels side by side tell a wrong crop
+    noisy = plane + rng.normal(0, 0.0005, plane.shape).astype(np.float32)
+    noisy[:, 160:] += rng.normal(0, 0.004, (240, 160)).astype(np.float32)
+    noisy[rng.random(noisy.shape) < 0.05] = 0.0
+    for y0, y1, x0, x1 in ((40, 90, 100, 170), (0, 240, 150, 165), (0, 12, 300, 320), (200, 240, 0, 3)):
+        region = np.zeros(noisy.shape, bool)
+        region[y0:y1, x0:x1] = True
+        vals = []
+        for a, r in ((noisy, region), (noisy.T, region.T)):
+            d2 = a[:, :-2] - 2 * a[:, 1:-1] + a[:, 2:]
+            ok = (a[:, :-2] > 0) & (a[:, 1:-1] > 0) & (a[:, 2:] > 0) & r[:, 1:-1]
+            vals.append(np.abs(d2[ok]))
+        vals = np.concatenate(vals)
+        want = float(np.median(vals) * 1.4826 / np.sqrt(6.0)) if len(vals) >= 200 else float("nan")
+        got = estimate_depth_noise(noisy, region)
+        assert got == want or (np.isnan(got) and np.isnan(want)), ((y0, y1, x0, x1), got, want)
 
 
 def test_bad_inputs_are_refused(planetary, tmp_path):
