@@ -72,6 +72,7 @@ MAX_PIXELS = 1920 * 1200  # a frame's pixels (--max-pixels): depth cameras give 
 REQUEST_KEYS = ("rgb_png_b64", "depth_png_b64", "rgb_npy_b64", "depth_npy_b64", "camera", "step", "box", "point", "hand_eye",
                 "T_robot_flange", "grasp", "pick_box", "pick_point", "orientation_prior")
 MAX_SIDE = 8192  # pixels a side of an array frame (as safeio's images)
+MAX_JSON_ITEMS = 4096  # commas, colons, brackets and braces in a JSON body (a request with hand-eye and grasp: ~150)
 NPZ_TYPE = "application/x-npz"  # a body of numpy.savez(rgb=, depth=, request=json text): no base64, no PNG decoding
 RGB_FLAG = getattr(cv2, "IMREAD_COLOR_RGB", cv2.IMREAD_COLOR)  # decoded as RGB (OpenCV >= 4.10); see _rgb_of
 
@@ -163,6 +164,12 @@ def _npy(value, key: str, dtype, ndim: int, max_pixels: int) -> np.ndarray:
     return _npy_bytes(_b64(value, key), key, dtype, ndim, max_pixels)
 
 
+def _first_line(e: Exception, n: int) -> str:
+    """An exception's message as one short line (numpy's and zipfile's run over lines and quote objects)."""
+    lines = str(e).strip().splitlines()
+    return (lines[0] if lines else type(e).__name__)[:n]
+
+
 def _npy_header(f) -> tuple:
     """A .npy file's (shape, dtype) from its header alone (nothing allocated yet); ValueError otherwise."""
     version = np.lib.format.read_magic(f)
@@ -179,7 +186,7 @@ def _npy_bytes(data: bytes, key: str, dtype, ndim: int, max_pixels: int) -> np.n
     try:
         shape, dt = _npy_header(f)
     except (ValueError, OSError, SyntaxError) as e:
-        raise BadRequest(f"{key}: not a .npy array ({str(e)[:80]}); send numpy.save's bytes") from None
+        raise BadRequest(f"{key}: not a .npy array ({_first_line(e, 80)}); send numpy.save's bytes") from None
     want = "H x W x 3" if ndim == 3 else "H x W"
     if np.dtype(dt) != np.dtype(dtype) or len(shape) != ndim or (ndim == 3 and shape[2] != 3) or \
             not all(0 < n <= MAX_SIDE for n in shape[:2]):
@@ -191,7 +198,7 @@ def _npy_bytes(data: bytes, key: str, dtype, ndim: int, max_pixels: int) -> np.n
     try:
         return np.load(f, allow_pickle=False)
     except (ValueError, OSError, EOFError) as e:
-        raise BadRequest(f"{key}: a damaged .npy array ({str(e)[:80]})") from None
+        raise BadRequest(f"{key}: a damaged .npy array ({_first_line(e, 80)})") from None
 
 
 def _check_pixels(w: int, h: int, key: str, max_pixels: int) -> None:
@@ -295,7 +302,7 @@ def _npz_request(body: bytes, max_pixels: int) -> tuple[dict, tuple]:
         zf = zipfile.ZipFile(io.BytesIO(body))
         names = [i.filename for i in zf.infolist()]
     except (zipfile.BadZipFile, ValueError, OSError, EOFError) as e:
-        raise BadRequest(f"the body is not an NPZ archive ({str(e)[:60]}); send numpy.savez(rgb=, depth=, request=)'s "
+        raise BadRequest(f"the body is not an NPZ archive ({_first_line(e, 60)}); send numpy.savez(rgb=, depth=, request=)'s "
                          "bytes, or JSON") from None
     if sorted(names) != sorted(limits):
         raise BadRequest(f"the NPZ holds {', '.join(n[:40] for n in names[:6]) or 'nothing'}; expected exactly rgb, depth "
@@ -303,14 +310,18 @@ def _npz_request(body: bytes, max_pixels: int) -> tuple[dict, tuple]:
     data = {}
     for info in zf.infolist():
         key = f"{info.filename[:-4]} (NPZ)"
-        if info.file_size > limits[info.filename] or info.compress_type not in (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED):
+        if info.compress_type not in (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED) or info.flag_bits & 0x1:
+            how = "encrypted" if info.flag_bits & 0x1 else f"compressed by method {info.compress_type}"
+            raise BadRequest(f"{key}: {how}; send members stored or deflated (numpy.savez or savez_compressed), "
+                             "not encrypted")
+        if info.file_size > limits[info.filename]:
             raise BadRequest(f"{key}: {info.file_size} bytes; at most {limits[info.filename]} (a frame of at most "
-                             f"{max_pixels} pixels, apose serve --max-pixels), stored or deflated", 413)
+                             f"{max_pixels} pixels, apose serve --max-pixels)", 413)
         try:  # zipfile inflates no more than the entry's declared size, then checks its CRC: a member that lies fails
             with zf.open(info) as f:
                 data[info.filename] = f.read(limits[info.filename])
         except (zipfile.BadZipFile, ValueError, OSError, EOFError, RuntimeError, NotImplementedError) as e:
-            raise BadRequest(f"{key}: a damaged archive member ({str(e)[:60]})") from None
+            raise BadRequest(f"{key}: a damaged archive member ({_first_line(e, 60)})") from None
     f = io.BytesIO(data["request.npy"])
     try:
         shape, dt = _npy_header(f)
@@ -320,7 +331,7 @@ def _npz_request(body: bytes, max_pixels: int) -> tuple[dict, tuple]:
         f.seek(0)
         text = np.load(f, allow_pickle=False)
     except (ValueError, OSError, EOFError, SyntaxError) as e:
-        raise BadRequest(f"request (NPZ): not a .npy array ({str(e)[:60]}); put json.dumps({{...}}) there") from None
+        raise BadRequest(f"request (NPZ): not a .npy array ({_first_line(e, 60)}); put json.dumps({{...}}) there") from None
     req = _json_object(str(text[()]), "request (NPZ)")
     images = [k for k in req if k.startswith(("rgb_", "depth_"))]
     if images:
@@ -336,6 +347,10 @@ def parse_request(body: bytes, n_steps: int, max_pixels: int = 1920 * 1200, npz:
     if npz:
         req, images = _npz_request(body, max_pixels)
     else:
+        items = sum(body.count(c) for c in (b",", b":", b"[", b"{"))  # base64 has none of these characters
+        if items > MAX_JSON_ITEMS:  # a 60 MB list of {} parses into ~1.5 GB of Python objects: counted before
+            raise BadRequest(f"the body holds {items} JSON items; a request is two images and a few small keys (at most "
+                             f"{MAX_JSON_ITEMS}): send the images as base64 strings")
         try:
             text = body.decode("utf-8")
         except UnicodeDecodeError:
@@ -391,6 +406,23 @@ def parse_request(body: bytes, n_steps: int, max_pixels: int = 1920 * 1200, npz:
             "orientation_prior": prior}
 
 
+def peer_of(address: str) -> str:
+    """Who a connection comes from, as the per-address cap counts it: every loopback address (127.0.0.0/8, ::1,
+    ::ffff:127.x) is this machine, one peer (a local process could otherwise take all the connections from
+    127.0.0.2, .3, ...); an IPv6 address by its /64 (one host holds a whole /64); else the address."""
+    try:
+        ip = ipaddress.ip_address(address.split("%")[0])
+    except ValueError:
+        return address
+    if ip.version == 6 and ip.ipv4_mapped is not None:
+        ip = ip.ipv4_mapped
+    if ip.is_loopback:
+        return "loopback"
+    if ip.version == 6:
+        return str(ipaddress.ip_network(f"{ip}/64", strict=False))
+    return str(ip)
+
+
 def is_loopback(host: str) -> bool:
     if host == "localhost":
         return True
@@ -427,7 +459,7 @@ class _Server(ThreadingHTTPServer):
         self._arrivals: dict[int, threading.Timer] = {}  # id(socket) -> the timer that closes it if it dawdles
 
     def process_request(self, request, client_address):
-        who = client_address[0]
+        who = peer_of(client_address[0])
         with self._open_lock:
             total = sum(self._open.values())
             full = total >= MAX_CONNECTIONS or self._open.get(who, 0) >= MAX_PER_ADDRESS
@@ -469,7 +501,7 @@ class _Server(ThreadingHTTPServer):
         try:
             super().process_request_thread(request, client_address)
         finally:
-            self._done(request, client_address[0])
+            self._done(request, peer_of(client_address[0]))
 
     @contextmanager
     def declared(self, n: int):

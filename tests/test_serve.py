@@ -253,6 +253,35 @@ def test_an_npz_body_answers_as_the_json_one_and_bad_archives_are_refused(server
     assert call(server, "POST", "/estimate", raw=npz_body(frame), headers=npz)[0] == 200  # and it goes on
 
 
+def test_who_a_connection_comes_from():
+    from apose_studio.service import peer_of
+
+    assert {peer_of(a) for a in ("127.0.0.1", "127.0.0.2", "127.255.0.9", "::1", "::ffff:127.0.0.1")} == {"loopback"}
+    assert peer_of("2001:db8::1") == peer_of("2001:db8::ffff:2") != peer_of("2001:db8:0:1::1")  # one host, one /64
+    assert peer_of("192.168.1.5") != peer_of("192.168.1.6") and peer_of("::ffff:10.0.0.1") == "10.0.0.1"
+
+
+def test_bodies_that_parse_into_far_more_than_their_size_are_refused_unparsed(server, frame):
+    """A JSON body of millions of tiny items (a 60 MB list of {} took 1.5 GB to parse) is counted before it is
+    parsed; an NPZ member compressed another way or encrypted is named as such."""
+    import io
+    import zipfile
+
+    for body in (b'{"camera": [' + b"{}," * 200_000 + b'{}]}', b'{"box": [' + b"0," * 300_000 + b"0]}",
+                 json.dumps({f"k{i}": 0 for i in range(50_000)}).encode()):
+        t = time.perf_counter()
+        status, doc = call(server, "POST", "/estimate", raw=body)
+        assert status == 400 and "JSON items" in doc["error"] and time.perf_counter() - t < 5, doc
+    keys = {k: v for k, v in request_body(frame).items() if not k.endswith("_png_b64")}
+    assert sum(json.dumps(dict(keys, hand_eye={"T_robot_camera": np.eye(4).tolist()})).count(c) for c in ",:[{") < 200
+    f = io.BytesIO()
+    with zipfile.ZipFile(f, "w", zipfile.ZIP_BZIP2) as z:
+        for name in ("rgb.npy", "depth.npy", "request.npy"):
+            z.writestr(name, b"x")
+    status, doc = call(server, "POST", "/estimate", raw=f.getvalue(), headers={"Content-Type": "application/x-npz"})
+    assert status == 400 and "compressed by method 12" in doc["error"], doc
+
+
 def test_web_pages_and_other_names_are_refused(server, frame):
     """A page in a browser can post to 127.0.0.1 (a form or text/plain needs no CORS preflight) and can rebind
     its own name to 127.0.0.1: the service answers programs only, by its own address."""
@@ -338,6 +367,18 @@ def test_slow_and_many_connections_do_not_lock_clients_out(frame, monkeypatch):
         time.sleep(0.3)
         extra = raw_request(srv, b"GET /health HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
         assert b" 503 " in extra and b"too many connections" in extra
+        # another loopback address is the same machine: no more connections for it (else one local process
+        # holds all MAX_CONNECTIONS from 127.0.0.2, .3, ...)
+        other = socket.socket()
+        other.bind(("127.0.0.2", 0))
+        other.settimeout(30)
+        other.connect(srv.server_address[:2])
+        other.sendall(b"GET /health HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+        got = b""
+        while chunk := other.recv(4096):
+            got += chunk
+        other.close()
+        assert b" 503 " in got and b"too many connections" in got
         for s in held:
             s.close()
         time.sleep(2.0)

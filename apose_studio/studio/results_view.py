@@ -129,7 +129,7 @@ class ResultsView:
                 "/inspect/ghost", *self._ghost[1], color=inspection.GREEN, opacity=0.45))
             grasp = self.draw_gripper(r.T_world_part)
             if grasp is not None:
-                labels.append(("gripper", (r.T_world_part @ grasp.T_part_gripper)[:3, 3], "top-left"))
+                labels.append(("place", (r.T_world_part @ grasp.T_part_gripper)[:3, 3], "top-left"))
         else:
             for name in ("/inspect/base_est", "/inspect/ghost", "/inspect/gripper"):
                 if name in self.app.nodes:
@@ -141,7 +141,8 @@ class ResultsView:
                                                                 point_shape="circle", precision="float32"))  # float16
             # (viser's default) rounds positions to 0.25-0.5 mm at half a metre: as much as the fits it shows
             labels.append(("target cloud", tgt[np.argmax(tgt[:, 2])], "bottom-right"))
-        grippers = {"gripper"} if {"/inspect/gripper_pick", "/inspect/gripper_preplace"} & set(self.app.nodes) else set()
+        grippers = {"gripper"} if {"/inspect/gripper", "/inspect/gripper_pick", "/inspect/gripper_preplace"} & \
+            set(self.app.nodes) else set()
         self.i_legend.content = legend_html({text for text, _, _ in labels} | grippers |
                                             ({"source cloud"} if r is not None and r.ok else set()))
         for k, (text, where, anchor) in enumerate(labels):

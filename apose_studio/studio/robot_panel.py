@@ -17,6 +17,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
+
 from apose_studio.data.dataset import Dataset
 from apose_studio.errors import AposeError
 from apose_studio.estimation import estimate_pick
@@ -34,9 +36,10 @@ ROWS = (("T_robot_gripper_place", "place"), ("T_robot_gripper_preplace", "pre-pl
         ("T_robot_part_pick", "part where it lies"))
 
 
-def targets_markdown(t) -> str:
+def targets_markdown(t, calibration: str = "", pick_prompt: str | None = None) -> str:
     """The targets as a table: position (mm) and quaternion (wxyz) in the robot's frame, with the frame's name,
-    the grasp, how many symmetry-equivalent placements there are, and the notes."""
+    the grasp, how many symmetry-equivalent placements there are, and the notes; the calibration file in use
+    and the prompt the pick was found with."""
     if t is None:
         return ""
     rows = []
@@ -45,10 +48,12 @@ def targets_markdown(t) -> str:
         if T is not None:
             p, q = T[:3, 3] * 1000.0, se3.matrix_to_quat_wxyz(T[:3, :3])
             rows.append(f"| {label} | {p[0]:.1f}, {p[1]:.1f}, {p[2]:.1f} | {q[0]:.4f}, {q[1]:.4f}, {q[2]:.4f}, {q[3]:.4f} |")
-    head = f"In **{esc(t.robot_frame)}** (robot base), gripper TCP" + (f" by grasp **{esc(t.grasp)}**" if t.grasp else "")
-    lines = [head + ":"]
+    lines = [f"Robot frame **{esc(t.robot_frame)}**" + (f" ({esc(calibration)})" if calibration else "")]
     if rows:
-        lines.append("| target | t (mm) | q (wxyz) |\n|---|---|---|\n" + "\n".join(rows))
+        lines.append("The gripper's TCP" + (f" by grasp **{esc(t.grasp)}**" if t.grasp else "") + ":\n\n"
+                     "| target | t (mm) | q (wxyz) |\n|---|---|---|\n" + "\n".join(rows))
+    if pick_prompt and t.pick is not None:
+        lines.append(f"Pick found with the prompt {esc(pick_prompt)}")
     if t.gripper_alternatives:
         lines.append(f"{len(t.gripper_alternatives)} other place target(s), one per symmetry-equivalent placement "
                      "(in the download)")
@@ -91,38 +96,77 @@ class RobotPanel:
                 self.app.events.emit(Event.RESULT_READY)
             self.app.notify(client, "Hand-eye", "none: the robot frame is no longer shown")
             return
-        he = read_hand_eye(self.app.workspace.resolve(text, "hand-eye calibration file"))
-        flange = None
-        if he.kind == "eye_in_hand":
-            if ins.frames is not None and not isinstance(ins.frames, Dataset) and ins.frames_path:
-                flange = capture_flange(Path(ins.frames_path))  # the arm's pose when this capture was taken
-            if flange is None and he.T_robot_flange is None:
-                raise AposeError(f"{text}: an eye-in-hand calibration needs the arm's T_robot_flange at the capture: put "
-                                 "it in the capture's camera.json (key T_robot_flange) or in the calibration file")
+        try:
+            he = read_hand_eye(self.app.workspace.resolve(text, "hand-eye calibration file"))
+            flange = None
+            if he.kind == "eye_in_hand":
+                if ins.frames is not None and not isinstance(ins.frames, Dataset) and ins.frames_path:
+                    flange = capture_flange(Path(ins.frames_path))  # the arm's pose when this capture was taken
+                if flange is None and he.T_robot_flange is None:
+                    raise AposeError(f"{text}: an eye-in-hand calibration needs the arm's T_robot_flange at the capture: "
+                                     "put it in the capture's camera.json (key T_robot_flange) or in the calibration file")
+        except AposeError as e:  # nothing lost: the calibration in use stays, and the refusal says which it is
+            kept = f"\n(the calibration in use stays: {ins.hand_eye.source})" if ins.hand_eye is not None else ""
+            raise AposeError(f"{e}{kept}") from None
         ins.hand_eye, ins.T_robot_flange = he, flange
         if ins.frame is not None:  # else drawn when a frame opens (FRAME_CHANGED)
             self.app.events.emit(Event.RESULT_READY)
+            self.frame_cell()
         where = "the capture's camera.json" if flange is not None else "the file" if he.kind == "eye_in_hand" else ""
         self.app.notify(client, "Hand-eye", f"{he.kind.replace('_', '-')} calibration, robot frame {he.robot_frame}"
-                        + (f"; the arm's pose from {where}" if where else "") + "; the robot base's axes are drawn")
+                        + (f"; the arm's pose from {where}" if where else "") + "; the view shows the robot base's axes "
+                        "and the object")
+
+    def frame_cell(self) -> None:
+        """Every tab's view on the robot base and the object under inspection together (the base is often
+        half a metre or more away: off screen from the object's framing)."""
+        ins = self.app.state.inspect
+        fr = ins.frame
+        try:
+            T_world_robot = fr.T_world_camera @ se3.inv(ins.hand_eye.T_robot_camera(ins.T_robot_flange))
+        except AposeError:
+            return
+        r = ins.result
+        if r is not None and r.ok:
+            obj = r.T_world_part[:3, 3]
+        else:  # the frame's middle, at the depth seen there
+            h, w = fr.depth.shape
+            win = fr.depth[h // 3: 2 * h // 3, w // 3: 2 * w // 3]
+            ok = np.isfinite(win) & (win > 0)
+            z = float(np.median(win[ok])) if ok.any() else 0.5
+            obj = se3.transform_points(fr.T_world_camera, np.array([[0.0, 0.0, z]]))[0]
+        robot = T_world_robot[:3, 3]
+        centre = (obj + robot) / 2.0
+        radius = max(float(np.linalg.norm(obj - robot)) / 2.0 + 0.1, 0.15)
+        to_camera = fr.T_world_camera[:3, 3] - centre
+        to_camera[2] = max(to_camera[2], 0.6 * float(np.linalg.norm(to_camera[:2])))  # from above the table
+        self.app.look_at(centre, radius, to_camera)
 
     def on_estimate_pick(self, client) -> None:
         ins = self.app.state.inspect
         fr = ins.frame
         if fr is None:
             raise AposeError("open a capture or dataset first, then box the loose part in 'Pick prompt (px)'")
+        key = (fr.source, fr.im_id, ins.step)
+        if ins.picks.pop(key, None) is not None:  # the pick shown came from another prompt: gone, whatever happens next
+            self.app.events.emit(Event.RESULT_READY)
         text = self.i_pick.value.strip()
+        form = "type a box x0,y0,x1,y1 or a point u,v on the loose part (image pixels, as for the base's Prompt (px))"
         if not text:
-            raise AposeError("type a box x0,y0,x1,y1 or a point u,v around the loose part into 'Pick prompt (px)'")
-        prompt = parse_prompt(text)
-        mask = prompted_mask(ins.prompt_masks, fr, prompt)
+            raise AposeError(f"'Pick prompt (px)' is empty: {form}")
+        try:
+            prompt = parse_prompt(text)
+            mask = prompted_mask(ins.prompt_masks, fr, prompt)
+        except AposeError as e:  # the prompt readers' own words name the base's prompt and the CLI's flags
+            raise AposeError(f"Pick prompt {text[:60]!r}: {form}" + (f" ({e})" if "outside" in str(e) else "")) from None
         if not mask.any():
-            raise AposeError("the pick prompt gives an empty mask: box the loose part itself")
+            raise AposeError(f"Pick prompt {text[:60]!r} gives an empty mask: box the loose part itself")
         ctx = self.app.step_context(ins.step)
         params = self.app.estimate_job(ins.step, [fr.im_id]).params()
         view = View(fr.depth, mask, fr.camera, fr.T_world_camera, rgb=fr.rgb, box=prompt[0])
         r = estimate_pick(view, ctx.part, params)
-        ins.picks[(fr.source, fr.im_id, ins.step)] = r
+        ins.picks[key] = r
+        ins.pick_prompts[key] = text
         self.app.events.emit(Event.RESULT_READY)
         if not r.ok:
             self.app.notify(client, "Pick not found", r.reason, error=True)
@@ -145,7 +189,10 @@ class RobotPanel:
         except AposeError as e:  # e.g. an eye-in-hand calibration and a frame without the arm's pose
             self.i_targets.content = esc(str(e))
             return
-        self.i_targets.content = targets_markdown(t)
+        ins = self.app.state.inspect
+        key = (ins.frame.source, ins.frame.im_id, ins.step) if ins.frame is not None else None
+        self.i_targets.content = targets_markdown(t, Path(ins.hand_eye.source).name if ins.hand_eye is not None else "",
+                                                  ins.pick_prompts.get(key))
 
     def on_download(self, client) -> None:
         t = self.targets()
@@ -156,7 +203,12 @@ class RobotPanel:
         if client is None:
             raise AposeError("no browser to send the download to")
         ins = self.app.state.inspect
-        doc = {"source": ins.frames_path, "step": ins.step, "frame": int(ins.frame.im_id), **t.to_json()}
+        fr, r = ins.frame, ins.result
+        doc = {"source": ins.frames_path, "step": ins.step, "frame": int(fr.im_id), "hand_eye_file": ins.hand_eye.source,
+               "pick_prompt": ins.pick_prompts.get((fr.source, fr.im_id, ins.step)),
+               "place": None if r is None else {"ok": bool(r.ok), "confident": bool(r.confident), "reason": r.reason,
+                                                "doubts": "" if r.confident or not r.ok else doubts(r)},
+               **t.to_json()}
         client.send_file_download(f"targets_step{ins.step}_frame{ins.frame.im_id}.json",
                                   json.dumps(doc, indent=1).encode("utf-8"))
 

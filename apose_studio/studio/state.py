@@ -105,6 +105,7 @@ class InspectState:
     hand_eye: object | None = None  # the cell's calibration (robot.handeye.HandEye) from the Robot folder, or None
     T_robot_flange: np.ndarray | None = None  # eye-in-hand: the arm at the capture (its camera.json, else the file's)
     picks: dict = field(default_factory=dict)  # (frame source, im_id, step) -> the loose part's estimate there
+    pick_prompts: dict = field(default_factory=dict)  # ... -> the Pick prompt (px) it was found with
 
 
 @dataclass

@@ -1002,6 +1002,8 @@ def test_robot_targets_of_a_capture_in_the_robot_frame(browser, studio, tmp_path
     type_into(page, "Hand-eye file", str(tmp_path / "cell.json"))
     page.get_by_role("button", name="Use hand-eye").click()
     wait_until(lambda: "/inspect/robot" in studio.nodes, "the robot base's axes")
+    time.sleep(1.5)
+    shot(page, "robot_cell.png")  # framed on the robot base and the object together
     type_into(page, "Pick prompt (px)", box)
     page.get_by_role("button", name="Estimate pick").click()
     wait_until(lambda: "/inspect/gripper_pick" in studio.nodes, "the gripper at the pick", timeout=120)

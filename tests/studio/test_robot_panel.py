@@ -79,6 +79,36 @@ def test_robot_folder_draws_the_cell_and_the_gripper_at_place_preplace_and_pick(
     md = st.robot.i_targets.content
     assert "| pick |" in md and "| lift |" in md
     assert "gripper" in st.results.i_legend.content
+    # the download says where every number came from: the calibration file, the pick's prompt, the place's verdict
+    sent = {}
+
+    class Tab:
+        def send_file_download(self, name, data):
+            sent[name] = json.loads(data)
+
+    st.robot.on_download(Tab())
+    (doc,) = sent.values()
+    assert doc["hand_eye_file"].endswith("cell.json") and doc["pick_prompt"] == box and doc["place"]["ok"]
+    np.testing.assert_allclose(np.asarray(doc["T_robot_gripper_pick"]), T_robot_camera @ se3.inv(Tc) @ picked, atol=1e-9)
+    # a pick prompt that fails takes the old pick away: nothing on screen answers a prompt it did not come from
+    st.robot.i_pick.value = "abc"
+    act(st, st.robot.on_estimate_pick)
+    assert "Pick prompt 'abc'" in errors(st)[-1][1] and "Prompt at click" not in errors(st)[-1][1]
+    assert "/inspect/gripper_pick" not in st.nodes and "| pick |" not in st.robot.i_targets.content
+    # a refused calibration keeps the one in use, and says which
+    (tmp_path / "mm.json").write_text(json.dumps({"T_robot_camera": se3.make_T(np.eye(3), [600.0, 0, 50.0]).tolist()}))
+    st.robot.i_hand_eye.value = str(tmp_path / "mm.json")
+    act(st, st.robot.on_use_hand_eye)
+    assert "the calibration in use stays" in errors(st)[-1][1] and "cell.json" in errors(st)[-1][1]
+    assert st.state.inspect.hand_eye.source.endswith("cell.json") and "/inspect/robot" in st.nodes
+    # Use hand-eye frames the view on the robot base and the object together: both in front of the camera
+    st.robot.i_hand_eye.value = str(tmp_path / "cell.json")
+    act(st, st.robot.on_use_hand_eye)
+    cam = st.server.initial_camera
+    look = np.asarray(cam.look_at) - np.asarray(cam.position)
+    for p in (node_T(st.nodes["/inspect/robot"])[:3, 3], st.state.inspect.result.T_world_part[:3, 3]):
+        v = p - np.asarray(cam.position)
+        assert v @ look / np.linalg.norm(v) / np.linalg.norm(look) > np.cos(np.radians(30))
     # the Layers checkbox hides the robot base
     st.results.layers["robot base"].value = False
     st.results.apply_layers()
