@@ -8,9 +8,15 @@ import os
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 # pykdtree's OpenMP threads (geometry/nn.py: ICP's nearest neighbours) wait for work asleep, not spinning: with
 # the cores busy with other work, spinning threads took them from each other and from the work (a 2,500-point
-# query: 4.4 ms spinning, 0.85 ms asleep, 0.82 ms on one thread; benchmarks/nn_threads.py). Read when an
-# OpenMP runtime loads; a value the user set wins.
+# query with both cores busy: 7.3 ms spinning, 0.7 ms asleep; quiet, 0.73 and 0.70 ms: benchmarks/nn_threads.py).
+# OpenBLAS (numpy's matrix products and decompositions) on one thread: the estimator's matrices are small, and
+# OpenBLAS's own spinning threads fought pykdtree's (a query's p90 on a quiet machine 7.9 ms with them, 0.8 ms
+# without), and an answer cannot depend on how many cores the machine has. 160 fixed-protocol frames
+# (benchmarks/tune.py, quiet machine): median 100 -> 77 ms (asleep) -> 60 ms (and one OpenBLAS thread), p95
+# 143 -> 114 -> 95 ms, every pose the same to the bit. Read when the runtimes load (before numpy: the CLI, the
+# studio and `import apose_studio` first); a value the user set wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 
 def _avx2() -> bool:

@@ -43,6 +43,10 @@ Prints per condition:
 
 from __future__ import annotations
 
+import apose_studio  # noqa: F401  (first: its thread settings apply only before numpy loads)
+
+# isort: split
+
 import argparse
 import json
 import sys

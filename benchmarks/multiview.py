@@ -19,6 +19,10 @@ placement:
 
 from __future__ import annotations
 
+import apose_studio  # noqa: F401  (first: its thread settings apply only before numpy loads)
+
+# isort: split
+
 import argparse
 import sys
 import time

@@ -25,6 +25,9 @@ REPO = Path(__file__).resolve().parent.parent
 
 def measure(n: int) -> None:
     sys.path.insert(0, str(REPO))
+    import apose_studio  # noqa: F401  (first: its thread settings, as a program using it has them)
+
+    # isort: split
     import numpy as np
 
     from apose_studio.geometry.nn import NN_THREADS, NearestTree

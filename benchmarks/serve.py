@@ -25,6 +25,10 @@ Goals (#29): p95 latency <= 1.5 x one warm call's compute under 4 clients; memor
 
 from __future__ import annotations
 
+import apose_studio  # noqa: F401  (first: its thread settings apply only before numpy loads)
+
+# isort: split
+
 import argparse
 import base64
 import http.client

@@ -18,6 +18,10 @@ Goals: < 2 s, < 200 ms (pick) and < 200 ms (switch).
 
 from __future__ import annotations
 
+import apose_studio  # noqa: F401  (first: its thread settings apply only before numpy loads)
+
+# isort: split
+
 import argparse
 import os
 import statistics

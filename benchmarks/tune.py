@@ -21,6 +21,10 @@ file from another run (e.g. before a refactoring) and prints how far each pose m
 
 from __future__ import annotations
 
+import apose_studio  # noqa: F401  (first: its thread settings apply only before numpy loads)
+
+# isort: split
+
 import argparse
 import json
 import sys

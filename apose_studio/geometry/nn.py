@@ -11,8 +11,10 @@ keeps scipy's tree: the yardstick stays independent of the code it measures.
 Threads: pykdtree answers a batch of queries with an OpenMP loop, each query point on its own, so the
 answer is the same on any number of threads. apose_studio sets OMP_NUM_THREADS=1 for Open3D (whose
 sums across threads are not repeatable); pykdtree ships its own OpenMP runtime, so its thread count is
-set apart: up to 4 of the CPUs this process may use (APOSE_NN_THREADS overrides). On this 2-core
-machine two threads halve a query (2,300 points: 0.71 -> 0.36 ms; 12 nearest of 2,300: 3.4 -> 1.8 ms).
+set apart: up to 4 of the CPUs this process may use (APOSE_NN_THREADS overrides). Its threads wait asleep
+(OMP_WAIT_POLICY=PASSIVE, apose_studio/__init__.py): spinning, they took the cores from other work on a busy
+machine (2,500 points: 0.95 ms on one thread, 0.70 ms on two, 7.3 ms on two spinning with the cores busy;
+benchmarks/nn_threads.py).
 """
 
 from __future__ import annotations
