@@ -29,7 +29,7 @@ from apose_studio.robot.handeye import capture_flange, read_hand_eye
 from apose_studio.studio import inspection
 from apose_studio.studio.prompt_panel import parse_prompt, prompted_mask
 from apose_studio.studio.state import Event
-from apose_studio.studio.widgets import esc
+from apose_studio.studio.widgets import esc, scene_point_at_ray
 
 ROWS = (("T_robot_gripper_place", "place"), ("T_robot_gripper_preplace", "pre-place"),
         ("T_robot_gripper_pick", "pick"), ("T_robot_gripper_lift", "lift"), ("T_robot_part", "part placed"),
@@ -80,6 +80,9 @@ class RobotPanel:
             b.on_click(self.app.guarded("Hand-eye")(self.on_use_hand_eye))
             self.i_pick = gui.add_text("Pick prompt (px)", "", hint="a box x0,y0,x1,y1 or a point u,v on the loose part in "
                                        "this frame: where the robot picks it")
+            b = gui.add_button("Pick at click", hint="then click the loose part in the 3D view: its pixel becomes the pick "
+                               "prompt, and the pick is estimated")
+            b.on_click(self.app.guarded("Pick at click")(self.on_pick_at_click))
             b = gui.add_button("Estimate pick", hint="find the loose part where it lies (its own CAD as the base)")
             b.on_click(self.app.guarded("Estimate pick")(self.on_estimate_pick))
             self.i_targets = gui.add_markdown("")
@@ -141,6 +144,22 @@ class RobotPanel:
         to_camera = fr.T_world_camera[:3, 3] - centre
         to_camera[2] = max(to_camera[2], 0.6 * float(np.linalg.norm(to_camera[:2])))  # from above the table
         self.app.look_at(centre, radius, to_camera)
+
+    def on_pick_at_click(self, client) -> None:
+        """The next click in the 3D view (by this tab) on the loose part: its pixel is the pick prompt."""
+        if self.app.state.inspect.frame is None:
+            raise AposeError("open a capture or dataset first, then click the loose part")
+        self.app.next_pointer(client, "Pick at click", "click",
+                              lambda e, c: self.pick_at_ray(e.ray_origin, e.ray_direction, c),
+                              "click the loose part in the 3D view")
+
+    def pick_at_ray(self, origin, direction, client) -> None:
+        """The scene point the click's ray hits, as a pixel of the frame: the pick prompt; then the pick."""
+        fr = self.app.state.inspect.frame
+        hit = scene_point_at_ray(fr, origin, direction)
+        u, v = fr.camera.project(se3.transform_points(se3.inv(fr.T_world_camera), hit[None]))
+        self.i_pick.value = f"{int(round(float(u[0])))},{int(round(float(v[0])))}"
+        self.on_estimate_pick(client)
 
     def on_estimate_pick(self, client) -> None:
         ins = self.app.state.inspect

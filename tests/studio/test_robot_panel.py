@@ -90,6 +90,15 @@ def test_robot_folder_draws_the_cell_and_the_gripper_at_place_preplace_and_pick(
     (doc,) = sent.values()
     assert doc["hand_eye_file"].endswith("cell.json") and doc["pick_prompt"] == box and doc["place"]["ok"]
     np.testing.assert_allclose(np.asarray(doc["T_robot_gripper_pick"]), T_robot_camera @ se3.inv(Tc) @ picked, atol=1e-9)
+    # Pick at click: the ray through the loose part's middle pixel from the frame's camera gives the prompt and the pick
+    vs, us = np.nonzero(frame.base_mask())
+    k = np.argmin((us - us.mean()) ** 2 + (vs - vs.mean()) ** 2)
+    ray = Tc[:3, :3] @ np.array([(us[k] - frame.camera.cx) / frame.camera.fx, (vs[k] - frame.camera.cy) / frame.camera.fy, 1])
+    act(st, lambda c: st.robot.pick_at_ray(Tc[:3, 3], ray, c))
+    u, v = map(int, st.robot.i_pick.value.split(","))
+    assert frame.base_mask()[v, u] and "/inspect/gripper_pick" in st.nodes
+    assert np.linalg.norm(node_T(st.nodes["/inspect/gripper_pick"])[:3, 3] - truth[:3, 3]) < 0.005
+    assert st.state.inspect.pick_prompts[(st.state.inspect.frame.source, 0, 1)] == f"{u},{v}"
     # a pick prompt that fails takes the old pick away: nothing on screen answers a prompt it did not come from
     st.robot.i_pick.value = "abc"
     act(st, st.robot.on_estimate_pick)
