@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 
 from apose_studio.api import pose_estimate, robot_targets
+from apose_studio.errors import AposeError
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.geometry.raycast import raycast_depth
@@ -296,6 +297,20 @@ def box_from_view_rect(points_world: np.ndarray, T_world_view: np.ndarray, fov: 
         return None
     lo, hi = np.floor(uv.min(axis=0)), np.ceil(uv.max(axis=0)) + 1
     return (int(max(lo[0], 0)), int(max(lo[1], 0)), int(min(hi[0], cam.width)), int(min(hi[1], cam.height)))
+
+
+def frame_box_from_drag(frame, event, what: str) -> tuple[int, int, int, int]:
+    """The box prompt (frame pixels) of a rectangle dragged in a tab's 3D view (viser's rect pointer event: the
+    tab's camera and the rectangle): box_from_view_rect on the frame's scene points. AposeError naming `what`
+    (the object to drag around) when it covers none."""
+    cam = event.client.camera
+    T_world_view = se3.make_T(se3.quat_wxyz_to_matrix(np.asarray(cam.wxyz)), np.asarray(cam.position))
+    pts, _ = scene_cloud(frame.depth, frame.rgb, frame.camera, frame.T_world_camera)
+    box = box_from_view_rect(pts, T_world_view, cam.fov, cam.aspect, event.screen_min, event.screen_max,
+                             frame.T_world_camera, frame.camera)
+    if box is None:
+        raise AposeError(f"the rectangle covers no depth point; drag it around {what} itself")
+    return box
 
 
 def robot_targets_shown(ins, asm, ctx):

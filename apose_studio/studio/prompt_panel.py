@@ -117,21 +117,12 @@ class PromptPanel:
     def on_drag_box(self, client) -> None:
         """The next rectangle dragged in the 3D view (by this tab) becomes the box prompt."""
         def dragged(event, c) -> None:
-            cam = event.client.camera
-            view = se3.make_T(se3.quat_wxyz_to_matrix(np.asarray(cam.wxyz)), np.asarray(cam.position))
-            self.prompt_from_rect(view, cam.fov, cam.aspect, event.screen_min, event.screen_max, c)
+            box = inspection.frame_box_from_drag(self.app.state.inspect.frame, event, "the object")
+            self.i_prompt.value = ",".join(map(str, box))
+            self.show_mask(c)
 
         self.app.next_pointer(client, "Drag a box", "rect", dragged,
                               "drag a rectangle around the base object in the 3D view")
-
-    def prompt_from_rect(self, T_world_view, fov, aspect, rect_min, rect_max, client) -> None:
-        fr = self.app.state.inspect.frame
-        pts, _ = inspection.scene_cloud(fr.depth, fr.rgb, fr.camera, fr.T_world_camera)
-        box = inspection.box_from_view_rect(pts, T_world_view, fov, aspect, rect_min, rect_max, fr.T_world_camera, fr.camera)
-        if box is None:
-            raise AposeError("the rectangle covers no depth point; drag it around the object itself")
-        self.i_prompt.value = ",".join(map(str, box))
-        self.show_mask(client)
 
     def prompt_at_ray(self, origin, direction, client) -> None:
         """The scene point the click's ray hits, as a pixel of the frame: the point prompt."""

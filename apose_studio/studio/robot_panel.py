@@ -83,6 +83,9 @@ class RobotPanel:
             b = gui.add_button("Pick at click", hint="then click the loose part in the 3D view: its pixel becomes the pick "
                                "prompt, and the pick is estimated")
             b.on_click(self.app.guarded("Pick at click")(self.on_pick_at_click))
+            b = gui.add_button("Drag a pick box", hint="then drag a rectangle around the loose part in the 3D view: its "
+                               "box becomes the pick prompt, and the pick is estimated")
+            b.on_click(self.app.guarded("Drag a pick box")(self.on_drag_pick_box))
             b = gui.add_button("Estimate pick", hint="find the loose part where it lies (its own CAD as the base)")
             b.on_click(self.app.guarded("Estimate pick")(self.on_estimate_pick))
             self.i_targets = gui.add_markdown("")
@@ -152,6 +155,18 @@ class RobotPanel:
         self.app.next_pointer(client, "Pick at click", "click",
                               lambda e, c: self.pick_at_ray(e.ray_origin, e.ray_direction, c),
                               "click the loose part in the 3D view")
+
+    def on_drag_pick_box(self, client) -> None:
+        """The next rectangle dragged in the 3D view (by this tab) around the loose part: its box is the pick prompt."""
+        if self.app.state.inspect.frame is None:
+            raise AposeError("open a capture or dataset first, then drag a box around the loose part")
+        self.app.next_pointer(client, "Drag a pick box", "rect", self.pick_from_drag,
+                              "drag a rectangle around the loose part in the 3D view")
+
+    def pick_from_drag(self, event, client) -> None:
+        box = inspection.frame_box_from_drag(self.app.state.inspect.frame, event, "the loose part")
+        self.i_pick.value = ",".join(map(str, box))
+        self.on_estimate_pick(client)
 
     def pick_at_ray(self, origin, direction, client) -> None:
         """The scene point the click's ray hits, as a pixel of the frame: the pick prompt; then the pick."""

@@ -99,6 +99,18 @@ def test_robot_folder_draws_the_cell_and_the_gripper_at_place_preplace_and_pick(
     assert frame.base_mask()[v, u] and "/inspect/gripper_pick" in st.nodes
     assert np.linalg.norm(node_T(st.nodes["/inspect/gripper_pick"])[:3, 3] - truth[:3, 3]) < 0.005
     assert st.state.inspect.pick_prompts[(st.state.inspect.frame.source, 0, 1)] == f"{u},{v}"
+    # Drag a pick box: a rectangle around the loose part in a view from the frame's own camera gives its box
+    from types import SimpleNamespace
+
+    cam, (x0, y0, x1, y1) = frame.camera, truth_box(frame.base_mask())
+    view = SimpleNamespace(wxyz=se3.matrix_to_quat_wxyz(Tc[:3, :3]), position=Tc[:3, 3],
+                           fov=2 * np.arctan2(cam.height / 2, cam.fy), aspect=cam.width / cam.height)
+    drag = SimpleNamespace(client=SimpleNamespace(camera=view), screen_min=(x0 / cam.width, y0 / cam.height),
+                           screen_max=(x1 / cam.width, y1 / cam.height))
+    act(st, lambda c: st.robot.pick_from_drag(drag, c))
+    got = np.array(list(map(int, st.robot.i_pick.value.split(","))))
+    assert np.abs(got - np.array([x0, y0, x1, y1])).max() <= 3, (got, (x0, y0, x1, y1))
+    assert np.linalg.norm(node_T(st.nodes["/inspect/gripper_pick"])[:3, 3] - truth[:3, 3]) < 0.005
     # a pick prompt that fails takes the old pick away: nothing on screen answers a prompt it did not come from
     st.robot.i_pick.value = "abc"
     act(st, st.robot.on_estimate_pick)
