@@ -176,3 +176,17 @@ def plain_bop_scene(src: Path, dst: Path) -> Path:
     for name in ("scene_camera.json", "scene_gt.json", "rgb", "depth", "mask_visib"):
         (shutil.copytree if (src / name).is_dir() else shutil.copy)(src / name, dst / name)
     return dst
+
+
+def two_carriers(folder: Path) -> Path:
+    """An assembly whose part has its base's shape (two carriers, the part with a grasp and an approach): a loose
+    part's true pose is the base's, so a pick estimate can be checked against the renderer's."""
+    import shutil
+
+    shutil.copy(SAMPLES / "planetary_reducer" / "carrier.ply", folder / "carrier.ply")
+    (folder / "two.yaml").write_text(
+        "format: apose-assembly/1\nname: two\nunits: mm\nparts:\n  carrier: {mesh: carrier.ply}\n  twin:\n"
+        "    mesh: carrier.ply\n    grasps:\n      - name: shaft\n        pose_in_part: {translation: [0, 0, 16], "
+        "rotation: {euler_deg: [180, 0, 0], order: xyz}}\n        width: 8\nsteps:\n  - part: twin\n    base: [carrier]\n"
+        "    pose_in_base: {translation: [60, 0, 0]}\n    approach: {direction: [0, 0, -1], distance: 40}\n")
+    return folder / "two.yaml"

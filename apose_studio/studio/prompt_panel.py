@@ -11,12 +11,11 @@ from __future__ import annotations
 import numpy as np
 
 from apose_studio.errors import AposeError
-from apose_studio.geometry import se3
 from apose_studio.masks.prompt import parse_box, parse_point
 from apose_studio.masks.prompt import prompted_mask as segment
 from apose_studio.studio import inspection
 from apose_studio.studio.state import Event, InspectState
-from apose_studio.studio.widgets import scene_point_at_ray
+from apose_studio.studio.widgets import pixel_at_ray
 
 PROMPT_SOURCE = "prompt"
 
@@ -126,8 +125,5 @@ class PromptPanel:
 
     def prompt_at_ray(self, origin, direction, client) -> None:
         """The scene point the click's ray hits, as a pixel of the frame: the point prompt."""
-        fr = self.app.state.inspect.frame
-        hit = scene_point_at_ray(fr, origin, direction)
-        u, v = fr.camera.project(se3.transform_points(se3.inv(fr.T_world_camera), hit[None]))
-        self.i_prompt.value = f"{int(round(float(u[0])))},{int(round(float(v[0])))}"
+        self.i_prompt.value = pixel_at_ray(self.app.state.inspect.frame, origin, direction)
         self.show_mask(client)

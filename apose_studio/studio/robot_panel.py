@@ -29,7 +29,7 @@ from apose_studio.robot.handeye import capture_flange, read_hand_eye
 from apose_studio.studio import inspection
 from apose_studio.studio.prompt_panel import parse_prompt, prompted_mask
 from apose_studio.studio.state import Event
-from apose_studio.studio.widgets import esc, scene_point_at_ray
+from apose_studio.studio.widgets import esc, pixel_at_ray
 
 ROWS = (("T_robot_gripper_place", "place"), ("T_robot_gripper_preplace", "pre-place"),
         ("T_robot_gripper_pick", "pick"), ("T_robot_gripper_lift", "lift"), ("T_robot_part", "part placed"),
@@ -170,10 +170,7 @@ class RobotPanel:
 
     def pick_at_ray(self, origin, direction, client) -> None:
         """The scene point the click's ray hits, as a pixel of the frame: the pick prompt; then the pick."""
-        fr = self.app.state.inspect.frame
-        hit = scene_point_at_ray(fr, origin, direction)
-        u, v = fr.camera.project(se3.transform_points(se3.inv(fr.T_world_camera), hit[None]))
-        self.i_pick.value = f"{int(round(float(u[0])))},{int(round(float(v[0])))}"
+        self.i_pick.value = pixel_at_ray(self.app.state.inspect.frame, origin, direction)
         self.on_estimate_pick(client)
 
     def on_estimate_pick(self, client) -> None:

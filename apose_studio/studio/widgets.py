@@ -74,3 +74,10 @@ def scene_point_at_ray(frame, origin, direction) -> np.ndarray:
     if hit is None:
         raise AposeError("the click hit no depth point; click on the object itself")
     return hit
+
+
+def pixel_at_ray(frame, origin, direction) -> str:
+    """The pixel "u,v" of `frame` that a click's ray meets first (scene_point_at_ray), as a point prompt's text."""
+    hit = scene_point_at_ray(frame, origin, direction)
+    u, v = frame.camera.project(se3.transform_points(se3.inv(frame.T_world_camera), hit[None]))
+    return f"{int(round(float(u[0])))},{int(round(float(v[0])))}"

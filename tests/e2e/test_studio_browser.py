@@ -980,8 +980,8 @@ def test_robot_targets_of_a_capture_in_the_robot_frame(browser, studio, tmp_path
     from apose_studio.estimation import truth_box
     from apose_studio.geometry import se3
 
-    from ..conftest import rendered_frame, write_capture
-    from ..studio.test_robot_panel import T_ROBOT_WORLD, two_carriers
+    from ..conftest import rendered_frame, two_carriers, write_capture
+    from ..studio.test_robot_panel import T_ROBOT_WORLD
 
     asm = two_carriers(tmp_path)
     frame = rendered_frame(asm, 1, 0, noise="realsense", seed=3)

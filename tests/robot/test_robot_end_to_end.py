@@ -12,7 +12,7 @@ import pytest
 from apose_studio.estimation import truth_box
 from apose_studio.geometry import se3
 
-from ..conftest import SAMPLES, mssd_to_truth, rendered_frame, write_capture
+from ..conftest import SAMPLES, mssd_to_truth, rendered_frame, two_carriers, write_capture
 
 APOSE = [sys.executable, "-m", "apose_studio.cli.commands"]
 PLANETARY = SAMPLES / "planetary_reducer" / "assembly.yaml"
@@ -92,17 +92,10 @@ def test_cli_refuses_robot_flags_without_a_calibration_and_unknown_grasps(housin
 def test_api_pick_finds_the_loose_part_where_it_lies(tmp_path):
     """A loose part is found by the same registration with its own CAD as the base: here the step's part has the
     base's shape (two carriers), so where it lies is the base's true pose."""
-    import shutil
-
     from apose_studio.api import estimate_pose
     from apose_studio.robot.handeye import HandEye
 
-    shutil.copy(SAMPLES / "planetary_reducer" / "carrier.ply", tmp_path / "carrier.ply")
-    (tmp_path / "two.yaml").write_text(
-        "format: apose-assembly/1\nname: two\nunits: mm\nparts:\n  carrier: {mesh: carrier.ply}\n  twin:\n"
-        "    mesh: carrier.ply\n    grasps:\n      - name: shaft\n        pose_in_part: {translation: [0, 0, 16], "
-        "rotation: {euler_deg: [180, 0, 0], order: xyz}}\n        width: 8\nsteps:\n  - part: twin\n    base: [carrier]\n"
-        "    pose_in_base: {translation: [60, 0, 0]}\n")
+    two_carriers(tmp_path)
     frame = rendered_frame(tmp_path / "two.yaml", 1, 0, noise="realsense", seed=3)
     T_robot_camera = T_ROBOT_WORLD @ frame.T_world_camera
     box = truth_box(frame.base_mask())

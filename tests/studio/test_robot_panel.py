@@ -3,30 +3,18 @@ estimate's targets are listed in the robot's frame, and 'Estimate pick' finds th
 gripper where it picks it. Checked against the frame's own truth (the renderer's poses), not the code's."""
 
 import json
-import shutil
 
 import numpy as np
 
 from apose_studio.estimation import truth_box
 from apose_studio.geometry import se3
 
-from ..conftest import SAMPLES, rendered_frame, write_capture
+from ..conftest import rendered_frame, two_carriers, write_capture
 from .conftest import act, errors
 
 # the robot's base in the rendered world: 0.6 m along x, turned 30 deg about z
 T_ROBOT_WORLD = se3.make_T(se3.axis_angle_matrix([0, 0, 1], np.radians(30)), [0.6, -0.2, 0.05])
 GRASP = se3.make_T(np.diag([1.0, -1.0, -1.0]), [0, 0, 0.016])  # the twin's grasp below: 16 mm up, fingers down
-
-
-def two_carriers(folder):
-    """A part with its base's shape (two carriers): where the loose one lies is the base's true pose."""
-    shutil.copy(SAMPLES / "planetary_reducer" / "carrier.ply", folder / "carrier.ply")
-    (folder / "two.yaml").write_text(
-        "format: apose-assembly/1\nname: two\nunits: mm\nparts:\n  carrier: {mesh: carrier.ply}\n  twin:\n"
-        "    mesh: carrier.ply\n    grasps:\n      - name: shaft\n        pose_in_part: {translation: [0, 0, 16], "
-        "rotation: {euler_deg: [180, 0, 0], order: xyz}}\n        width: 8\nsteps:\n  - part: twin\n    base: [carrier]\n"
-        "    pose_in_base: {translation: [60, 0, 0]}\n    approach: {direction: [0, 0, -1], distance: 40}\n")
-    return folder / "two.yaml"
 
 
 def node_T(node) -> np.ndarray:
