@@ -62,29 +62,23 @@ def global_registration(source, target, f_source, f_target, voxel: float, p: Par
 
     reg = o3d.pipelines.registration
     with _RANSAC:  # Open3D's random engine is one for the process: seeded and drawn by one estimate at a time
-        return _ransac(reg, o3d, source, target, f_source, f_target, voxel, p)
-
-
-def _ransac(reg, o3d, source, target, f_source, f_target, voxel: float, p: Params) -> np.ndarray:
-    o3d.utility.random.seed(p.seed)
-    dist = p.ransac_distance_factor * voxel
-    checkers = [reg.CorrespondenceCheckerBasedOnEdgeLength(p.ransac_edge_length), reg.CorrespondenceCheckerBasedOnDistance(dist)]
-    if p.feature_matches > 1:
-        # repetitive geometry (gear teeth) makes the single nearest feature often wrong: offer k of them
-        fs, ft = np.asarray(f_source.data).T, np.asarray(f_target.data).T
-        _, idx = cKDTree(fs).query(ft, k=p.feature_matches)
-        corr = np.stack([idx.reshape(-1), np.repeat(np.arange(len(ft)), p.feature_matches)], axis=1)
-        res = reg.registration_ransac_based_on_correspondence(
-            source, target, o3d.utility.Vector2iVector(corr.astype(np.int32)), dist,
-            reg.TransformationEstimationPointToPoint(False), 3, checkers,
-            reg.RANSACConvergenceCriteria(p.ransac_max_iterations, p.ransac_confidence))
+        o3d.utility.random.seed(p.seed)
+        dist = p.ransac_distance_factor * voxel
+        checkers = [reg.CorrespondenceCheckerBasedOnEdgeLength(p.ransac_edge_length), reg.CorrespondenceCheckerBasedOnDistance(dist)]
+        if p.feature_matches > 1:
+            # repetitive geometry (gear teeth) makes the single nearest feature often wrong: offer k of them
+            fs, ft = np.asarray(f_source.data).T, np.asarray(f_target.data).T
+            _, idx = cKDTree(fs).query(ft, k=p.feature_matches)
+            corr = np.stack([idx.reshape(-1), np.repeat(np.arange(len(ft)), p.feature_matches)], axis=1)
+            res = reg.registration_ransac_based_on_correspondence(
+                source, target, o3d.utility.Vector2iVector(corr.astype(np.int32)), dist,
+                reg.TransformationEstimationPointToPoint(False), 3, checkers,
+                reg.RANSACConvergenceCriteria(p.ransac_max_iterations, p.ransac_confidence))
+            return np.asarray(res.transformation)
+        res = reg.registration_ransac_based_on_feature_matching(
+            source, target, f_source, f_target, p.mutual_filter, dist,
+            reg.TransformationEstimationPointToPoint(False), 3, checkers, reg.RANSACConvergenceCriteria(p.ransac_max_iterations, p.ransac_confidence))
         return np.asarray(res.transformation)
-    res = reg.registration_ransac_based_on_feature_matching(
-        source, target, f_source, f_target, p.mutual_filter, dist,
-        reg.TransformationEstimationPointToPoint(False), 3,
-        [reg.CorrespondenceCheckerBasedOnEdgeLength(p.ransac_edge_length), reg.CorrespondenceCheckerBasedOnDistance(dist)],
-        reg.RANSACConvergenceCriteria(p.ransac_max_iterations, p.ransac_confidence))
-    return np.asarray(res.transformation)
 
 
 def icp(source, target, T_init: np.ndarray, threshold: float, iterations: int, trace: list | None = None,

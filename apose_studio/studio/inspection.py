@@ -315,13 +315,13 @@ def frame_box_from_drag(frame, event, what: str) -> tuple[int, int, int, int]:
 
 def robot_targets_shown(ins, asm, ctx):
     """The pick-and-place targets of what the Inspect tab shows, in the robot's frame (api.robot_targets): the
-    estimate on show (`ins.result`) placed, the loose part's estimate in this frame (`ins.picks`) picked, by the
+    estimate on show (`ins.result`) placed, the loose part's estimate in this frame (`ins.pick()`) picked, by the
     part's first grasp, with the Robot folder's calibration (`ins.hand_eye`, `ins.T_robot_flange`). None
     without a calibration or a frame; without an estimate, only T_robot_camera (the robot base's axes)."""
     he, fr = ins.hand_eye, ins.frame
     if he is None or fr is None:
         return None
-    pick = ins.picks.get((fr.source, fr.im_id, ins.step))
+    pick = ins.pick()[1]
     r = ins.result
     if r is None:
         t = Targets(he.robot_frame, he.camera_frame, he.T_robot_camera(ins.T_robot_flange),
@@ -331,3 +331,14 @@ def robot_targets_shown(ins, asm, ctx):
         r = RegistrationResult(ok=False, reason="not estimated yet")
     est = pose_estimate(r, fr.T_world_camera, ctx.view, None, "", {})
     return robot_targets(est, asm, ctx, he, None, pick, ins.T_robot_flange)
+
+
+def T_world_robot(ins) -> np.ndarray | None:
+    """The robot base in the world of the frame on show, by the Robot folder's calibration; None without a
+    calibration or a frame, or for an eye-in-hand calibration without the arm's pose (the Robot folder says so)."""
+    if ins.hand_eye is None or ins.frame is None:
+        return None
+    try:
+        return ins.frame.T_world_camera @ se3.inv(ins.hand_eye.T_robot_camera(ins.T_robot_flange))
+    except AposeError:
+        return None

@@ -194,14 +194,19 @@ class ResultsView:
                 self.app.nodes.pop("/inspect/gripper").remove()
             return None
         g = part.grasps[0]
-        key = (g.width, asm.gripper)
-        if self._gripper[0] != key:
-            m = gripper_mesh(g.width, asm.gripper)
-            self._gripper = (key, (np.asarray(m.vertices, np.float32), np.asarray(m.faces, np.uint32)))
-        mesh = self._gripper[1]
-        self.posed_mesh("/inspect/gripper", mesh, T_world_part @ g.T_part_gripper, lambda: self.app.server.scene.add_mesh_simple(
-            "/inspect/gripper", *mesh, color=inspection.GRIPPER, flat_shading=True))
+        self.posed_gripper("/inspect/gripper", g, T_world_part @ g.T_part_gripper)
         return g
+
+    def posed_gripper(self, name: str, grasp, T_world_gripper: np.ndarray, opacity: float = 1.0) -> None:
+        """Node `name`: the assembly's gripper opened to `grasp`'s width at T_world_gripper (its mesh made once
+        per width and gripper)."""
+        gripper = self.app.state.inspect_assembly().gripper
+        if self._gripper[0] != (grasp.width, gripper):
+            m = gripper_mesh(grasp.width, gripper)
+            self._gripper = ((grasp.width, gripper), (np.asarray(m.vertices, np.float32), np.asarray(m.faces, np.uint32)))
+        mesh = self._gripper[1]
+        self.posed_mesh(name, mesh, T_world_gripper, lambda: self.app.server.scene.add_mesh_simple(
+            name, *mesh, color=inspection.GRIPPER, flat_shading=True, opacity=opacity))
 
     def draw_robot(self, fr) -> list[tuple]:
         """What the robot does about the step's part, in the world: the gripper (by the part's first grasp) at the
@@ -212,7 +217,7 @@ class ResultsView:
         step = asm.steps[ins.step - 1]
         part = asm.parts.get(step.part)
         grasp = part.grasps[0] if part is not None and part.grasps else None
-        r, pick = ins.result, ins.picks.get((fr.source, fr.im_id, ins.step))
+        r, pick = ins.result, ins.pick()[1]
         poses = {}
         if grasp is not None and r is not None and r.ok and step.approach is not None:
             poses["/inspect/gripper_preplace"] = step.approach.start(r.T_world_part, r.T_world_base) @ grasp.T_part_gripper
@@ -224,21 +229,10 @@ class ResultsView:
                 if name in self.app.nodes:
                     self.app.nodes.pop(name).remove()
                 continue
-            key = (grasp.width, asm.gripper)
-            if self._gripper[0] != key:
-                m = gripper_mesh(grasp.width, asm.gripper)
-                self._gripper = (key, (np.asarray(m.vertices, np.float32), np.asarray(m.faces, np.uint32)))
-            mesh = self._gripper[1]
-            opacity = 0.35 if name.endswith("preplace") else 1.0  # the approach's start: fainter, as in the Assembly tab
-            self.posed_mesh(name, mesh, poses[name], lambda name=name, mesh=mesh, opacity=opacity: scene.add_mesh_simple(
-                name, *mesh, color=inspection.GRIPPER, flat_shading=True, opacity=opacity))
+            # the approach's start: fainter, as in the Assembly tab
+            self.posed_gripper(name, grasp, poses[name], 0.35 if name.endswith("preplace") else 1.0)
             labels.append(("pre-place" if name.endswith("preplace") else "pick", poses[name][:3, 3], "top-left"))
-        T_world_robot = None
-        if ins.hand_eye is not None:
-            try:
-                T_world_robot = fr.T_world_camera @ se3.inv(ins.hand_eye.T_robot_camera(ins.T_robot_flange))
-            except AposeError:  # eye-in-hand without the arm's pose for this frame: the Robot folder says so
-                T_world_robot = None
+        T_world_robot = inspection.T_world_robot(ins)
         if T_world_robot is None:
             if "/inspect/robot" in self.app.nodes:
                 self.app.nodes.pop("/inspect/robot").remove()

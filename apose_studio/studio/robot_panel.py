@@ -10,7 +10,7 @@ wxyz, and can be downloaded as the JSON `apose estimate --hand-eye --json` adds;
 draws the robot base's axes and the gripper at each target.
 
 The calibration and the pick estimates live in the shared state (`state.inspect.hand_eye`,
-`T_robot_flange`, `picks`); a change emits RESULT_READY, on which the 3D view and this folder redraw."""
+`T_robot_flange`, `pick_estimates`); a change emits RESULT_READY, on which the 3D view and this folder redraw."""
 
 from __future__ import annotations
 
@@ -127,10 +127,8 @@ class RobotPanel:
         """Every tab's view on the robot base and the object under inspection together (the base is often
         half a metre or more away: off screen from the object's framing)."""
         ins = self.app.state.inspect
-        fr = ins.frame
-        try:
-            T_world_robot = fr.T_world_camera @ se3.inv(ins.hand_eye.T_robot_camera(ins.T_robot_flange))
-        except AposeError:
+        fr, T_world_robot = ins.frame, inspection.T_world_robot(ins)
+        if T_world_robot is None:
             return
         r = ins.result
         if r is not None and r.ok:
@@ -178,8 +176,8 @@ class RobotPanel:
         fr = ins.frame
         if fr is None:
             raise AposeError("open a capture or dataset first, then box the loose part in 'Pick prompt (px)'")
-        key = (fr.source, fr.im_id, ins.step)
-        if ins.picks.pop(key, None) is not None:  # the pick shown came from another prompt: gone, whatever happens next
+        key = ins.pick_key()
+        if ins.pick_estimates.pop(key, None) is not None:  # the pick shown came from another prompt: gone, whatever happens next
             self.app.events.emit(Event.RESULT_READY)
         text = self.i_pick.value.strip()
         form = "type a box x0,y0,x1,y1 or a point u,v on the loose part (image pixels, as for the base's Prompt (px))"
@@ -196,8 +194,7 @@ class RobotPanel:
         params = self.app.estimate_job(ins.step, [fr.im_id]).params()
         view = View(fr.depth, mask, fr.camera, fr.T_world_camera, rgb=fr.rgb, box=prompt[0])
         r = estimate_pick(view, ctx.part, params)
-        ins.picks[key] = r
-        ins.pick_prompts[key] = text
+        ins.pick_estimates[key] = (text, r)
         self.app.events.emit(Event.RESULT_READY)
         if not r.ok:
             self.app.notify(client, "Pick not found", r.reason, error=True)
@@ -221,9 +218,8 @@ class RobotPanel:
             self.i_targets.content = esc(str(e))
             return
         ins = self.app.state.inspect
-        key = (ins.frame.source, ins.frame.im_id, ins.step) if ins.frame is not None else None
         self.i_targets.content = targets_markdown(t, Path(ins.hand_eye.source).name if ins.hand_eye is not None else "",
-                                                  ins.pick_prompts.get(key))
+                                                  ins.pick()[0])
 
     def on_download(self, client) -> None:
         t = self.targets()
@@ -236,7 +232,7 @@ class RobotPanel:
         ins = self.app.state.inspect
         fr, r = ins.frame, ins.result
         doc = {"source": ins.frames_path, "step": ins.step, "frame": int(fr.im_id), "hand_eye_file": ins.hand_eye.source,
-               "pick_prompt": ins.pick_prompts.get((fr.source, fr.im_id, ins.step)),
+               "pick_prompt": ins.pick()[0],
                "place": None if r is None else {"ok": bool(r.ok), "confident": bool(r.confident), "reason": r.reason,
                                                 "doubts": "" if r.confident or not r.ok else doubts(r)},
                **t.to_json()}

@@ -104,9 +104,17 @@ class InspectState:
     part_models: dict = field(default_factory=dict)  # id(assembly) -> its PartModels (one assembly's)
     hand_eye: object | None = None  # the cell's calibration (robot.handeye.HandEye) from the Robot folder, or None
     T_robot_flange: np.ndarray | None = None  # eye-in-hand: the arm at the capture (its camera.json, else the file's)
-    picks: dict = field(default_factory=dict)  # (frame source, im_id, step) -> the loose part's estimate there
-    pick_prompts: dict = field(default_factory=dict)  # ... -> the Pick prompt (px) it was found with
+    pick_estimates: dict = field(default_factory=dict)  # (frame source, im_id, step) -> (the Pick prompt (px) text,
+    # the loose part's estimate there with it): the Robot panel's
 
+
+    def pick_key(self) -> tuple | None:
+        """The key of `pick_estimates` for the frame and step on show (None: no frame)."""
+        return None if self.frame is None else (self.frame.source, self.frame.im_id, self.step)
+
+    def pick(self) -> tuple:
+        """(prompt text, estimate) of the loose part on the frame on show, or (None, None)."""
+        return self.pick_estimates.get(self.pick_key(), (None, None))
 
 @dataclass
 class StudioState:

@@ -86,7 +86,7 @@ def test_robot_folder_draws_the_cell_and_the_gripper_at_place_preplace_and_pick(
     u, v = map(int, st.robot.i_pick.value.split(","))
     assert frame.base_mask()[v, u] and "/inspect/gripper_pick" in st.nodes
     assert np.linalg.norm(node_T(st.nodes["/inspect/gripper_pick"])[:3, 3] - truth[:3, 3]) < 0.005
-    assert st.state.inspect.pick_prompts[(st.state.inspect.frame.source, 0, 1)] == f"{u},{v}"
+    assert st.state.inspect.pick()[0] == f"{u},{v}"
     # Drag a pick box: a rectangle around the loose part in a view from the frame's own camera gives its box
     from types import SimpleNamespace
 
