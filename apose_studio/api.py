@@ -116,8 +116,10 @@ def estimate_pose(rgb: np.ndarray, depth: np.ndarray, K, assembly, step: int, *,
         return est
     pick = None
     if pick_box is not None or pick_point is not None:
+        t_pick = time.perf_counter()
         pick_mask, _ = array_mask(rgb, depth, cam, box=pick_box, point=pick_point)
         pick = estimate_pick(View(depth, pick_mask, cam, view.T_world_camera, rgb=rgb, box=pick_box), ctx.part, p)
+        est.timings["pick"] = time.perf_counter() - t_pick  # its mask and registration; not in "total" (the place's)
     est.targets = robot_targets(est, asm, ctx, hand_eye, grasp, pick, T_robot_flange)
     return est
 

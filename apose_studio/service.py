@@ -55,7 +55,7 @@ from apose_studio.api import estimate_pose, grasp_of
 from apose_studio.assembly.model import Assembly, load_assembly
 from apose_studio.data.dataset import check_camera_entry, depth_metres
 from apose_studio.errors import AposeError
-from apose_studio.estimation import step_context
+from apose_studio.estimation import pick_base, step_context
 from apose_studio.params import Params, resolve_params
 from apose_studio.robot.handeye import hand_eye_from_data, matrix
 
@@ -97,7 +97,10 @@ class EstimationService:
         self.preset, self.overrides = preset, dict(overrides or {})
         self.params: Params = resolve_params(preset, self.asm.registration, **self.overrides)
         for k in range(1, len(self.asm.steps) + 1):  # warm: every step's base prepared now, not on the first call
-            step_context(self.asm, k)[1].base.warm_up(self.params)
+            ctx = step_context(self.asm, k)[1]
+            ctx.base.warm_up(self.params)
+            if self.asm.parts[ctx.view.part].grasps:  # a part the robot picks: its own CAD as a base, for the pick
+                pick_base(ctx.part).warm_up(self.params)
         self.workers = max(int(workers), 1)
         self.lock = threading.BoundedSemaphore(self.workers)  # estimates at once (each answer the same whatever runs beside it)
         self.queue = max(int(queue), self.workers)

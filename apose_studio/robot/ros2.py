@@ -19,11 +19,13 @@ in Foxglove (Open local file) and add a 3D panel.
 
 from __future__ import annotations
 
+import io
 import time
 from pathlib import Path
 
 import numpy as np
 
+from apose_studio.assembly.fileio import atomic_write_bytes
 from apose_studio.geometry import se3
 from apose_studio.robot.targets import Targets
 
@@ -72,53 +74,50 @@ def _header(frame: str, stamp_ns: int) -> dict:
 
 
 def write_mcap(path: str | Path, targets: Targets, tf_prefix: str = "", stamp_ns: int | None = None) -> Path:
-    """Write `targets` as ROS 2 messages to an MCAP file (atomically: a temporary file renamed into place)."""
+    """Write `targets` as ROS 2 messages to an MCAP file (atomically, through a temporary file of its own:
+    fileio.atomic_write_bytes, so that two processes writing the same path never share one)."""
     from mcap_ros2.writer import Writer  # loaded where it is used
 
     path = Path(path)
     stamp = time.time_ns() if stamp_ns is None else int(stamp_ns)
-    tmp = path.with_name(f".{path.name}.tmp")
-    try:
-        _write(tmp, targets, tf_prefix, stamp, Writer)
-        tmp.replace(path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    buf = io.BytesIO()  # a few kB: written whole, then placed
+    _write(buf, targets, tf_prefix, stamp, Writer)
+    atomic_write_bytes(path, buf.getvalue())
     return path
 
 
-def _write(tmp: Path, targets: Targets, tf_prefix: str, stamp: int, Writer) -> None:
+def _write(f, targets: Targets, tf_prefix: str, stamp: int, Writer) -> None:
     poses = targets.poses()
     robot = targets.robot_frame
-    with open(tmp, "wb") as f:
-        w = Writer(f)
-        tf_schema = w.register_msgdef("tf2_msgs/msg/TFMessage", TF_MESSAGE)
-        pose_schema = w.register_msgdef("geometry_msgs/msg/PoseStamped", POSE_STAMPED)
-        array_schema = w.register_msgdef("geometry_msgs/msg/PoseArray", POSE_ARRAY)
-        transforms = []
-        children = {"T_robot_camera": targets.camera_frame, **{k: tf_prefix + v for k, v in TF_CHILDREN.items()}}
-        for key, child in children.items():
-            if key in poses:
-                T = poses[key]
-                transforms.append({"header": _header(robot, stamp), "child_frame_id": child,
-                                   "transform": {"translation": dict(zip("xyz", (float(v) for v in T[:3, 3]))),
-                                                 "rotation": _quat_xyzw(T)}})
-        w.write_message("/tf_static", tf_schema, {"transforms": transforms}, log_time=stamp, publish_time=stamp)
-        for key, topic in POSE_TOPICS.items():
-            if key in poses:
-                w.write_message(topic, pose_schema, {"header": _header(robot, stamp), "pose": _pose(poses[key])},
-                                log_time=stamp, publish_time=stamp)
-        arrays = {"/apose/place/approach": ["T_robot_gripper_preplace", "T_robot_gripper_place"],
-                  "/apose/pick/approach": ["T_robot_gripper_lift", "T_robot_gripper_pick", "T_robot_gripper_lift"]}
-        for topic, keys in arrays.items():
-            if all(k in poses for k in keys):
-                w.write_message(topic, array_schema, {"header": _header(robot, stamp),
-                                                      "poses": [_pose(poses[k]) for k in keys]},
-                                log_time=stamp, publish_time=stamp)
-        if targets.gripper_alternatives:
-            w.write_message("/apose/place/alternatives", array_schema,
-                            {"header": _header(robot, stamp), "poses": [_pose(T) for T in targets.gripper_alternatives]},
+    w = Writer(f)
+    tf_schema = w.register_msgdef("tf2_msgs/msg/TFMessage", TF_MESSAGE)
+    pose_schema = w.register_msgdef("geometry_msgs/msg/PoseStamped", POSE_STAMPED)
+    array_schema = w.register_msgdef("geometry_msgs/msg/PoseArray", POSE_ARRAY)
+    transforms = []
+    children = {"T_robot_camera": targets.camera_frame, **{k: tf_prefix + v for k, v in TF_CHILDREN.items()}}
+    for key, child in children.items():
+        if key in poses:
+            T = poses[key]
+            transforms.append({"header": _header(robot, stamp), "child_frame_id": child,
+                               "transform": {"translation": dict(zip("xyz", (float(v) for v in T[:3, 3]))),
+                                             "rotation": _quat_xyzw(T)}})
+    w.write_message("/tf_static", tf_schema, {"transforms": transforms}, log_time=stamp, publish_time=stamp)
+    for key, topic in POSE_TOPICS.items():
+        if key in poses:
+            w.write_message(topic, pose_schema, {"header": _header(robot, stamp), "pose": _pose(poses[key])},
                             log_time=stamp, publish_time=stamp)
-        w.finish()
+    arrays = {"/apose/place/approach": ["T_robot_gripper_preplace", "T_robot_gripper_place"],
+              "/apose/pick/approach": ["T_robot_gripper_lift", "T_robot_gripper_pick", "T_robot_gripper_lift"]}
+    for topic, keys in arrays.items():
+        if all(k in poses for k in keys):
+            w.write_message(topic, array_schema, {"header": _header(robot, stamp),
+                                                  "poses": [_pose(poses[k]) for k in keys]},
+                            log_time=stamp, publish_time=stamp)
+    if targets.gripper_alternatives:
+        w.write_message("/apose/place/alternatives", array_schema,
+                        {"header": _header(robot, stamp), "poses": [_pose(T) for T in targets.gripper_alternatives]},
+                        log_time=stamp, publish_time=stamp)
+    w.finish()
 
 
 def read_mcap(path: str | Path) -> list[tuple[str, object]]:

@@ -104,6 +104,7 @@ def test_api_pick_finds_the_loose_part_where_it_lies(tmp_path):
                         pick_box=box)
     t = est.targets
     assert t.pick["ok"], t.pick
+    assert est.timings["pick"] > 0 and "pick" in est.to_json()["timings_s"]  # its time said apart from the place's
     truth = T_robot_camera @ se3.inv(frame.T_world_camera) @ frame.T_world_base
     assert mssd_to_truth(t.T_robot_part_pick, truth, tmp_path / "two.yaml", "twin") < 0.1 * diameter(tmp_path / "two.yaml", "twin")
     # the gripper at the pick, seen from the part, is the grasp

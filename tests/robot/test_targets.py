@@ -107,3 +107,32 @@ def test_no_grasp_gives_the_part_poses_and_says_why():
     t = place_targets(T_ROBOT_CAMERA, T_CAMERA_PART, T_CAMERA_PART, None, None, None)
     assert t.T_robot_gripper_place is None and t.T_robot_part is not None
     assert any("grasps" in n for n in t.notes)
+
+
+def test_two_writers_of_one_mcap_never_share_a_temporary_file(tmp_path):
+    """Two programs writing the same --mcap at once: each write is whole (its own temporary file, renamed into
+    place), the file is always one of them, and no temporary file is left behind."""
+    import threading
+
+    from apose_studio.robot.ros2 import read_mcap, write_mcap
+
+    approach = Approach(np.array([0.0, 0.0, -1.0]), 0.04)
+    t = place_targets(T_ROBOT_CAMERA, T(None, (0.1, 0.0, 0.75)), T_CAMERA_PART, GRASP, approach, None)
+    out, errors = tmp_path / "targets.mcap", []
+
+    def write() -> None:
+        try:
+            for _ in range(30):
+                write_mcap(out, t)
+        except Exception as e:  # noqa: BLE001 - the test reports it
+            errors.append(e)
+
+    threads = [threading.Thread(target=write) for _ in range(4)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    assert errors == []
+    topics = dict(read_mcap(out))
+    assert topics["/apose/place/gripper"].pose.position.z == pytest.approx(t.T_robot_gripper_place[2, 3])
+    assert [p.name for p in tmp_path.iterdir()] == ["targets.mcap"]
