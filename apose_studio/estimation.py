@@ -13,8 +13,9 @@ model from `apose train-seg` (a .pt path), a mask image file, or a box / point p
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -24,11 +25,13 @@ from apose_studio.assembly.mesh import PartModel, base_mesh, load_parts
 from apose_studio.assembly.model import Assembly, load_assembly
 from apose_studio.data.dataset import Frame, read_image
 from apose_studio.errors import AposeError
+from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.masks.prompt import prompted_mask
 from apose_studio.masks.segment import depth_mask, load_model
-from apose_studio.registration import BaseObject, Params, RegistrationResult, estimate, prepare_base
+from apose_studio.registration import BaseObject, Params, RegistrationResult, doubts, estimate, prepare_base
 from apose_studio.registration.fusion import estimate_views
+from apose_studio.registration.track import track
 from apose_studio.registration.types import CONFIDENT_PART_SPREAD, View
 
 BOX_MARGIN = 0.04  # the `box` source: the ground truth's visible box, this much wider on each side
@@ -234,3 +237,78 @@ def estimate_frames(views: list[View], ctx: StepContext, params: Params,
     ctx.base.warm_up(params)
     return held_to_part(estimate_views(views, ctx.base, ctx.view.T_base_part, params,
                                        np.eye(4) if orientation_prior else None, ctx.part.symmetries), ctx.part)
+
+
+# ---- tracking ------------------------------------------------------------------------------------------
+
+TRACK_MODES = ("detected", "tracked", "re-detected", "lost", "not found")
+
+
+@dataclass(frozen=True)
+class TrackStep:
+    """One frame of a tracked sequence: its result and how it was found. `mode`: detected (estimated with no
+    pose to start from), tracked (from the frame before's pose), re-detected (tracking lost it on this frame,
+    a new estimate found it: lost and recovered), lost (tracking lost it and no confident estimate found it),
+    not found (no pose to track and no confident estimate)."""
+
+    im_id: int
+    result: RegistrationResult
+    mode: str
+    seconds: float  # this frame's wall time, everything included
+    lost_because: str = ""  # why tracking let go (modes re-detected and lost)
+
+
+@dataclass
+class Tracker:
+    """Step `ctx`'s pose through a sequence of frames of one placement (a trajectory, a recording), in order.
+
+    A frame is tracked from the last confident pose (registration.track); with none, or when tracking loses
+    the base, it is estimated anew by `detect(frame, box)` (`box`: where the base was last seen, as a prompt
+    box, or None). Only a confident result is tracked from: an ambiguous one could be either twin, and
+    tracking one would hide the doubt. A tracked result is judged every frame by the estimator's rules, so
+    a pose that drifts off the depth is lost, not reported."""
+
+    ctx: StepContext
+    params: Params
+    detect: Callable[[Frame, tuple[int, int, int, int] | None], RegistrationResult]
+    last: RegistrationResult | None = None  # the last confident result
+    plane: tuple | None = None  # the table under the base (world), from the detection tracking started from
+    steps: list[TrackStep] = field(default_factory=list)
+
+    def step(self, frame: Frame) -> TrackStep:
+        t0 = time.perf_counter()
+        why, tried = "", self.last is not None
+        if tried:
+            r = held_to_part(track(frame.depth, frame.camera, frame.T_world_camera, self.ctx.base,
+                                   self.ctx.view.T_base_part, self.params, self.last, self.plane), self.ctx.part)
+            if r.confident:
+                self.last = r
+                return self._done(TrackStep(frame.im_id, r, "tracked", time.perf_counter() - t0))
+            why = r.reason if not r.ok else doubts(r)
+        box = last_seen_box(self.last, frame) if tried else None
+        r = self.detect(frame, box)
+        if r.confident:
+            self.last, self.plane = r, getattr(r.problem, "table", None)
+            mode = "re-detected" if tried else "detected"
+        else:
+            self.last, mode = None, "lost" if tried else "not found"
+        return self._done(TrackStep(frame.im_id, r, mode, time.perf_counter() - t0, why))
+
+    def _done(self, s: TrackStep) -> TrackStep:
+        self.steps.append(s)
+        return s
+
+
+def last_seen_box(last: RegistrationResult, frame: Frame, margin: float = 0.15) -> tuple[int, int, int, int] | None:
+    """A prompt box around where `last` puts the base in `frame` (what the camera saw of it, moved into this
+    camera), `margin` of its size wider per side; None when that is out of the image."""
+    pc = se3.transform_points(se3.inv(frame.T_world_camera) @ last.T_world_base, last.source_cloud)
+    pc = pc[pc[:, 2] > 1e-6]
+    if len(pc) == 0:
+        return None
+    u, v = frame.camera.project(pc)
+    w, h = frame.camera.width, frame.camera.height
+    mx, my = margin * (u.max() - u.min()), margin * (v.max() - v.min())
+    box = (max(int(u.min() - mx), 0), max(int(v.min() - my), 0), min(int(u.max() + mx) + 1, w),
+           min(int(v.max() + my) + 1, h))
+    return box if box[2] - box[0] >= 4 and box[3] - box[1] >= 4 else None

@@ -92,6 +92,11 @@ class Params:
     mask_hypotheses: bool = _p(True, "bool", "a result that is not confident is estimated again on other readings of "
                                "the mask (without what lies on the base or stands in front of it); the one whose model "
                                "explains the frame best is kept")
+    # --- tracking (registration.track: a frame's pose from the frame before's)
+    track_motion: float = _p(0.15, "float", "tracking follows the base this far between frames, x its diameter (the "
+                             "depth searched around its last pose)", 0.01, 1.0)
+    track_points: int = _p(800, "int", "depth points a tracked frame registers", 50, 100_000)
+    track_iterations: int = _p(12, "int", "ICP iterations a tracked frame may take in all", 1, 200)
 
     def voxel(self, diameter: float) -> float:
         return self.voxel_size_m if self.voxel_size_m else diameter / self.voxels_per_diameter

@@ -29,6 +29,13 @@ def cmd_estimate(args) -> int:
     return cmd_estimate(args)
 
 
+def cmd_track(args) -> int:
+    # loaded per command: `apose --help` loads none of the core
+    from apose_studio.cli.track import cmd_track
+
+    return cmd_track(args)
+
+
 def cmd_eval(args) -> int:
     # loaded per command: `apose --help` loads none of the core
     from apose_studio.cli.frames import cmd_eval
@@ -272,7 +279,7 @@ def cmd_render(args) -> int:
     asm = load_assembly(args.assembly)
     settings = RenderSettings(frames=args.frames, seed=args.seed, noise=args.noise, noise_sigma_at_05m=args.noise_sigma,
                               base_pose=args.base_pose, distractors=args.distractors, clutter=args.clutter,
-                              views_per_scene=args.views_per_scene, depth_bias_m=args.depth_bias / 1000.0,
+                              views_per_scene=args.views_per_scene, trajectory=args.trajectory, depth_bias_m=args.depth_bias / 1000.0,
                               misregistration_px=args.misregistration, base_fill=args.base_fill)
     if asm.camera is not None:
         settings = replace(settings, camera=asm.camera)
@@ -330,7 +337,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--version", action="version", version=f"apose_studio {__version__}")
     ap.add_argument("-v", "--verbose", action="store_true", help="show debug logging and tracebacks")
     sub = ap.add_subparsers(dest="command", metavar="COMMAND")
-    for add in (_add_show, _add_render, _add_estimate, _add_eval, _add_train_seg, _add_demo, _add_studio,
+    for add in (_add_show, _add_render, _add_estimate, _add_track, _add_eval, _add_train_seg, _add_demo, _add_studio,
                 _add_export_html, _add_serve):
         add(sub)
     return ap
@@ -353,6 +360,10 @@ def _add_render(sub) -> None:
     p.add_argument("--views-per-scene", type=int, default=1, metavar="K",
                    help="camera poses per placement of the base, at least 30 degrees apart, as an eye-in-hand camera "
                    "takes them (default 1); --frames stays the number of images per step")
+    p.add_argument("--trajectory", nargs="?", const="approach", default="", choices=["approach", "orbit"],
+                   help="one placement per step seen by a camera moving along a path, a frame per point (alone: "
+                   "approach, an eye-in-hand camera closing in and turning 40 degrees; orbit: 90 degrees round at one "
+                   "distance); for `apose track`")
     p.add_argument("--seed", type=_count(0, 2 ** 32 - 1), default=0, help="random seed; the same seed gives the same dataset")
     p.add_argument("--steps", type=_steps, help="only these steps, e.g. 1,3 (default: all)")
     p.add_argument("--noise", default="none", choices=["none", "gaussian", "realsense", "kinect"],
@@ -424,6 +435,25 @@ def _add_estimate(sub) -> None:
                        "(default none: apose_gripper_place, ...)")
     estimator_args(p, mask_default=None)
     p.set_defaults(func=cmd_estimate)
+
+
+def _add_track(sub) -> None:
+    p = sub.add_parser("track", help="follow a step's pose through a sequence of frames (`apose render --trajectory`)",
+                       description="Each frame is tracked from the last confident pose (a short ICP, judged like any "
+                       "estimate); the first frame, and any frame where tracking loses the base, is estimated anew. "
+                       "Prints a line per frame and a summary. Exit codes: 0 at least one confident pose, 1 none, "
+                       "2 bad input.")
+    p.add_argument("input", help="dataset folder from `apose render --trajectory` (frames of one placement, in order)")
+    p.add_argument("--step", type=int, required=True, help="assembly step (1-based)")
+    p.add_argument("--first", type=_count(0, 10 ** 9), default=0, help="the first frame (image id) to track (default 0)")
+    p.add_argument("--count", type=_count(0, 10 ** 9), default=0, help="at most this many frames (default: all)")
+    p.add_argument("--box", metavar="X0,Y0,X1,Y1", action="append",
+                   help="a box around the base in the first frame (pixels), instead of --mask")
+    p.add_argument("--point", metavar="U,V", action="append", help="a click on the base in the first frame, instead of --mask")
+    p.add_argument("--json", metavar="OUT", help="also write the summary and every frame's result as JSON")
+    p.add_argument("-q", "--quiet", action="store_true", help="the summary only, no line per frame")
+    estimator_args(p, mask_default=None)
+    p.set_defaults(func=cmd_track)
 
 
 def _add_eval(sub) -> None:

@@ -323,18 +323,24 @@ def outline_continuation(seen: np.ndarray, view: View, tol: float, plane: tuple[
     if shown.sum() < MIN_POINTS:
         return float("nan")
     near_px, far_px = OUTLINE_RING_PX
+    # the window round the silhouette that the ring and the edge's depth can reach (the same numbers as on the
+    # whole image, at a fraction of the cost: dilation and erosion leave pixels beyond their reach unchanged)
+    rows, cols = np.nonzero(shown.any(axis=1))[0], np.nonzero(shown.any(axis=0))[0]
+    m = 2 * far_px + 2
+    v0, u0 = max(int(rows[0]) - m, 0), max(int(cols[0]) - m, 0)
+    v1, u1 = int(rows[-1]) + m + 1, int(cols[-1]) + m + 1
+    zbuf, shown, d = zbuf[v0:v1, u0:u1], shown[v0:v1, u0:u1], view.depth[v0:v1, u0:u1]
     inner = cv2.dilate(shown.astype(np.uint8), np.ones((2 * near_px + 1,) * 2, np.uint8)) > 0
     outer = cv2.dilate(shown.astype(np.uint8), np.ones((2 * far_px + 1,) * 2, np.uint8)) > 0
     ring = outer & ~inner
     edge_depth = cv2.erode(np.where(shown, zbuf, np.float32(1e6)), np.ones((2 * far_px + 3,) * 2, np.uint8))
-    d = view.depth
     valid = ring & np.isfinite(d) & (d > 0) & (edge_depth < 1e5)
     if valid.sum() < MIN_POINTS:
         return float("nan")
     runs_on = valid & (np.abs(d - edge_depth) < tol)
     if plane is not None:  # the table at the base's foot runs on past its outline by nature
         vs, us = np.nonzero(runs_on)
-        pts = se3.transform_points(view.T_world_camera, view.camera.backproject(us, vs, d[vs, us]))
+        pts = se3.transform_points(view.T_world_camera, view.camera.backproject(us + u0, vs + v0, d[vs, us]))
         foot = pts @ plane[0] + plane[1] < slack
         runs_on[vs[foot], us[foot]] = False
     return float(runs_on.sum()) / float(valid.sum())

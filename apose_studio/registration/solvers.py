@@ -35,10 +35,14 @@ def _solve_constrained(A: np.ndarray, b: np.ndarray, rcond: float = 1e-7) -> np.
 
 
 def icp_point_to_plane(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.ndarray, T_init: np.ndarray, threshold: float,
-                       iterations: int, trace: list | None = None, tgt_tree: NearestTree | None = None) -> np.ndarray:
+                       iterations: int, trace: list | None = None, tgt_tree: NearestTree | None = None,
+                       viewpoint: np.ndarray | None = None, min_step: float = 0.0) -> np.ndarray:
     """T_target_source minimising sum ((T s - t) . n_t)^2 over pairs closer than `threshold`; stops when
     the fitness and inlier RMSE change by less than 1e-6 between iterations (Open3D's criteria). With
-    `trace`, appends each iteration's T."""
+    `trace`, appends each iteration's T. `viewpoint` (the camera's position in the source's frame): pairs
+    whose target normal faces away from it are dropped (a scene matched to a whole model: its far side).
+    `min_step` (metres): also stop once an iteration moves the source by less than this (its translation, and
+    its rotation times the source's extent)."""
     tree = tgt_tree if tgt_tree is not None else NearestTree(tgt)
     T = np.array(T_init, dtype=float)
     if len(src) == 0 or len(tgt) == 0:
@@ -48,11 +52,15 @@ def icp_point_to_plane(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.ndarray
         p = src @ T[:3, :3].T + T[:3, 3]
         d, i = tree.query(p, distance_upper_bound=threshold)
         ok = np.isfinite(d)
+        if viewpoint is not None:
+            eye = T[:3, :3] @ viewpoint + T[:3, 3]
+            ok[ok] = np.einsum("ij,ij->i", tgt_normals[i[ok]], tgt[i[ok]] - eye) < 0
         fit = float(ok.mean())
         rmse = float(np.sqrt(np.mean(d[ok] ** 2))) if ok.any() else 0.0
         return p[ok], i[ok], fit, rmse
 
     p, idx, fit, rmse = match(T)
+    extent = float(np.ptp(src, axis=0).max()) if min_step > 0 else 0.0
     for _ in range(iterations):
         if len(p) < 6:
             break
@@ -69,6 +77,8 @@ def icp_point_to_plane(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.ndarray
         T = update @ T
         if trace is not None:
             trace.append(T.copy())
+        if min_step > 0 and np.linalg.norm(x[3:]) < min_step and np.linalg.norm(x[:3]) * extent < min_step:
+            break
         p, idx, fit_new, rmse_new = match(T)
         done = abs(fit_new - fit) < 1e-6 and abs(rmse_new - rmse) < 1e-6
         fit, rmse = fit_new, rmse_new

@@ -93,6 +93,7 @@ class RegistrationResult:
     # the edge's depth (pipeline.outline_continuation): a model laid onto part of a larger surface
     off_table: float = float("nan")  # how far the base's lowest point lies above (+) or in (-) the table it stands on,
     # beyond the slack (0: on it; NaN: no table seen): a pose that floats or sinks cannot be
+    tracked: bool = False  # the pose was tracked from the frame before's (registration.track), not searched for
     reading: str = ""  # the reading of the mask the result came from ("": the mask as given; hypotheses.readings)
     problem: object = field(default=None, repr=False)  # the prepared registration problem (ours), for fusion
 

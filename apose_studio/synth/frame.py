@@ -25,6 +25,7 @@ from apose_studio.synth.clutter import Pattern, clutter_around, hide_base, stack
 
 BASE_POSES = ("yaw", "fixed")
 CLUTTER_KINDS = ("bench", "stacked", "hidden", "textured")  # what `--clutter` may combine (synth/clutter.py)
+TRAJECTORIES = ("approach", "orbit")  # the camera paths of `--trajectory` (synth/placement.trajectory_cameras)
 
 
 @dataclass(frozen=True)
@@ -45,6 +46,8 @@ class RenderSettings:
     # hidden: an object in front that hides 65-80 % of the base; textured: patterned table, clutter and base
     clutter: tuple[str, ...] = ()
     views_per_scene: int = 1  # camera poses per placement of the base (an eye-in-hand camera's looks), >= 30 deg apart
+    trajectory: str = ""  # "" (each frame its own camera), or a camera path over one placement per step, a frame per
+    # point (synth/placement.TRAJECTORIES: approach, orbit): what a camera sees moving, for tracking
     camera: CameraIntrinsics = field(default_factory=CameraIntrinsics)
     depth_bias_m: float = 0.0  # added to every depth reading (a Kinect reads a few mm off)
     misregistration_px: float = 0.0  # depth registered to the colour image this many pixels off, per frame in a
@@ -89,6 +92,14 @@ class RenderSettings:
         if unknown:
             raise RenderError(f"--clutter {','.join(self.clutter)}: {unknown[0]!r} is not a kind of clutter; expected any of "
                               f"{', '.join(CLUTTER_KINDS)}, comma-separated")
+        if self.trajectory and self.trajectory not in TRAJECTORIES:
+            raise RenderError(f"--trajectory {self.trajectory}: expected one of {', '.join(TRAJECTORIES)}")
+        if self.trajectory and self.views_per_scene > 1:
+            raise RenderError("--trajectory with --views-per-scene: a trajectory is already every frame of a step seen from "
+                              "one moving camera over one placement; give one of them")
+        if "hidden" in self.clutter and self.trajectory:
+            raise RenderError("--clutter hidden with --trajectory: the object that hides the base stands in front of one "
+                              "camera; render a trajectory without it")
         if "hidden" in self.clutter and self.views_per_scene > 1:
             raise RenderError("--clutter hidden with --views-per-scene > 1: the object that hides the base stands in front "
                               "of one camera; render the views of a placement without it")
@@ -348,15 +359,17 @@ def cast(scene: Scene, grid: RayGrid, T_world_camera: np.ndarray) -> Hits:
 
 
 def shade(hit: "Hits", scene: Scene, T_world_camera: np.ndarray, rng: np.random.Generator,
-          grid: RayGrid | None = None) -> np.ndarray:
+          grid: RayGrid | None = None, lighting: np.random.Generator | None = None) -> np.ndarray:
     """Flat Lambert shading with a random key light, ambient and a weak headlight; slight sensor noise.
 
     Computed only for the pixels each body covers, from its face normals (flat shading). Printed patterns
     (`--clutter textured`) need `grid` (the pixels' rays) to find the surface point each pixel shows.
+    `lighting`: draws the light from this generator instead of `rng` (a trajectory's frames share one light).
     """
-    elev, azim = rng.uniform(0.5, 1.4), rng.uniform(0, 2 * np.pi)
+    lit = rng if lighting is None else lighting
+    elev, azim = lit.uniform(0.5, 1.4), lit.uniform(0, 2 * np.pi)
     light = np.array([math.cos(elev) * math.cos(azim), math.cos(elev) * math.sin(azim), math.sin(elev)])
-    ambient, key, gain = rng.uniform(0.25, 0.4), rng.uniform(0.55, 0.85), rng.uniform(0.85, 1.1)
+    ambient, key, gain = lit.uniform(0.25, 0.4), lit.uniform(0.55, 0.85), lit.uniform(0.85, 1.1)
     eye = T_world_camera[:3, 3]
     rgb = np.empty(hit.labels.shape + (3,), np.float32)
     rgb[:] = (0.08, 0.08, 0.1)  # background
@@ -420,10 +433,11 @@ def render_frame(models: dict[str, PartModel], view: StepView, settings: RenderS
 
 
 def view_of(scene: Scene, T_world_camera: np.ndarray, grid: RayGrid, rng: np.random.Generator,
-            settings: RenderSettings | None = None) -> RenderedFrame:
-    """The scene seen from T_world_camera; with `settings`, its depth noise added (else clean)."""
+            settings: RenderSettings | None = None, lighting: np.random.Generator | None = None) -> RenderedFrame:
+    """The scene seen from T_world_camera; with `settings`, its depth noise added (else clean). `lighting`:
+    see `shade`."""
     hit = cast(scene, grid, T_world_camera)
-    rgb = shade(hit, scene, T_world_camera, rng, grid)
+    rgb = shade(hit, scene, T_world_camera, rng, grid, lighting)
     frame = RenderedFrame(rgb, hit.depth, T_world_camera, scene, hit, int(rng.integers(2**62)))
     if settings is not None:
         frame.depth = noisy_depth(frame, settings)

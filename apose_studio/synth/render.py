@@ -17,7 +17,7 @@ from apose_studio.errors import RenderError
 from apose_studio.geometry.raycast import RayGrid
 from apose_studio.synth.frame import RenderSettings, render_frame
 from apose_studio.synth.frame_queue import FrameQueue
-from apose_studio.synth.placement import render_placement
+from apose_studio.synth.placement import render_placement, render_trajectory
 
 
 def step_numbers(asm: Assembly, steps: list[int] | None) -> list[int]:
@@ -71,9 +71,13 @@ def _render_into(asm: Assembly, out, settings: RenderSettings, numbers: list[int
                 "part_obj_id": obj_ids[view.part], "base_obj_ids": [obj_ids[p] for p in view.base],
                 "T_base_part": view.T_base_part.tolist()})
             k, group = settings.views_per_scene, []
+            path = render_trajectory(models, view, settings, grid, [settings.seed, number, 0], base, noise=False) \
+                if settings.trajectory else None
             for im_id in range(settings.frames):
                 placement, j = divmod(im_id, k)
-                if k == 1:  # one view per placement: seeded per frame, so a dataset re-renders bit for bit
+                if path is not None:  # one placement, the camera moving along its path
+                    placement, fr = 0, next(path)
+                elif k == 1:  # one view per placement: seeded per frame, so a dataset re-renders bit for bit
                     rng = np.random.default_rng([settings.seed, number, im_id])
                     fr = render_frame(models, view, settings, grid, rng, base, noise=False)
                 else:
@@ -113,6 +117,7 @@ def _start_dataset(asm: Assembly, out, settings: RenderSettings, numbers: list[i
                          "pitch_range_deg": list(settings.pitch_range_deg),
                          "distance_range_m": list(settings.distance_range_m) if settings.distance_range_m else "auto",
                          "distractors": settings.distractors, "views_per_scene": settings.views_per_scene,
+                         "trajectory": settings.trajectory,
                          "clutter": list(settings.clutter), "depth_bias_m": settings.depth_bias_m,
                          "misregistration_px": settings.misregistration_px, "base_fill": list(settings.base_fill)}}
     write_manifest(out, info)

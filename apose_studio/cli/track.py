@@ -1,0 +1,127 @@
+"""`apose track`: a step's pose through a rendered sequence (`apose render --trajectory`), each frame tracked
+from the one before (estimation.Tracker), detected anew where tracking loses the base; a line per frame and
+a summary (with the truth's errors where the dataset has them)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from apose_studio.cli.common import check_output_file, params_of, parse_prompt
+from apose_studio.data.dataset import Dataset, Frame, write_json
+from apose_studio.data.sources import open_frames
+from apose_studio.errors import AposeError
+from apose_studio.estimation import MaskRequest, Tracker, array_mask, estimate_view, find_mask, step_context
+from apose_studio.evaluate import score_frame
+from apose_studio.registration.types import View
+
+
+def open_sequence(args) -> tuple[Dataset, list[int]]:
+    """The dataset and the frames of --step to track, in order (--first/--count)."""
+    src = open_frames(args.input)
+    if not isinstance(src, Dataset):
+        raise AposeError(f"{args.input}: `apose track` follows a sequence of frames: give a dataset folder from "
+                         "`apose render --trajectory` (a capture folder holds one frame: use `apose estimate`)")
+    if args.step not in src.steps:
+        raise AposeError(f"{src.root}: step {args.step} was not rendered; rendered steps: {', '.join(map(str, src.steps))}")
+    ids = [i for i in src.image_ids(args.step) if i >= args.first]
+    if not ids:
+        raise AposeError(f"{src.root}: step {args.step} has no frames from --first {args.first}")
+    return src, ids[:args.count] if args.count else ids
+
+
+def cmd_track(args) -> int:
+    ds, ids = open_sequence(args)
+    if args.json:
+        check_output_file(Path(args.json), "--json", args.input)
+    asm, ctx = step_context(ds.assembly, args.step)
+    params = params_of(args, asm.registration)
+    ctx.base.warm_up(params)
+    request = MaskRequest(args.mask, *(parse_prompt(args, flag) for flag in ("box", "point")))
+
+    def detect(frame: Frame, box):
+        """The first frame's mask as asked; after a loss, a box prompt where the base was last seen."""
+        if box is not None:
+            mask, _ = array_mask(frame.rgb, frame.depth, frame.camera, box=box)
+        elif frame.im_id == ids[0]:
+            mask, _ = find_mask(frame, request, asm, args.input)
+        else:  # a prompt is drawn on the first frame; a later one with nothing to start from uses the data's masks
+            mask, _ = find_mask(frame, replace(request, box=None, point=None), asm, args.input)
+        prompt = box if box is not None else request.box if frame.im_id == ids[0] else None
+        return estimate_view(replace(View.of(frame, mask), box=prompt), ctx, params, args.orientation_prior)
+
+    tracker = Tracker(ctx, params, detect)
+    rows = []
+    print(f"tracking step {args.step} ({ctx.part.id} on {'+'.join(ctx.view.base)}) through {len(ids)} frames of "
+          f"{args.input}")
+    print(f"{'frame':>5}  {'how':<11} {'ms':>7}  {'confident':<9}  {'error mm':>8}  note")
+    for im_id in ids:
+        frame = ds.frame(args.step, im_id)
+        s = tracker.step(frame)
+        r = s.result
+        err = None
+        if frame.T_world_part is not None and r.ok:
+            sc = score_frame(frame, r, ctx.part, None, ctx.base.symmetries)
+            err = sc.mssd_mod_base_sym
+        rows.append((s, err))
+        note = s.lost_because if s.mode in ("re-detected", "lost") else ("" if r.ok else r.reason)
+        if not args.quiet:
+            print(f"{im_id:>5}  {s.mode:<11} {s.seconds * 1000:7.1f}  {'yes' if r.confident else 'no':<9}  "
+                  f"{'' if err is None else f'{err * 1000:8.2f}':>8}  {note[:100]}")
+    summary = summarise(rows, ctx.part.diameter)
+    print(summary_text(summary))
+    if args.json:
+        write_json(Path(args.json), {"step": args.step, "part": ctx.part.id, "base": list(ctx.view.base),
+                                     "summary": summary, "frames": [frame_json(s, e) for s, e in rows]})
+        print(f"per-frame results: {args.json}")
+    return 0 if summary["confident"] else 1
+
+
+def summarise(rows: list, part_diameter: float) -> dict:
+    """Counts by mode, times of tracked and detected frames (ms), and against the truth (where known): right
+    (MSSD within 10 % of the part's diameter, exact twins of the base forgiven) and confident-and-wrong."""
+    modes = [s.mode for s, _ in rows]
+    tracked = np.array([s.seconds for s, _ in rows if s.mode == "tracked"]) * 1000
+    detected = np.array([s.seconds for s, _ in rows if s.mode != "tracked"]) * 1000
+    known = [(s, e) for s, e in rows if e is not None]
+    out = {"frames": len(rows), **{m.replace(" ", "_").replace("-", "_"): modes.count(m) for m in
+                                   ("detected", "tracked", "re-detected", "lost", "not found")},
+           "confident": sum(s.result.confident for s, _ in rows),
+           "tracked_ms": _pct(tracked), "detected_ms": _pct(detected)}
+    if known:
+        right = [e < 0.1 * part_diameter for _, e in known]
+        out["right"] = int(sum(right))
+        out["confident_and_wrong"] = int(sum(s.result.confident and not ok for (s, _), ok in zip(known, right)))
+        tracked_err = [e for s, e in known if s.mode == "tracked"]
+        out["tracked_error_mm"] = _pct(np.array(tracked_err) * 1000)
+    return out
+
+
+def _pct(v: np.ndarray) -> dict:
+    return {"n": int(len(v)), "median": float(np.median(v)) if len(v) else None,
+            "p95": float(np.percentile(v, 95)) if len(v) else None}
+
+
+def summary_text(s: dict) -> str:
+    def ms(d):
+        return "-" if not d["n"] else f"median {d['median']:.1f}, p95 {d['p95']:.1f}"
+
+    lines = [f"{s['frames']} frames: {s['detected']} detected, {s['tracked']} tracked, {s['re_detected']} lost and "
+             f"re-detected, {s['lost']} lost, {s['not_found']} not found; {s['confident']} confident",
+             f"ms per tracked frame: {ms(s['tracked_ms'])}; per detected frame: {ms(s['detected_ms'])}"]
+    if "right" in s:
+        lines.append(f"against the truth: {s['right']} right, {s['confident_and_wrong']} confident and wrong; "
+                     f"tracked frames' error (MSSD, mm): {ms(s['tracked_error_mm'])}")
+    return "\n".join(lines)
+
+
+def frame_json(s, err) -> dict:
+    r = s.result
+    return {"im_id": s.im_id, "mode": s.mode, "seconds": s.seconds, "ok": r.ok, "confident": bool(r.confident),
+            "reason": r.reason, "lost_because": s.lost_because,
+            "T_world_base": None if r.T_world_base is None else np.asarray(r.T_world_base).tolist(),
+            "T_world_part": None if r.T_world_part is None else np.asarray(r.T_world_part).tolist(),
+            "mssd_mod_base_sym": err}
+

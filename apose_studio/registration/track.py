@@ -1,0 +1,159 @@
+"""Tracking: the next frame's pose from the last confident one, at camera rate.
+
+A camera moving over a placement (an eye-in-hand approach, `apose render --trajectory`) sees the base
+where it was a moment ago. `track` starts there instead of searching: the base's surface samples at the
+last pose (moved into the new camera, whose pose the robot knows; without one the base is assumed to
+stay put in the camera's frame) say which depth pixels may be the base; those near the model at that
+pose (within `track_motion` of the base's diameter, on a side the camera can see) are registered onto
+the model by a short point-to-plane ICP whose correspondence distance shrinks from that motion to the
+polish's, then the pose is judged by the estimator's own rules (`pipeline.judge`: coverage,
+contradiction, the spread the data allows, the table, the outline). A tracked pose that does not fit is
+*lost*; the caller (estimation.Tracker) detects the base anew, and says so. No search, no mask: the
+model at the last pose is the mask.
+
+Deterministic like the rest: the ICP is numpy's (solvers.icp_point_to_plane), the pixels taken are a
+fixed grid. Frames: T_<to>_<from>, metres.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+
+import cv2
+import numpy as np
+
+from apose_studio.geometry import se3
+from apose_studio.geometry.camera import CameraIntrinsics
+from apose_studio.geometry.nn import NearestTree
+from apose_studio.params import Params
+from apose_studio.registration.base import BaseObject, raycast_source
+from apose_studio.registration.pipeline import judge
+from apose_studio.registration.scoring import NOISE_SIGMAS, agreement_tolerance, depth_buffer, twin_placements
+from apose_studio.registration.solvers import icp_point_to_plane
+from apose_studio.registration.types import MIN_POINTS, RegistrationResult, Stage, View, failed
+
+OVERSAMPLE = 1.5  # pixels of the grid per point kept (some fall on the table round the base's foot)
+STEP_FRACTION = 0.02  # an ICP iteration that moves the base by less than this share of a voxel ends its round
+TABLE_GAP = 1.0
+SHRINK_PX = 3  # the depth registered lies this far inside the base's predicted outline: clutter touching it stays out
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """Where the base should be in the new frame: T_world_base, the depth its surface would show there
+    ((H, W), inf where it shows none), and the pixel window that holds it (v0, v1, u0, u1), or None
+    when it is out of the image."""
+
+    T_world_base: np.ndarray
+    zbuf: np.ndarray
+    window: tuple[int, int, int, int] | None
+
+
+def predict(last: RegistrationResult, T_world_camera: np.ndarray, cam: CameraIntrinsics) -> Prediction:
+    """The base at the last pose seen from the new camera: what the camera saw of it then (the last
+    result's source cloud, one point per pixel), splatted into the new image, its gaps closed."""
+    seen = se3.transform_points(last.T_world_base, last.source_cloud)
+    zbuf = depth_buffer(seen, T_world_camera, cam).astype(np.float32)
+    zbuf = cv2.erode(zbuf, np.ones((3, 3), np.uint8))  # the nearest of each 3x3: the splat's gaps closed
+    rows, cols = np.nonzero(np.isfinite(zbuf).any(axis=1))[0], np.nonzero(np.isfinite(zbuf).any(axis=0))[0]
+    window = (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1) if len(rows) >= 3 and len(cols) >= 3 \
+        else None
+    return Prediction(last.T_world_base, zbuf, window)
+
+
+def region_points(depth: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray, pred: Prediction,
+                  motion: float, n_points: int, plane: tuple[np.ndarray, float] | None = None,
+                  table_gap: float = 0.0) -> np.ndarray:
+    """World points of the depth the base may show now: pixels SHRINK_PX inside its predicted outline whose
+    depth lies within `motion` of the predicted surface (not an object in front, not the table seen past
+    it), and (with the table's `plane`) more than `table_gap` above the table (the table round the base's
+    foot would pull its sides onto it). A pixel grid fine enough for OVERSAMPLE x n_points readings; at
+    most n_points kept, evenly spread."""
+    v0, v1, u0, u1 = pred.window
+    z = pred.zbuf[v0:v1, u0:u1]
+    inside = cv2.erode(np.isfinite(z).astype(np.uint8), np.ones((2 * SHRINK_PX + 1,) * 2, np.uint8)) > 0
+    d = depth[v0:v1, u0:u1]
+    with np.errstate(invalid="ignore"):
+        ok = inside & np.isfinite(d) & (d > 0) & (np.abs(d - z) < motion)
+    area = int(ok.sum())
+    stride = max(1, int(np.sqrt(area / (OVERSAMPLE * n_points))))
+    grid = np.zeros_like(ok)
+    grid[::stride, ::stride] = True
+    vs, us = np.nonzero(ok & grid)
+    pts_c = cam.backproject((us + u0).astype(float), (vs + v0).astype(float), d[vs, us].astype(float))
+    pts_w = se3.transform_points(T_world_camera, pts_c)
+    if plane is not None:
+        pts_w = pts_w[pts_w @ plane[0] + plane[1] > table_gap]
+    if len(pts_w) > n_points:
+        pts_w = pts_w[np.linspace(0, len(pts_w) - 1, n_points).astype(int)]
+    return pts_w
+
+
+def track(depth: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray, base: BaseObject,
+          T_base_part: np.ndarray, params: Params, last: RegistrationResult,
+          plane: tuple[np.ndarray, float] | None = None) -> RegistrationResult:
+    """The base in a new frame, from `last` (a confident result of the frame before): judged like any
+    estimate, `tracked` set. ok=False with the reason when the base left the view or too little of it is
+    near where it was. `plane`: the table the base stands on (world; fitted once, when it was detected)."""
+    t0 = time.perf_counter()
+    p = params
+    voxel = p.voxel(base.diameter)
+    noise = last.depth_noise
+    motion = p.track_motion * base.diameter
+    pred = predict(last, T_world_camera, cam)
+    lost = {"preset": p.preset, "tracked": True, "voxel": voxel}
+    if pred.window is None:
+        return failed("tracking lost: at its last pose the base is out of this view", **lost)
+    final = max(p.polish_threshold_factor * voxel, NOISE_SIGMAS * noise)
+    target = region_points(depth, cam, T_world_camera, pred, motion, p.track_points, plane, TABLE_GAP * final)
+    if len(target) < MIN_POINTS:
+        return failed(f"tracking lost: only {len(target)} depth points near where the base was (need {MIN_POINTS}); "
+                      "it moved further than the tracker follows, or something hides it", target_cloud=target, **lost)
+    T = se3.inv(last.T_world_base)  # T_base_world: the depth registered onto the model (scene to model)
+    tree, cam_w = base.samples_tree(), T_world_camera[:3, 3]
+    thr, left = motion, p.track_iterations
+    while left > 0:
+        last_round = thr <= final * 1.0001
+        n = left if last_round else min(3, left)
+        T = icp_point_to_plane(target, base.samples, base.sample_normals, T, thr, n, tgt_tree=tree, viewpoint=cam_w,
+                               min_step=STEP_FRACTION * voxel)
+        left -= n
+        if last_round:
+            break
+        thr = max(final, thr / 3)
+    T_world_base = se3.inv(T)
+    t_icp = time.perf_counter()
+    seen, _ = raycast_source(base, T_world_base, T_world_camera, cam)
+    if len(seen) < MIN_POINTS:
+        return failed("tracking lost: the camera sees (almost) nothing of the base at the tracked pose", **lost)
+    fit_thr = p.icp_threshold_factor * voxel
+    loose = max(fit_thr, 2 * voxel, NOISE_SIGMAS * noise)
+    d = NearestTree(seen).query(target, distance_upper_bound=loose)[0]
+    inl = d < fit_thr
+    fitness = float(inl.mean())
+    rmse = float(np.sqrt(np.mean(d[inl] ** 2))) if inl.any() else 0.0
+    mask = observed_mask(seen, depth, T_world_camera, cam, agreement_tolerance(voxel, noise))
+    result = RegistrationResult(
+        ok=True, T_world_base=T_world_base, T_world_part=T_world_base @ T_base_part,
+        T_world_source=last.T_world_base, target_cloud=target,
+        source_cloud=se3.transform_points(T, seen), fitness=fitness, inlier_rmse=rmse,
+        stages=[Stage("last frame's pose", last.T_world_base, float("nan"), float("nan")),
+                Stage("final", T_world_base, fitness, rmse)],
+        voxel=voxel, coverage=float(np.mean(d < loose)), depth_noise=noise, preset=p.preset, tracked=True,
+        model_mask=mask, timings={"track icp": t_icp - t0})
+    t = time.perf_counter()
+    judged = judge(result, View(depth, mask, cam, T_world_camera), base, plane=plane)
+    if judged.ok and p.use_symmetries:
+        judged = replace(judged, equivalent=twin_placements(T_world_base, judged.T_world_part, base.symmetries))
+    return replace(judged, timings={"track icp": t_icp - t0, "track judge": time.perf_counter() - t})
+
+
+def observed_mask(seen: np.ndarray, depth: np.ndarray, T_world_camera: np.ndarray, cam: CameraIntrinsics,
+                  tol: float) -> np.ndarray:
+    """The base's mask as the tracked pose finds it in the depth: pixels of the model's silhouette (2 px wider,
+    as the model-cut mask) where the depth lies within `tol` of the model's surface. What the judge takes as
+    the mask: where the camera sees past the model away from this mask's edge contradicts the pose."""
+    zbuf = cv2.erode(depth_buffer(seen, T_world_camera, cam).astype(np.float32), np.ones((5, 5), np.uint8))
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(zbuf) & (depth > 0) & (np.abs(depth - zbuf) < tol)
