@@ -36,6 +36,13 @@ def cmd_track(args) -> int:
     return cmd_track(args)
 
 
+def cmd_export_mcap(args) -> int:
+    # loaded per command: `apose --help` loads none of the core
+    from apose_studio.cli.track import cmd_export_mcap
+
+    return cmd_export_mcap(args)
+
+
 def cmd_eval(args) -> int:
     # loaded per command: `apose --help` loads none of the core
     from apose_studio.cli.frames import cmd_eval
@@ -443,7 +450,10 @@ def _add_track(sub) -> None:
                        "estimate); the first frame, and any frame where tracking loses the base, is estimated anew. "
                        "Prints a line per frame and a summary. Exit codes: 0 at least one confident pose, 1 none, "
                        "2 bad input.")
-    p.add_argument("input", help="dataset folder from `apose render --trajectory` (frames of one placement, in order)")
+    p.add_argument("input", help="dataset folder from `apose render --trajectory` (frames of one placement, in order), or "
+                   "a ROS 2 recording: an .mcap file or a rosbag2 folder holding one (colour and aligned depth "
+                   "sensor_msgs/Image, CameraInfo; docs/ESTIMATOR.md#recordings)")
+    p.add_argument("--assembly", help="assembly YAML (needed for a recording; a dataset has its own)")
     p.add_argument("--step", type=int, required=True, help="assembly step (1-based)")
     p.add_argument("--first", type=_count(0, 10 ** 9), default=0, help="the first frame (image id) to track (default 0)")
     p.add_argument("--count", type=_count(0, 10 ** 9), default=0, help="at most this many frames (default: all)")
@@ -454,6 +464,15 @@ def _add_track(sub) -> None:
     p.add_argument("-q", "--quiet", action="store_true", help="the summary only, no line per frame")
     estimator_args(p, mask_default=None)
     p.set_defaults(func=cmd_track)
+    p = sub.add_parser("export-mcap", help="write a rendered step as a ROS 2 recording (MCAP), as a RealSense node publishes",
+                       description="Colour (rgb8), depth aligned to it (16UC1, mm), the colour camera_info and the camera's "
+                       "pose (/apose/camera_pose, geometry_msgs/PoseStamped) per frame, at --rate frames per second: what "
+                       "`apose track` and `ros2 bag play` read.")
+    p.add_argument("dataset", help="dataset folder from `apose render` (--trajectory plays best)")
+    p.add_argument("--step", type=int, required=True, help="assembly step (1-based)")
+    p.add_argument("--out", required=True, help="the .mcap file to write")
+    p.add_argument("--rate", type=float, default=30.0, help="frames per second (default 30)")
+    p.set_defaults(func=cmd_export_mcap)
 
 
 def _add_eval(sub) -> None:

@@ -1,6 +1,7 @@
-"""`apose track`: a step's pose through a rendered sequence (`apose render --trajectory`), each frame tracked
-from the one before (estimation.Tracker), detected anew where tracking loses the base; a line per frame and
-a summary (with the truth's errors where the dataset has them)."""
+"""`apose track`: a step's pose through a sequence of frames (a dataset from `apose render --trajectory`, or a
+ROS 2 recording in MCAP), each frame tracked from the one before (estimation.Tracker), detected anew where
+tracking loses the base; a line per frame and a summary (with the truth's errors where the dataset has
+them). `apose export-mcap`: a rendered step as such a recording."""
 
 from __future__ import annotations
 
@@ -9,8 +10,10 @@ from pathlib import Path
 
 import numpy as np
 
+from apose_studio.assembly.model import load_assembly
 from apose_studio.cli.common import check_output_file, params_of, parse_prompt
 from apose_studio.data.dataset import Dataset, Frame, write_json
+from apose_studio.data.recording import is_recording, open_recording, write_recording
 from apose_studio.data.sources import open_frames
 from apose_studio.errors import AposeError
 from apose_studio.estimation import MaskRequest, Tracker, array_mask, estimate_view, find_mask, step_context
@@ -18,25 +21,41 @@ from apose_studio.evaluate import score_frame
 from apose_studio.registration.types import View
 
 
-def open_sequence(args) -> tuple[Dataset, list[int]]:
-    """The dataset and the frames of --step to track, in order (--first/--count)."""
-    src = open_frames(args.input)
-    if not isinstance(src, Dataset):
-        raise AposeError(f"{args.input}: `apose track` follows a sequence of frames: give a dataset folder from "
-                         "`apose render --trajectory` (a capture folder holds one frame: use `apose estimate`)")
-    if args.step not in src.steps:
-        raise AposeError(f"{src.root}: step {args.step} was not rendered; rendered steps: {', '.join(map(str, src.steps))}")
-    ids = [i for i in src.image_ids(args.step) if i >= args.first]
+def open_sequence(args):
+    """(the assembly, a function im_id -> Frame, the im_ids to track in order (--first/--count)) of a rendered
+    dataset or a recording."""
+    if is_recording(args.input):
+        if not args.assembly:
+            raise AposeError(f"{args.input}: a recording has no assembly of its own; give --assembly A.yaml (and --step)")
+        rec = open_recording(args.input)
+        if rec.unpaired:
+            print(f"note: {rec.unpaired} colour images without a depth image within 20 ms are left out")
+        ids, asm = list(range(args.first, len(rec))), load_assembly(args.assembly)
+        get = rec.frame
+    else:
+        src = open_frames(args.input)
+        if not isinstance(src, Dataset):
+            raise AposeError(f"{args.input}: `apose track` follows a sequence of frames: give a dataset folder from "
+                             "`apose render --trajectory` or a ROS 2 recording (.mcap); a capture folder holds one frame: "
+                             "use `apose estimate`")
+        if args.step not in src.steps:
+            raise AposeError(f"{src.root}: step {args.step} was not rendered; rendered steps: "
+                             f"{', '.join(map(str, src.steps))}")
+        ids = [i for i in src.image_ids(args.step) if i >= args.first]
+        asm = load_assembly(args.assembly) if args.assembly else src.assembly
+
+        def get(im_id):
+            return src.frame(args.step, im_id)
     if not ids:
-        raise AposeError(f"{src.root}: step {args.step} has no frames from --first {args.first}")
-    return src, ids[:args.count] if args.count else ids
+        raise AposeError(f"{args.input}: no frames from --first {args.first}")
+    return asm, get, ids[:args.count] if args.count else ids
 
 
 def cmd_track(args) -> int:
-    ds, ids = open_sequence(args)
+    asm, get, ids = open_sequence(args)
     if args.json:
         check_output_file(Path(args.json), "--json", args.input)
-    asm, ctx = step_context(ds.assembly, args.step)
+    asm, ctx = step_context(asm, args.step)
     params = params_of(args, asm.registration)
     ctx.base.warm_up(params)
     request = MaskRequest(args.mask, *(parse_prompt(args, flag) for flag in ("box", "point")))
@@ -58,7 +77,9 @@ def cmd_track(args) -> int:
           f"{args.input}")
     print(f"{'frame':>5}  {'how':<11} {'ms':>7}  {'confident':<9}  {'error mm':>8}  note")
     for im_id in ids:
-        frame = ds.frame(args.step, im_id)
+        frame = get(im_id)
+        if frame.part is None:  # a recorded frame: the step's parts, no truth
+            frame = replace(frame, base=tuple(ctx.view.base), part=ctx.view.part, step=args.step)
         s = tracker.step(frame)
         r = s.result
         err = None
@@ -125,3 +146,20 @@ def frame_json(s, err) -> dict:
             "T_world_part": None if r.T_world_part is None else np.asarray(r.T_world_part).tolist(),
             "mssd_mod_base_sym": err}
 
+
+
+def cmd_export_mcap(args) -> int:
+    src = open_frames(args.dataset)
+    if not isinstance(src, Dataset):
+        raise AposeError(f"{args.dataset}: expected a dataset folder from `apose render` (a --trajectory one plays best)")
+    if args.step not in src.steps:
+        raise AposeError(f"{src.root}: step {args.step} was not rendered; rendered steps: {', '.join(map(str, src.steps))}")
+    if args.rate <= 0 or args.rate > 1000:
+        raise AposeError(f"--rate {args.rate:g}: expected frames per second above 0 and up to 1000")
+    out = Path(args.out)
+    check_output_file(out, "--out", args.dataset)
+    ids = src.image_ids(args.step)
+    write_recording(out, (src.frame(args.step, i) for i in ids), args.rate)
+    print(f"wrote {len(ids)} frames of step {args.step} ({len(ids) / args.rate:.1f} s at {args.rate:g} frames/s) to {out}: "
+          "colour, depth aligned to it (16UC1, mm), camera_info and the camera's pose (/apose/camera_pose)")
+    return 0

@@ -29,10 +29,11 @@ from apose_studio.geometry.nn import NearestTree
 from apose_studio.params import Params
 from apose_studio.registration.base import BaseObject, raycast_source
 from apose_studio.registration.pipeline import judge
-from apose_studio.registration.scoring import NOISE_SIGMAS, agreement_tolerance, depth_buffer, twin_placements
+from apose_studio.registration.scoring import NOISE_SIGMAS, agreement_tolerance, pixels, twin_placements
 from apose_studio.registration.solvers import icp_point_to_plane
 from apose_studio.registration.types import MIN_POINTS, RegistrationResult, Stage, View, failed
 
+COARSE_POINTS = 300  # the rounds before the last one (wide reach, a rough fit) register this many of the points
 OVERSAMPLE = 1.5  # pixels of the grid per point kept (some fall on the table round the base's foot)
 STEP_FRACTION = 0.02  # an ICP iteration that moves the base by less than this share of a voxel ends its round
 TABLE_GAP = 1.0
@@ -41,24 +42,41 @@ SHRINK_PX = 3  # the depth registered lies this far inside the base's predicted 
 
 @dataclass(frozen=True)
 class Prediction:
-    """Where the base should be in the new frame: T_world_base, the depth its surface would show there
-    ((H, W), inf where it shows none), and the pixel window that holds it (v0, v1, u0, u1), or None
-    when it is out of the image."""
+    """Where the base should be in the new frame: T_world_base, the depth its surface would show in the
+    pixel window that holds it (inf where it shows none), and that window (v0, v1, u0, u1), or None when
+    it is out of the image."""
 
     T_world_base: np.ndarray
-    zbuf: np.ndarray
+    zbuf: np.ndarray  # (v1 - v0, u1 - u0): the window's pixels
     window: tuple[int, int, int, int] | None
+
+
+def window_buffer(points_world: np.ndarray, T_world_camera: np.ndarray, cam: CameraIntrinsics,
+                  pad: int) -> tuple[np.ndarray, tuple[int, int, int, int] | None]:
+    """scoring.depth_buffer on the points' pixel box only (`pad` pixels wider, clipped to the image): (the
+    nearest depth per pixel there, float32, inf where none; the box (v0, v1, u0, u1)), or (empty, None) when
+    no point falls in the image. The same numbers in the box, without a whole image to fill and filter."""
+    v, u, z, inside = pixels(points_world, T_world_camera, cam)
+    inside &= z > 0
+    if inside.sum() < 3:
+        return np.zeros((0, 0), np.float32), None
+    v, u, z = v[inside], u[inside], z[inside]
+    v0, v1 = max(int(v.min()) - pad, 0), min(int(v.max()) + pad + 1, cam.height)
+    u0, u1 = max(int(u.min()) - pad, 0), min(int(u.max()) + pad + 1, cam.width)
+    zbuf = np.full((v1 - v0, u1 - u0), np.inf)
+    np.minimum.at(zbuf, (v - v0, u - u0), z)
+    return zbuf.astype(np.float32), (v0, v1, u0, u1)
 
 
 def predict(last: RegistrationResult, T_world_camera: np.ndarray, cam: CameraIntrinsics) -> Prediction:
     """The base at the last pose seen from the new camera: what the camera saw of it then (the last
-    result's source cloud, one point per pixel), splatted into the new image, its gaps closed."""
+    result's source cloud, one point per pixel), splatted into the new image, its gaps closed (the
+    window's depth, `Prediction.zbuf`)."""
     seen = se3.transform_points(last.T_world_base, last.source_cloud)
-    zbuf = depth_buffer(seen, T_world_camera, cam).astype(np.float32)
+    zbuf, window = window_buffer(seen, T_world_camera, cam, 1)
+    if window is None or min(zbuf.shape) < 3:
+        return Prediction(last.T_world_base, zbuf, None)
     zbuf = cv2.erode(zbuf, np.ones((3, 3), np.uint8))  # the nearest of each 3x3: the splat's gaps closed
-    rows, cols = np.nonzero(np.isfinite(zbuf).any(axis=1))[0], np.nonzero(np.isfinite(zbuf).any(axis=0))[0]
-    window = (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1) if len(rows) >= 3 and len(cols) >= 3 \
-        else None
     return Prediction(last.T_world_base, zbuf, window)
 
 
@@ -71,7 +89,7 @@ def region_points(depth: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.n
     foot would pull its sides onto it). A pixel grid fine enough for OVERSAMPLE x n_points readings; at
     most n_points kept, evenly spread."""
     v0, v1, u0, u1 = pred.window
-    z = pred.zbuf[v0:v1, u0:u1]
+    z = pred.zbuf
     inside = cv2.erode(np.isfinite(z).astype(np.uint8), np.ones((2 * SHRINK_PX + 1,) * 2, np.uint8)) > 0
     d = depth[v0:v1, u0:u1]
     with np.errstate(invalid="ignore"):
@@ -113,11 +131,12 @@ def track(depth: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray, 
     T = se3.inv(last.T_world_base)  # T_base_world: the depth registered onto the model (scene to model)
     tree, cam_w = base.samples_tree(), T_world_camera[:3, 3]
     thr, left = motion, p.track_iterations
+    coarse = target[::max(1, -(-len(target) // COARSE_POINTS))]
     while left > 0:
         last_round = thr <= final * 1.0001
         n = left if last_round else min(3, left)
-        T = icp_point_to_plane(target, base.samples, base.sample_normals, T, thr, n, tgt_tree=tree, viewpoint=cam_w,
-                               min_step=STEP_FRACTION * voxel)
+        T = icp_point_to_plane(target if last_round else coarse, base.samples, base.sample_normals, T, thr, n,
+                               tgt_tree=tree, viewpoint=cam_w, min_step=STEP_FRACTION * voxel)
         left -= n
         if last_round:
             break
@@ -154,6 +173,13 @@ def observed_mask(seen: np.ndarray, depth: np.ndarray, T_world_camera: np.ndarra
     """The base's mask as the tracked pose finds it in the depth: pixels of the model's silhouette (2 px wider,
     as the model-cut mask) where the depth lies within `tol` of the model's surface. What the judge takes as
     the mask: where the camera sees past the model away from this mask's edge contradicts the pose."""
-    zbuf = cv2.erode(depth_buffer(seen, T_world_camera, cam).astype(np.float32), np.ones((5, 5), np.uint8))
+    zbuf, window = window_buffer(seen, T_world_camera, cam, 3)
+    mask = np.zeros(depth.shape, bool)
+    if window is None:
+        return mask
+    v0, v1, u0, u1 = window
+    zbuf = cv2.erode(zbuf, np.ones((5, 5), np.uint8))
+    d = depth[v0:v1, u0:u1]
     with np.errstate(invalid="ignore"):
-        return np.isfinite(zbuf) & (depth > 0) & (np.abs(depth - zbuf) < tol)
+        mask[v0:v1, u0:u1] = np.isfinite(zbuf) & (d > 0) & (np.abs(d - zbuf) < tol)
+    return mask

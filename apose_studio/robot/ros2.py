@@ -38,13 +38,17 @@ _VEC = "MSG: geometry_msgs/Vector3\nfloat64 x\nfloat64 y\nfloat64 z"
 _POSE = "MSG: geometry_msgs/Pose\ngeometry_msgs/Point position\ngeometry_msgs/Quaternion orientation"
 
 
-def _msgdef(main: str, *deps: str) -> str:
+def msgdef(main: str, *deps: str) -> str:
+    """A ROS 2 message definition as MCAP's ros2msg schema: the message's fields, then each type it uses."""
     return "\n".join([main] + [f"{_SEP}\n{d}" for d in deps])
 
 
-POSE_STAMPED = _msgdef("std_msgs/Header header\ngeometry_msgs/Pose pose", _HEADER, _TIME, _POSE, _POINT, _QUAT)
-POSE_ARRAY = _msgdef("std_msgs/Header header\ngeometry_msgs/Pose[] poses", _HEADER, _TIME, _POSE, _POINT, _QUAT)
-TF_MESSAGE = _msgdef("geometry_msgs/TransformStamped[] transforms",
+HEADER_DEF, TIME_DEF = _HEADER, _TIME  # std_msgs/Header and builtin_interfaces/Time, for other messages' schemas
+
+
+POSE_STAMPED = msgdef("std_msgs/Header header\ngeometry_msgs/Pose pose", _HEADER, _TIME, _POSE, _POINT, _QUAT)
+POSE_ARRAY = msgdef("std_msgs/Header header\ngeometry_msgs/Pose[] poses", _HEADER, _TIME, _POSE, _POINT, _QUAT)
+TF_MESSAGE = msgdef("geometry_msgs/TransformStamped[] transforms",
                      "MSG: geometry_msgs/TransformStamped\nstd_msgs/Header header\nstring child_frame_id\n"
                      "geometry_msgs/Transform transform", _HEADER, _TIME,
                      "MSG: geometry_msgs/Transform\ngeometry_msgs/Vector3 translation\ngeometry_msgs/Quaternion rotation",
