@@ -37,6 +37,8 @@ COARSE_POINTS = 300  # the rounds before the last one (wide reach, a rough fit) 
 OVERSAMPLE = 1.5  # pixels of the grid per point kept (some fall on the table round the base's foot)
 STEP_FRACTION = 0.02  # an ICP iteration that moves the base by less than this share of a voxel ends its round
 TABLE_GAP = 1.0
+JUDGE_MARGIN_PX = 16  # the judge's window: the model's pixels and this many around (its outline ring reaches 5)
+START_SPREAD = 3.0  # the ICP starts at this many times the median distance of the depth to the predicted model
 SHRINK_PX = 3  # the depth registered lies this far inside the base's predicted outline: clutter touching it stays out
 
 
@@ -120,18 +122,20 @@ def track(depth: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray, 
     noise = last.depth_noise
     motion = p.track_motion * base.diameter
     pred = predict(last, T_world_camera, cam)
+    t_pred = time.perf_counter()
     lost = {"preset": p.preset, "tracked": True, "voxel": voxel}
     if pred.window is None:
         return failed("tracking lost: at its last pose the base is out of this view", **lost)
     final = max(p.polish_threshold_factor * voxel, NOISE_SIGMAS * noise)
     target = region_points(depth, cam, T_world_camera, pred, motion, p.track_points, plane, TABLE_GAP * final)
+    t_region = time.perf_counter()
     if len(target) < MIN_POINTS:
         return failed(f"tracking lost: only {len(target)} depth points near where the base was (need {MIN_POINTS}); "
                       "it moved further than the tracker follows, or something hides it", target_cloud=target, **lost)
     T = se3.inv(last.T_world_base)  # T_base_world: the depth registered onto the model (scene to model)
     tree, cam_w = base.samples_tree(), T_world_camera[:3, 3]
-    thr, left = motion, p.track_iterations
     coarse = target[::max(1, -(-len(target) // COARSE_POINTS))]
+    thr, left = start_threshold(coarse, T, tree, motion, final), p.track_iterations
     while left > 0:
         last_round = thr <= final * 1.0001
         n = left if last_round else min(3, left)
@@ -144,6 +148,7 @@ def track(depth: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray, 
     T_world_base = se3.inv(T)
     t_icp = time.perf_counter()
     seen, _ = raycast_source(base, T_world_base, T_world_camera, cam)
+    t_cast = time.perf_counter()
     if len(seen) < MIN_POINTS:
         return failed("tracking lost: the camera sees (almost) nothing of the base at the tracked pose", **lost)
     fit_thr = p.icp_threshold_factor * voxel
@@ -152,7 +157,12 @@ def track(depth: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray, 
     inl = d < fit_thr
     fitness = float(inl.mean())
     rmse = float(np.sqrt(np.mean(d[inl] ** 2))) if inl.any() else 0.0
-    mask = observed_mask(seen, depth, T_world_camera, cam, agreement_tolerance(voxel, noise))
+    # the judge looks at the model's window only (its rules read nothing farther than a few pixels outside the
+    # model's silhouette): whole-image filters cost more than the rest of a tracked frame
+    depth_w, cam_w, (v0, v1, u0, u1) = window_view(seen, depth, T_world_camera, cam, JUDGE_MARGIN_PX)
+    mask_w = observed_mask(seen, depth_w, T_world_camera, cam_w, agreement_tolerance(voxel, noise))
+    mask = np.zeros(depth.shape, bool)
+    mask[v0:v1, u0:u1] = mask_w
     result = RegistrationResult(
         ok=True, T_world_base=T_world_base, T_world_part=T_world_base @ T_base_part,
         T_world_source=last.T_world_base, target_cloud=target,
@@ -160,12 +170,37 @@ def track(depth: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray, 
         stages=[Stage("last frame's pose", last.T_world_base, float("nan"), float("nan")),
                 Stage("final", T_world_base, fitness, rmse)],
         voxel=voxel, coverage=float(np.mean(d < loose)), depth_noise=noise, preset=p.preset, tracked=True,
-        model_mask=mask, timings={"track icp": t_icp - t0})
+        model_mask=mask)
     t = time.perf_counter()
-    judged = judge(result, View(depth, mask, cam, T_world_camera), base, plane=plane)
+    judged = judge(result, View(depth_w, mask_w, cam_w, T_world_camera), base, plane=plane)
     if judged.ok and p.use_symmetries:
         judged = replace(judged, equivalent=twin_placements(T_world_base, judged.T_world_part, base.symmetries))
-    return replace(judged, timings={"track icp": t_icp - t0, "track judge": time.perf_counter() - t})
+    return replace(judged, timings={"track predict": t_pred - t0, "track region": t_region - t_pred,
+                                    "track icp": t_icp - t_region, "track cast": t_cast - t_icp, "track score": t - t_cast,
+                                    "track judge": time.perf_counter() - t})
+
+
+def window_view(points_world: np.ndarray, depth: np.ndarray, T_world_camera: np.ndarray, cam: CameraIntrinsics,
+                pad: int) -> tuple[np.ndarray, CameraIntrinsics, tuple[int, int, int, int]]:
+    """The depth and camera of the points' pixel box, `pad` pixels wider (clipped to the image): the same
+    pixels and rays, a smaller image. (depth window, its camera, (v0, v1, u0, u1))."""
+    v, u, z, inside = pixels(points_world, T_world_camera, cam)
+    v, u = v[inside], u[inside]
+    v0, v1 = max(int(v.min()) - pad, 0), min(int(v.max()) + pad + 1, cam.height)
+    u0, u1 = max(int(u.min()) - pad, 0), min(int(u.max()) + pad + 1, cam.width)
+    sub = CameraIntrinsics(u1 - u0, v1 - v0, cam.fx, cam.fy, cam.cx - u0, cam.cy - v0)
+    return depth[v0:v1, u0:u1], sub, (v0, v1, u0, u1)
+
+
+def start_threshold(points: np.ndarray, T_base_world: np.ndarray, tree, motion: float, final: float) -> float:
+    """The ICP's first correspondence distance: wide (`motion`) when the prediction is off, narrow when it is
+    good. START_SPREAD x the median distance of the points to the model at the predicted pose, within
+    [final, motion]; `motion` when fewer than half of them lie within `motion` of it."""
+    d = tree.query(se3.transform_points(T_base_world, points), distance_upper_bound=motion)[0]
+    near = d[np.isfinite(d)]
+    if len(near) < 0.5 * len(d):
+        return motion
+    return float(np.clip(START_SPREAD * np.median(near), final, motion))
 
 
 def observed_mask(seen: np.ndarray, depth: np.ndarray, T_world_camera: np.ndarray, cam: CameraIntrinsics,
