@@ -16,7 +16,7 @@ from apose_studio.data.dataset import Dataset, Frame, write_json
 from apose_studio.data.recording import is_recording, open_recording, write_recording
 from apose_studio.data.sources import open_frames
 from apose_studio.errors import AposeError
-from apose_studio.estimation import MaskRequest, Tracker, array_mask, estimate_view, find_mask, step_context
+from apose_studio.estimation import TRACK_MODES, MaskRequest, Tracker, array_mask, estimate_view, find_mask, step_context
 from apose_studio.evaluate import score_frame
 from apose_studio.registration.types import View
 
@@ -107,8 +107,7 @@ def summarise(rows: list, part_diameter: float) -> dict:
     tracked = np.array([s.seconds for s, _ in rows if s.mode == "tracked"]) * 1000
     detected = np.array([s.seconds for s, _ in rows if s.mode != "tracked"]) * 1000
     known = [(s, e) for s, e in rows if e is not None]
-    out = {"frames": len(rows), **{m.replace(" ", "_").replace("-", "_"): modes.count(m) for m in
-                                   ("detected", "tracked", "re-detected", "lost", "not found")},
+    out = {"frames": len(rows), **{m.replace(" ", "_").replace("-", "_"): modes.count(m) for m in TRACK_MODES},
            "confident": sum(s.result.confident for s, _ in rows),
            "tracked_ms": _pct(tracked), "detected_ms": _pct(detected)}
     if known:

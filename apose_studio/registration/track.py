@@ -36,7 +36,7 @@ from apose_studio.registration.types import MIN_POINTS, RegistrationResult, Stag
 COARSE_POINTS = 300  # the rounds before the last one (wide reach, a rough fit) register this many of the points
 OVERSAMPLE = 1.5  # pixels of the grid per point kept (some fall on the table round the base's foot)
 STEP_FRACTION = 0.02  # an ICP iteration that moves the base by less than this share of a voxel ends its round
-TABLE_GAP = 1.0
+TABLE_GAP = 1.0  # depth within this many final ICP distances of the table is the table (left out)
 JUDGE_MARGIN_PX = 16  # the judge's window: the model's pixels and this many around (its outline ring reaches 5)
 START_SPREAD = 3.0  # the ICP starts at this many times the median distance of the depth to the predicted model
 SHRINK_PX = 3  # the depth registered lies this far inside the base's predicted outline: clutter touching it stays out
@@ -53,18 +53,28 @@ class Prediction:
     window: tuple[int, int, int, int] | None
 
 
+def pixel_box(points_world: np.ndarray, T_world_camera: np.ndarray, cam: CameraIntrinsics, pad: int):
+    """(v, u, z of the points in front of the camera and in the image; their pixel box `pad` pixels wider,
+    clipped to the image, as (v0, v1, u0, u1)), or None when fewer than 3 points fall in the image."""
+    v, u, z, inside = pixels(points_world, T_world_camera, cam)
+    inside &= z > 0
+    if inside.sum() < 3:
+        return None
+    v, u, z = v[inside], u[inside], z[inside]
+    box = (max(int(v.min()) - pad, 0), min(int(v.max()) + pad + 1, cam.height),
+           max(int(u.min()) - pad, 0), min(int(u.max()) + pad + 1, cam.width))
+    return v, u, z, box
+
+
 def window_buffer(points_world: np.ndarray, T_world_camera: np.ndarray, cam: CameraIntrinsics,
                   pad: int) -> tuple[np.ndarray, tuple[int, int, int, int] | None]:
     """scoring.depth_buffer on the points' pixel box only (`pad` pixels wider, clipped to the image): (the
     nearest depth per pixel there, float32, inf where none; the box (v0, v1, u0, u1)), or (empty, None) when
     no point falls in the image. The same numbers in the box, without a whole image to fill and filter."""
-    v, u, z, inside = pixels(points_world, T_world_camera, cam)
-    inside &= z > 0
-    if inside.sum() < 3:
+    found = pixel_box(points_world, T_world_camera, cam, pad)
+    if found is None:
         return np.zeros((0, 0), np.float32), None
-    v, u, z = v[inside], u[inside], z[inside]
-    v0, v1 = max(int(v.min()) - pad, 0), min(int(v.max()) + pad + 1, cam.height)
-    u0, u1 = max(int(u.min()) - pad, 0), min(int(u.max()) + pad + 1, cam.width)
+    v, u, z, (v0, v1, u0, u1) = found
     zbuf = np.full((v1 - v0, u1 - u0), np.inf)
     np.minimum.at(zbuf, (v - v0, u - u0), z)
     return zbuf.astype(np.float32), (v0, v1, u0, u1)
@@ -133,14 +143,14 @@ def track(depth: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray, 
         return failed(f"tracking lost: only {len(target)} depth points near where the base was (need {MIN_POINTS}); "
                       "it moved further than the tracker follows, or something hides it", target_cloud=target, **lost)
     T = se3.inv(last.T_world_base)  # T_base_world: the depth registered onto the model (scene to model)
-    tree, cam_w = base.samples_tree(), T_world_camera[:3, 3]
+    tree, eye = base.samples_tree(), T_world_camera[:3, 3]
     coarse = target[::max(1, -(-len(target) // COARSE_POINTS))]
     thr, left = start_threshold(coarse, T, tree, motion, final), p.track_iterations
     while left > 0:
         last_round = thr <= final * 1.0001
         n = left if last_round else min(3, left)
         T = icp_point_to_plane(target if last_round else coarse, base.samples, base.sample_normals, T, thr, n,
-                               tgt_tree=tree, viewpoint=cam_w, min_step=STEP_FRACTION * voxel)
+                               tgt_tree=tree, viewpoint=eye, min_step=STEP_FRACTION * voxel)
         left -= n
         if last_round:
             break
@@ -182,12 +192,10 @@ def track(depth: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray, 
 
 def window_view(points_world: np.ndarray, depth: np.ndarray, T_world_camera: np.ndarray, cam: CameraIntrinsics,
                 pad: int) -> tuple[np.ndarray, CameraIntrinsics, tuple[int, int, int, int]]:
-    """The depth and camera of the points' pixel box, `pad` pixels wider (clipped to the image): the same
-    pixels and rays, a smaller image. (depth window, its camera, (v0, v1, u0, u1))."""
-    v, u, z, inside = pixels(points_world, T_world_camera, cam)
-    v, u = v[inside], u[inside]
-    v0, v1 = max(int(v.min()) - pad, 0), min(int(v.max()) + pad + 1, cam.height)
-    u0, u1 = max(int(u.min()) - pad, 0), min(int(u.max()) + pad + 1, cam.width)
+    """The depth and camera of the points' pixel box (`pixel_box`): the same pixels and rays, a smaller image.
+    (depth window, its camera, (v0, v1, u0, u1)); the whole image when too few points fall in it."""
+    found = pixel_box(points_world, T_world_camera, cam, pad)
+    v0, v1, u0, u1 = found[3] if found is not None else (0, cam.height, 0, cam.width)
     sub = CameraIntrinsics(u1 - u0, v1 - v0, cam.fx, cam.fy, cam.cx - u0, cam.cy - v0)
     return depth[v0:v1, u0:u1], sub, (v0, v1, u0, u1)
 

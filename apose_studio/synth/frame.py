@@ -293,8 +293,12 @@ def sample_camera(rng: np.random.Generator, target: np.ndarray, settings: Render
     pitch = math.radians(rng.uniform(*settings.pitch_range_deg))
     lo, hi = settings.distance_range_m or auto_distance_range(base_diameter, settings.camera, settings.base_fill)
     dist = rng.uniform(lo, hi)
-    eye = target + dist * np.array([math.cos(pitch) * math.cos(yaw), math.cos(pitch) * math.sin(yaw), math.sin(pitch)])
-    return se3.look_at(eye, target)
+    return se3.look_at(eye_at(target, dist, yaw, pitch), target)
+
+
+def eye_at(target: np.ndarray, dist: float, yaw: float, pitch: float) -> np.ndarray:
+    """The camera's position `dist` from `target` at `yaw` round it and `pitch` above the table (radians)."""
+    return target + dist * np.array([math.cos(pitch) * math.cos(yaw), math.cos(pitch) * math.sin(yaw), math.sin(pitch)])
 
 
 # --------------------------------------------------------------------------------- ray casting

@@ -19,6 +19,7 @@ from apose_studio.synth.frame import (
     RenderedFrame,
     RenderSettings,
     auto_distance_range,
+    eye_at,
     sample_camera,
     sample_scene,
     view_of,
@@ -86,8 +87,7 @@ def trajectory_cameras(rng: np.random.Generator, target: np.ndarray, settings: R
         dist = dists[0] + s * (dists[1] - dists[0])
         look = target + WOBBLE * base_diameter * np.array([math.sin(2 * math.pi * s + phase[0]),
                                                            math.sin(4 * math.pi * s + phase[1]), 0.0])
-        eye = target + dist * np.array([math.cos(pitch) * math.cos(yaw), math.cos(pitch) * math.sin(yaw), math.sin(pitch)])
-        out.append(se3.look_at(eye, look))
+        out.append(se3.look_at(eye_at(target, dist, yaw, pitch), look))
     return out
 
 
