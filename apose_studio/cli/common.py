@@ -68,8 +68,9 @@ def finite(x: float) -> float | None:
 
 def check_output_file(path: Path, flag: str, inputs=()) -> None:
     """Refuse an output path that cannot take a file, or that would replace a file of an input folder
-    (`apose eval --json DS/dataset_info.json` would leave the dataset unreadable), before any long work."""
-    for folder in inputs:
+    (`apose eval --json DS/dataset_info.json` would leave the dataset unreadable), before any long work.
+    `inputs`: the input paths (one path alone is taken as one, not as its characters)."""
+    for folder in [inputs] if isinstance(inputs, (str, Path)) else inputs:
         folder = Path(folder).resolve()
         target = path.resolve()
         if target.exists() and (target == folder or target.is_relative_to(folder)):

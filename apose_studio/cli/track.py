@@ -54,7 +54,7 @@ def open_sequence(args):
 def cmd_track(args) -> int:
     asm, get, ids = open_sequence(args)
     if args.json:
-        check_output_file(Path(args.json), "--json", args.input)
+        check_output_file(Path(args.json), "--json", [args.input])
     asm, ctx = step_context(asm, args.step)
     params = params_of(args, asm.registration)
     ctx.base.warm_up(params)
@@ -156,7 +156,7 @@ def cmd_export_mcap(args) -> int:
     if args.rate <= 0 or args.rate > 1000:
         raise AposeError(f"--rate {args.rate:g}: expected frames per second above 0 and up to 1000")
     out = Path(args.out)
-    check_output_file(out, "--out", args.dataset)
+    check_output_file(out, "--out", [args.dataset])
     ids = src.image_ids(args.step)
     write_recording(out, (src.frame(args.step, i) for i in ids), args.rate)
     print(f"wrote {len(ids)} frames of step {args.step} ({len(ids) / args.rate:.1f} s at {args.rate:g} frames/s) to {out}: "

@@ -42,6 +42,7 @@ CAMERA_INFO = msgdef("std_msgs/Header header\nuint32 height\nuint32 width\nstrin
 COLOUR_ENCODINGS = ("rgb8", "bgr8", "rgba8", "bgra8")
 DEPTH_ENCODINGS = {"16UC1": 0.001, "mono16": 0.001, "32FC1": 1.0}  # -> metres per unit
 POSE_TOPIC = "/apose/camera_pose"
+MAX_SIDE = 8192  # pixels a side of a recorded image (a depth camera's are at most a few thousand)
 TOPICS = {"color": "/camera/color/image_raw", "depth": "/camera/aligned_depth_to_color/image_raw",
           "info": "/camera/color/camera_info", "pose": POSE_TOPIC}  # what `write_recording` writes (a RealSense's names)
 
@@ -60,15 +61,17 @@ def mcap_file(path: str | Path) -> Path:
         if len(found) > 1:
             raise DatasetError(f"{path}: {len(found)} .mcap files; give the one to read")
         return found[0]
-    if not path.is_file():
+    if not path.exists():
         raise DatasetError(f"{path}: no such file")
+    if not path.is_file():
+        raise DatasetError(f"{path}: not a regular file (a FIFO or a device?); give the recording's .mcap file")
     return path
 
 
 def is_recording(path: str | Path) -> bool:
     """Whether `path` is an MCAP file or a rosbag2 folder (what `open_recording` reads)."""
     path = Path(path)
-    return (path.is_file() and path.suffix == ".mcap") or (path.is_dir() and (path / "metadata.yaml").is_file())
+    return (path.suffix == ".mcap" and not path.is_dir()) or (path.is_dir() and (path / "metadata.yaml").is_file())
 
 
 @dataclass
@@ -126,6 +129,8 @@ def _reader(f):
 def image_array(msg, what: str) -> np.ndarray:
     """A sensor_msgs/Image as an array: colour as (H, W, 3) uint8 RGB, depth as (H, W) float32 metres (0: none)."""
     h, w, enc = int(msg.height), int(msg.width), str(msg.encoding)
+    if not (0 < h <= MAX_SIDE and 0 < w <= MAX_SIDE):
+        raise DatasetError(f"{what}: a {w}x{h} image; expected 1 to {MAX_SIDE} pixels a side")
     data = bytes(msg.data)
     if enc in COLOUR_ENCODINGS:
         c = 4 if enc.endswith("a8") else 3
@@ -156,7 +161,8 @@ def open_recording(path: str | Path, topics: dict[str, str | None] | None = None
             reader = _reader(f)
             summary = reader.get_summary()
         except Exception as e:  # not an MCAP file, or cut short
-            raise DatasetError(f"{file}: not a readable MCAP file ({type(e).__name__}: {e})") from None
+            raise DatasetError(f"{file}: not a readable MCAP file ({type(e).__name__}: {str(e)[:120]}); a recording cut "
+                               "short while it was written can be mended with `mcap recover`") from None
         if summary is None:
             raise DatasetError(f"{file}: an MCAP file without a summary (cut short while recording?); "
                                "re-index it with `mcap recover`")
@@ -205,8 +211,11 @@ def open_recording(path: str | Path, topics: dict[str, str | None] | None = None
                 p, q = msg.pose.position, msg.pose.orientation
                 pose_times.append(message.log_time)
                 poses.append(se3.make_T(se3.quat_wxyz_to_matrix(np.array([q.w, q.x, q.y, q.z])), np.array([p.x, p.y, p.z])))
-    if camera is None or camera.fx <= 0:
-        raise DatasetError(f"{file}: {chosen['info']} holds no usable K (fx = {camera.fx if camera else 'none'})")
+    if camera is None or not all(np.isfinite([camera.fx, camera.fy, camera.cx, camera.cy])) or camera.fx <= 0 \
+            or camera.fy <= 0 or not (0 < camera.width <= MAX_SIDE and 0 < camera.height <= MAX_SIDE):
+        raise DatasetError(f"{file}: {chosen['info']} holds no usable camera (K = "
+                           f"{[camera.fx, camera.fy, camera.cx, camera.cy] if camera else 'none'}, size "
+                           f"{f'{camera.width}x{camera.height}' if camera else 'none'}); record the colour camera_info")
     colour, depth = times[chosen["color"]], sorted(times[chosen["depth"]])
     if not colour or not depth:
         raise DatasetError(f"{file}: {chosen['color'] if not colour else chosen['depth']} has no messages")

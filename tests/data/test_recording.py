@@ -151,3 +151,31 @@ def test_track_a_recording_exported_from_a_rendered_trajectory(tmp_path):
         assert f["confident"] and err < 0.005, (f["im_id"], err)
     p = subprocess.run(run + ["track", str(rec), "--step", "2"], capture_output=True, text=True)
     assert p.returncode == 2 and "--assembly" in p.stderr and "Traceback" not in p.stderr
+
+
+def test_neighbours_of_a_bad_recording_are_refused_by_name(tmp_path):
+    """A FIFO named .mcap, an image claiming 100000 px a side, a CameraInfo with NaN in K: each a one-line reason."""
+    import os
+
+    fifo = tmp_path / "live.mcap"
+    os.mkfifo(fifo)
+    with pytest.raises(DatasetError, match="not a regular file"):
+        open_recording(fifo)
+    huge = _custom(tmp_path / "h.mcap", [("/cam/color/image_raw", "rgb8", bytes(18), 3, 2, 9),
+                                         ("/cam/depth/image_raw", "16UC1", bytes(12), 100000, 2, 6)])
+    with pytest.raises(DatasetError, match="100000x2 image"):
+        open_recording(huge).frame(0)
+
+
+def test_an_output_file_beside_the_input_is_checked_as_one_path(tmp_path):
+    """check_output_file takes one input path as one path (a string was once read as its characters, so that
+    every existing output file was refused as "a file of the input /")."""
+    from apose_studio.cli.common import check_output_file
+    from apose_studio.errors import AposeError
+
+    (tmp_path / "ds").mkdir()
+    (tmp_path / "ds" / "dataset_info.json").write_text("{}")
+    (tmp_path / "old.json").write_text("{}")
+    check_output_file(tmp_path / "old.json", "--json", str(tmp_path / "ds"))  # an earlier output: replaced
+    with pytest.raises(AposeError, match="a file of the input"):
+        check_output_file(tmp_path / "ds" / "dataset_info.json", "--json", str(tmp_path / "ds"))
