@@ -133,6 +133,7 @@ def _serve_studio(assembly, dataset, host: str, port: int, cache=None, root=None
         while True:
             time.sleep(3600)
     except KeyboardInterrupt:
+        studio.sequence.stop()  # a recording playing ends its frame first
         studio.inspect.settle()  # a background preparation inside Open3D would abort the exit
         server.stop()
     return 0

@@ -42,6 +42,7 @@ from apose_studio.studio.mates_panel import MatesPanel
 from apose_studio.studio.prompt_panel import PromptPanel
 from apose_studio.studio.results_view import ResultsView
 from apose_studio.studio.robot_panel import RobotPanel
+from apose_studio.studio.sequence_panel import SequencePanel
 from apose_studio.studio.state import Event, Events, StudioState, shared
 from apose_studio.studio.steps_panel import StepsPanel
 from apose_studio.studio.views_panel import ViewsPanel
@@ -59,7 +60,7 @@ class Studio:
 
     Panels (each owns its folders; only the app calls them): `files` (File, Parts), `steps` (Steps,
     Preview), `mates` (Mates, Approach), `grasps` (Grasps), `inspect` (Data, Estimate), `prompt` (Prompt), `views` (Views),
-    `results` (replay, Result, Layers), `robot` (Robot). Shared: `state` (the data) and `events` (the hub)."""
+    `results` (replay, Result, Layers), `robot` (Robot), `sequence` (Sequence). Shared: `state` (the data) and `events` (the hub)."""
 
     files: AssemblyPanel
     steps: StepsPanel
@@ -69,6 +70,7 @@ class Studio:
     prompt: PromptPanel
     views: ViewsPanel
     robot: RobotPanel
+    sequence: SequencePanel
     results: ResultsView
     state: StudioState
     events: Events
@@ -100,6 +102,7 @@ class Studio:
         self.grasps = GraspsPanel(self)
         self.history = authoring.History()
         self.inspect = InspectPanel(self)
+        self.sequence = SequencePanel(self)
         self.prompt = PromptPanel(self)
         self.views = ViewsPanel(self)  # before results: a frame change refreshes the views, then draws
         self.results = ResultsView(self)
@@ -235,6 +238,7 @@ class Studio:
             self.grasps.build()
         with tabs.add_tab("Inspect"):
             self.inspect.build()
+            self.sequence.build()
             self.prompt.build()
             self.views.build()
             self.results.build()
@@ -378,6 +382,11 @@ class Studio:
         """An estimate of frames `ids` of `step` with the Inspect panel's settings of this moment (its
         Estimate folder owns them); for panels that estimate in their own way (Views)."""
         return self.inspect.job(step, ids)
+
+    def estimate_frame(self, job: EstimateJob, im_id: int):
+        """(result, score) of frame `im_id` of `job`, estimated with its settings and cached (the Inspect panel's
+        estimate, for panels that run estimates of their own: the Sequence player)."""
+        return self.inspect.estimate(job, im_id)
 
     def step_context(self, step: int):
         """The inspected assembly's prepared context for `step` (cached by the Inspect panel)."""

@@ -21,7 +21,8 @@ import trimesh
 
 from apose_studio.assembly.model import Assembly
 from apose_studio.data.bop import BopScene, parse_obj_map
-from apose_studio.data.dataset import Dataset, DatasetError
+from apose_studio.data.dataset import Dataset, DatasetError, Frame
+from apose_studio.data.recording import Recording, is_recording, open_recording
 from apose_studio.data.sources import open_frames
 from apose_studio.errors import AposeError
 from apose_studio.estimation import MASK_SOURCES, StepContext, check_mask_source, mask_sources_for
@@ -88,12 +89,14 @@ class InspectPanel:
         self._told_step: int | None = None  # a BOP scene's step whose missing truth was last told
         app.events.on(Event.MASK_SOURCE_CHOSEN, self.on_mask_source_chosen)
         app.events.on(Event.FRAMING_ASKED, self.frame_camera_on_frame)
+        app.events.on(Event.FRAME_PLAYED, self.on_frame_played)
 
     def build(self) -> None:
         gui = self.app.server.gui
         with gui.add_folder("Data"):
             self.i_path = gui.add_text("Dataset or capture", "", hint="a folder from `apose render`, rgb.png + depth.png + "
-                                       "camera.json, or a BOP scene (scene_camera.json, rgb/, depth/)")
+                                       "camera.json, a BOP scene (scene_camera.json, rgb/, depth/), or a ROS 2 "
+                                       "recording (.mcap: colour, aligned depth, camera_info)")
             b = gui.add_button("Open data")
             b.on_click(self.app.guarded("Open data")(lambda c: self.on_open_data(c)))
             self.i_obj_map = gui.add_text("BOP object ids", "", hint="a BOP scene's ground truth: which obj_id of its "
@@ -151,6 +154,10 @@ class InspectPanel:
             raise
         if isinstance(self.frames, Dataset):
             what = f"a dataset of {len(self.frames.steps)} step(s)"
+        elif isinstance(self.frames, Recording):
+            rec = self.frames
+            what = (f"a recording of {len(rec)} frames ({rec.seconds:.1f} s; {rec.topics['color']}, {rec.topics['depth']}"
+                    f"{', camera poses' if rec.topics.get('pose') else ''}): Play it in the Sequence folder")
         elif isinstance(self.frames, BopScene):
             mapped = ", ".join(f"{k}={v}" for k, v in self.frames.obj_of_part.items())
             present = ", ".join(map(str, self.frames.obj_ids())) or "none"
@@ -161,8 +168,14 @@ class InspectPanel:
         self.app.notify(client, "Data opened", f"{self.frames_path}: {what}")  # and an older error on screen closes
 
     def open_frames(self, text: str, client=None, confine: bool = True) -> None:
-        frames = open_frames(Path(text).expanduser())
-        if isinstance(frames, BopScene):
+        path = Path(text).expanduser()
+        frames = open_recording(path) if is_recording(path) else open_frames(path)
+        if isinstance(frames, Recording):
+            if not self.app.valid_asm.steps:
+                raise AposeError("a recording needs an assembly: open one in the Assembly tab first")
+            frames.frame(0)  # read now: a refusal leaves what is shown as it was
+            steps = [f"{i + 1}. {s.part}" for i, s in enumerate(self.app.valid_asm.steps)]
+        elif isinstance(frames, BopScene):
             if not self.app.valid_asm.steps:
                 raise AposeError("a BOP scene needs an assembly: open one in the Assembly tab first")
             ids = frames.image_ids()
@@ -184,7 +197,7 @@ class InspectPanel:
                 raise AposeError("a capture needs an assembly: open one in the Assembly tab first")
             steps = [f"{i + 1}. {s.part}" for i, s in enumerate(self.app.valid_asm.steps)]
         self.offer_mask_sources(self.bop_truth(frames, 1) if isinstance(frames, BopScene) else
-                                isinstance(frames, Dataset) or bool(frames.masks))
+                                isinstance(frames, Dataset) or (isinstance(frames, Frame) and bool(frames.masks)))
         self.frames, self.frames_path = frames, str(Path(text).expanduser().resolve())
         self.result = self.score = None
         self.i_path.value = self.frames_path
@@ -377,8 +390,8 @@ class InspectPanel:
             if self.frames.obj_of_part and self._told_step != step and not truth:  # a step without its truth says so
                 self._told_step = step
                 self.tell_truth()
-        if isinstance(self.frames, (Dataset, BopScene)):
-            ids = self.frames.image_ids(step) if isinstance(self.frames, Dataset) else self.frames.image_ids()
+        if isinstance(self.frames, (Dataset, BopScene, Recording)):
+            ids = self.frame_ids(step)
             self._syncing = True
             try:
                 self.i_frame.max = max(len(ids) - 1, 1)
@@ -401,6 +414,28 @@ class InspectPanel:
         self.result, self.score = cached if cached is not None else (None, None)
         self.app.events.emit(Event.FRAME_CHANGED)
         self.warm_in_background(step)
+
+    def frame_ids(self, step: int) -> list[int]:
+        """The im_ids the Frame slider runs through: a dataset's step's frames, a BOP scene's or a recording's."""
+        frames = self.frames
+        if isinstance(frames, Dataset):
+            return frames.image_ids(step)
+        if isinstance(frames, BopScene):
+            return frames.image_ids()
+        if isinstance(frames, Recording):
+            return list(range(len(frames)))
+        return [0]
+
+    def on_frame_played(self, im_id: int) -> None:
+        """The Sequence folder's player showed frame `im_id`: the Frame slider follows (the frame, its result and
+        the view are the player's)."""
+        ids = self.frame_ids(self.current_step())
+        if im_id in ids and self.i_frame.value != ids.index(im_id):
+            self._syncing = True
+            try:
+                self.i_frame.value = ids.index(im_id)
+            finally:
+                self._syncing = False
 
     def warm_in_background(self, step: int) -> None:
         """Prepare the step's base for the estimator (its StepContext and the model's features: seconds, once
@@ -558,6 +593,9 @@ class InspectPanel:
             raise AposeError("an estimation is already running; wait for it to finish")
         try:
             step = self.current_step()
+            if whole_step and isinstance(self.frames, Recording):
+                raise AposeError("a recording's frames are played, not estimated one by one: press Play in the Sequence "
+                                 "folder (it tracks the base from frame to frame); Estimate frame estimates the frame on show")
             if whole_step and isinstance(self.frames, Dataset):
                 ids = self.frames.image_ids(step)
             elif whole_step and isinstance(self.frames, BopScene):

@@ -25,6 +25,7 @@ from apose_studio.assembly.mesh import PartModel, load_parts
 from apose_studio.assembly.model import Assembly
 from apose_studio.data.bop import BopScene
 from apose_studio.data.dataset import Dataset, Frame
+from apose_studio.data.recording import Recording
 from apose_studio.studio import authoring
 
 
@@ -43,6 +44,7 @@ class Event(str, Enum):
     OVERLAY_CHANGED = "overlay changed"  # what the RGB overlay shows changed (a prompt's mask): redraw it
     FRAMING_ASKED = "framing asked"  # the cameras should look at the object under inspection (an export records them)
     PLAYED = "played"  # Play sequence put part `pid` at `T_world_part` (pid None: the play ended)
+    FRAME_PLAYED = "frame played"  # the Sequence folder's player put frame `im_id` (and its result) on show
 
 
 PAYLOAD: dict[Event, tuple[str, ...]] = {
@@ -58,6 +60,7 @@ PAYLOAD: dict[Event, tuple[str, ...]] = {
     Event.OVERLAY_CHANGED: (),
     Event.FRAMING_ASKED: (),
     Event.PLAYED: ("pid", "T_world_part"),
+    Event.FRAME_PLAYED: ("im_id",),
 }
 
 
@@ -91,7 +94,7 @@ class InspectState:
     the Views panel (a fused estimate), the Prompt panel (prompt text) and the Robot panel (hand-eye, pick
     estimates); read by the others."""
 
-    frames: Dataset | Frame | None = None  # the opened dataset, or a capture (one Frame)
+    frames: Dataset | Frame | Recording | None = None  # the opened dataset, a capture (one Frame) or a recording
     frames_path: str | None = None  # where it was opened from (results are cached under it)
     step: int | None = None  # the inspected step, 1-based
     frame: Frame | None = None  # the frame on show
@@ -173,6 +176,8 @@ class StudioState:
         view = (asm or self.valid_asm).steps[step - 1]
         if isinstance(frames, BopScene):  # read from its files, with the truth of the typed obj_ids
             return frames.frame(im_id, view)
+        if isinstance(frames, Recording):  # a recorded camera: its im_id-th frame, no truth
+            return replace(frames.frame(im_id), base=tuple(view.base), part=view.part, step=step)
         # a copy: the opened capture is shared by every tab and job
         return replace(frames, base=tuple(view.base), part=view.part, step=step)
 

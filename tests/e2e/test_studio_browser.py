@@ -1021,3 +1021,50 @@ def test_robot_targets_of_a_capture_in_the_robot_frame(browser, studio, tmp_path
     time.sleep(1.5)
     shot(page, "robot_targets.png")
     page.close()
+
+
+def test_play_a_recording_with_the_base_tracked(browser, studio, tmp_path):
+    """A ROS 2 recording (MCAP written from a rendered trajectory) opened in the Inspect tab, step 2 chosen, a
+    box typed on its first frame, Play pressed in the Sequence folder: every frame is shown in turn with its
+    result, the Frame slider follows, the status line counts the tracked frames, and the last frame's pose
+    is on the renderer's truth."""
+    from apose_studio.assembly.model import load_assembly
+    from apose_studio.data.dataset import Dataset
+    from apose_studio.data.recording import write_recording
+    from apose_studio.estimation import truth_box
+    from apose_studio.studio.state import Event
+    from apose_studio.synth.frame import RenderSettings
+    from apose_studio.synth.render import render_dataset
+
+    asm_path = _sample_copy(tmp_path)
+    render_dataset(load_assembly(asm_path), tmp_path / "ds", RenderSettings(frames=5, trajectory="approach",
+                                                                           noise="realsense", seed=3),
+                   steps=[2], progress=False)
+    ds = Dataset(tmp_path / "ds")
+    rec = write_recording(tmp_path / "rec.mcap", [ds.frame(2, i) for i in ds.image_ids(2)], rate_hz=2)
+    page = open_sample_and_data(browser, studio, asm_path, rec, "the recording's first frame")
+    page.get_by_text("a recording of 5 frames").first.wait_for(timeout=20000)
+    field(page, "Inspect step").first.click()
+    page.get_by_role("option", name="2. wheel", exact=True).click()
+    wait_until(lambda: studio.state.inspect.step == 2, "step 2 to be shown")
+    type_into(page, "Prompt (px)", ",".join(map(str, truth_box(ds.frame(2, 0).base_mask()))))
+    wait_until(lambda: studio.inspect.i_mask.value == "prompt", "Mask to switch to prompt")
+    played = []
+    studio.events.on(Event.FRAME_PLAYED,
+                     lambda im_id: played.append(im_id))
+    page.get_by_role("button", name="Play", exact=True).click()
+    page.get_by_role("button", name="Pause", exact=True).wait_for(timeout=20000)
+    page.get_by_text(re.compile(r"stopped \(the end\)")).first.wait_for(timeout=120000)
+    status = page.get_by_text(re.compile(r"stopped \(the end\)")).first.inner_text()
+    assert "5 shown" in status and "tracked" in status, status
+    assert played == sorted(played) and played[-1] == 4, played
+    expect(field(page, "Frame").first).to_have_value("4", timeout=10000)
+    r, fr = studio.inspect.result, studio.inspect.frame
+    truth = ds.frame(2, 4)
+    err = mssd_to_truth(np.linalg.inv(fr.T_world_camera) @ r.T_world_part,
+                        np.linalg.inv(truth.T_world_camera) @ truth.T_world_part, asm_path, truth.part)
+    assert r.confident and err < 0.005, (err, r.reason)
+    page.get_by_role("button", name="Play", exact=True).wait_for(timeout=10000)
+    time.sleep(1.0)
+    shot(page, "sequence_played.png")
+    page.close()

@@ -33,7 +33,7 @@ def panel_attributes() -> set[str]:
 
 
 def test_the_panel_attributes_are_found():
-    assert panel_attributes() == {"files", "steps", "mates", "grasps", "inspect", "prompt", "views", "results", "robot"}
+    assert panel_attributes() == {"files", "steps", "mates", "grasps", "inspect", "prompt", "views", "results", "robot", "sequence"}
 
 
 @pytest.mark.parametrize("path", PANEL_MODULES, ids=lambda p: p.name)

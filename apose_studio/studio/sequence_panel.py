@@ -1,0 +1,164 @@
+"""The Inspect tab's Sequence folder: the opened frames played in time (a ROS 2 recording at its recorded rate,
+a dataset's step or a BOP scene at the rate typed), with the base tracked from frame to frame
+(estimation.Tracker): the first frame estimated with the Estimate folder's settings (its Mask, prompt,
+preset), each next one tracked from the last confident pose, a frame where tracking loses the base
+estimated anew around where it was last seen. Each frame played is put on show with its result (the
+3D view, the Result folder) and the Frame slider follows it.
+
+Playing keeps time: a frame that is not ready when the next is due is skipped (counted), so a recording
+plays at its own pace whatever the machine; the status line says how many frames were shown, tracked, lost
+and skipped, and the milliseconds per tracked frame. The player runs in its own thread, holds the
+estimator while it plays (Estimate says so), and takes the studio's lock only to show a frame; Pause, new
+data or another step stops it."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import replace
+
+import numpy as np
+
+from apose_studio.data.bop import BopScene
+from apose_studio.data.dataset import Dataset
+from apose_studio.data.recording import Recording
+from apose_studio.errors import AposeError
+from apose_studio.estimation import Tracker, array_mask, estimate_view
+from apose_studio.evaluate import score_frame
+from apose_studio.registration.types import View, doubts
+from apose_studio.studio.state import Event
+
+log = logging.getLogger(__name__)
+DEFAULT_RATE = 10.0  # frames per second of a dataset or BOP scene (a recording plays at its own)
+
+
+class SequencePanel:
+    def __init__(self, app):
+        self.app = app
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.last_summary = ""  # the status line of the last play (tests read it)
+
+    def build(self) -> None:
+        gui = self.app.server.gui
+        with gui.add_folder("Sequence"):
+            self.s_play = gui.add_button("Play", hint="play the opened frames in time from the frame on show, the base "
+                                         "tracked from frame to frame; press again to pause")
+            self.s_play.on_click(self.app.guarded("Play")(self.on_play))
+            self.s_track = gui.add_checkbox("Track", True, hint="follow the base from the last confident pose (off: "
+                                            "estimate every frame played with the Estimate folder's settings)")
+            self.s_rate = gui.add_number("Rate (frames/s)", 0.0, min=0.0, max=120.0, step=1.0,
+                                         hint=f"0: a recording's own rate ({DEFAULT_RATE:g} for a dataset)")
+            self.s_status = gui.add_markdown("")
+
+    @property
+    def playing(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def on_play(self, client) -> None:
+        if self.playing:
+            self._stop.set()  # the player ends its frame, then says where it stopped
+            return
+        ins = self.app.state.inspect
+        frames = ins.frames
+        if frames is None or ins.frame is None:
+            raise AposeError("open a recording or a dataset first (Data folder)")
+        if not isinstance(frames, (Recording, Dataset, BopScene)):
+            raise AposeError("a capture is one frame: there is nothing to play (Estimate frame estimates it)")
+        step = ins.step
+        ids = (list(range(len(frames))) if isinstance(frames, Recording) else
+               frames.image_ids(step) if isinstance(frames, Dataset) else frames.image_ids())
+        k0 = ids.index(ins.frame.im_id) if ins.frame.im_id in ids else 0
+        if k0 >= len(ids) - 1:
+            k0 = 0  # at the end: play from the start
+        rate = float(self.s_rate.value) or (len(frames) / frames.seconds if isinstance(frames, Recording) and
+                                            frames.seconds > 0 else DEFAULT_RATE)
+        if not np.isfinite(rate) or rate <= 0:
+            raise AposeError("Rate (frames/s): type a positive number (0: the recording's own)")
+        job = self.app.estimate_job(step, [ids[k0]])  # the Estimate folder's settings of this moment
+        if not self.app.busy.acquire(blocking=False):
+            raise AposeError("an estimation is running; play when it has finished")
+        self._stop.clear()
+        self.s_play.label = "Pause"
+        self._thread = threading.Thread(target=self._play, args=(job, ids, k0, rate, bool(self.s_track.value), client),
+                                        daemon=True, name="sequence player")
+        self._thread.start()
+
+    def _play(self, job, ids: list[int], k0: int, rate: float, tracking: bool, client) -> None:
+        """Frames ids[k0:] shown in time (runs in the player's thread; the studio's lock only to show one)."""
+        ctx = self.app.step_context(job.step)
+        params = job.params()
+        first = ids[k0]
+
+        def detect(frame, box):
+            if box is None and frame.im_id == first:  # the user's settings, for the frame they were made on
+                return self.app.estimate_frame(job, frame.im_id)[0]
+            if box is not None:  # where the base was last seen: a box prompt there
+                mask, _ = array_mask(frame.rgb, frame.depth, frame.camera, box=box)
+                return estimate_view(replace(View.of(frame, mask), box=box), ctx, params, job.prior)
+            return self.app.estimate_frame(replace(job, ids=(frame.im_id,)), frame.im_id)[0]
+
+        tracker = Tracker(ctx, params, detect)
+        shown = skipped = 0
+        t0, k, why = time.monotonic(), k0, "the end"
+        try:
+            while k < len(ids):
+                if self._stop.is_set():
+                    why = "paused"
+                    break
+                frame = self.app.state.load_frame(job.step, ids[k], job.frames, job.assembly)
+                s = tracker.step(frame) if tracking else None
+                result = s.result if s is not None else detect(frame, None)
+                score = score_frame(frame, result, ctx.part, None, ctx.base.symmetries) \
+                    if frame.T_world_part is not None else None
+                with self.app.lock:
+                    ins = self.app.state.inspect
+                    if ins.frames is not job.frames or ins.step != job.step:
+                        why = "other data or another step opened"
+                        break
+                    ins.frame, ins.result, ins.score, ins.advice = frame, result, score, None
+                    self.app.events.emit(Event.FRAME_CHANGED)
+                    self.app.events.emit(Event.FRAME_PLAYED, im_id=frame.im_id)
+                    shown += 1
+                    self.s_status.content = self.status(tracker, shown, skipped, len(ids), frame.im_id, s, result)
+                due = t0 + (k + 1 - k0) / rate
+                late = time.monotonic() - due
+                if late < 0:
+                    self._stop.wait(-late)
+                    k += 1
+                else:  # behind: the frames already due are skipped, as a live camera's would be
+                    skip = int(late * rate)
+                    skipped += min(skip, len(ids) - k - 1)
+                    k += 1 + skip
+        except Exception as e:  # a bad frame: said, the player stops, the studio goes on
+            log.exception("playing stopped")
+            why = f"an error: {e}"
+            self.app.notify(client, "Play", f"stopped at frame {ids[min(k, len(ids) - 1)]}: {e}", error=True)
+        finally:
+            self.app.busy.release()
+            with self.app.lock:
+                self.s_play.label = "Play"
+                self.last_summary = f"stopped ({why}). " + self.status(tracker, shown, skipped, len(ids), None, None, None)
+                self.s_status.content = self.last_summary
+
+    @staticmethod
+    def status(tracker: Tracker, shown: int, skipped: int, n: int, im_id, step, result) -> str:
+        """The player's line: where it is, how the frame was found, and the counts so far."""
+        modes = [s.mode for s in tracker.steps]
+        ms = [s.seconds * 1000 for s in tracker.steps if s.mode == "tracked"]
+        now = ""
+        if im_id is not None:
+            how = step.mode if step is not None else "estimated"
+            conf = "confident" if result.confident else ("not confident: " + doubts(result) if result.ok else
+                                                         "no pose: " + result.reason)
+            now = f"**frame {im_id}** of {n}: {how}, {conf[:160]}  \n"
+        timing = f"; {np.median(ms):.0f} ms per tracked frame (median)" if ms else ""
+        return (f"{now}{shown} shown, {skipped} skipped (not ready in time); {modes.count('tracked')} tracked, "
+                f"{modes.count('re-detected')} lost and found again, {modes.count('lost')} lost{timing}")
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """Stop playing and wait for the player (the studio's Ctrl-C, tests)."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout)

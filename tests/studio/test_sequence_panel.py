@@ -1,0 +1,122 @@
+"""The Inspect tab's Sequence folder: a ROS 2 recording (written from a rendered trajectory, so every frame's
+truth is known to the renderer, not to the player) played in time with the base tracked; each frame shown is
+checked against that truth; Pause; refusals."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+
+from apose_studio.assembly.model import load_assembly
+from apose_studio.data.dataset import Dataset
+from apose_studio.data.recording import write_recording
+from apose_studio.estimation import truth_box
+from apose_studio.geometry import se3
+from apose_studio.studio.state import Event
+from apose_studio.synth.frame import RenderSettings
+from apose_studio.synth.render import render_dataset
+
+from ..conftest import SAMPLES, mssd_to_truth
+from .conftest import act, errors
+
+GEARBOX = SAMPLES / "helical_gearbox" / "assembly.yaml"
+FRAMES = 6
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    """A 6-frame approach on step 2 of the gearbox, RealSense-like noise, written as an MCAP at 5 Hz."""
+    out = tmp_path_factory.mktemp("seq")
+    render_dataset(load_assembly(GEARBOX), out / "ds", RenderSettings(frames=FRAMES, trajectory="approach",
+                                                                     noise="realsense", seed=3), steps=[2], progress=False)
+    ds = Dataset(out / "ds")
+    rec = write_recording(out / "rec.mcap", [ds.frame(2, i) for i in ds.image_ids(2)], rate_hz=5)
+    return rec, ds
+
+
+def _open(studio, rec, ds):
+    st = studio(GEARBOX, root=rec.parent)
+    st.inspect.i_path.value = str(rec)
+    act(st, st.inspect.on_open_data)
+    assert not errors(st), st.notes
+    assert "a recording of 6 frames" in st.notes[-1][1] and "Sequence" in st.notes[-1][1]
+    st.inspect.i_step.value = st.inspect.i_step.options[1]  # step 2
+    st.inspect.i_mask.value = "prompt"
+    st.prompt.i_prompt.value = ",".join(map(str, truth_box(ds.frame(2, 0).base_mask())))  # the user's box
+    return st
+
+
+def _wait(st, seconds=120.0):
+    t0 = time.monotonic()
+    while st.sequence.playing and time.monotonic() - t0 < seconds:
+        time.sleep(0.05)
+    assert not st.sequence.playing, "the player did not stop"
+
+
+def test_a_recording_plays_with_the_base_tracked_and_every_frame_shown_is_right(studio, recording):
+    rec, ds = recording
+    st = _open(studio, rec, ds)
+    shown = []
+    st.events.on(Event.FRAME_PLAYED, lambda im_id: shown.append((im_id, st.inspect.result, st.inspect.frame,
+                                                                 st.inspect.i_frame.value)))
+    st.sequence.s_rate.value = 2.0  # slow enough that no frame is skipped on a loaded machine
+    act(st, st.sequence.on_play)
+    assert st.sequence.s_play.label == "Pause"
+    _wait(st)
+    assert not errors(st), st.notes
+    summary = st.sequence.last_summary
+    assert summary.startswith("stopped (the end)") and f"{FRAMES} shown, 0 skipped" in summary, summary
+    assert st.sequence.s_play.label == "Play"
+    assert [s[0] for s in shown] == list(range(FRAMES))
+    assert [s[3] for s in shown] == list(range(FRAMES))  # the Frame slider followed
+    tracked = int(summary.split(" tracked")[0].rsplit(" ", 1)[-1])
+    assert tracked >= FRAMES - 2, summary  # after the first detection, tracked (not estimated anew)
+    for im_id, result, frame, _ in shown:  # against the renderer's truth, in the frame's own camera
+        truth = ds.frame(2, im_id)
+        T_camera_part = se3.inv(frame.T_world_camera) @ result.T_world_part
+        err = mssd_to_truth(T_camera_part, se3.inv(truth.T_world_camera) @ truth.T_world_part, GEARBOX, truth.part)
+        assert result.confident and err < 0.005, (im_id, err, result.reason)
+    # the player let go of the estimator: Estimate frame works (on the frame the box was drawn on)
+    st.inspect.i_frame.value = 0
+    act(st, st.inspect.run_estimation, False)
+    assert not errors(st) and st.inspect.result.ok
+
+
+def test_pause_stops_the_player_and_the_estimator_waits_while_it_plays(studio, recording):
+    rec, ds = recording
+    st = _open(studio, rec, ds)
+    played = threading.Event()
+    st.events.on(Event.FRAME_PLAYED, lambda im_id: played.set())
+    st.sequence.s_rate.value = 0.5  # two seconds a frame: time to press Pause
+    act(st, st.sequence.on_play)
+    assert played.wait(120)
+    act(st, st.inspect.run_estimation, False)  # refused while playing, with the reason
+    assert "estimation is already running" in errors(st)[-1][1]
+    act(st, st.sequence.on_play)  # the same button pauses
+    _wait(st)
+    assert st.sequence.last_summary.startswith("stopped (paused)") and st.sequence.s_play.label == "Play"
+    assert st.inspect.frame.im_id < FRAMES - 1
+    # a recording is played, not estimated frame by frame as a step
+    act(st, st.inspect.run_estimation, True)
+    assert "press Play in the Sequence folder" in errors(st)[-1][1]
+
+
+def test_a_capture_has_nothing_to_play(studio, capture):
+    st = studio(GEARBOX)
+    st.inspect.i_path.value = str(capture)
+    act(st, lambda c: st.inspect.open_frames(st.inspect.i_path.value, c))
+    act(st, st.sequence.on_play)
+    assert "a capture is one frame" in errors(st)[-1][1] and not st.sequence.playing
+    st2 = studio(GEARBOX)
+    act(st2, st2.sequence.on_play)
+    assert "open a recording or a dataset first" in errors(st2)[-1][1]
+
+
+def test_a_recording_without_an_assembly_is_refused_and_nothing_changes(studio, recording):
+    rec, _ = recording
+    st = studio(root=rec.parent)
+    st.inspect.i_path.value = str(rec)
+    act(st, lambda c: st.inspect.open_frames(st.inspect.i_path.value, c))
+    assert "needs an assembly" in errors(st)[-1][1] and st.inspect.frames is None
