@@ -31,7 +31,7 @@ from apose_studio.masks.prompt import prompted_mask
 from apose_studio.masks.segment import depth_mask, load_model
 from apose_studio.registration import BaseObject, Params, RegistrationResult, doubts, estimate, prepare_base
 from apose_studio.registration.fusion import estimate_views
-from apose_studio.registration.track import track
+from apose_studio.registration.track import TABLE_TOLERANCES, final_distance, predict, table_now, track
 from apose_studio.registration.types import CONFIDENT_PART_SPREAD, View
 
 BOX_MARGIN = 0.04  # the `box` source: the ground truth's visible box, this much wider on each side
@@ -242,6 +242,7 @@ def estimate_frames(views: list[View], ctx: StepContext, params: Params,
 # ---- tracking ------------------------------------------------------------------------------------------
 
 TRACK_MODES = ("detected", "tracked", "re-detected", "lost", "not found")
+MAX_GAP = 10  # frames over which the tracker carries the base's motion on (Tracker.expected)
 
 
 @dataclass(frozen=True)
@@ -274,27 +275,48 @@ class Tracker:
     last: RegistrationResult | None = None  # the last confident result
     plane: tuple | None = None  # the table under the base (world), from the detection tracking started from
     steps: list[TrackStep] = field(default_factory=list)
+    seen: list[tuple[int, np.ndarray]] = field(default_factory=list)  # (im_id, T_world_base) of the last two
+    # confident results: the base's motion per frame in the world (none when the camera's pose is known and the
+    # base stands still; the camera's own motion when every frame's world is the camera's frame)
 
     def step(self, frame: Frame) -> TrackStep:
         t0 = time.perf_counter()
         why, tried = "", self.last is not None
+        start = self.expected(frame.im_id) if tried else None
         if tried:
+            pred = predict(start, frame.T_world_camera, frame.camera)
+            self.plane = table_now(self.plane, frame.depth, frame.camera, frame.T_world_camera, pred, self.ctx.base,
+                                   TABLE_TOLERANCES * final_distance(self.params, self.ctx.base, start))
             r = held_to_part(track(frame.depth, frame.camera, frame.T_world_camera, self.ctx.base,
-                                   self.ctx.view.T_base_part, self.params, self.last, self.plane), self.ctx.part)
+                                   self.ctx.view.T_base_part, self.params, start, self.plane, pred), self.ctx.part)
             if r.confident:
-                self.last = r
-                return self._done(TrackStep(frame.im_id, r, "tracked", time.perf_counter() - t0))
+                return self._done(TrackStep(frame.im_id, r, "tracked", time.perf_counter() - t0), r)
             why = r.reason if not r.ok else doubts(r)
-        box = last_seen_box(self.last, frame) if tried else None
+        box = last_seen_box(start, frame) if tried else None
         r = self.detect(frame, box)
         if r.confident:
-            self.last, self.plane = r, getattr(r.problem, "table", None)
-            mode = "re-detected" if tried else "detected"
-        else:
-            self.last, mode = None, "lost" if tried else "not found"
-        return self._done(TrackStep(frame.im_id, r, mode, time.perf_counter() - t0, why))
+            self.plane = getattr(r.problem, "table", None)
+            return self._done(TrackStep(frame.im_id, r, "re-detected" if tried else "detected",
+                                        time.perf_counter() - t0, why), r)
+        self.last = None
+        self.seen.clear()
+        return self._done(TrackStep(frame.im_id, r, "lost" if tried else "not found", time.perf_counter() - t0, why))
 
-    def _done(self, s: TrackStep) -> TrackStep:
+    def expected(self, im_id: int) -> RegistrationResult:
+        """The last confident result, moved on to frame `im_id` at the base's motion per frame between the last
+        two (a constant velocity, over gaps of at most MAX_GAP frames; the last pose as it was otherwise)."""
+        if len(self.seen) < 2:
+            return self.last
+        (i0, T0), (i1, T1) = self.seen
+        if not (0 < i1 - i0 <= MAX_GAP and 0 < im_id - i1 <= MAX_GAP):
+            return self.last
+        step = se3.scale_motion(se3.inv(T0) @ T1, (im_id - i1) / (i1 - i0))
+        return replace(self.last, T_world_base=T1 @ step)
+
+    def _done(self, s: TrackStep, confident: RegistrationResult | None = None) -> TrackStep:
+        if confident is not None:
+            self.last = confident
+            self.seen = [*self.seen[-1:], (s.im_id, confident.T_world_base)]
         self.steps.append(s)
         return s
 

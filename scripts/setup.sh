@@ -34,6 +34,6 @@ fi
 echo "setup: installing Python packages into .venv (first time: a few minutes)"
 # torch first and pinned: 2.13.0 is the CPU build; an unpinned torch pulls a multi-GB CUDA build
 .venv/bin/python -m pip install -q --disable-pip-version-check "torch==2.13.0"
-.venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test]"
+.venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test,realsense]"
 echo "$want" > "$stamp"
 echo "setup: done ($(du -sh .venv | cut -f1) in .venv)"

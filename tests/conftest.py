@@ -112,6 +112,23 @@ def clutter_dataset(tmp_path_factory) -> Path:
     return out
 
 
+@pytest.fixture(scope="session")
+def live_approach(tmp_path_factory) -> list:
+    """A camera closing in on gearbox step 2's base over a cluttered bench in 60 small steps (a hand-held or
+    eye-in-hand stream's, ~8 mm a frame), RealSense-like noise: the frames of the live-camera tests."""
+    from apose_studio.assembly.model import load_assembly
+    from apose_studio.data.dataset import Dataset
+    from apose_studio.synth.frame import RenderSettings
+    from apose_studio.synth.render import render_dataset
+
+    out = tmp_path_factory.mktemp("live") / "ds"
+    render_dataset(load_assembly(SAMPLES / "helical_gearbox" / "assembly.yaml"), out,
+                   RenderSettings(frames=60, trajectory="approach", noise="realsense", clutter=("bench",), seed=2),
+                   steps=[2], progress=False)
+    ds = Dataset(out)
+    return [ds.frame(2, i) for i in ds.image_ids(2)]
+
+
 _PART_MODELS: dict = {}
 
 

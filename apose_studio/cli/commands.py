@@ -43,6 +43,13 @@ def cmd_export_mcap(args) -> int:
     return cmd_export_mcap(args)
 
 
+def cmd_capture(args) -> int:
+    # loaded per command: `apose --help` loads none of the core
+    from apose_studio.cli.track import cmd_capture
+
+    return cmd_capture(args)
+
+
 def cmd_eval(args) -> int:
     # loaded per command: `apose --help` loads none of the core
     from apose_studio.cli.frames import cmd_eval
@@ -133,8 +140,7 @@ def _serve_studio(assembly, dataset, host: str, port: int, cache=None, root=None
         while True:
             time.sleep(3600)
     except KeyboardInterrupt:
-        studio.sequence.stop()  # a recording playing ends its frame first
-        studio.inspect.settle()  # a background preparation inside Open3D would abort the exit
+        studio.shutdown()  # the player, a live camera, the background preparation
         server.stop()
     return 0
 
@@ -474,6 +480,18 @@ def _add_track(sub) -> None:
     p.add_argument("--out", required=True, help="the .mcap file to write")
     p.add_argument("--rate", type=float, default=30.0, help="frames per second (default 30)")
     p.set_defaults(func=cmd_export_mcap)
+    p = sub.add_parser("capture", help="save frames of an Intel RealSense as capture folders (`apose estimate` reads them)",
+                       description="Colour (rgb8) and depth aligned to it by the SDK, the colour camera's intrinsics as "
+                       "cam_K and the device's depth unit as depth_scale: rgb.png, depth.png, camera.json per frame. Needs "
+                       "the [realsense] extra (pip install 'apose_studio[realsense]').")
+    p.add_argument("--out", required=True, help="the capture folder to write (with --count N: a folder of N of them)")
+    p.add_argument("--serial", help="the camera's serial number (default: the first found)")
+    p.add_argument("--size", default="640x480", help="colour and depth size, WIDTHxHEIGHT (default 640x480)")
+    p.add_argument("--fps", type=_count(1, 300), default=30, help="frames per second (default 30)")
+    p.add_argument("--count", type=_count(1, 100000), default=1, help="how many frames to save (default 1)")
+    p.add_argument("--settle", type=_count(0, 10000), default=30,
+                   help="frames skipped first while auto-exposure settles (default 30)")
+    p.set_defaults(func=cmd_capture)
 
 
 def _add_eval(sub) -> None:

@@ -5,6 +5,7 @@ them). `apose export-mcap`: a rendered step as such a recording."""
 
 from __future__ import annotations
 
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -12,7 +13,7 @@ import numpy as np
 
 from apose_studio.assembly.model import load_assembly
 from apose_studio.cli.common import check_output_file, params_of, parse_prompt
-from apose_studio.data.dataset import Dataset, Frame, write_json
+from apose_studio.data.dataset import Dataset, Frame, write_capture, write_json
 from apose_studio.data.recording import is_recording, open_recording, write_recording
 from apose_studio.data.sources import open_frames
 from apose_studio.errors import AposeError
@@ -161,4 +162,36 @@ def cmd_export_mcap(args) -> int:
     write_recording(out, (src.frame(args.step, i) for i in ids), args.rate)
     print(f"wrote {len(ids)} frames of step {args.step} ({len(ids) / args.rate:.1f} s at {args.rate:g} frames/s) to {out}: "
           "colour, depth aligned to it (16UC1, mm), camera_info and the camera's pose (/apose/camera_pose)")
+    return 0
+
+
+def cmd_capture(args) -> int:
+    """Frames from a RealSense written as capture folders that `apose estimate` reads."""
+    from apose_studio.data import realsense
+
+    try:
+        w, h = (int(v) for v in args.size.lower().split("x"))
+    except ValueError:
+        raise AposeError(f"--size {args.size}: expected WIDTHxHEIGHT, e.g. 640x480") from None
+    out = Path(args.out)
+    names = [out] if args.count == 1 else [out / f"{k:06d}" for k in range(args.count)]
+    for n in names:
+        if n.exists():
+            raise AposeError(f"{n}: already exists; captures are never overwritten: choose another --out")
+    if args.count > 1:
+        out.mkdir(parents=True, exist_ok=True)
+    elif not out.parent.is_dir():
+        raise AposeError(f"--out {out}: the folder {out.parent} does not exist")
+    cam = realsense.open_realsense(args.serial, (w, h), args.fps)
+    try:
+        for note in cam.notes:
+            print(f"note: {note}", file=sys.stderr)
+        for _ in range(args.settle):  # auto-exposure settles over the first frames
+            cam.next_frame()
+        for n in names:
+            fr = cam.next_frame()
+            write_capture(fr, n, cam.depth_unit_m * 1000.0, {"device": cam.name})
+            print(f"{n}: frame {fr.im_id} of {cam.name} ({w}x{h}, depth in {cam.depth_unit_m * 1000:g} mm steps)")
+    finally:
+        cam.close()
     return 0

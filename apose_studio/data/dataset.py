@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -423,6 +424,45 @@ def load_capture(folder: str | Path) -> Frame:
         if T_world_camera is None:
             T_world_camera = np.eye(4)
     return Frame(rgb=rgb, depth=depth, camera=intr, T_world_camera=T_world_camera, source=str(folder))
+
+
+def write_capture(frame: Frame, folder: str | Path, depth_unit_mm: float = 1.0, info: dict | None = None) -> Path:
+    """`frame` as a capture folder that `load_capture` (and `apose estimate`) reads: rgb.png, depth.png (uint16,
+    `depth_unit_mm` millimetres per unit: 1.0 is a RealSense's and Kinect's step) and a BOP-style camera.json
+    (`cam_K`, `depth_scale`, plus `info`, e.g. the device). The camera's pose is written (BOP's
+    cam_R_w2c/cam_t_w2c) unless it is the identity (a camera with no known pose: the reader then finds the
+    table). The folder is written beside its place and renamed into it, so it is whole or absent; an existing
+    folder is refused, never overwritten."""
+    folder = Path(folder)
+    if os.path.lexists(folder):
+        raise AposeError(f"{folder}: already exists; captures are never overwritten: choose another name")
+    if not folder.parent.is_dir():
+        raise AposeError(f"{folder.parent}: no such folder")
+    if not 0.01 <= depth_unit_mm <= 10.0:
+        raise AposeError(f"depth unit {depth_unit_mm:g} mm: expected 0.01..10 mm per 16-bit step")
+    raw = np.round(np.nan_to_num(frame.depth, nan=0.0, posinf=0.0, neginf=0.0) * (1000.0 / depth_unit_mm))
+    if raw.max(initial=0) > 65535:
+        raise AposeError(f"the depth reaches {raw.max() * depth_unit_mm / 1000:.1f} m, past 16 bits of "
+                         f"{depth_unit_mm:g} mm steps; write with a larger depth unit")
+    cam = {"cam_K": frame.camera.K.reshape(-1).tolist(), "depth_scale": float(depth_unit_mm)}
+    if not np.allclose(frame.T_world_camera, np.eye(4)):
+        R, t = _Rt_from_T(se3.inv(frame.T_world_camera))
+        cam.update(cam_R_w2c=R, cam_t_w2c=t)
+    cam.update(info or {})
+    tmp = folder.parent / f".{folder.name}.partial"
+    if os.path.lexists(tmp):
+        shutil.rmtree(tmp)
+    tmp.mkdir()
+    try:
+        for name, img in (("rgb.png", np.ascontiguousarray(frame.rgb[..., ::-1])), ("depth.png", raw.astype(np.uint16))):
+            if not cv2.imwrite(str(tmp / name), img):
+                raise AposeError(f"{tmp / name}: could not write the image (disk full or no permission?)")
+        atomic_write_text(tmp / "camera.json", json.dumps(cam, indent=1))
+        os.rename(tmp, folder)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return folder
 
 
 # ----------------------------------------------------------------------------------- writing

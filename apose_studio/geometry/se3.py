@@ -63,6 +63,16 @@ def axis_angle_matrix(axis, angle_rad) -> np.ndarray:
     return np.cos(th) * np.eye(3) + np.sin(th) * K + (1.0 - np.cos(th)) * np.outer(a, a)
 
 
+def scale_motion(T: np.ndarray, s: float) -> np.ndarray:
+    """A rigid motion `s` times as large: the rotation's angle about its axis and the translation scaled by `s`
+    (T^s for small motions; s = 2: the same motion twice, near enough for a frame-to-frame motion)."""
+    q = matrix_to_quat_wxyz(T[:3, :3])
+    q = q if q[0] >= 0 else -q
+    half = float(np.arctan2(np.linalg.norm(q[1:]), q[0]))
+    R = np.eye(3) if half < 1e-12 else axis_angle_matrix(q[1:] / np.linalg.norm(q[1:]), 2.0 * half * s)
+    return make_T(R, T[:3, 3] * s)
+
+
 def perpendicular(v) -> np.ndarray:
     """A unit vector perpendicular to v (any one; stable for every direction)."""
     v = np.asarray(v, dtype=float)

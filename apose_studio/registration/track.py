@@ -31,6 +31,7 @@ from apose_studio.registration.base import BaseObject, raycast_source
 from apose_studio.registration.pipeline import judge
 from apose_studio.registration.scoring import NOISE_SIGMAS, agreement_tolerance, pixels, twin_placements
 from apose_studio.registration.solvers import icp_point_to_plane
+from apose_studio.registration.table import table_plane
 from apose_studio.registration.types import MIN_POINTS, RegistrationResult, Stage, View, failed
 
 COARSE_POINTS = 300  # the rounds before the last one (wide reach, a rough fit) register this many of the points
@@ -40,6 +41,12 @@ TABLE_GAP = 1.0  # depth within this many final ICP distances of the table is th
 JUDGE_MARGIN_PX = 16  # the judge's window: the model's pixels and this many around (its outline ring reaches 5)
 START_SPREAD = 3.0  # the ICP starts at this many times the median distance of the depth to the predicted model
 SHRINK_PX = 3  # the depth registered lies this far inside the base's predicted outline: clutter touching it stays out
+TRUST_SHARE = 0.6  # a tracked pose that moved the base's farthest point by more than this share of the tracker's
+# reach (track_motion x diameter) since the last frame is not trusted: the depth it registered was cut at that reach
+# (a camera without poses closing in at 10 Hz: 26 mm moved, 19 mm found, the part 7.9 mm off and judged confident)
+TABLE_RING = 0.3  # the table is looked for around the base's predicted window, this share of the window wider a side
+TABLE_HOLD = 0.3  # the table is still where it was when this share of the depth around the base lies on it
+TABLE_TOLERANCES = 2.0  # ... within this many final ICP distances
 
 
 @dataclass(frozen=True)
@@ -120,23 +127,65 @@ def region_points(depth: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.n
     return pts_w
 
 
+def moved_by(base: BaseObject, T_world_from: np.ndarray, T_world_to: np.ndarray) -> float:
+    """How far the base's farthest model sample moves between two poses (metres)."""
+    D = se3.inv(T_world_from) @ T_world_to
+    pts = base.samples
+    return float(np.linalg.norm(se3.transform_points(D, pts) - pts, axis=1).max())
+
+
+def final_distance(params: Params, base: BaseObject, last: RegistrationResult) -> float:
+    """The last ICP round's reach: the estimator's polish distance, or NOISE_SIGMAS of the depth noise."""
+    return max(params.polish_threshold_factor * params.voxel(base.diameter), NOISE_SIGMAS * last.depth_noise)
+
+
+def table_now(plane: tuple[np.ndarray, float] | None, depth: np.ndarray, cam: CameraIntrinsics,
+              T_world_camera: np.ndarray, pred: Prediction, base: BaseObject, tol: float) -> tuple[np.ndarray, float] | None:
+    """The table under the base in this frame: `plane` (world) when the depth around the base's predicted
+    window still lies on it (TABLE_HOLD of it within `tol`), else fitted anew (table.table_plane, the predicted
+    silhouette left out), or None. A plane is kept in the world's frame, which moves with the camera when the
+    camera's pose is not known (a live camera without the robot's kinematics: the identity every frame); a
+    stale plane would cut the wrong depth and let a pose sunk into the real table pass as resting on it
+    (a 31 mm slide was judged confident that way)."""
+    if plane is None or pred.window is None:
+        return plane
+    h_img, w_img = depth.shape
+    v0, v1, u0, u1 = pred.window
+    mv, mu = int((v1 - v0) * TABLE_RING) + 2, int((u1 - u0) * TABLE_RING) + 2
+    V0, V1, U0, U1 = max(v0 - mv, 0), min(v1 + mv, h_img), max(u0 - mu, 0), min(u1 + mu, w_img)
+    step = max(1, int(np.sqrt((V1 - V0) * (U1 - U0) / 1500)))
+    vs, us = (a.ravel() for a in np.mgrid[V0:V1:step, U0:U1:step])
+    silhouette = np.zeros(depth.shape, bool)
+    silhouette[v0:v1, u0:u1] = np.isfinite(pred.zbuf)
+    d = depth[vs, us]
+    with np.errstate(invalid="ignore"):
+        keep = ~silhouette[vs, us] & np.isfinite(d) & (d > 0)
+    if keep.sum() >= 50:
+        pts = se3.transform_points(T_world_camera, cam.backproject(us[keep].astype(float), vs[keep].astype(float),
+                                                                    d[keep].astype(float)))
+        if np.mean(np.abs(pts @ plane[0] + plane[1]) < tol) >= TABLE_HOLD:
+            return plane
+    return table_plane(depth, silhouette, cam, T_world_camera, base_size=base.diameter)
+
+
 def track(depth: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray, base: BaseObject,
           T_base_part: np.ndarray, params: Params, last: RegistrationResult,
-          plane: tuple[np.ndarray, float] | None = None) -> RegistrationResult:
+          plane: tuple[np.ndarray, float] | None = None, pred: Prediction | None = None) -> RegistrationResult:
     """The base in a new frame, from `last` (a confident result of the frame before): judged like any
     estimate, `tracked` set. ok=False with the reason when the base left the view or too little of it is
-    near where it was. `plane`: the table the base stands on (world; fitted once, when it was detected)."""
+    near where it was. `plane`: the table the base stands on (world; `table_now`'s for this frame). `pred`: the
+    prediction for this frame, when the caller has made it."""
     t0 = time.perf_counter()
     p = params
     voxel = p.voxel(base.diameter)
     noise = last.depth_noise
     motion = p.track_motion * base.diameter
-    pred = predict(last, T_world_camera, cam)
+    pred = predict(last, T_world_camera, cam) if pred is None else pred
     t_pred = time.perf_counter()
     lost = {"preset": p.preset, "tracked": True, "voxel": voxel}
     if pred.window is None:
         return failed("tracking lost: at its last pose the base is out of this view", **lost)
-    final = max(p.polish_threshold_factor * voxel, NOISE_SIGMAS * noise)
+    final = final_distance(p, base, last)
     target = region_points(depth, cam, T_world_camera, pred, motion, p.track_points, plane, TABLE_GAP * final)
     t_region = time.perf_counter()
     if len(target) < MIN_POINTS:
@@ -157,6 +206,10 @@ def track(depth: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray, 
         thr = max(final, thr / 3)
     T_world_base = se3.inv(T)
     t_icp = time.perf_counter()
+    moved = moved_by(base, last.T_world_base, T_world_base)
+    if moved > TRUST_SHARE * motion:
+        return failed(f"tracking lost: the base moved {moved * 1000:.0f} mm since the last frame, near the tracker's "
+                      f"reach ({motion * 1000:.0f} mm; track_motion): searched for anew", target_cloud=target, **lost)
     seen, _ = raycast_source(base, T_world_base, T_world_camera, cam)
     t_cast = time.perf_counter()
     if len(seen) < MIN_POINTS:

@@ -383,6 +383,15 @@ class Studio:
         Estimate folder owns them); for panels that estimate in their own way (Views)."""
         return self.inspect.job(step, ids)
 
+    def shutdown(self) -> None:
+        """Before the server stops (Ctrl-C): the player stopped, a live camera closed, the background
+        preparation finished (a process that exits inside Open3D is aborted by the C++ runtime)."""
+        self.sequence.stop()
+        frames = self.state.inspect.frames
+        if hasattr(frames, "close"):  # a live camera
+            frames.close()
+        self.inspect.settle()
+
     def estimate_frame(self, job: EstimateJob, im_id: int):
         """(result, score) of frame `im_id` of `job`, estimated with its settings and cached (the Inspect panel's
         estimate, for panels that run estimates of their own: the Sequence player)."""

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import copy
 import logging
+import re
 import threading
 import time
 from dataclasses import dataclass
@@ -20,8 +21,10 @@ import numpy as np
 import trimesh
 
 from apose_studio.assembly.model import Assembly
+from apose_studio.data import realsense
 from apose_studio.data.bop import BopScene, parse_obj_map
 from apose_studio.data.dataset import Dataset, DatasetError, Frame
+from apose_studio.data.realsense import LiveCamera
 from apose_studio.data.recording import Recording, is_recording, open_recording
 from apose_studio.data.sources import open_frames
 from apose_studio.errors import AposeError
@@ -38,6 +41,7 @@ from apose_studio.studio.state import Event, shared
 from apose_studio.studio.widgets import VECTOR_MM, esc, scene_point_at_ray
 
 log = logging.getLogger(__name__)
+LIVE = re.compile(r"^realsense(?::(\S+))?$", re.IGNORECASE)  # typed into Data: a RealSense (optionally its serial)
 
 
 @dataclass(frozen=True)
@@ -147,7 +151,11 @@ class InspectPanel:
             text = self.i_path.value.strip()
             if not text:
                 raise AposeError("type a dataset folder (from `apose render`) or a capture folder into 'Dataset or capture'")
-            self.open_frames(str(self.app.workspace.resolve(text, "dataset or capture")), client)
+            live = LIVE.match(text)
+            if live:
+                self.open_live(live.group(1))
+            else:
+                self.open_frames(str(self.app.workspace.resolve(text, "dataset or capture")), client)
         except AposeError as e:
             if self.frames_path is not None:  # say what stays on screen
                 raise AposeError(f"{e}\n(still showing the data opened before: {self.frames_path})") from None
@@ -158,6 +166,11 @@ class InspectPanel:
             rec = self.frames
             what = (f"a recording of {len(rec)} frames ({rec.seconds:.1f} s; {rec.topics['color']}, {rec.topics['depth']}"
                     f"{', camera poses' if rec.topics.get('pose') else ''}): Play it in the Sequence folder")
+        elif isinstance(self.frames, LiveCamera):
+            cam = self.frames
+            what = (f"live, {cam.camera.width}x{cam.camera.height}, depth aligned to colour: Play in the Sequence folder "
+                    "streams it with the base tracked; Estimate frame estimates the frame on show; Capture saves it"
+                    + "".join(f"; {n}" for n in cam.notes))
         elif isinstance(self.frames, BopScene):
             mapped = ", ".join(f"{k}={v}" for k, v in self.frames.obj_of_part.items())
             present = ", ".join(map(str, self.frames.obj_ids())) or "none"
@@ -196,11 +209,33 @@ class InspectPanel:
             if not self.app.valid_asm.steps:
                 raise AposeError("a capture needs an assembly: open one in the Assembly tab first")
             steps = [f"{i + 1}. {s.part}" for i, s in enumerate(self.app.valid_asm.steps)]
+        self.show_frames(frames, str(Path(text).expanduser().resolve()), steps)
+
+    def open_live(self, serial: str | None) -> None:
+        """A RealSense (the one with `serial`, else the first found) as the opened data: its newest frame on show.
+        Its results are cached under the camera's name and the moment it was opened (frame numbers restart)."""
+        if not self.app.valid_asm.steps:
+            raise AposeError("a live camera needs an assembly: open one in the Assembly tab first")
+        cam = realsense.open_realsense(serial)
+        try:
+            cam.next_frame()  # a camera that sends nothing is refused now, and what is shown stays
+        except BaseException:
+            cam.close()
+            raise
+        steps = [f"{i + 1}. {s.part}" for i, s in enumerate(self.app.valid_asm.steps)]
+        self.show_frames(cam, f"{cam.name} (opened {time.strftime('%Y-%m-%d %H:%M:%S')})", steps,
+                         "realsense" + (f":{serial}" if serial else ""))
+
+    def show_frames(self, frames, frames_path: str, steps: list[str], typed: str | None = None) -> None:
+        """`frames` become the opened data (a live camera shown before is closed); its first step on show."""
         self.offer_mask_sources(self.bop_truth(frames, 1) if isinstance(frames, BopScene) else
                                 isinstance(frames, Dataset) or (isinstance(frames, Frame) and bool(frames.masks)))
-        self.frames, self.frames_path = frames, str(Path(text).expanduser().resolve())
+        old = self.frames
+        self.frames, self.frames_path = frames, frames_path
+        if isinstance(old, LiveCamera) and old is not frames:
+            old.close()
         self.result = self.score = None
-        self.i_path.value = self.frames_path
+        self.i_path.value = typed or self.frames_path
         self._syncing = True
         try:
             self.i_step.options = steps
@@ -401,13 +436,13 @@ class InspectPanel:
             finally:
                 self._syncing = False
             im_id = ids[int(self.i_frame.value)]
-        else:  # a capture is one frame: nothing to slide through
+        else:  # a capture is one frame, a live camera its newest: nothing to slide through
             self._syncing = True
             try:
                 self.i_frame.value, self.i_frame.disabled = 0, True
             finally:
                 self._syncing = False
-            im_id = 0
+            im_id = self.frames.last.im_id if isinstance(self.frames, LiveCamera) else 0
         self.app.state.inspect.step = step
         self.frame = self.load_frame(step, im_id)
         cached = self.app.cache.get(self.cache_key(step, im_id))

@@ -8,6 +8,7 @@ alternatives magenta. Everything is metres and world frame unless a name says ot
 from __future__ import annotations
 
 import html
+from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import cv2
@@ -257,9 +258,12 @@ def metrics_markdown(score, result: RegistrationResult | None) -> str:
 
 @dataclass
 class ResultCache:
-    """Estimates per (dataset, step, frame, preset, mask, prior), so revisiting a frame is instant."""
+    """Estimates per (dataset, step, frame, preset, mask, prior), so revisiting a frame is instant. The
+    newest `max_entries` are kept (a live camera or a long recording estimated frame after frame would
+    otherwise grow the studio's memory without end)."""
 
-    entries: dict = field(default_factory=dict)
+    entries: OrderedDict = field(default_factory=OrderedDict)
+    max_entries: int = 512
 
     @staticmethod
     def key(dataset: str, step: int | None, im_id: int, preset: str, mask, prior: bool) -> tuple:
@@ -270,6 +274,9 @@ class ResultCache:
 
     def put(self, key, value) -> None:
         self.entries[key] = value
+        self.entries.move_to_end(key)
+        while len(self.entries) > self.max_entries:
+            self.entries.popitem(last=False)
 
     def __len__(self) -> int:
         return len(self.entries)

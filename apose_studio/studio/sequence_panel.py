@@ -21,7 +21,8 @@ from dataclasses import replace
 import numpy as np
 
 from apose_studio.data.bop import BopScene
-from apose_studio.data.dataset import Dataset
+from apose_studio.data.dataset import Dataset, write_capture
+from apose_studio.data.realsense import LiveCamera
 from apose_studio.data.recording import Recording
 from apose_studio.errors import AposeError
 from apose_studio.estimation import Tracker, array_mask, estimate_view
@@ -51,6 +52,11 @@ class SequencePanel:
             self.s_rate = gui.add_number("Rate (frames/s)", 0.0, min=0.0, max=120.0, step=1.0,
                                          hint=f"0: a recording's own rate ({DEFAULT_RATE:g} for a dataset)")
             self.s_status = gui.add_markdown("")
+            self.s_capture_to = gui.add_text("Capture folder", "", hint="where Capture writes the frame on show (in the "
+                                             "workspace; empty: captures/<date-time>-<frame>)")
+            b = gui.add_button("Capture", hint="save the frame on show as a capture folder (rgb.png, depth.png, "
+                               "camera.json with the camera's cam_K and depth scale) that `apose estimate` reads")
+            b.on_click(self.app.guarded("Capture")(self.on_capture))
 
     @property
     def playing(self) -> bool:
@@ -63,19 +69,22 @@ class SequencePanel:
         ins = self.app.state.inspect
         frames = ins.frames
         if frames is None or ins.frame is None:
-            raise AposeError("open a recording or a dataset first (Data folder)")
-        if not isinstance(frames, (Recording, Dataset, BopScene)):
+            raise AposeError("open a recording, a dataset or a live camera first (Data folder)")
+        if not isinstance(frames, (Recording, Dataset, BopScene, LiveCamera)):
             raise AposeError("a capture is one frame: there is nothing to play (Estimate frame estimates it)")
         step = ins.step
-        ids = (list(range(len(frames))) if isinstance(frames, Recording) else
-               frames.image_ids(step) if isinstance(frames, Dataset) else frames.image_ids())
-        k0 = ids.index(ins.frame.im_id) if ins.frame.im_id in ids else 0
-        if k0 >= len(ids) - 1:
-            k0 = 0  # at the end: play from the start
-        rate = float(self.s_rate.value) or (len(frames) / frames.seconds if isinstance(frames, Recording) and
-                                            frames.seconds > 0 else DEFAULT_RATE)
-        if not np.isfinite(rate) or rate <= 0:
-            raise AposeError("Rate (frames/s): type a positive number (0: the recording's own)")
+        if isinstance(frames, LiveCamera):
+            ids, k0, rate = [ins.frame.im_id], 0, 0.0
+        else:
+            ids = (list(range(len(frames))) if isinstance(frames, Recording) else
+                   frames.image_ids(step) if isinstance(frames, Dataset) else frames.image_ids())
+            k0 = ids.index(ins.frame.im_id) if ins.frame.im_id in ids else 0
+            if k0 >= len(ids) - 1:
+                k0 = 0  # at the end: play from the start
+            rate = float(self.s_rate.value) or (len(frames) / frames.seconds if isinstance(frames, Recording) and
+                                                frames.seconds > 0 else DEFAULT_RATE)
+            if not np.isfinite(rate) or rate <= 0:
+                raise AposeError("Rate (frames/s): type a positive number (0: the recording's own)")
         job = self.app.estimate_job(step, [ids[k0]])  # the Estimate folder's settings of this moment
         if not self.app.busy.acquire(blocking=False):
             raise AposeError("an estimation is running; play when it has finished")
@@ -85,8 +94,32 @@ class SequencePanel:
                                         daemon=True, name="sequence player")
         self._thread.start()
 
+    def _frames(self, job, ids: list[int], k0: int, rate: float, counts: dict):
+        """The frames to show, in time: a live camera's as they come (a gap in its frame numbers: frames that
+        were not read in time), else ids[k0:] at `rate`, a frame already due when the last is shown skipped."""
+        if isinstance(job.frames, LiveCamera):
+            last = None
+            while not self._stop.is_set():
+                frame = self.app.state.load_frame(job.step, job.frames.next_frame().im_id, job.frames, job.assembly)
+                if last is not None and frame.im_id > last + 1:
+                    counts["skipped"] += frame.im_id - last - 1
+                last = frame.im_id
+                yield frame
+            return
+        t0, k = time.monotonic(), k0
+        while k < len(ids) and not self._stop.is_set():
+            yield self.app.state.load_frame(job.step, ids[k], job.frames, job.assembly)
+            late = time.monotonic() - (t0 + (k + 1 - k0) / rate)
+            if late < 0:
+                self._stop.wait(-late)
+                k += 1
+            else:  # behind: the frames already due are skipped, as a live camera's would be
+                skip = int(late * rate)
+                counts["skipped"] += min(skip, len(ids) - k - 1)
+                k += 1 + skip
+
     def _play(self, job, ids: list[int], k0: int, rate: float, tracking: bool, client) -> None:
-        """Frames ids[k0:] shown in time (runs in the player's thread; the studio's lock only to show one)."""
+        """The frames shown in time (runs in the player's thread; the studio's lock only to show one)."""
         ctx = self.app.step_context(job.step)
         params = job.params()
         first = ids[k0]
@@ -100,14 +133,11 @@ class SequencePanel:
             return self.app.estimate_frame(replace(job, ids=(frame.im_id,)), frame.im_id)[0]
 
         tracker = Tracker(ctx, params, detect)
-        shown = skipped = 0
-        t0, k, why = time.monotonic(), k0, "the end"
+        counts = {"shown": 0, "skipped": 0, "n": None if isinstance(job.frames, LiveCamera) else len(ids)}
+        why, im_id = "the end", first
         try:
-            while k < len(ids):
-                if self._stop.is_set():
-                    why = "paused"
-                    break
-                frame = self.app.state.load_frame(job.step, ids[k], job.frames, job.assembly)
+            for frame in self._frames(job, ids, k0, rate, counts):
+                im_id = frame.im_id
                 s = tracker.step(frame) if tracking else None
                 result = s.result if s is not None else detect(frame, None)
                 score = score_frame(frame, result, ctx.part, None, ctx.base.symmetries) \
@@ -120,30 +150,26 @@ class SequencePanel:
                     ins.frame, ins.result, ins.score, ins.advice = frame, result, score, None
                     self.app.events.emit(Event.FRAME_CHANGED)
                     self.app.events.emit(Event.FRAME_PLAYED, im_id=frame.im_id)
-                    shown += 1
-                    self.s_status.content = self.status(tracker, shown, skipped, len(ids), frame.im_id, s, result)
-                due = t0 + (k + 1 - k0) / rate
-                late = time.monotonic() - due
-                if late < 0:
-                    self._stop.wait(-late)
-                    k += 1
-                else:  # behind: the frames already due are skipped, as a live camera's would be
-                    skip = int(late * rate)
-                    skipped += min(skip, len(ids) - k - 1)
-                    k += 1 + skip
-        except Exception as e:  # a bad frame: said, the player stops, the studio goes on
-            log.exception("playing stopped")
-            why = f"an error: {e}"
-            self.app.notify(client, "Play", f"stopped at frame {ids[min(k, len(ids) - 1)]}: {e}", error=True)
+                    counts["shown"] += 1
+                    self.s_status.content = self.status(tracker, counts, frame.im_id, s, result)
+            else:
+                why = "paused" if self._stop.is_set() else why
+        except Exception as e:  # a bad frame, a camera unplugged: said, the player stops, the studio goes on
+            if self.app.state.inspect.frames is not job.frames:  # the camera was closed for other data
+                why = "other data opened"
+            else:
+                log.exception("playing stopped")
+                why = f"an error: {e}"
+                self.app.notify(client, "Play", f"stopped at frame {im_id}: {e}", error=True)
         finally:
             self.app.busy.release()
             with self.app.lock:
                 self.s_play.label = "Play"
-                self.last_summary = f"stopped ({why}). " + self.status(tracker, shown, skipped, len(ids), None, None, None)
+                self.last_summary = f"stopped ({why}). " + self.status(tracker, counts, None, None, None)
                 self.s_status.content = self.last_summary
 
     @staticmethod
-    def status(tracker: Tracker, shown: int, skipped: int, n: int, im_id, step, result) -> str:
+    def status(tracker: Tracker, counts: dict, im_id, step, result) -> str:
         """The player's line: where it is, how the frame was found, and the counts so far."""
         modes = [s.mode for s in tracker.steps]
         ms = [s.seconds * 1000 for s in tracker.steps if s.mode == "tracked"]
@@ -152,10 +178,33 @@ class SequencePanel:
             how = step.mode if step is not None else "estimated"
             conf = "confident" if result.confident else ("not confident: " + doubts(result) if result.ok else
                                                          "no pose: " + result.reason)
-            now = f"**frame {im_id}** of {n}: {how}, {conf[:160]}  \n"
+            of = f"of {counts['n']}" if counts["n"] else "(live)"
+            now = f"**frame {im_id}** {of}: {how}, {conf[:160]}  \n"
         timing = f"; {np.median(ms):.0f} ms per tracked frame (median)" if ms else ""
-        return (f"{now}{shown} shown, {skipped} skipped (not ready in time); {modes.count('tracked')} tracked, "
+        return (f"{now}{counts['shown']} shown, {counts['skipped']} skipped (not ready in time); {modes.count('tracked')} tracked, "
                 f"{modes.count('re-detected')} lost and found again, {modes.count('lost')} lost{timing}")
+
+    def on_capture(self, client) -> None:
+        """The frame on show written as a capture folder (data.dataset.write_capture): a live camera's in its
+        device's depth unit, others in 0.1 mm steps (1 mm past 6.5 m)."""
+        ins = self.app.state.inspect
+        frame = ins.frame
+        if frame is None:
+            raise AposeError("open a live camera, a recording or a dataset first (Data folder)")
+        text = self.s_capture_to.value.strip() or f"captures/{time.strftime('%Y%m%d-%H%M%S')}-{frame.im_id}"
+        folder = self.app.workspace.resolve(text, "capture folder")
+        if isinstance(ins.frames, LiveCamera):
+            unit, info = ins.frames.depth_unit_m * 1000.0, {"device": ins.frames.name}
+        else:
+            unit, info = (0.1 if np.nanmax(frame.depth, initial=0.0) < 6.5 else 1.0), {}
+        try:
+            folder.parent.mkdir(parents=True, exist_ok=True)
+            write_capture(frame, folder, unit, {**info, "source": frame.source})
+        except PermissionError:
+            raise AposeError(f"{folder.parent}: folder not writable; type another Capture folder") from None
+        self.s_capture_to.value = ""
+        self.app.notify(client, "Captured", f"frame {frame.im_id} saved to {folder} (`apose estimate {folder} --assembly "
+                        "A.yaml --step K` reads it)")
 
     def stop(self, timeout: float = 10.0) -> None:
         """Stop playing and wait for the player (the studio's Ctrl-C, tests)."""

@@ -25,7 +25,9 @@ from apose_studio.assembly.mesh import PartModel, load_parts
 from apose_studio.assembly.model import Assembly
 from apose_studio.data.bop import BopScene
 from apose_studio.data.dataset import Dataset, Frame
+from apose_studio.data.realsense import LiveCamera
 from apose_studio.data.recording import Recording
+from apose_studio.errors import AposeError
 from apose_studio.studio import authoring
 
 
@@ -94,7 +96,7 @@ class InspectState:
     the Views panel (a fused estimate), the Prompt panel (prompt text) and the Robot panel (hand-eye, pick
     estimates); read by the others."""
 
-    frames: Dataset | Frame | Recording | None = None  # the opened dataset, a capture (one Frame) or a recording
+    frames: Dataset | Frame | Recording | LiveCamera | None = None  # a dataset, a capture (one Frame), a recording, a camera
     frames_path: str | None = None  # where it was opened from (results are cached under it)
     step: int | None = None  # the inspected step, 1-based
     frame: Frame | None = None  # the frame on show
@@ -176,6 +178,11 @@ class StudioState:
         view = (asm or self.valid_asm).steps[step - 1]
         if isinstance(frames, BopScene):  # read from its files, with the truth of the typed obj_ids
             return frames.frame(im_id, view)
+        if isinstance(frames, LiveCamera):  # a live camera keeps only its newest frame
+            if frames.last is None or frames.last.im_id != im_id:
+                raise AposeError(f"{frames.name}: frame {im_id} is gone (a live camera keeps only its newest frame; "
+                                 "Capture saves the one on show)")
+            return replace(frames.last, base=tuple(view.base), part=view.part, step=step)
         if isinstance(frames, Recording):  # a recorded camera: its im_id-th frame, no truth
             return replace(frames.frame(im_id), base=tuple(view.base), part=view.part, step=step)
         # a copy: the opened capture is shared by every tab and job

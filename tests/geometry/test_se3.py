@@ -168,3 +168,17 @@ def test_look_at_by_hand():
         _orthonormal(T)
         np.testing.assert_allclose(T[:3, 2], (target - eye) / np.linalg.norm(target - eye), atol=1e-12)
         assert abs(T[:3, 0] @ [0, 0, 1]) < 1e-12 and T[:3, 1] @ [0, 0, 1] <= 0  # x level, y down
+
+
+def test_scale_motion_repeats_and_halves_a_motion():
+    from apose_studio.geometry.se3 import axis_angle_matrix, make_T, scale_motion
+
+    R = axis_angle_matrix(np.array([0.3, -0.5, 0.8]), 0.2)
+    T = make_T(R, np.array([0.01, -0.02, 0.005]))
+    np.testing.assert_allclose(scale_motion(T, 1.0), T, atol=1e-12)
+    np.testing.assert_allclose(scale_motion(T, 2.0)[:3, :3], R @ R, atol=1e-12)
+    half = scale_motion(T, 0.5)[:3, :3]
+    np.testing.assert_allclose(half @ half, R, atol=1e-12)
+    np.testing.assert_allclose(scale_motion(T, 3.0)[:3, 3], 3 * T[:3, 3])
+    np.testing.assert_allclose(scale_motion(np.eye(4), 5.0), np.eye(4))
+    np.testing.assert_allclose(scale_motion(T, 0.0), np.eye(4), atol=1e-12)

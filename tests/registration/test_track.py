@@ -138,3 +138,22 @@ def test_apose_track_on_a_rendered_trajectory(tmp_path):
     assert doc["summary"]["right"] == 5
     bad = subprocess.run(run + ["track", str(ds), "--step", "3"], capture_output=True, text=True)
     assert bad.returncode == 2 and "step 3" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_a_camera_without_poses_never_tracks_onto_a_stale_table(tmp_path):
+    """A live camera without the robot's kinematics: every frame's world is the camera's own, so the table found
+    when the base was detected moves with the camera. Kept as it was, it cut the wrong depth and let a pose sunk
+    22 mm into the real table pass as resting on it (confident, 31 mm off on frame 15 of this approach, every
+    other frame read); `table_now` checks it against the depth around the base and fits it anew."""
+    out = tmp_path / "ds"
+    render_dataset(load_assembly(GEARBOX), out, RenderSettings(frames=20, trajectory="approach", noise="realsense",
+                                                               clutter=("bench",), seed=2), steps=[2], progress=False)
+    ds = Dataset(out)
+    tracker, ctx, _ = _tracker(ds)
+    for im_id in [0, *range(1, 20, 2)]:
+        fr = ds.frame(2, im_id)
+        s = tracker.step(replace(fr, T_world_camera=np.eye(4)))  # no pose: the world is this camera's frame
+        truth = se3.inv(fr.T_world_camera) @ fr.T_world_part
+        err = mssd_to_truth(s.result.T_world_part, truth, GEARBOX, fr.part)
+        assert not (s.result.confident and err > 0.1 * ctx.part.diameter), (im_id, s.mode, err)
+    assert "tracked" in [s.mode for s in tracker.steps]

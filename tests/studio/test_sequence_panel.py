@@ -7,6 +7,7 @@ from __future__ import annotations
 import threading
 import time
 
+import numpy as np
 import pytest
 
 from apose_studio.assembly.model import load_assembly
@@ -111,7 +112,7 @@ def test_a_capture_has_nothing_to_play(studio, capture):
     assert "a capture is one frame" in errors(st)[-1][1] and not st.sequence.playing
     st2 = studio(GEARBOX)
     act(st2, st2.sequence.on_play)
-    assert "open a recording or a dataset first" in errors(st2)[-1][1]
+    assert "open a recording, a dataset or a live camera first" in errors(st2)[-1][1]
 
 
 def test_a_recording_without_an_assembly_is_refused_and_nothing_changes(studio, recording):
@@ -120,3 +121,67 @@ def test_a_recording_without_an_assembly_is_refused_and_nothing_changes(studio, 
     st.inspect.i_path.value = str(rec)
     act(st, lambda c: st.inspect.open_frames(st.inspect.i_path.value, c))
     assert "needs an assembly" in errors(st)[-1][1] and st.inspect.frames is None
+
+
+def test_a_live_camera_streams_tracked_and_a_frame_is_captured(studio, live_approach, monkeypatch, tmp_path):
+    """`realsense` typed into Data opens the camera (here Intel's software_device fed with the rendered frames,
+    in a loop: the SDK's syncer and alignment as with a device); Play streams it with the base tracked, each
+    frame shown right against the renderer's truth; Capture writes the frame on show as a capture folder that
+    reads back as the same frame."""
+    from tests.data.test_realsense import need_sdk
+
+    need_sdk()
+    from apose_studio.data import realsense
+    from apose_studio.data.dataset import load_capture
+
+    frames = live_approach
+    opened = []
+    monkeypatch.setattr(realsense, "open_realsense", lambda serial=None: opened.append(serial) or
+                        realsense.software_camera(frames, fps=15, loop=True))
+    st = studio(GEARBOX, root=tmp_path)
+    st.inspect.i_path.value = "realsense:123"
+    act(st, st.inspect.on_open_data)
+    assert not errors(st), st.notes
+    assert opened == ["123"] and "software RealSense" in st.notes[-1][1] and "live" in st.notes[-1][1]
+    cam = st.state.inspect.frames
+    st.inspect.i_step.value = st.inspect.i_step.options[1]  # step 2
+    st.inspect.i_mask.value = "prompt"
+    st.prompt.i_prompt.value = ",".join(map(str, truth_box(frames[st.inspect.frame.im_id % len(frames)].base_mask())))
+    shown = []
+    enough = threading.Event()
+
+    def played(im_id):
+        shown.append((im_id, st.inspect.result))
+        if len(shown) >= 8:
+            enough.set()
+
+    st.events.on(Event.FRAME_PLAYED, played)
+    act(st, st.sequence.on_play)
+    assert enough.wait(120), st.sequence.s_status.content
+    act(st, st.sequence.on_play)  # Pause
+    _wait(st)
+    assert not errors(st), st.notes
+    assert "stopped (paused)" in st.sequence.last_summary and "tracked" in st.sequence.last_summary
+    ids = [i for i, _ in shown]
+    assert ids == sorted(ids) and len(set(ids)) == len(ids)  # a live camera's frames, in order, each once
+    for im_id, result in shown:  # never confident and wrong (the frames loop: the base jumps back, and is lost); the live world is the camera's frame: T_camera_part is the estimate itself
+        truth = frames[im_id % len(frames)]
+        err = mssd_to_truth(result.T_world_part, se3.inv(truth.T_world_camera) @ truth.T_world_part, GEARBOX, truth.part)
+        assert not (result.confident and err >= 0.1 * st.inspect.part_model().diameter), (im_id, err)
+    assert sum(r.confident and r.tracked for _, r in shown) >= 3, [(i, r.tracked, r.confident) for i, r in shown]
+    on_show = st.inspect.frame
+    st.sequence.s_capture_to.value = "cap1"
+    act(st, st.sequence.on_capture)
+    assert not errors(st) and "saved to" in st.notes[-1][1]
+    back = load_capture(tmp_path / "cap1")
+    assert np.array_equal(back.rgb, on_show.rgb) and back.camera == on_show.camera
+    assert np.abs(back.depth - on_show.depth).max() <= cam.depth_unit_m / 2 + 1e-6
+    assert '"device": "software RealSense"' in (tmp_path / "cap1" / "camera.json").read_text()
+    st.sequence.s_capture_to.value = "cap1"
+    act(st, st.sequence.on_capture)  # never overwritten
+    assert "already exists" in errors(st)[-1][1]
+    # other data opened: the camera is closed (its stream stops)
+    st.inspect.i_path.value = str(tmp_path / "cap1")
+    act(st, st.inspect.on_open_data)
+    with pytest.raises(Exception):
+        cam.next_frame(timeout_s=0.5)
