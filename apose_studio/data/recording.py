@@ -19,14 +19,16 @@ refused with the fix: `ros2 bag convert` it to MCAP, or record with `-s mcap`.
 from __future__ import annotations
 
 import bisect
-import io
+import contextlib
+import os
+import tempfile
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from apose_studio.assembly.fileio import atomic_write_bytes
+from apose_studio.assembly.fileio import current_umask
 from apose_studio.data.dataset import DatasetError, Frame
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
@@ -104,6 +106,11 @@ class Recording:
         return Frame(rgb=rgb, depth=depth, camera=self.camera, T_world_camera=self._pose_at(self.color_times[i]),
                      im_id=i, source=f"{self.path}#{i}")
 
+    def player(self) -> "RecordingPlayer":
+        """A reader for frames asked for in increasing order (a player's): one pass over the file instead of
+        a search per image (22 -> a few ms a frame on a 20 s, 30 Hz recording)."""
+        return RecordingPlayer(self)
+
     def _image(self, topic: str, t: int) -> np.ndarray:
         with open(self.path, "rb") as f:
             for _, _, _, msg in _reader(f).iter_decoded_messages(topics=[topic], start_time=t, end_time=t + 1):
@@ -117,6 +124,51 @@ class Recording:
         k = bisect.bisect_left(times, t)
         k = min(range(max(k - 1, 0), min(k + 1, len(times))), key=lambda j: abs(times[j] - t))
         return poses[k]
+
+
+class RecordingPlayer:
+    """`frame(i)` of a Recording for i increasing (a jump back starts a new pass); `close()` when done."""
+
+    def __init__(self, rec: Recording):
+        self.rec = rec
+        self._file = None
+        self._it = None
+        self._at = -1  # log time of the last message read in this pass
+        self._kept: dict[tuple[str, int], np.ndarray] = {}  # images read but not yet used (a depth two frames share)
+
+    def frame(self, i: int) -> Frame:
+        rec = self.rec
+        if not 0 <= i < len(rec):
+            return rec.frame(i)  # its refusal
+        want = {(rec.topics["color"], rec.color_times[i]), (rec.topics["depth"], rec.depth_times[i])}
+        if min(t for _, t in want) <= self._at and not want <= self._kept.keys():
+            self.close()  # behind this pass: a new one
+        if self._it is None:
+            self._file = open(rec.path, "rb")
+            self._it = iter(_reader(self._file).iter_decoded_messages(
+                topics=[rec.topics["color"], rec.topics["depth"]], start_time=min(t for _, t in want),
+                log_time_order=True))
+            self._at, self._kept = -1, {}
+        while not want <= self._kept.keys():
+            try:
+                _, channel, message, msg = next(self._it)
+            except StopIteration:
+                raise DatasetError(f"{rec.path}: frame {i}'s images are missing (a damaged file?)") from None
+            self._at = message.log_time
+            if (channel.topic, message.log_time) in want:
+                self._kept[(channel.topic, message.log_time)] = image_array(msg, f"{rec.path}: {channel.topic}")
+        rgb, depth = self._kept[(rec.topics["color"], rec.color_times[i])], self._kept[(rec.topics["depth"], rec.depth_times[i])]
+        self._kept = {k: v for k, v in self._kept.items() if k[1] >= min(t for _, t in want)}
+        if depth.shape != rgb.shape[:2]:
+            raise DatasetError(f"{rec.path}: frame {i}: depth is {depth.shape[1]}x{depth.shape[0]} but colour is "
+                               f"{rgb.shape[1]}x{rgb.shape[0]}; record the depth aligned to colour")
+        return Frame(rgb=rgb, depth=depth, camera=rec.camera, T_world_camera=rec._pose_at(rec.color_times[i]),
+                     im_id=i, source=f"{rec.path}#{i}")
+
+    def close(self) -> None:
+        if self._file is not None:
+            self._file.close()
+        self._file = self._it = None
 
 
 def _reader(f):
@@ -236,12 +288,27 @@ def write_recording(path: str | Path, frames: Iterable[Frame], rate_hz: float = 
                     topics: dict[str, str] | None = None) -> Path:
     """Frames as a ROS 2 recording in MCAP (what a RealSense node publishes: colour rgb8, depth aligned to it in
     16UC1 millimetres, the colour CameraInfo; and each frame's T_world_camera as a PoseStamped), `rate_hz`
-    apart from `start_ns`; written whole, then placed atomically."""
+    apart from `start_ns`; streamed into a file beside `path` (a minute at 30 Hz is ~3 GB: never held in memory),
+    then renamed onto it, so `path` is whole or as it was."""
     from mcap_ros2.writer import Writer  # loaded where it is used
 
-    t = {**TOPICS, **(topics or {})}
-    buf = io.BytesIO()
-    w = Writer(buf)
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            _write_frames(Writer(f), frames, rate_hz, start_ns, {**TOPICS, **(topics or {})})
+            f.flush()
+            os.fchmod(f.fileno(), 0o666 & ~current_umask())
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def _write_frames(w, frames: Iterable[Frame], rate_hz: float, start_ns: int, t: dict[str, str]) -> None:
     image, info, pose = (w.register_msgdef(n, d) for n, d in (("sensor_msgs/msg/Image", IMAGE),
                                                               ("sensor_msgs/msg/CameraInfo", CAMERA_INFO),
                                                               ("geometry_msgs/msg/PoseStamped", POSE_STAMPED)))
@@ -271,5 +338,3 @@ def write_recording(path: str | Path, frames: Iterable[Frame], rate_hz: float = 
             "orientation": {"x": float(wq[1]), "y": float(wq[2]), "z": float(wq[3]), "w": float(wq[0])}}},
             log_time=stamp, publish_time=stamp)
     w.finish()
-    atomic_write_bytes(Path(path), buf.getvalue())
-    return Path(path)

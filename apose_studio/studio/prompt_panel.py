@@ -51,9 +51,14 @@ def prompted_mask(masks: dict, frame, prompt: tuple) -> np.ndarray:
     return masks[key]
 
 
+def uses_prompt(ins: InspectState) -> bool:
+    """Whether the Mask is 'prompt' and a prompt is typed (usable or not)."""
+    return ins.mask_source == PROMPT_SOURCE and bool(ins.prompt_text.strip())
+
+
 def overlay_mask(ins: InspectState, frame) -> np.ndarray | None:
     """The prompted mask to draw over the RGB image: with Mask 'prompt' and a usable prompt, else None."""
-    if frame is None or ins.mask_source != PROMPT_SOURCE or not ins.prompt_text.strip():
+    if frame is None or not uses_prompt(ins):
         return None
     try:
         return prompted_mask(ins.prompt_masks, frame, prompt_of(ins.prompt_text))

@@ -20,7 +20,7 @@ from apose_studio.errors import AposeError
 from apose_studio.geometry import se3
 from apose_studio.robot.grasping import gripper_mesh
 from apose_studio.studio import inspection
-from apose_studio.studio.prompt_panel import overlay_mask
+from apose_studio.studio.prompt_panel import overlay_mask, uses_prompt
 from apose_studio.studio.state import Event
 from apose_studio.studio.widgets import LAYERS, esc, legend_html, pos, shaded, wxyz
 
@@ -277,10 +277,13 @@ class ResultsView:
             boxes.append((r.T_world_part, inspection.GREEN))
             boxes += [(c.T_world_part, inspection.MAGENTA) for c in r.alternatives]
         image = inspection.draw_boxes(fr.rgb, fr.camera, fr.T_world_camera, corners, boxes)
-        prompted = overlay_mask(self.app.state.inspect, fr)
-        what = "prompted mask"
-        if prompted is not None and r is not None and r.ok and r.model_mask is not None:
+        ins = self.app.state.inspect
+        if r is not None and r.ok and r.model_mask is not None and r.tracked:  # a played frame: no prompt of its own
+            prompted, what = r.model_mask, "the tracked model's mask: where the depth agrees with it"
+        elif r is not None and r.ok and r.model_mask is not None and uses_prompt(ins):  # (the prompt not segmented again)
             prompted, what = r.model_mask, "the estimate's mask: the prompted one cut to the model's view"
+        else:
+            prompted, what = overlay_mask(ins, fr), "prompted mask"
         outlines = []  # the base's model: truth under estimate
         if fr.T_world_base is not None:
             outlines.append((fr.T_world_base, inspection.AMBER))

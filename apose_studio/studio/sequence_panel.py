@@ -106,17 +106,22 @@ class SequencePanel:
                 last = frame.im_id
                 yield frame
             return
+        source = job.frames.player() if isinstance(job.frames, Recording) else job.frames  # read in one pass
         t0, k = time.monotonic(), k0
-        while k < len(ids) and not self._stop.is_set():
-            yield self.app.state.load_frame(job.step, ids[k], job.frames, job.assembly)
-            late = time.monotonic() - (t0 + (k + 1 - k0) / rate)
-            if late < 0:
-                self._stop.wait(-late)
-                k += 1
-            else:  # behind: the frames already due are skipped, as a live camera's would be
-                skip = int(late * rate)
-                counts["skipped"] += min(skip, len(ids) - k - 1)
-                k += 1 + skip
+        try:
+            while k < len(ids) and not self._stop.is_set():
+                yield self.app.state.load_frame(job.step, ids[k], source, job.assembly)
+                late = time.monotonic() - (t0 + (k + 1 - k0) / rate)
+                if late < 0:
+                    self._stop.wait(-late)
+                    k += 1
+                else:  # behind: the frames already due are skipped, as a live camera's would be
+                    skip = int(late * rate)
+                    counts["skipped"] += min(skip, len(ids) - k - 1)
+                    k += 1 + skip
+        finally:
+            if source is not job.frames:
+                source.close()
 
     def _play(self, job, ids: list[int], k0: int, rate: float, tracking: bool, client) -> None:
         """The frames shown in time (runs in the player's thread; the studio's lock only to show one)."""

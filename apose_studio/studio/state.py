@@ -26,7 +26,7 @@ from apose_studio.assembly.model import Assembly
 from apose_studio.data.bop import BopScene
 from apose_studio.data.dataset import Dataset, Frame
 from apose_studio.data.realsense import LiveCamera
-from apose_studio.data.recording import Recording
+from apose_studio.data.recording import Recording, RecordingPlayer
 from apose_studio.errors import AposeError
 from apose_studio.studio import authoring
 
@@ -183,7 +183,7 @@ class StudioState:
                 raise AposeError(f"{frames.name}: frame {im_id} is gone (a live camera keeps only its newest frame; "
                                  "Capture saves the one on show)")
             return replace(frames.last, base=tuple(view.base), part=view.part, step=step)
-        if isinstance(frames, Recording):  # a recorded camera: its im_id-th frame, no truth
+        if isinstance(frames, (Recording, RecordingPlayer)):  # a recorded camera: its im_id-th frame, no truth
             return replace(frames.frame(im_id), base=tuple(view.base), part=view.part, step=step)
         # a copy: the opened capture is shared by every tab and job
         return replace(frames, base=tuple(view.base), part=view.part, step=step)
