@@ -28,7 +28,7 @@ from apose_studio.errors import AposeError
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.masks.prompt import prompted_mask
-from apose_studio.masks.segment import depth_mask, load_model
+from apose_studio.masks.segment import depth_mask, load_model, table_objects
 from apose_studio.registration import BaseObject, Params, RegistrationResult, doubts, estimate, prepare_base
 from apose_studio.registration.fusion import estimate_views
 from apose_studio.registration.track import TABLE_TOLERANCES, final_distance, predict, table_now, track
@@ -237,6 +237,112 @@ def estimate_frames(views: list[View], ctx: StepContext, params: Params,
     ctx.base.warm_up(params)
     return held_to_part(estimate_views(views, ctx.base, ctx.view.T_base_part, params,
                                        np.eye(4) if orientation_prior else None, ctx.part.symmetries), ctx.part)
+
+
+# ---- instances ------------------------------------------------------------------------------------------
+
+INSTANCE_MIN_SIZE = 0.3  # a group of depth points on the table smaller than this share of the base's diameter is not
+# one of its instances (clutter, a fragment)
+INSTANCE_SPLIT_SIZE = 1.5  # a group larger than this many diameters may hold more than one instance: after one is
+# found in it, what the model does not explain is searched again
+INSTANCE_SAME = 0.3  # two poses whose base centres lie closer than this share of the diameter are one instance
+MAX_INSTANCES = 32
+
+
+@dataclass(frozen=True)
+class Instance:
+    """One instance of a step's base found in a frame: the prompt box it was found from and its estimate."""
+
+    box: tuple[int, int, int, int]
+    mask: np.ndarray
+    result: RegistrationResult
+
+
+def instance_boxes(frame: Frame, diameter: float) -> list[tuple[tuple[int, int, int, int], np.ndarray]]:
+    """Prompt boxes (and the depth groups they hold) around what stands on the table and could be one
+    instance of a base of `diameter` metres: groups of depth points above the table plane (masks.segment
+    .table_objects) at least INSTANCE_MIN_SIZE of the diameter across, largest first."""
+    objs = table_objects(frame.depth, frame.camera)
+    if objs is None:
+        return []
+    out = []
+    for sel in objs.groups(min_points=60):
+        u, v = objs.u[sel], objs.v[sel]
+        pts = frame.camera.backproject(u.astype(float), v.astype(float), frame.depth[v, u].astype(float))
+        if float(np.linalg.norm(np.ptp(pts, axis=0))) < INSTANCE_MIN_SIZE * diameter:
+            continue
+        out.append((_box_of(u, v, frame.depth.shape), objs.mask(sel)))
+    out.sort(key=lambda b: -int(b[1].sum()))
+    return out[:MAX_INSTANCES]
+
+
+def _box_of(u: np.ndarray, v: np.ndarray, shape: tuple[int, int], margin: float = BOX_MARGIN) -> tuple[int, int, int, int]:
+    h, w = shape
+    mx, my = margin * (np.ptp(u) + 1), margin * (np.ptp(v) + 1)
+    return (max(int(u.min() - mx), 0), max(int(v.min() - my), 0), min(int(u.max() + mx) + 1, w),
+            min(int(v.max() + my) + 1, h))
+
+
+def estimate_instances(frame: Frame, ctx: StepContext, params: Params, orientation_prior: bool = False,
+                       estimate: Callable | None = None) -> list[Instance]:
+    """Every instance of step `ctx`'s base in `frame` without a prompt per instance: each candidate group of
+    depth on the table (`instance_boxes`) estimated with a box prompt around it (a group that may hold
+    several, what the found model does not explain searched again), poses of one instance merged (the
+    confident one, else the better fitting), the rest in a stable order: left to right in the image by the
+    base's centre. Each keeps its own confidence. `estimate(view)`: the estimator per candidate (default
+    estimate_view with these params)."""
+    diameter = ctx.base.diameter
+    run = estimate or (lambda view: estimate_view(view, ctx, params, orientation_prior))
+    todo = [(box, group, True) for box, group in instance_boxes(frame, diameter)]
+    found = []
+    while todo:
+        box, group, split = todo.pop(0)
+        try:
+            mask = prompted_mask(frame.rgb, frame.depth, frame.camera, box=box).mask
+        except AposeError:  # nothing in the box stands out of the table after all
+            continue
+        r = run(replace(View.of(frame, mask), box=box))
+        found.append(Instance(box, mask, r))
+        if split and r.ok and r.model_mask is not None and _extent(frame, group) > INSTANCE_SPLIT_SIZE * diameter:
+            rest = group & ~cv2.dilate(r.model_mask.astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)
+            if rest.sum() >= 60 and _extent(frame, rest) >= INSTANCE_MIN_SIZE * diameter:  # searched once more
+                vs, us = np.nonzero(rest)
+                todo.insert(0, (_box_of(us, vs, rest.shape), rest, False))
+    return distinct_instances(found, ctx.base, frame)
+
+
+def _extent(frame: Frame, mask: np.ndarray) -> float:
+    vs, us = np.nonzero(mask & (frame.depth > 0))
+    if len(vs) < 2:
+        return 0.0
+    pts = frame.camera.backproject(us.astype(float), vs.astype(float), frame.depth[vs, us].astype(float))
+    return float(np.linalg.norm(np.ptp(pts, axis=0)))
+
+
+def distinct_instances(found: list[Instance], base, frame: Frame) -> list[Instance]:
+    """The instances with a pose, one per place (base centres closer than INSTANCE_SAME of the diameter are one:
+    the confident one kept, else the higher fitness x coverage), left to right in `frame` by the base's
+    centre (then top to bottom)."""
+    centre = base.samples.mean(axis=0)
+
+    def where(inst):
+        return se3.transform_points(inst.result.T_world_base, centre[None])[0]
+
+    def rank(inst):
+        r = inst.result
+        return (bool(r.confident), float(r.fitness) * float(np.nan_to_num(r.coverage)))
+
+    kept: list[Instance] = []
+    for inst in sorted((i for i in found if i.result.ok), key=rank, reverse=True):
+        if all(np.linalg.norm(where(inst) - where(k)) >= INSTANCE_SAME * base.diameter for k in kept):
+            kept.append(inst)
+
+    def pixel(inst):
+        pc = se3.transform_points(se3.inv(frame.T_world_camera), where(inst)[None])
+        u, v = frame.camera.project(pc)
+        return float(u[0]), float(v[0])
+
+    return sorted(kept, key=pixel)
 
 
 # ---- tracking ------------------------------------------------------------------------------------------

@@ -88,6 +88,8 @@ class StepView:
     T_base_part: np.ndarray
     T_base_members: dict[str, np.ndarray]  # pose of each base part in the frame of base[0]
     approach: Approach | None = None  # the part's last straight motion into place, in base[0]'s frame
+    twins: tuple[str, ...] = ()  # the other instances of a one-part root base: roots with the same mesh (e.g. eight
+    # identical seats on one engine, each its own root); `apose estimate --instances all` finds them all
 
 
 @dataclass(frozen=True)
@@ -146,7 +148,16 @@ class Assembly:
         T_root_base = self.T_root_part(step.base[0])
         T_base_root = se3.inv(T_root_base)
         members = {p: T_base_root @ self.T_root_part(p) for p in step.base}
-        return StepView(number, step.part, step.base, self.root_of(step.base[0]), step.T_base_part, members, step.approach)
+        return StepView(number, step.part, step.base, self.root_of(step.base[0]), step.T_base_part, members, step.approach,
+                        self.twins_of(step.base))
+
+    def twins_of(self, base: tuple[str, ...]) -> tuple[str, ...]:
+        """The other roots made of the same mesh file as a one-part root `base` (its instances), in file order."""
+        if len(base) != 1 or base[0] not in self.roots or base[0] not in self.parts:
+            return ()
+        mesh = Path(self.parts[base[0]].mesh).resolve()
+        return tuple(p for p in self.roots if p != base[0] and p in self.parts
+                     and Path(self.parts[p].mesh).resolve() == mesh)
 
     def completed(self) -> dict[str, dict[str, np.ndarray]]:
         """The finished assembly: for each root, every part hanging off it with its T_root_part."""

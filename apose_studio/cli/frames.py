@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from apose_studio.api import grasp_of, robot_targets, run_registration
+from apose_studio.api import grasp_of, pose_estimate, robot_targets, run_registration
 from apose_studio.assembly.model import Assembly, load_assembly
 from apose_studio.cli.common import check_output_file, finite, params_of, parse_prompt, pose_lines
 from apose_studio.cli.views import cmd_estimate_views
@@ -19,7 +19,15 @@ from apose_studio.data.bop import BopScene, parse_obj_map, read_results_csv, res
 from apose_studio.data.dataset import Dataset, Frame, write_json
 from apose_studio.data.sources import open_frames
 from apose_studio.errors import AposeError
-from apose_studio.estimation import MaskRequest, StepContext, array_mask, estimate_pick, find_mask, step_context
+from apose_studio.estimation import (
+    MaskRequest,
+    StepContext,
+    array_mask,
+    estimate_instances,
+    estimate_pick,
+    find_mask,
+    step_context,
+)
 from apose_studio.evaluate import evaluate, evaluate_split, format_table, score_frame, score_results
 from apose_studio.geometry import se3
 from apose_studio.masks.prompt import parse_box, parse_point
@@ -90,13 +98,20 @@ def _pick(args, frame: Frame, ctx, params):
 
 def cmd_estimate(args) -> int:
     if len(args.input) > 1 or args.views > 1:
+        if args.instances:
+            raise AposeError("--instances all takes one frame; fused views find one instance")
         if getattr(args, "hand_eye", None):
             raise AposeError("--hand-eye takes one frame (one capture); fused views give no robot targets yet")
         return cmd_estimate_views(args)
     hand_eye = _robot_args(args)
     request = MaskRequest(args.mask, *(parse_prompt(args, flag) for flag in ("box", "point")))
+    if args.instances and (request.box or request.point or args.mask or hand_eye is not None):
+        raise AposeError("--instances all finds every instance without a prompt; give either it or --box/--point/--mask/"
+                         "--hand-eye (a prompt picks one instance)")
     t0 = time.perf_counter()
     frame, asm, ctx = open_estimate_input(args, args.input[0])
+    if args.instances:
+        return _estimate_instances(args, frame, asm, ctx, t0)
     if hand_eye is not None:  # a wrong grasp name or pick prompt is said before any work
         grasp_of(asm, ctx.view.part, args.grasp)
         _ = (parse_box(args.pick_box) if args.pick_box else None, parse_point(args.pick_point) if args.pick_point else None)
@@ -160,6 +175,39 @@ def cmd_estimate(args) -> int:
         if args.mcap:
             print(f"wrote {args.mcap} (ROS 2 messages: /tf_static, /apose/place/gripper, ...)")
     return 0
+
+
+def _estimate_instances(args, frame: Frame, asm: Assembly, ctx: StepContext, t0: float) -> int:
+    """`apose estimate --instances all`: every instance of the step's base, left to right (estimation.estimate_instances)."""
+    params = params_of(args, asm.registration)
+    ctx.base.warm_up(params)
+    t1 = time.perf_counter()
+    found = estimate_instances(frame, ctx, params, args.orientation_prior)
+    seconds = time.perf_counter() - t1
+    ests = [pose_estimate(i.result, frame.T_world_camera, ctx.view,
+                          i.result.model_mask if i.result.model_mask is not None else i.mask, "instance box",
+                          {"registration": i.result.seconds}) for i in found]
+    docs = []
+    for i, est in zip(found, ests):
+        doc = est.to_json()
+        doc.update(box=list(i.box), fitness=i.result.fitness)
+        docs.append(doc)
+    confident = [k for k, e in enumerate(ests) if e.confident]
+    best = confident[0] if confident else (0 if ests else None)
+    if args.json:
+        doc = dict(docs[best]) if best is not None else {"ok": False, "reason": "no instance of the base found"}
+        doc.update(step=args.step, frame=args.frame, preset=params.preset, part=ctx.part.id, base=list(ctx.view.base),
+                   instances=docs, instances_seconds=seconds, best_instance=best)
+        print(json.dumps(doc, indent=1))
+        return 0 if confident else 1
+    print(f"step {args.step}, frame {args.frame}: every instance of [{', '.join(ctx.view.base)}] to place {ctx.part.id} "
+          f"on (preset {params.preset}): {len(ests)} found, {len(confident)} confident, {seconds:.2f} s")
+    for k, est in enumerate(ests):
+        t = est.T_camera_part[:3, 3] * 1000
+        state = "confident" if est.confident else f"not confident: {est.doubts}"
+        print(f"  {k + 1}. box {','.join(map(str, found[k].box))}: T_camera_part t = ({t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f}) mm, "
+              f"{state}")
+    return 0 if confident else 1
 
 
 def _print_targets(t) -> None:

@@ -231,6 +231,10 @@ def sample_scene(models: dict[str, PartModel], view: StepView, settings: RenderS
                 return xy
         return centre[:2] + np.array([3 * base_d + 3 * radius, 0.0])  # crowded: far away
 
+    for twin in view.twins:  # the base's other instances (identical roots) stand on free spots around it
+        mesh = models[twin].mesh
+        spot = free_spot(float(np.linalg.norm(mesh.extents[:2])) / 2)
+        objects.append(SceneObject(twin, mesh, _resting_pose(mesh, rng.uniform(0, 2 * np.pi), spot), models[twin].color))
     part = models[view.part]
     loose_r = float(np.linalg.norm(part.mesh.extents[:2])) / 2
     objects.append(SceneObject(view.part, part.mesh, _resting_pose(part.mesh, rng.uniform(0, 2 * np.pi),

@@ -69,7 +69,8 @@ def _render_into(asm: Assembly, out, settings: RenderSettings, numbers: list[int
             writer = SceneWriter(out, number, {
                 "step": number, "part": view.part, "base": list(view.base),
                 "part_obj_id": obj_ids[view.part], "base_obj_ids": [obj_ids[p] for p in view.base],
-                "T_base_part": view.T_base_part.tolist()})
+                "T_base_part": view.T_base_part.tolist(),
+                "instance_obj_ids": [obj_ids[p] for p in (view.base[0], *view.twins)] if len(view.base) == 1 else []})
             k, group = settings.views_per_scene, []
             path = render_trajectory(models, view, settings, grid, [settings.seed, number, 0], base, noise=False) \
                 if settings.trajectory else None
