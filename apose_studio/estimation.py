@@ -31,6 +31,7 @@ from apose_studio.masks.prompt import prompted_mask
 from apose_studio.masks.segment import depth_mask, load_model, table_objects
 from apose_studio.registration import BaseObject, Params, RegistrationResult, doubts, estimate, prepare_base
 from apose_studio.registration.fusion import estimate_views
+from apose_studio.registration.next_view import next_view
 from apose_studio.registration.track import TABLE_TOLERANCES, final_distance, predict, table_now, track
 from apose_studio.registration.types import CONFIDENT_PART_SPREAD, View
 
@@ -347,7 +348,9 @@ def distinct_instances(found: list[Instance], base, frame: Frame) -> list[Instan
 
 # ---- tracking ------------------------------------------------------------------------------------------
 
-TRACK_MODES = ("detected", "tracked", "re-detected", "lost", "not found")
+TRACK_MODES = ("detected", "tracked", "re-detected", "fused", "lost", "not found")
+FUSE_NEAR_DEG = 20.0  # a frame whose camera looks within this angle of the advised camera's direction ...
+FUSE_NEAR_SHARE = 0.25  # ... from within this share of its distance to the base is "from there": fused
 MAX_GAP = 10  # frames over which the tracker carries the base's motion on (Tracker.expected)
 
 
@@ -355,14 +358,16 @@ MAX_GAP = 10  # frames over which the tracker carries the base's motion on (Trac
 class TrackStep:
     """One frame of a tracked sequence: its result and how it was found. `mode`: detected (estimated with no
     pose to start from), tracked (from the frame before's pose), re-detected (tracking lost it on this frame,
-    a new estimate found it: lost and recovered), lost (tracking lost it and no confident estimate found it),
-    not found (no pose to track and no confident estimate)."""
+    a new estimate found it: lost and recovered), fused (an ambiguous frame before and this one, seen from
+    near where it advised to look, estimated together: confident), lost (tracking lost it and no confident
+    estimate found it), not found (no pose to track and no confident estimate)."""
 
     im_id: int
     result: RegistrationResult
     mode: str
     seconds: float  # this frame's wall time, everything included
     lost_because: str = ""  # why tracking let go (modes re-detected and lost)
+    advice: object = None  # with no confident pose: where to look from to settle an ambiguous one (NextView)
 
 
 @dataclass
@@ -381,6 +386,8 @@ class Tracker:
     last: RegistrationResult | None = None  # the last confident result
     plane: tuple | None = None  # the table under the base (world), from the detection tracking started from
     steps: list[TrackStep] = field(default_factory=list)
+    pending: tuple | None = None  # (view, advice, the base's centre) of an ambiguous frame, waiting for a frame from
+    # where its advice (registration.next_view) said to look: the two are then estimated together
     seen: list[tuple[int, np.ndarray]] = field(default_factory=list)  # (im_id, T_world_base) of the last two
     # confident results: the base's motion per frame in the world (none when the camera's pose is known and the
     # base stands still; the camera's own motion when every frame's world is the camera's frame)
@@ -401,12 +408,24 @@ class Tracker:
         box = last_seen_box(start, frame) if tried else None
         r = self.detect(frame, box)
         if r.confident:
-            self.plane = getattr(r.problem, "table", None)
+            self.plane, self.pending = getattr(r.problem, "table", None), None
             return self._done(TrackStep(frame.im_id, r, "re-detected" if tried else "detected",
                                         time.perf_counter() - t0, why), r)
         self.last = None
         self.seen.clear()
-        return self._done(TrackStep(frame.im_id, r, "lost" if tried else "not found", time.perf_counter() - t0, why))
+        if self.pending is not None and r.ok and r.model_mask is not None and near_view(frame.T_world_camera,
+                                                                                        *self.pending[1:]):
+            fused = estimate_frames([self.pending[0], View.of(frame, r.model_mask)], self.ctx, self.params)
+            if fused.confident:
+                self.pending, self.plane = None, getattr(r.problem, "table", None)
+                return self._done(TrackStep(frame.im_id, fused, "fused", time.perf_counter() - t0, why), fused)
+        if self.pending is None and r.ok and r.ambiguous and r.model_mask is not None:
+            advice = next_view(r, self.ctx.base, [frame.T_world_camera], frame.camera)
+            if advice is not None:
+                centre = se3.transform_points(r.T_world_base, self.ctx.base.centre[None])[0]
+                self.pending = (View.of(frame, r.model_mask), advice, centre)
+        return self._done(TrackStep(frame.im_id, r, "lost" if tried else "not found", time.perf_counter() - t0, why,
+                                    self.pending[1] if self.pending is not None else None))
 
     def expected(self, im_id: int) -> RegistrationResult:
         """The last confident result, moved on to frame `im_id` at the base's motion per frame between the last
@@ -425,6 +444,16 @@ class Tracker:
             self.seen = [*self.seen[-1:], (s.im_id, confident.T_world_base)]
         self.steps.append(s)
         return s
+
+
+def near_view(T_world_camera: np.ndarray, advice, centre: np.ndarray) -> bool:
+    """Whether a camera is where `advice` (a NextView) said to look from: its optical axis within FUSE_NEAR_DEG of
+    the advised one's, its position within FUSE_NEAR_SHARE of the advised camera's distance to the base's centre
+    (`centre`, world)."""
+    A = advice.T_world_camera
+    cos = float(np.clip(T_world_camera[:3, 2] @ A[:3, 2], -1.0, 1.0))
+    reach = FUSE_NEAR_SHARE * float(np.linalg.norm(A[:3, 3] - centre))
+    return bool(np.degrees(np.arccos(cos)) <= FUSE_NEAR_DEG and np.linalg.norm(A[:3, 3] - T_world_camera[:3, 3]) <= reach)
 
 
 def last_seen_box(last: RegistrationResult, frame: Frame, margin: float = 0.15) -> tuple[int, int, int, int] | None:

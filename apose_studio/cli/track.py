@@ -89,6 +89,9 @@ def cmd_track(args) -> int:
             err = sc.mssd_mod_base_sym
         rows.append((s, err))
         note = s.lost_because if s.mode in ("re-detected", "lost") else ("" if r.ok else r.reason)
+        if s.advice is not None:  # ambiguous, nothing tracked: where to look from (fused when a frame comes from there)
+            t = s.advice.T_world_camera[:3, 3] * 1000
+            note = f"ambiguous: look from ({t[0]:.0f}, {t[1]:.0f}, {t[2]:.0f}) mm (world); {note}"
         if not args.quiet:
             print(f"{im_id:>5}  {s.mode:<11} {s.seconds * 1000:7.1f}  {'yes' if r.confident else 'no':<9}  "
                   f"{'' if err is None else f'{err * 1000:8.2f}':>8}  {note[:100]}")
@@ -130,7 +133,8 @@ def summary_text(s: dict) -> str:
         return "-" if not d["n"] else f"median {d['median']:.1f}, p95 {d['p95']:.1f}"
 
     lines = [f"{s['frames']} frames: {s['detected']} detected, {s['tracked']} tracked, {s['re_detected']} lost and "
-             f"re-detected, {s['lost']} lost, {s['not_found']} not found; {s['confident']} confident",
+             f"re-detected, {s['fused']} fused from an advised view, {s['lost']} lost, {s['not_found']} not found; "
+             f"{s['confident']} confident",
              f"ms per tracked frame: {ms(s['tracked_ms'])}; per detected frame: {ms(s['detected_ms'])}"]
     if "right" in s:
         lines.append(f"against the truth: {s['right']} right, {s['confident_and_wrong']} confident and wrong; "
@@ -144,7 +148,7 @@ def frame_json(s, err) -> dict:
             "reason": r.reason, "lost_because": s.lost_because,
             "T_world_base": None if r.T_world_base is None else np.asarray(r.T_world_base).tolist(),
             "T_world_part": None if r.T_world_part is None else np.asarray(r.T_world_part).tolist(),
-            "mssd_mod_base_sym": err}
+            "mssd_mod_base_sym": err, "advice": None if s.advice is None else s.advice.to_json()}
 
 
 

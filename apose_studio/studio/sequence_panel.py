@@ -152,8 +152,9 @@ class SequencePanel:
                     if ins.frames is not job.frames or ins.step != job.step:
                         why = "other data or another step opened"
                         break
-                    ins.frame, ins.result, ins.score, ins.advice = frame, result, score, None
+                    ins.frame, ins.result, ins.score = frame, result, score
                     self.app.events.emit(Event.FRAME_CHANGED)
+                    ins.advice = s.advice if s is not None else None  # drawn as "look from here" (Views panel)
                     self.app.events.emit(Event.FRAME_PLAYED, im_id=frame.im_id)
                     counts["shown"] += 1
                     self.s_status.content = self.status(tracker, counts, frame.im_id, s, result)
@@ -186,7 +187,8 @@ class SequencePanel:
             of = f"of {counts['n']}" if counts["n"] else "(live)"
             now = f"**frame {im_id}** {of}: {how}, {conf[:160]}  \n"
         timing = f"; {np.median(ms):.0f} ms per tracked frame (median)" if ms else ""
-        return (f"{now}{counts['shown']} shown, {counts['skipped']} skipped (not ready in time); {modes.count('tracked')} tracked, "
+        fused = f"{modes.count('fused')} fused from the advised view, " if "fused" in modes else ""
+        return (f"{now}{counts['shown']} shown, {counts['skipped']} skipped (not ready in time); {modes.count('tracked')} tracked, {fused}"
                 f"{modes.count('re-detected')} lost and found again, {modes.count('lost')} lost{timing}")
 
     def on_capture(self, client) -> None:

@@ -31,6 +31,7 @@ class ViewsPanel:
         self.ticks: dict[int, object] = {}  # im_id -> checkbox
         app.events.on(Event.FRAME_CHANGED, self.refresh)
         app.events.on(Event.RESULT_READY, self.draw_advice)  # a result may come with advice (`state.inspect.advice`)
+        app.events.on(Event.FRAME_PLAYED, lambda im_id: self.draw_advice())  # ... and a played frame (Sequence)
 
     def build(self) -> None:
         gui = self.app.server.gui

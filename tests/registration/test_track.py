@@ -157,3 +157,49 @@ def test_a_camera_without_poses_never_tracks_onto_a_stale_table(tmp_path):
         err = mssd_to_truth(s.result.T_world_part, truth, GEARBOX, fr.part)
         assert not (s.result.confident and err > 0.1 * ctx.part.diameter), (im_id, s.mode, err)
     assert "tracked" in [s.mode for s in tracker.steps]
+
+
+def test_an_ambiguous_frame_is_fused_with_the_next_one_seen_from_where_it_advised():
+    """Planetary step 3 (the carrier on a nearly symmetric housing) on a cluttered Kinect-like bench: the first
+    frame fits two placements alike, so nothing is tracked and the step carries the advice (where to look from);
+    the same frame again is not from there (not fused); a frame rendered from the advised camera is, and the two
+    estimated together are confident and right. Truth from the renderer, not from the tracker."""
+    from apose_studio.assembly.mesh import base_mesh, load_parts
+    from apose_studio.data.dataset import Frame
+    from apose_studio.estimation import array_mask, truth_box
+    from apose_studio.geometry.raycast import RayGrid
+    from apose_studio.synth.frame import render_frame, view_of
+
+    path = SAMPLES / "planetary_reducer" / "assembly.yaml"
+    asm = load_assembly(path)
+    models, view = load_parts(asm), asm.step_view(3)
+    s = RenderSettings(frames=1, noise="kinect", clutter=("bench",), seed=0)
+    grid = RayGrid(s.camera)
+
+    def frame_of(rf, im_id):
+        masks = {o.part: rf.labels == i for i, o in enumerate(rf.scene.objects) if o.part in view.T_base_members}
+        Tb = rf.scene.T_world_base
+        return Frame(rgb=rf.rgb, depth=rf.depth, camera=s.camera, T_world_camera=rf.T_world_camera, masks=masks,
+                     step=3, part=view.part, base=tuple(view.base), T_base_part=view.T_base_part, T_world_base=Tb,
+                     T_world_part=Tb @ view.T_base_part, im_id=im_id)
+
+    rf = render_frame(models, view, s, grid, np.random.default_rng([3, 3, 0]), base_mesh(models, view))
+    first = frame_of(rf, 0)
+    _, ctx = step_context(asm, 3)
+    params = resolve_params("default", asm.registration)
+
+    def detect(frame, box):  # the user's box around the base (the truth's visible box)
+        box = truth_box(frame.base_mask())
+        return estimate_frame(frame, ctx, params, mask=array_mask(frame.rgb, frame.depth, frame.camera, box=box)[0],
+                              box=box)
+
+    tracker = Tracker(ctx, params, detect)
+    s0 = tracker.step(first)
+    assert s0.mode == "not found" and s0.result.ambiguous and s0.advice is not None
+    again = tracker.step(replace(first, im_id=1))
+    assert again.mode == "not found"  # the same camera: nothing new to fuse
+    there = frame_of(view_of(rf.scene, s0.advice.T_world_camera, grid, np.random.default_rng([3, 9]), s), 2)
+    s2 = tracker.step(there)
+    assert s2.mode == "fused" and s2.result.confident and s2.result.views == 2, (s2.mode, s2.result.reason)
+    assert mssd_to_truth(s2.result.T_world_part, there.T_world_part, path, view.part) < 0.1 * ctx.part.diameter
+    assert tracker.step(replace(there, im_id=3)).mode == "tracked"  # and tracked from the fused pose
