@@ -242,8 +242,8 @@ def estimate_frames(views: list[View], ctx: StepContext, params: Params,
 
 # ---- instances ------------------------------------------------------------------------------------------
 
-INSTANCE_MIN_SIZE = 0.3  # a group of depth points on the table smaller than this share of the base's diameter is not
-# one of its instances (clutter, a fragment)
+INSTANCE_MIN_SIZE = 0.6  # a group of depth points on the table smaller across (5th to 95th percentile) than this share
+# of the base's diameter is not one of its instances (clutter, a fragment); an instance seen whole measures ~1.0-1.4
 INSTANCE_SPLIT_SIZE = 1.5  # a group larger than this many diameters may hold more than one instance: after one is
 # found in it, what the model does not explain is searched again
 INSTANCE_SAME = 0.3  # two poses whose base centres lie closer than this share of the diameter are one instance
@@ -262,17 +262,16 @@ class Instance:
 def instance_boxes(frame: Frame, diameter: float) -> list[tuple[tuple[int, int, int, int], np.ndarray]]:
     """Prompt boxes (and the depth groups they hold) around what stands on the table and could be one
     instance of a base of `diameter` metres: groups of depth points above the table plane (masks.segment
-    .table_objects) at least INSTANCE_MIN_SIZE of the diameter across, largest first."""
+    .table_objects) at least INSTANCE_MIN_SIZE of the diameter across (`_extent`), largest first."""
     objs = table_objects(frame.depth, frame.camera)
     if objs is None:
         return []
     out = []
     for sel in objs.groups(min_points=60):
-        u, v = objs.u[sel], objs.v[sel]
-        pts = frame.camera.backproject(u.astype(float), v.astype(float), frame.depth[v, u].astype(float))
-        if float(np.linalg.norm(np.ptp(pts, axis=0))) < INSTANCE_MIN_SIZE * diameter:
+        mask = objs.mask(sel)
+        if _extent(frame, mask) < INSTANCE_MIN_SIZE * diameter:
             continue
-        out.append((_box_of(u, v, frame.depth.shape), objs.mask(sel)))
+        out.append((_box_of(objs.u[sel], objs.v[sel], frame.depth.shape), mask))
     out.sort(key=lambda b: -int(b[1].sum()))
     return out[:MAX_INSTANCES]
 
@@ -313,11 +312,13 @@ def estimate_instances(frame: Frame, ctx: StepContext, params: Params, orientati
 
 
 def _extent(frame: Frame, mask: np.ndarray) -> float:
+    """How far the mask's depth points reach across (metres): the diagonal of their 5th to 95th percentiles per
+    axis (a few flying pixels at a depth edge would stretch the whole range)."""
     vs, us = np.nonzero(mask & (frame.depth > 0))
     if len(vs) < 2:
         return 0.0
     pts = frame.camera.backproject(us.astype(float), vs.astype(float), frame.depth[vs, us].astype(float))
-    return float(np.linalg.norm(np.ptp(pts, axis=0)))
+    return float(np.linalg.norm(np.percentile(pts, 95, axis=0) - np.percentile(pts, 5, axis=0)))
 
 
 def distinct_instances(found: list[Instance], base, frame: Frame) -> list[Instance]:
