@@ -14,6 +14,7 @@ import numpy as np
 from apose_studio.assembly.model import load_assembly
 from apose_studio.cli.common import check_output_file, params_of, parse_prompt
 from apose_studio.data.dataset import Dataset, Frame, write_capture, write_json
+from apose_studio.data.realsense import LIVE
 from apose_studio.data.recording import is_recording, open_recording, write_recording
 from apose_studio.data.sources import open_frames
 from apose_studio.errors import AposeError
@@ -23,22 +24,43 @@ from apose_studio.registration.types import View
 
 
 def open_sequence(args):
-    """(the assembly, a function im_id -> Frame, the im_ids to track in order (--first/--count)) of a rendered
-    dataset or a recording."""
-    if is_recording(args.input):
+    """(the assembly, the frames to track in order (an iterator: --first/--count), how many (None: a live camera
+    until --count or Ctrl-C)) of a rendered dataset, a recording or a live RealSense (`realsense[:SERIAL]`)."""
+    live = LIVE.match(args.input.strip())
+    if live or is_recording(args.input):
         if not args.assembly:
-            raise AposeError(f"{args.input}: a recording has no assembly of its own; give --assembly A.yaml (and --step)")
+            raise AposeError(f"{args.input}: a {'camera' if live else 'recording'} has no assembly of its own; give "
+                             "--assembly A.yaml (and --step)")
+        asm = load_assembly(args.assembly)
+    if live:
+        from apose_studio.data.realsense import open_realsense
+
+        cam = open_realsense(live.group(1))
+
+        def stream():
+            try:
+                k = 0
+                while not args.count or k < args.count:
+                    yield cam.next_frame()
+                    k += 1
+            finally:
+                cam.close()
+        return asm, stream(), args.count or None
+    if is_recording(args.input):
         rec = open_recording(args.input)
         if rec.unpaired:
             print(f"note: {rec.unpaired} colour images without a depth image within 20 ms are left out")
-        ids, asm = list(range(args.first, len(rec))), load_assembly(args.assembly)
-        get = rec.frame
+        ids = list(range(args.first, len(rec)))
+        player = rec.player()  # one pass over the file
+
+        def get(im_id):
+            return player.frame(im_id)
     else:
         src = open_frames(args.input)
         if not isinstance(src, Dataset):
             raise AposeError(f"{args.input}: `apose track` follows a sequence of frames: give a dataset folder from "
-                             "`apose render --trajectory` or a ROS 2 recording (.mcap); a capture folder holds one frame: "
-                             "use `apose estimate`")
+                             "`apose render --trajectory`, a ROS 2 recording (.mcap) or `realsense`; a capture folder "
+                             "holds one frame: use `apose estimate`")
         if args.step not in src.steps:
             raise AposeError(f"{src.root}: step {args.step} was not rendered; rendered steps: "
                              f"{', '.join(map(str, src.steps))}")
@@ -49,11 +71,12 @@ def open_sequence(args):
             return src.frame(args.step, im_id)
     if not ids:
         raise AposeError(f"{args.input}: no frames from --first {args.first}")
-    return asm, get, ids[:args.count] if args.count else ids
+    ids = ids[:args.count] if args.count else ids
+    return asm, (get(i) for i in ids), len(ids)
 
 
 def cmd_track(args) -> int:
-    asm, get, ids = open_sequence(args)
+    asm, frames, count = open_sequence(args)
     if args.json:
         check_output_file(Path(args.json), "--json", [args.input])
     asm, ctx = step_context(asm, args.step)
@@ -61,40 +84,30 @@ def cmd_track(args) -> int:
     ctx.base.warm_up(params)
     request = MaskRequest(args.mask, *(parse_prompt(args, flag) for flag in ("box", "point")))
 
+    first: list[int] = []  # the first frame's im_id, once it is read
+
     def detect(frame: Frame, box):
         """The first frame's mask as asked; after a loss, a box prompt where the base was last seen."""
         if box is not None:
             mask, _ = array_mask(frame.rgb, frame.depth, frame.camera, box=box)
-        elif frame.im_id == ids[0]:
+        elif frame.im_id == first[0]:
             mask, _ = find_mask(frame, request, asm, args.input)
         else:  # a prompt is drawn on the first frame; a later one with nothing to start from uses the data's masks
             mask, _ = find_mask(frame, replace(request, box=None, point=None), asm, args.input)
-        prompt = box if box is not None else request.box if frame.im_id == ids[0] else None
+        prompt = box if box is not None else request.box if frame.im_id == first[0] else None
         return estimate_view(replace(View.of(frame, mask), box=prompt), ctx, params, args.orientation_prior)
 
     tracker = Tracker(ctx, params, detect)
-    rows = []
-    print(f"tracking step {args.step} ({ctx.part.id} on {'+'.join(ctx.view.base)}) through {len(ids)} frames of "
-          f"{args.input}")
+    rows: list = []
+    print(f"tracking step {args.step} ({ctx.part.id} on {'+'.join(ctx.view.base)}) through "
+          f"{f'{count} frames' if count else 'the frames (Ctrl-C stops)'} of {args.input}")
     print(f"{'frame':>5}  {'how':<11} {'ms':>7}  {'confident':<9}  {'error mm':>8}  note")
-    for im_id in ids:
-        frame = get(im_id)
-        if frame.part is None:  # a recorded frame: the step's parts, no truth
-            frame = replace(frame, base=tuple(ctx.view.base), part=ctx.view.part, step=args.step)
-        s = tracker.step(frame)
-        r = s.result
-        err = None
-        if frame.T_world_part is not None and r.ok:
-            sc = score_frame(frame, r, ctx.part, None, ctx.base.symmetries)
-            err = sc.mssd_mod_base_sym
-        rows.append((s, err))
-        note = s.lost_because if s.mode in ("re-detected", "lost") else ("" if r.ok else r.reason)
-        if s.advice is not None:  # ambiguous, nothing tracked: where to look from (fused when a frame comes from there)
-            t = s.advice.T_world_camera[:3, 3] * 1000
-            note = f"ambiguous: look from ({t[0]:.0f}, {t[1]:.0f}, {t[2]:.0f}) mm (world); {note}"
-        if not args.quiet:
-            print(f"{im_id:>5}  {s.mode:<11} {s.seconds * 1000:7.1f}  {'yes' if r.confident else 'no':<9}  "
-                  f"{'' if err is None else f'{err * 1000:8.2f}':>8}  {note[:100]}")
+    try:
+        for frame in frames:
+            first[:] = first or [frame.im_id]
+            rows.append(_track_one(args, tracker, ctx, frame))
+    except KeyboardInterrupt:  # a live camera: the summary of what was tracked
+        print("stopped")
     summary = summarise(rows, ctx.part.diameter)
     print(summary_text(summary))
     if args.json:
@@ -102,6 +115,25 @@ def cmd_track(args) -> int:
                                      "summary": summary, "frames": [frame_json(s, e) for s, e in rows]})
         print(f"per-frame results: {args.json}")
     return 0 if summary["confident"] else 1
+
+
+def _track_one(args, tracker: Tracker, ctx, frame: Frame) -> tuple:
+    """One frame tracked and its line printed: (TrackStep, MSSD against the truth or None)."""
+    if frame.part is None:  # a recorded or live frame: the step's parts, no truth
+        frame = replace(frame, base=tuple(ctx.view.base), part=ctx.view.part, step=args.step)
+    s = tracker.step(frame)
+    r = s.result
+    err = None
+    if frame.T_world_part is not None and r.ok:
+        err = score_frame(frame, r, ctx.part, None, ctx.base.symmetries).mssd_mod_base_sym
+    note = s.lost_because if s.mode in ("re-detected", "lost") else ("" if r.ok else r.reason)
+    if s.advice is not None:  # ambiguous, nothing tracked: where to look from (fused when a frame comes from there)
+        t = s.advice.T_world_camera[:3, 3] * 1000
+        note = f"ambiguous: look from ({t[0]:.0f}, {t[1]:.0f}, {t[2]:.0f}) mm (world); {note}"
+    if not args.quiet:
+        print(f"{frame.im_id:>5}  {s.mode:<11} {s.seconds * 1000:7.1f}  {'yes' if r.confident else 'no':<9}  "
+              f"{'' if err is None else f'{err * 1000:8.2f}':>8}  {note[:100]}")
+    return s, err
 
 
 def summarise(rows: list, part_diameter: float) -> dict:

@@ -16,6 +16,7 @@ used as a pinhole and said in `LiveCamera.notes`: the estimator's ray casts are 
 
 from __future__ import annotations
 
+import re
 import threading
 import time
 from collections.abc import Sequence
@@ -27,6 +28,7 @@ from apose_studio.data.dataset import DatasetError, Frame
 from apose_studio.errors import AposeError
 from apose_studio.geometry.camera import CameraIntrinsics
 
+LIVE = re.compile(r"^realsense(?::(\S+))?$", re.IGNORECASE)  # how a live camera is named where a path could go
 INSTALL = "pip install 'apose_studio[realsense]' (Intel's pyrealsense2 wheels: Linux x86_64/aarch64, Windows, macOS)"
 DEFAULT_SIZE = (640, 480)
 DEFAULT_FPS = 30

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import copy
 import logging
-import re
 import threading
 import time
 from dataclasses import dataclass
@@ -24,7 +23,7 @@ from apose_studio.assembly.model import Assembly
 from apose_studio.data import realsense
 from apose_studio.data.bop import BopScene, parse_obj_map
 from apose_studio.data.dataset import Dataset, DatasetError, Frame
-from apose_studio.data.realsense import LiveCamera
+from apose_studio.data.realsense import LIVE, LiveCamera
 from apose_studio.data.recording import Recording, is_recording, open_recording
 from apose_studio.data.sources import open_frames
 from apose_studio.errors import AposeError
@@ -41,9 +40,6 @@ from apose_studio.studio.state import Event, shared
 from apose_studio.studio.widgets import VECTOR_MM, esc, scene_point_at_ray
 
 log = logging.getLogger(__name__)
-LIVE = re.compile(r"^realsense(?::(\S+))?$", re.IGNORECASE)  # typed into Data: a RealSense (optionally its serial)
-
-
 @dataclass(frozen=True)
 class EstimateJob:
     """What one press of Estimate computes, fixed when it is pressed (see Studio._job)."""

@@ -166,3 +166,32 @@ def test_apose_capture_writes_frames_that_apose_estimate_reads(trajectory, tmp_p
     err = mssd_to_truth(T_camera_part, se3.inv(truth.T_world_camera) @ truth.T_world_part, GEARBOX, truth.part)
     assert err < 0.005, err  # 10 % of the wheel's 49 mm diameter is 4.9 mm
     assert main(["capture", "--out", str(tmp_path / "caps"), "--count", "2"]) != 0  # never overwritten
+
+
+def test_apose_track_follows_a_live_camera(live_approach, monkeypatch, capsys, tmp_path):
+    """`apose track realsense --assembly A --step 2 --box ... --count 12 --json OUT` (in-process, the device
+    replaced by the software camera): each frame's line, the summary, and every confident pose right against
+    the renderer's truth."""
+    need_sdk()
+    import json
+
+    from apose_studio.cli.commands import main
+    from apose_studio.data import realsense
+
+    frames = live_approach
+    monkeypatch.setattr(realsense, "open_realsense", lambda serial=None: realsense.software_camera(frames, fps=10))
+    box = ",".join(map(str, truth_box(frames[0].base_mask())))
+    out = tmp_path / "t.json"
+    code = main(["track", "realsense", "--assembly", str(GEARBOX), "--step", "2", "--box", box, "--count", "12",
+                 "--json", str(out)])
+    text = capsys.readouterr().out
+    assert code == 0 and "through 12 frames of realsense" in text, text
+    doc = json.loads(out.read_text())
+    assert len(doc["frames"]) == 12 and doc["summary"]["tracked"] >= 6, doc["summary"]
+    part_d = step_context(load_assembly(GEARBOX), 2)[1].part.diameter
+    for f in doc["frames"]:
+        truth = frames[f["im_id"]]
+        err = mssd_to_truth(np.asarray(f["T_world_part"]), se3.inv(truth.T_world_camera) @ truth.T_world_part, GEARBOX,
+                            truth.part) if f["ok"] else None
+        assert not f["confident"] or err < 0.1 * part_d, (f["im_id"], err)
+    assert main(["track", "realsense", "--step", "2"]) == 2  # no assembly: said
