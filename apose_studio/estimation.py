@@ -32,6 +32,7 @@ from apose_studio.masks.segment import depth_mask, load_model, table_objects
 from apose_studio.registration import BaseObject, Params, RegistrationResult, doubts, estimate, prepare_base
 from apose_studio.registration.fusion import estimate_views
 from apose_studio.registration.next_view import next_view
+from apose_studio.registration.table import table_plane
 from apose_studio.registration.track import TABLE_TOLERANCES, final_distance, predict, table_now, track
 from apose_studio.registration.types import CONFIDENT_PART_SPREAD, View
 
@@ -427,6 +428,14 @@ class Tracker:
                 self.pending = (View.of(frame, r.model_mask), advice, centre)
         return self._done(TrackStep(frame.im_id, r, "lost" if tried else "not found", time.perf_counter() - t0, why,
                                     self.pending[1] if self.pending is not None else None))
+
+    def resume(self, result: RegistrationResult, frame: Frame) -> None:
+        """Go on from `result`, a confident pose of `frame` (the one on show when a paused player plays again):
+        the next frames are tracked from it; the table under the base fitted on `frame`."""
+        mask = result.model_mask if result.model_mask is not None else np.zeros(frame.depth.shape, bool)
+        self.last, self.pending = result, None
+        self.seen = [(frame.im_id, result.T_world_base)]
+        self.plane = table_plane(frame.depth, mask, frame.camera, frame.T_world_camera, base_size=self.ctx.base.diameter)
 
     def expected(self, im_id: int) -> RegistrationResult:
         """The last confident result, moved on to frame `im_id` at the base's motion per frame between the last

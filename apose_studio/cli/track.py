@@ -14,8 +14,8 @@ import numpy as np
 from apose_studio.assembly.model import load_assembly
 from apose_studio.cli.common import check_output_file, params_of, parse_prompt
 from apose_studio.data.dataset import Dataset, Frame, write_capture, write_json
-from apose_studio.data.realsense import LIVE
-from apose_studio.data.recording import is_recording, open_recording, write_recording
+from apose_studio.data.realsense import live_serial
+from apose_studio.data.recording import MAX_SIDE, is_recording, open_recording, write_recording
 from apose_studio.data.sources import open_frames
 from apose_studio.errors import AposeError
 from apose_studio.estimation import TRACK_MODES, MaskRequest, Tracker, array_mask, estimate_view, find_mask, step_context
@@ -26,7 +26,7 @@ from apose_studio.registration.types import View
 def open_sequence(args):
     """(the assembly, the frames to track in order (an iterator: --first/--count), how many (None: a live camera
     until --count or Ctrl-C)) of a rendered dataset, a recording or a live RealSense (`realsense[:SERIAL]`)."""
-    live = LIVE.match(args.input.strip())
+    live, serial = live_serial(args.input)
     if live or is_recording(args.input):
         if not args.assembly:
             raise AposeError(f"{args.input}: a {'camera' if live else 'recording'} has no assembly of its own; give "
@@ -35,7 +35,7 @@ def open_sequence(args):
     if live:
         from apose_studio.data.realsense import open_realsense
 
-        cam = open_realsense(live.group(1))
+        cam = open_realsense(serial)
 
         def stream():
             try:
@@ -208,17 +208,21 @@ def cmd_capture(args) -> int:
     try:
         w, h = (int(v) for v in args.size.lower().split("x"))
     except ValueError:
-        raise AposeError(f"--size {args.size}: expected WIDTHxHEIGHT, e.g. 640x480") from None
+        w = h = 0
+    if not (16 <= w <= MAX_SIDE and 16 <= h <= MAX_SIDE):
+        raise AposeError(f"--size {args.size}: expected WIDTHxHEIGHT of 16 to {MAX_SIDE} pixels each, e.g. 640x480")
+    if args.serial is not None:
+        live_serial(f"realsense:{args.serial}")  # a serial's characters checked before the SDK sees it
     out = Path(args.out)
     names = [out] if args.count == 1 else [out / f"{k:06d}" for k in range(args.count)]
     for n in names:
         if n.exists():
             raise AposeError(f"{n}: already exists; captures are never overwritten: choose another --out")
-    if args.count > 1:
-        out.mkdir(parents=True, exist_ok=True)
-    elif not out.parent.is_dir():
+    if args.count == 1 and not out.parent.is_dir():
         raise AposeError(f"--out {out}: the folder {out.parent} does not exist")
     cam = realsense.open_realsense(args.serial, (w, h), args.fps)
+    if args.count > 1:
+        out.mkdir(parents=True, exist_ok=True)  # only once a camera streams: nothing left behind otherwise
     try:
         for note in cam.notes:
             print(f"note: {note}", file=sys.stderr)

@@ -24,6 +24,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import tempfile
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -449,10 +450,8 @@ def write_capture(frame: Frame, folder: str | Path, depth_unit_mm: float = 1.0, 
         R, t = _Rt_from_T(se3.inv(frame.T_world_camera))
         cam.update(cam_R_w2c=R, cam_t_w2c=t)
     cam.update(info or {})
-    tmp = folder.parent / f".{folder.name}.partial"
-    if os.path.lexists(tmp):
-        shutil.rmtree(tmp)
-    tmp.mkdir()
+    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".partial", dir=folder.parent))  # a new name: never
+    # one the user made
     try:
         for name, img in (("rgb.png", np.ascontiguousarray(frame.rgb[..., ::-1])), ("depth.png", raw.astype(np.uint16))):
             if not cv2.imwrite(str(tmp / name), img):

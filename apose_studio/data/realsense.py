@@ -28,11 +28,29 @@ from apose_studio.data.dataset import DatasetError, Frame
 from apose_studio.errors import AposeError
 from apose_studio.geometry.camera import CameraIntrinsics
 
-LIVE = re.compile(r"^realsense(?::(\S+))?$", re.IGNORECASE)  # how a live camera is named where a path could go
+LIVE = re.compile(r"^realsense(?::(.*))?$", re.IGNORECASE | re.DOTALL)  # a live camera, named where a path could go
+SERIAL = re.compile(r"^[A-Za-z0-9._-]{1,64}$")  # a RealSense serial number as rs-enumerate-devices lists it
 INSTALL = "pip install 'apose_studio[realsense]' (Intel's pyrealsense2 wheels: Linux x86_64/aarch64, Windows, macOS)"
 DEFAULT_SIZE = (640, 480)
 DEFAULT_FPS = 30
 SOFTWARE_DEPTH_UNIT = 0.001  # metres per depth unit of the software camera (a D400's default)
+
+
+def live_serial(text: str) -> tuple[bool, str | None]:
+    """(whether `text` names a live RealSense, its serial or None): `realsense` or `realsense:SERIAL` (any case,
+    spaces around ignored). A serial that is not letters, digits, '.', '_' or '-' (at most 64) is refused by
+    name, shown escaped."""
+    m = LIVE.match(text.strip())
+    if m is None:
+        return False, None
+    serial = m.group(1)
+    if serial is None:
+        return True, None
+    if not SERIAL.match(serial):
+        raise AposeError(f"realsense:{ascii(serial)[1:-1][:40]}: not a serial number (letters and digits, as "
+                         "`rs-enumerate-devices` lists them; `realsense` alone opens the first camera; a folder named "
+                         "realsense opens as ./realsense)")
+    return True, serial
 
 
 def rs_module():

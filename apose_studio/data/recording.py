@@ -33,6 +33,7 @@ from apose_studio.data.dataset import DatasetError, Frame
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.robot.ros2 import HEADER_DEF, POSE_STAMPED, TIME_DEF, msgdef
+from apose_studio.safeio import open_regular
 
 IMAGE = msgdef("std_msgs/Header header\nuint32 height\nuint32 width\nstring encoding\nuint8 is_bigendian\nuint32 step\n"
                "uint8[] data", HEADER_DEF, TIME_DEF)
@@ -45,6 +46,7 @@ COLOUR_ENCODINGS = ("rgb8", "bgr8", "rgba8", "bgra8")
 DEPTH_ENCODINGS = {"16UC1": 0.001, "mono16": 0.001, "32FC1": 1.0}  # -> metres per unit
 POSE_TOPIC = "/apose/camera_pose"
 MAX_SIDE = 8192  # pixels a side of a recorded image (a depth camera's are at most a few thousand)
+MAX_CHUNK_BYTES = 512 * 2 ** 20  # an MCAP chunk's uncompressed size (a 4K RGB frame is 25 MB)
 TOPICS = {"color": "/camera/color/image_raw", "depth": "/camera/aligned_depth_to_color/image_raw",
           "info": "/camera/color/camera_info", "pose": POSE_TOPIC}  # what `write_recording` writes (a RealSense's names)
 
@@ -68,6 +70,25 @@ def mcap_file(path: str | Path) -> Path:
     if not path.is_file():
         raise DatasetError(f"{path}: not a regular file (a FIFO or a device?); give the recording's .mcap file")
     return path
+
+
+def open_mcap(path: Path):
+    """The recording's file opened for reading through safeio.open_regular: a regular file (a FIFO or device is
+    refused without blocking), and inside the studio's workspace when reads are confined there (safeio
+    .reads_within: checked on the file opened, so a link swapped in later or a rosbag2 folder's .mcap that
+    leads outside is refused at every read)."""
+    fd, _ = open_regular(path, "a ROS 2 recording (.mcap)")
+    return os.fdopen(fd, "rb")
+
+
+def check_chunks(summary, file: Path) -> None:
+    """Refuse a recording whose chunks would decompress to more than MAX_CHUNK_BYTES each (a few kB of zstd can
+    claim gigabytes: the reader would allocate them before any image is checked)."""
+    for ci in (summary.chunk_indexes if summary is not None else []):
+        if ci.uncompressed_size > MAX_CHUNK_BYTES:
+            raise DatasetError(f"{file}: a chunk of {ci.uncompressed_size / 2 ** 20:.0f} MB uncompressed; at most "
+                               f"{MAX_CHUNK_BYTES // 2 ** 20} MB are read (a camera's frame is a few MB; record with a "
+                               "smaller chunk size)")
 
 
 def is_recording(path: str | Path) -> bool:
@@ -112,7 +133,7 @@ class Recording:
         return RecordingPlayer(self)
 
     def _image(self, topic: str, t: int) -> np.ndarray:
-        with open(self.path, "rb") as f:
+        with open_mcap(self.path) as f:
             for _, _, _, msg in _reader(f).iter_decoded_messages(topics=[topic], start_time=t, end_time=t + 1):
                 return image_array(msg, f"{self.path}: {topic}")
         raise DatasetError(f"{self.path}: {topic} has no message at {t} ns (a damaged file?)")
@@ -144,7 +165,7 @@ class RecordingPlayer:
         if min(t for _, t in want) <= self._at and not want <= self._kept.keys():
             self.close()  # behind this pass: a new one
         if self._it is None:
-            self._file = open(rec.path, "rb")
+            self._file = open_mcap(rec.path)
             self._it = iter(_reader(self._file).iter_decoded_messages(
                 topics=[rec.topics["color"], rec.topics["depth"]], start_time=min(t for _, t in want),
                 log_time_order=True))
@@ -186,14 +207,17 @@ def image_array(msg, what: str) -> np.ndarray:
     data = bytes(msg.data)
     if enc in COLOUR_ENCODINGS:
         c = 4 if enc.endswith("a8") else 3
-        if len(data) < h * int(msg.step) or int(msg.step) < w * c:
-            raise DatasetError(f"{what}: a {w}x{h} {enc} image with {len(data)} bytes (step {msg.step}); a damaged message?")
+        if len(data) != h * int(msg.step) or not w * c <= int(msg.step) <= w * c + 64:
+            raise DatasetError(f"{what}: a {w}x{h} {enc} image with {len(data)} bytes and rows of {msg.step}; expected "
+                               f"{h} rows of at least {w * c} bytes: a damaged message (re-record, or `mcap recover` it)")
         a = np.frombuffer(data, np.uint8).reshape(h, int(msg.step))[:, :w * c].reshape(h, w, c)[..., :3]
         return np.ascontiguousarray(a[..., ::-1] if enc.startswith("bgr") else a)
     if enc in DEPTH_ENCODINGS:
         dtype = np.dtype(">u2" if msg.is_bigendian else "<u2") if enc != "32FC1" else np.dtype(">f4" if msg.is_bigendian else "<f4")
-        if len(data) < h * int(msg.step) or int(msg.step) < w * dtype.itemsize:
-            raise DatasetError(f"{what}: a {w}x{h} {enc} image with {len(data)} bytes (step {msg.step}); a damaged message?")
+        if len(data) != h * int(msg.step) or not w * dtype.itemsize <= int(msg.step) <= w * dtype.itemsize + 64:
+            raise DatasetError(f"{what}: a {w}x{h} {enc} image with {len(data)} bytes and rows of {msg.step}; expected "
+                               f"{h} rows of at least {w * dtype.itemsize} bytes: a damaged message (re-record, or "
+                               "`mcap recover` it)")
         rows = np.frombuffer(data, np.uint8).reshape(h, int(msg.step))[:, :w * dtype.itemsize]
         d = rows.copy().view(dtype).reshape(h, w).astype(np.float32) * np.float32(DEPTH_ENCODINGS[enc])
         d[~np.isfinite(d) | (d < 0)] = 0.0
@@ -208,7 +232,7 @@ def open_recording(path: str | Path, topics: dict[str, str | None] | None = None
     colour topic's namespace)."""
     file = mcap_file(path)
     chosen = dict(topics or {})
-    with open(file, "rb") as f:
+    with open_mcap(file) as f:
         try:
             reader = _reader(f)
             summary = reader.get_summary()
@@ -218,6 +242,7 @@ def open_recording(path: str | Path, topics: dict[str, str | None] | None = None
         if summary is None:
             raise DatasetError(f"{file}: an MCAP file without a summary (cut short while recording?); "
                                "re-index it with `mcap recover`")
+        check_chunks(summary, file)
         by_type: dict[str, list[str]] = {}
         for ch in summary.channels.values():
             schema = summary.schemas.get(ch.schema_id)

@@ -383,6 +383,20 @@ class Studio:
         Estimate folder owns them); for panels that estimate in their own way (Views)."""
         return self.inspect.job(step, ids)
 
+    def start_thread(self, target, *args, name: str) -> threading.Thread:
+        """A daemon thread for a panel's background work (a player, a warm-up), started under the read
+        confinement every page action has (safeio.reads_within the workspace): a file read in the background
+        obeys the workspace as one read by a click does. Panels start their threads only here."""
+        readable = self.workspace.readable
+
+        def run():
+            with reads_within(readable):
+                target(*args)
+
+        thread = threading.Thread(target=run, daemon=True, name=name)
+        thread.start()
+        return thread
+
     def shutdown(self) -> None:
         """Before the server stops (Ctrl-C): the player stopped, a live camera closed, the background
         preparation finished (a process that exits inside Open3D is aborted by the C++ runtime)."""

@@ -10,6 +10,7 @@ comes from the shared state too (the Prompt panel writes it), and a mask source 
 from __future__ import annotations
 
 import copy
+import itertools
 import logging
 import threading
 import time
@@ -23,7 +24,7 @@ from apose_studio.assembly.model import Assembly
 from apose_studio.data import realsense
 from apose_studio.data.bop import BopScene, parse_obj_map
 from apose_studio.data.dataset import Dataset, DatasetError, Frame
-from apose_studio.data.realsense import LIVE, LiveCamera
+from apose_studio.data.realsense import LiveCamera, live_serial
 from apose_studio.data.recording import Recording, is_recording, open_recording
 from apose_studio.data.sources import open_frames
 from apose_studio.errors import AposeError
@@ -40,6 +41,7 @@ from apose_studio.studio.state import Event, shared
 from apose_studio.studio.widgets import VECTOR_MM, esc, scene_point_at_ray
 
 log = logging.getLogger(__name__)
+OPENED = itertools.count(1)  # live cameras opened: their results are cached apart (frame numbers restart)
 @dataclass(frozen=True)
 class EstimateJob:
     """What one press of Estimate computes, fixed when it is pressed (see Studio._job)."""
@@ -147,9 +149,9 @@ class InspectPanel:
             text = self.i_path.value.strip()
             if not text:
                 raise AposeError("type a dataset folder (from `apose render`) or a capture folder into 'Dataset or capture'")
-            live = LIVE.match(text)
+            live, serial = live_serial(text)
             if live:
-                self.open_live(live.group(1))
+                self.open_live(serial)
             else:
                 self.open_frames(str(self.app.workspace.resolve(text, "dataset or capture")), client)
         except AposeError as e:
@@ -219,7 +221,7 @@ class InspectPanel:
             cam.close()
             raise
         steps = [f"{i + 1}. {s.part}" for i, s in enumerate(self.app.valid_asm.steps)]
-        self.show_frames(cam, f"{cam.name} (opened {time.strftime('%Y-%m-%d %H:%M:%S')})", steps,
+        self.show_frames(cam, f"{cam.name} (opened {time.strftime('%Y-%m-%d %H:%M:%S')}, #{next(OPENED)})", steps,
                          "realsense" + (f":{serial}" if serial else ""))
 
     def show_frames(self, frames, frames_path: str, steps: list[str], typed: str | None = None) -> None:
@@ -232,10 +234,11 @@ class InspectPanel:
             old.close()
         self.result = self.score = None
         self.i_path.value = typed or self.frames_path
+        before = self.i_step.value
         self._syncing = True
         try:
             self.i_step.options = steps
-            self.i_step.value = steps[0]
+            self.i_step.value = before if before in steps else steps[0]  # reopened or a step's recording: its step stays
         finally:
             self._syncing = False
         self.app.show_view("Inspect")
@@ -484,8 +487,7 @@ class InspectPanel:
             except Exception as e:  # a part that does not load says so when estimated
                 log.info("warming step %s up failed: %s", step, e)
 
-        self._warm_thread = threading.Thread(target=warm, daemon=True, name=f"warm step {step}")
-        self._warm_thread.start()
+        self._warm_thread = self.app.start_thread(warm, name=f"warm step {step}")
 
     def settle(self, timeout: float = 60.0) -> None:
         """Wait for the background preparation to finish: a process that exits while it runs inside Open3D
@@ -621,7 +623,7 @@ class InspectPanel:
         if self.frames is None:
             raise AposeError("open a dataset or capture first")
         if not self.app.busy.acquire(blocking=False):
-            raise AposeError("an estimation is already running; wait for it to finish")
+            raise AposeError("an estimation is already running (or the Sequence player plays: press Pause); wait for it to finish")
         try:
             step = self.current_step()
             if whole_step and isinstance(self.frames, Recording):

@@ -9,7 +9,6 @@ follows DRAFT_CHANGED and STEP_SELECTED."""
 
 from __future__ import annotations
 
-import threading
 import time
 
 import numpy as np
@@ -105,7 +104,7 @@ class MatesPanel:
                 except Exception:  # a part that fails to load says so when it is clicked
                     pass
 
-        threading.Thread(target=run, daemon=True).start()
+        self.app.start_thread(run, name="face pickers")
 
     def listen(self, client) -> None:
         """Clicks anywhere in this tab's 3D view go to `on_click` (not clicks per mesh: a clickable mesh

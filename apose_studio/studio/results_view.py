@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import logging
-import threading
 import time
 from pathlib import Path
 
@@ -435,7 +434,7 @@ class ResultsView:
                 self.i_stage.value = k
                 time.sleep(max(0.2, min(0.4, 6.0 / n)))
 
-        threading.Thread(target=play, daemon=True).start()
+        self.app.start_thread(play, name="registration replay")
 
     def apply_layers(self) -> None:
         which = {"/inspect/scene": "scene cloud", "/inspect/target": "target cloud", "/inspect/source": "source cloud",

@@ -14,6 +14,7 @@ data or another step stops it."""
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import time
 from dataclasses import replace
@@ -25,12 +26,20 @@ from apose_studio.data.dataset import Dataset, write_capture
 from apose_studio.data.realsense import LiveCamera
 from apose_studio.data.recording import Recording
 from apose_studio.errors import AposeError
-from apose_studio.estimation import Tracker, array_mask, estimate_view
+from apose_studio.estimation import Tracker, array_mask, estimate_view, last_seen_box
 from apose_studio.evaluate import score_frame
 from apose_studio.registration.types import View, doubts
 from apose_studio.studio.state import Event
 
 log = logging.getLogger(__name__)
+
+
+def job_assembly(app):
+    """The assembly the inspected data is estimated with (its file's path names it in commands)."""
+    try:
+        return app.state.inspect_assembly()
+    except Exception:  # no valid assembly yet
+        return None
 DEFAULT_RATE = 10.0  # frames per second of a dataset or BOP scene (a recording plays at its own)
 
 
@@ -52,8 +61,9 @@ class SequencePanel:
             self.s_rate = gui.add_number("Rate (frames/s)", 0.0, min=0.0, max=120.0, step=1.0,
                                          hint=f"0: a recording's own rate ({DEFAULT_RATE:g} for a dataset)")
             self.s_status = gui.add_markdown("")
-            self.s_capture_to = gui.add_text("Capture folder", "", hint="where Capture writes the frame on show (in the "
-                                             "workspace; empty: captures/<date-time>-<frame>)")
+            self.s_capture_to = gui.add_text("Capture folder", "", hint="the new folder Capture writes the frame on show "
+                                             "into (in the workspace; it must not exist yet); empty: captures/<date-time>-"
+                                             "<frame> under the workspace")
             b = gui.add_button("Capture", hint="save the frame on show as a capture folder (rgb.png, depth.png, "
                                "camera.json with the camera's cam_K and depth scale) that `apose estimate` reads")
             b.on_click(self.app.guarded("Capture")(self.on_capture))
@@ -86,13 +96,13 @@ class SequencePanel:
             if not np.isfinite(rate) or rate <= 0:
                 raise AposeError("Rate (frames/s): type a positive number (0: the recording's own)")
         job = self.app.estimate_job(step, [ids[k0]])  # the Estimate folder's settings of this moment
+        on_show = ins.result if ins.result is not None and ins.result.confident and ins.frame.im_id == ids[k0] else None
         if not self.app.busy.acquire(blocking=False):
             raise AposeError("an estimation is running; play when it has finished")
         self._stop.clear()
         self.s_play.label = "Pause"
-        self._thread = threading.Thread(target=self._play, args=(job, ids, k0, rate, bool(self.s_track.value), client),
-                                        daemon=True, name="sequence player")
-        self._thread.start()
+        self._thread = self.app.start_thread(self._play, job, ids, k0, rate, bool(self.s_track.value), client, on_show,
+                                             ins.frame, name="sequence player")
 
     def _frames(self, job, ids: list[int], k0: int, rate: float, counts: dict):
         """The frames to show, in time: a live camera's as they come (a gap in its frame numbers: frames that
@@ -115,16 +125,19 @@ class SequencePanel:
                 if late < 0:
                     self._stop.wait(-late)
                     k += 1
-                else:  # behind: the frames already due are skipped, as a live camera's would be
-                    skip = int(late * rate)
-                    counts["skipped"] += min(skip, len(ids) - k - 1)
+                else:  # behind: the frames already due are skipped, as a live camera's would be (the last is shown)
+                    skip = min(int(late * rate), max(len(ids) - k - 2, 0))
+                    counts["skipped"] += skip
                     k += 1 + skip
         finally:
             if source is not job.frames:
                 source.close()
 
-    def _play(self, job, ids: list[int], k0: int, rate: float, tracking: bool, client) -> None:
-        """The frames shown in time (runs in the player's thread; the studio's lock only to show one)."""
+    def _play(self, job, ids: list[int], k0: int, rate: float, tracking: bool, client, on_show=None,
+              shown_frame=None) -> None:
+        """The frames shown in time (runs in the player's thread; the studio's lock only to show one). `on_show`: a
+        confident result of the frame on show when Play was pressed (`shown_frame`): tracking goes on from it (a
+        paused player resumes where it was, not from the prompt drawn on the first frame)."""
         ctx = self.app.step_context(job.step)
         params = job.params()
         first = ids[k0]
@@ -138,6 +151,8 @@ class SequencePanel:
             return self.app.estimate_frame(replace(job, ids=(frame.im_id,)), frame.im_id)[0]
 
         tracker = Tracker(ctx, params, detect)
+        if on_show is not None and tracking:
+            tracker.resume(on_show, shown_frame)
         counts = {"shown": 0, "skipped": 0, "n": None if isinstance(job.frames, LiveCamera) else len(ids)}
         why, im_id = "the end", first
         try:
@@ -188,8 +203,13 @@ class SequencePanel:
             now = f"**frame {im_id}** {of}: {how}, {conf[:160]}  \n"
         timing = f"; {np.median(ms):.0f} ms per tracked frame (median)" if ms else ""
         fused = f"{modes.count('fused')} fused from the advised view, " if "fused" in modes else ""
+        failed = modes.count("not found") + modes.count("lost")
+        if failed:
+            fused += f"{failed} without a confident pose, "
+        if step is not None and step.advice is not None and im_id is not None:
+            now += "ambiguous: the orange camera shows where to look from (a frame from there is fused)  \n"
         return (f"{now}{counts['shown']} shown, {counts['skipped']} skipped (not ready in time); {modes.count('tracked')} tracked, {fused}"
-                f"{modes.count('re-detected')} lost and found again, {modes.count('lost')} lost{timing}")
+                f"{modes.count('re-detected')} lost and found again{timing}")
 
     def on_capture(self, client) -> None:
         """The frame on show written as a capture folder (data.dataset.write_capture): a live camera's in its
@@ -204,14 +224,21 @@ class SequencePanel:
             unit, info = ins.frames.depth_unit_m * 1000.0, {"device": ins.frames.name}
         else:
             unit, info = (0.1 if np.nanmax(frame.depth, initial=0.0) < 6.5 else 1.0), {}
+        existing = next(p for p in (folder.parent, *folder.parent.parents) if os.path.lexists(p))
+        if not existing.is_dir():
+            raise AposeError(f"{existing}: a file, not a folder; type a Capture folder whose parents are folders")
         try:
             folder.parent.mkdir(parents=True, exist_ok=True)
             write_capture(frame, folder, unit, {**info, "source": frame.source})
         except PermissionError:
-            raise AposeError(f"{folder.parent}: folder not writable; type another Capture folder") from None
+            raise AposeError(f"{existing}: folder not writable; type another Capture folder") from None
         self.s_capture_to.value = ""
-        self.app.notify(client, "Captured", f"frame {frame.im_id} saved to {folder} (`apose estimate {folder} --assembly "
-                        "A.yaml --step K` reads it)")
+        asm, r = job_assembly(self.app), ins.result
+        box = last_seen_box(r, frame) if r is not None and r.ok else None
+        command = (f"apose estimate {folder} --assembly {asm.path if asm is not None and asm.path else 'A.yaml'} "
+                   f"--step {ins.step}" + (f" --box {','.join(map(str, box))}" if box else " --box X0,Y0,X1,Y1"))
+        self.app.notify(client, "Captured", f"frame {frame.im_id} saved to {folder}; to estimate it from a terminal: "
+                        f"{command}")
 
     def stop(self, timeout: float = 10.0) -> None:
         """Stop playing and wait for the player (the studio's Ctrl-C, tests)."""

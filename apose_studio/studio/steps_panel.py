@@ -10,7 +10,6 @@ DRAFT_SAVED and moves the gizmo aside on PICKS_CHANGED; a selection it makes is 
 from __future__ import annotations
 
 import logging
-import threading
 import time
 from dataclasses import replace
 
@@ -364,7 +363,7 @@ class StepsPanel:
             with self.app.lock:
                 self.app.events.emit(Event.PLAYED, pid=None, T_world_part=None)
 
-        threading.Thread(target=play, daemon=True).start()
+        self.app.start_thread(play, name="play sequence")
 
     def refresh_steps(self) -> None:
         asm = self.app.asm

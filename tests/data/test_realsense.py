@@ -195,3 +195,18 @@ def test_apose_track_follows_a_live_camera(live_approach, monkeypatch, capsys, t
                             truth.part) if f["ok"] else None
         assert not f["confident"] or err < 0.1 * part_d, (f["im_id"], err)
     assert main(["track", "realsense", "--step", "2"]) == 2  # no assembly: said
+
+
+def test_a_bad_size_or_serial_is_refused_before_any_camera_is_asked(monkeypatch, tmp_path, capsys):
+    need_sdk()
+    from apose_studio.cli.commands import main
+    from apose_studio.data import realsense
+
+    asked = []
+    monkeypatch.setattr(realsense, "open_realsense", lambda *a: asked.append(a))
+    for size in ("99999999999999999999999x1", "0x0", "-640x-480", "640", "abc"):
+        assert main(["capture", "--out", str(tmp_path / "c"), f"--size={size}"]) == 2
+        assert "expected WIDTHxHEIGHT" in capsys.readouterr().err
+    assert main(["capture", "--out", str(tmp_path / "c"), "--serial", "../x"]) == 2
+    assert "not a serial number" in capsys.readouterr().err
+    assert asked == [] and not (tmp_path / "c").exists()

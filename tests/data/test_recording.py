@@ -179,3 +179,18 @@ def test_an_output_file_beside_the_input_is_checked_as_one_path(tmp_path):
     check_output_file(tmp_path / "old.json", "--json", str(tmp_path / "ds"))  # an earlier output: replaced
     with pytest.raises(AposeError, match="a file of the input"):
         check_output_file(tmp_path / "ds" / "dataset_info.json", "--json", str(tmp_path / "ds"))
+
+
+def test_an_image_of_the_wrong_size_and_an_oversized_chunk_are_refused_by_name(tmp_path, monkeypatch):
+    """Found by an outside review: one byte more than height x step gave an internal error (a reshape), and a
+    35 kB file whose zstd chunk claimed 1 GiB made the studio allocate 4.6 GB before any check."""
+    from apose_studio.data import recording
+
+    extra = _custom(tmp_path / "e.mcap", [("/cam/color/image_raw", "rgb8", bytes(19), 3, 2, 9),
+                                          ("/cam/depth/image_raw", "16UC1", bytes(12), 3, 2, 6)])
+    with pytest.raises(DatasetError, match=r"19 bytes .* damaged message"):
+        open_recording(extra).frame(0)
+    fine = write_recording(tmp_path / "f.mcap", _frames(2))
+    monkeypatch.setattr(recording, "MAX_CHUNK_BYTES", 1000)  # the frames' chunks are ~15 kB
+    with pytest.raises(DatasetError, match="a chunk of .* uncompressed; at most"):
+        open_recording(fine)

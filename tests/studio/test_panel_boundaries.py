@@ -91,3 +91,17 @@ def test_selecting_a_step_shows_its_mates(studio):
     assert heard == [1, 0] and st.mates.list_html.content.count("<tr><td>") == 3
     assert tuple(st.mates.f_mate.options) == tuple(f"{j + 1}. {m.type}" for j, m in enumerate(st.asm.steps[0].mates))
     assert [n for n in st.notes if n[2]] == []
+
+
+def test_panels_start_their_threads_under_the_workspace_s_read_confinement():
+    """A thread started with threading.Thread runs outside `safeio.reads_within` (it is per thread): a player
+    reading frames there showed an image a link inside the workspace led outside to. Every studio module but
+    app.py starts its threads through `Studio.start_thread`, which carries the confinement."""
+    starts = []
+    for path in STUDIO.glob("*.py"):
+        if path.name == "app.py":
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "Thread":
+                starts.append(f"{path.name}:{node.lineno}")
+    assert starts == []

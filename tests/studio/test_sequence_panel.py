@@ -185,3 +185,112 @@ def test_a_live_camera_streams_tracked_and_a_frame_is_captured(studio, live_appr
     act(st, st.inspect.on_open_data)
     with pytest.raises(Exception):
         cam.next_frame(timeout_s=0.5)
+
+
+def test_recordings_and_the_player_read_only_inside_the_workspace(studio, recording, tmp_path):
+    """Found by an outside review: a rosbag2 folder whose .mcap is a link leading outside was opened and shown;
+    a FIFO there froze the studio; a recording swapped for such a link after opening was read by the slider
+    and the player; the player's thread read a dataset frame a link led outside to. Each is now refused by
+    name, the studio answering."""
+    import os
+    import shutil
+
+    rec, ds = recording
+    ws, outside = tmp_path / "ws", tmp_path / "outside"
+    ws.mkdir()
+    outside.mkdir()
+    shutil.copy(rec, outside / "secret.mcap")
+    st = studio(GEARBOX, root=ws)
+    bag = ws / "bag"
+    bag.mkdir()
+    (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: {storage_identifier: mcap}\n")
+    (bag / "x.mcap").symlink_to(outside / "secret.mcap")
+    st.inspect.i_path.value = str(bag)
+    act(st, st.inspect.on_open_data)
+    assert "outside the studio's workspace" in errors(st)[-1][1] and st.state.inspect.frames is None
+    fifo_bag = ws / "fifo_bag"
+    fifo_bag.mkdir()
+    (fifo_bag / "metadata.yaml").write_text("x: 1\n")
+    os.mkfifo(fifo_bag / "x.mcap")
+    st.inspect.i_path.value = str(fifo_bag)
+    act(st, st.inspect.on_open_data)  # returns at once (a FIFO is never opened for a blocking read)
+    assert "not a regular file" in errors(st)[-1][1]
+    mine = ws / "mine.mcap"
+    shutil.copy(rec, mine)
+    st.inspect.i_path.value = str(mine)
+    act(st, st.inspect.on_open_data)
+    assert "a recording of 6 frames" in st.notes[-1][1]
+    mine.unlink()
+    mine.symlink_to(outside / "secret.mcap")  # swapped after it was opened
+    st.inspect.i_frame.value = 2
+    assert "outside the studio's workspace" in errors(st)[-1][1]
+    # a dataset whose frame 1 colour image is a link out of the workspace: the player stops there, by name
+    shutil.copytree(ds.root, ws / "ds")
+    img = next((ws / "ds" / "test" / "000002" / "rgb").glob("000001.*"))
+    shutil.copy(img, outside / img.name)
+    img.unlink()
+    img.symlink_to(outside / img.name)
+    st.inspect.i_path.value = str(ws / "ds")
+    act(st, st.inspect.on_open_data)
+    st.inspect.i_step.value = st.inspect.i_step.options[0]  # the dataset holds step 2 only
+    st.inspect.i_frame.value = 0
+    assert st.state.inspect.frame.im_id == 0
+    n = len(st.notes)
+    st.sequence.s_rate.value = 4.0  # slow enough that frame 1 is read, not skipped
+    act(st, st.sequence.on_play)
+    _wait(st)
+    said = [body for title, body, err in st.notes[n:] if err]
+    assert any("outside the studio's workspace" in b for b in said), (st.notes[n - 2:], st.sequence.last_summary)
+    assert st.state.inspect.frame.im_id == 0 and "stopped (an error" in st.sequence.last_summary
+
+
+def test_a_capture_never_removes_a_folder_the_user_made(studio, recording, tmp_path):
+    rec, _ = recording
+    st = _open(studio, rec, Dataset(rec.parent / "ds"))
+    mine = rec.parent / ".victim.partial"
+    mine.mkdir(exist_ok=True)
+    (mine / "notes.txt").write_text("precious")
+    st.sequence.s_capture_to.value = "victim"
+    act(st, st.sequence.on_capture)
+    assert not errors(st) and (rec.parent / "victim" / "camera.json").is_file()
+    assert (mine / "notes.txt").read_text() == "precious"
+    assert "apose estimate" in st.notes[-1][1] and "--step 2" in st.notes[-1][1]  # a command that runs as it stands
+    (rec.parent / "afile").write_text("x")
+    st.sequence.s_capture_to.value = "afile/sub/x"
+    act(st, st.sequence.on_capture)
+    assert "a file, not a folder" in errors(st)[-1][1]
+
+
+def test_a_live_camera_s_serial_is_checked_as_text(studio, recording):
+    rec, _ = recording
+    st = studio(GEARBOX, root=rec.parent)
+    for text in ("realsense:\x1b[31mX", "realsense:a b", "realsense:" + "9" * 100, "RealSense:\u202eevil"):
+        st.inspect.i_path.value = text
+        act(st, st.inspect.on_open_data)
+        msg = errors(st)[-1][1]
+        assert "not a serial number" in msg and "\x1b" not in msg and "\u202e" not in msg, msg
+
+
+def test_play_after_pause_goes_on_tracking_from_the_pose_on_show(studio, recording):
+    """Found by a newcomer: Play after Pause estimated the frame on show anew with the box drawn on the first
+    frame (by then cutting the base), found nothing, and nothing was tracked after. It now goes on from the
+    confident pose on show."""
+    rec, ds = recording
+    st = _open(studio, rec, ds)
+    played = []
+    st.events.on(Event.FRAME_PLAYED, lambda im_id: played.append((im_id, st.inspect.result)))
+    st.sequence.s_rate.value = 1.0
+    act(st, st.sequence.on_play)
+    t0 = time.monotonic()
+    while len(played) < 3 and time.monotonic() - t0 < 120:
+        time.sleep(0.05)
+    act(st, st.sequence.on_play)  # Pause
+    _wait(st)
+    assert st.inspect.result.confident and st.inspect.frame.im_id < FRAMES - 1
+    n = len(played)
+    st.sequence.s_rate.value = 3.0
+    act(st, st.sequence.on_play)  # Play again
+    _wait(st)
+    after = played[n:]
+    assert after and all(r.confident and r.tracked for _, r in after), [(i, r.tracked, r.confident) for i, r in after]
+    assert after[-1][0] == FRAMES - 1  # the last frame is shown, even when frames before it are skipped
