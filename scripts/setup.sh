@@ -34,6 +34,11 @@ fi
 echo "setup: installing Python packages into .venv (first time: a few minutes)"
 # torch first and pinned: 2.13.0 is the CPU build; an unpinned torch pulls a multi-GB CUDA build
 .venv/bin/python -m pip install -q --disable-pip-version-check "torch==2.13.0"
-.venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test,realsense]"
+# the RealSense SDK (pyrealsense2) has wheels for x86_64 Linux, Windows and some macOS only: elsewhere the studio and
+# the core install without it and say so when a live camera is asked for
+if ! .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test,realsense]"; then
+  echo "setup: pyrealsense2 is not available for this platform; installing without live RealSense support"
+  .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test]"
+fi
 echo "$want" > "$stamp"
 echo "setup: done ($(du -sh .venv | cut -f1) in .venv)"
