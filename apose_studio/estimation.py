@@ -272,16 +272,9 @@ def instance_boxes(frame: Frame, diameter: float) -> list[tuple[tuple[int, int, 
         mask = objs.mask(sel)
         if _extent(frame, mask) < INSTANCE_MIN_SIZE * diameter:
             continue
-        out.append((_box_of(objs.u[sel], objs.v[sel], frame.depth.shape), mask))
+        out.append((truth_box(mask), mask))
     out.sort(key=lambda b: -int(b[1].sum()))
     return out[:MAX_INSTANCES]
-
-
-def _box_of(u: np.ndarray, v: np.ndarray, shape: tuple[int, int], margin: float = BOX_MARGIN) -> tuple[int, int, int, int]:
-    h, w = shape
-    mx, my = margin * (np.ptp(u) + 1), margin * (np.ptp(v) + 1)
-    return (max(int(u.min() - mx), 0), max(int(v.min() - my), 0), min(int(u.max() + mx) + 1, w),
-            min(int(v.max() + my) + 1, h))
 
 
 def estimate_instances(frame: Frame, ctx: StepContext, params: Params, orientation_prior: bool = False,
@@ -307,8 +300,7 @@ def estimate_instances(frame: Frame, ctx: StepContext, params: Params, orientati
         if split and r.ok and r.model_mask is not None and _extent(frame, group) > INSTANCE_SPLIT_SIZE * diameter:
             rest = group & ~cv2.dilate(r.model_mask.astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)
             if rest.sum() >= 60 and _extent(frame, rest) >= INSTANCE_MIN_SIZE * diameter:  # searched once more
-                vs, us = np.nonzero(rest)
-                todo.insert(0, (_box_of(us, vs, rest.shape), rest, False))
+                todo.insert(0, (truth_box(rest), rest, False))
     return distinct_instances(found, ctx.base, frame)
 
 
@@ -326,7 +318,7 @@ def distinct_instances(found: list[Instance], base, frame: Frame) -> list[Instan
     """The instances with a pose, one per place (base centres closer than INSTANCE_SAME of the diameter are one:
     the confident one kept, else the higher fitness x coverage), left to right in `frame` by the base's
     centre (then top to bottom)."""
-    centre = base.samples.mean(axis=0)
+    centre = base.centre
 
     def where(inst):
         return se3.transform_points(inst.result.T_world_base, centre[None])[0]

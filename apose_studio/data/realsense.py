@@ -83,7 +83,6 @@ class LiveCamera:
     _align: object
     notes: list[str] = field(default_factory=list)
     T_world_camera: np.ndarray = field(default_factory=lambda: np.eye(4))
-    frames_read: int = 0
     last: Frame | None = None
     closed: bool = False
     _lock: threading.Lock = field(default_factory=threading.Lock)
@@ -123,7 +122,6 @@ class LiveCamera:
                                f"{self.camera.height}")
         depth = raw.astype(np.float32) * np.float32(self.depth_unit_m)
         k = int(c.get_frame_number())
-        self.frames_read += 1
         return Frame(rgb=rgb, depth=depth, camera=self.camera, T_world_camera=self.T_world_camera.copy(), im_id=k,
                      source=f"{self.name}#{k}")
 

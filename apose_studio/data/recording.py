@@ -119,8 +119,11 @@ class Recording:
     def frame(self, i: int) -> Frame:
         if not 0 <= i < len(self):
             raise DatasetError(f"{self.path}: frame {i} does not exist; the recording has frames 0..{len(self) - 1}")
-        rgb = self._image(self.topics["color"], self.color_times[i])
-        depth = self._image(self.topics["depth"], self.depth_times[i])
+        return self.make_frame(i, self._image(self.topics["color"], self.color_times[i]),
+                               self._image(self.topics["depth"], self.depth_times[i]))
+
+    def make_frame(self, i: int, rgb: np.ndarray, depth: np.ndarray) -> Frame:
+        """Frame i from its colour and depth images (checked to be one size: the depth aligned to colour)."""
         if depth.shape != rgb.shape[:2]:
             raise DatasetError(f"{self.path}: frame {i}: depth is {depth.shape[1]}x{depth.shape[0]} but colour is "
                                f"{rgb.shape[1]}x{rgb.shape[0]}; record the depth aligned to colour")
@@ -180,11 +183,7 @@ class RecordingPlayer:
                 self._kept[(channel.topic, message.log_time)] = image_array(msg, f"{rec.path}: {channel.topic}")
         rgb, depth = self._kept[(rec.topics["color"], rec.color_times[i])], self._kept[(rec.topics["depth"], rec.depth_times[i])]
         self._kept = {k: v for k, v in self._kept.items() if k[1] >= min(t for _, t in want)}
-        if depth.shape != rgb.shape[:2]:
-            raise DatasetError(f"{rec.path}: frame {i}: depth is {depth.shape[1]}x{depth.shape[0]} but colour is "
-                               f"{rgb.shape[1]}x{rgb.shape[0]}; record the depth aligned to colour")
-        return Frame(rgb=rgb, depth=depth, camera=rec.camera, T_world_camera=rec._pose_at(rec.color_times[i]),
-                     im_id=i, source=f"{rec.path}#{i}")
+        return rec.make_frame(i, rgb, depth)
 
     def close(self) -> None:
         if self._file is not None:

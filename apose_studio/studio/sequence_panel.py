@@ -32,14 +32,6 @@ from apose_studio.registration.types import View, doubts
 from apose_studio.studio.state import Event
 
 log = logging.getLogger(__name__)
-
-
-def job_assembly(app):
-    """The assembly the inspected data is estimated with (its file's path names it in commands)."""
-    try:
-        return app.state.inspect_assembly()
-    except Exception:  # no valid assembly yet
-        return None
 DEFAULT_RATE = 10.0  # frames per second of a dataset or BOP scene (a recording plays at its own)
 
 
@@ -233,9 +225,9 @@ class SequencePanel:
         except PermissionError:
             raise AposeError(f"{existing}: folder not writable; type another Capture folder") from None
         self.s_capture_to.value = ""
-        asm, r = job_assembly(self.app), ins.result
+        asm, r = self.app.state.inspect_assembly(), ins.result
         box = last_seen_box(r, frame) if r is not None and r.ok else None
-        command = (f"apose estimate {folder} --assembly {asm.path if asm is not None and asm.path else 'A.yaml'} "
+        command = (f"apose estimate {folder} --assembly {asm.path or 'A.yaml'} "
                    f"--step {ins.step}" + (f" --box {','.join(map(str, box))}" if box else " --box X0,Y0,X1,Y1"))
         self.app.notify(client, "Captured", f"frame {frame.im_id} saved to {folder}; to estimate it from a terminal: "
                         f"{command}")
