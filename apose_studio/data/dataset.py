@@ -457,7 +457,12 @@ def write_capture(frame: Frame, folder: str | Path, depth_unit_mm: float = 1.0, 
             if not cv2.imwrite(str(tmp / name), img):
                 raise AposeError(f"{tmp / name}: could not write the image (disk full or no permission?)")
         atomic_write_text(tmp / "camera.json", json.dumps(cam, indent=1))
-        os.rename(tmp, folder)
+        if os.path.lexists(folder):  # made meanwhile (another capture, another program): never replaced
+            raise AposeError(f"{folder}: already exists; captures are never overwritten: choose another name")
+        try:
+            os.rename(tmp, folder)
+        except OSError as e:  # it appeared between the look and the rename (a folder with files is never replaced)
+            raise AposeError(f"{folder}: could not be placed ({e.strerror}); choose another name") from None
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

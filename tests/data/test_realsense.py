@@ -210,3 +210,30 @@ def test_a_bad_size_or_serial_is_refused_before_any_camera_is_asked(monkeypatch,
     assert main(["capture", "--out", str(tmp_path / "c"), "--serial", "../x"]) == 2
     assert "not a serial number" in capsys.readouterr().err
     assert asked == [] and not (tmp_path / "c").exists()
+
+
+def test_captures_racing_for_one_folder_leave_one_whole_and_no_partial(trajectory, tmp_path):
+    """Eight captures into one name at once (two studio tabs, a script beside the studio): one wins whole, the
+    others are told the folder exists; no half-written or temporary folder stays."""
+    import threading
+
+    from apose_studio.errors import AposeError
+
+    _, frames = trajectory
+    said = []
+
+    def capture():
+        try:
+            write_capture(frames[0], tmp_path / "c")
+            said.append("ok")
+        except AposeError as e:
+            said.append(str(e))
+
+    threads = [threading.Thread(target=capture) for _ in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert said.count("ok") == 1 and all("already exists" in s or "could not be placed" in s for s in said if s != "ok")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c"]
+    assert np.array_equal(load_capture(tmp_path / "c").rgb, frames[0].rgb)
