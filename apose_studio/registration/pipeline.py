@@ -22,8 +22,10 @@ from apose_studio.registration.base import BaseObject, place_source, raycast_sou
 from apose_studio.registration.hypotheses import explained, readings
 from apose_studio.registration.paper import estimate_paper
 from apose_studio.registration.refine import (
+    add_chosen_twins,
     add_symmetric_twins,
     choose,
+    neighbour_rivals,
     polish_chosen,
     polish_contenders,
     refine_candidates,
@@ -238,10 +240,13 @@ def estimate_default(pb: Task, prior: np.ndarray | None, trace_iterations: bool,
     if not refined:
         raise Degenerate("the camera cannot see the base mesh at any candidate pose")
     chosen, close = choose(pb, refined, R_prior)  # scored; near-ties looked at where the placements differ
+    t = time.perf_counter()
+    if p.use_symmetries and add_chosen_twins(pb, refined, chosen):  # chosen below the best: its twins compared too
+        chosen, close = choose(pb, refined, R_prior)
     if p.polish_voxel_factor > 0 and chosen not in polished:
-        t = time.perf_counter()
         polish_chosen(pb, refined, chosen)
-        timings["icp"] += time.perf_counter() - t
+    close = close + neighbour_rivals(pb, refined, chosen)  # a mostly hidden base: neighbours that fit as well
+    timings["icp"] += time.perf_counter() - t
     result = compose(pb, refined, chosen, close, T_world_source, timings)  # T_world_part = T_world_base @ T_base_part
     if found.upright and not result.fits and p.free_after_upright and \
             not pb.out_of_time("the free search after the upright one"):
