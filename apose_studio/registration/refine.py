@@ -275,12 +275,17 @@ def neighbour_rivals(pb, refined: list[Refined], chosen: int) -> list[int]:
         R = se3.axis_angle_matrix(n, a)
         moves.append(se3.make_T(R, c - R @ c))
     new: list[int] = []
+    def known(T: np.ndarray) -> bool:  # back where a candidate already is: the data holds the pose there
+        return any(poses_within(T, r.candidate.T_world_base, pb.voxel, 2.0) for r in refined)
+
     for M in moves:
         T = _refine_from(pb, M @ T_b)
+        if known(T):
+            continue  # (before the polish too: most neighbours of a pose the data pins fall back onto it)
         if pb.params.polish_voxel_factor > 0:
             T, _ = polish(pb, T, None)
-        if any(poses_within(T, r.candidate.T_world_base, pb.voxel, 2.0) for r in refined):
-            continue  # back where a candidate already is: the data holds the pose there
+            if known(T):
+                continue
         cand, src_w, src_n = score_pose(pb, T, best.candidate.symmetry)
         if cand.score >= best.candidate.score - TIE_MARGIN:
             refined.append(Refined(cand, best.T_start, None if best.trace is None else list(best.trace), src_w,
