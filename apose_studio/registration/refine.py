@@ -274,10 +274,11 @@ def neighbour_rivals(pb, refined: list[Refined], chosen: int) -> list[int]:
     for a in (angle, -angle, 2 * angle, -2 * angle):
         R = se3.axis_angle_matrix(n, a)
         moves.append(se3.make_T(R, c - R @ c))
-    new: list[int] = []
+
     def known(T: np.ndarray) -> bool:  # back where a candidate already is: the data holds the pose there
         return any(poses_within(T, r.candidate.T_world_base, pb.voxel, 2.0) for r in refined)
 
+    new: list[int] = []
     for M in moves:
         T = _refine_from(pb, M @ T_b)
         if known(T):

@@ -97,16 +97,14 @@ def upright_starts(base, up: np.ndarray, target_pts: np.ndarray, cam_pos: np.nda
     return [(0, T) for T in poses]
 
 
-def resting_starts(starts: list, plane: tuple[np.ndarray, float], target_pts: np.ndarray, model_pts: np.ndarray,
-                   diameter: float) -> list:
+def resting_starts(starts: list, plane: tuple[np.ndarray, float], model_pts: np.ndarray, diameter: float) -> list:
     """Upright starts moved to stand on the table (the model's lowest point on the plane) and slid over it
     on a grid (RESTING_SHIFTS steps of RESTING_STEP of the diameter each way): for a base that is mostly
     hidden, where the part of it the camera sees is not the middle of what faces the camera, so centring
     the one on the other leaves every start a third of the base off (a gearbox casing behind a box: 36 mm
     on a 108 mm casing, no start near the truth)."""
     n, d = plane
-    e1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
-    e1 /= np.linalg.norm(e1)
+    e1 = se3.perpendicular(n)
     e2 = np.cross(n, e1)
     steps = RESTING_STEP * diameter * np.arange(-RESTING_SHIFTS, RESTING_SHIFTS + 1)
     shifts = (steps[:, None, None] * e1 + steps[None, :, None] * e2).reshape(-1, 3)
@@ -222,7 +220,7 @@ def search_upright(pb, ms: ModelSearch, up: np.ndarray) -> Found | None:
     starts = upright_starts(base, up, pb.tp, pb.cam_pos, ms.model_pts, ms.model_nrm)
     coarse = ms.coarse(starts, UPRIGHT_STARTS)
     if (not coarse or coarse[0].explained < UPRIGHT_FALLBACK) and pb.table is not None:
-        resting = ms.coarse(resting_starts(starts, pb.table, pb.tp, ms.model_pts, base.diameter), UPRIGHT_STARTS)
+        resting = ms.coarse(resting_starts(starts, pb.table, ms.model_pts, base.diameter), UPRIGHT_STARTS)
         coarse = sorted(coarse + resting, key=lambda x: -x.explained)
     if not coarse or coarse[0].explained < UPRIGHT_FALLBACK:
         return None if not coarse else Found(coarse)
