@@ -18,6 +18,10 @@ registered 3 px off the colour image, the camera 0.65-1.2 m away, the Kinect's n
 (Khoshelham and Elberink 2012: 1.4 mm at 1 m, growing with z squared; `kinect` renders use the
 RealSense-like 4 mm at 1 m) on top of its disparity steps (3 mm at 1 m).
 
+Frames are opened as a dataset (the renderer's world frame); the estimate does not depend on the world
+frame (tests/registration/test_world_frame.py), so each answer is the one a capture folder of the same
+frame gets, whose world is the table it sees.
+
 Prints per condition:
 - mask IoU against the renderer's own visible masks (ground truth independent of the code under test):
   the prompted mask, and the result's mask (`model_mask`: the mask the pose came from, cut to what the

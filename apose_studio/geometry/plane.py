@@ -17,6 +17,17 @@ PLANE_ITERATIONS = 200
 SCORE_POINTS = 1000  # hypotheses are scored on this many points; the winner is refitted on all its inliers
 
 
+def extent_of(points: np.ndarray) -> float:
+    """The largest distance between two of the points: their size, the same in every frame (the diagonal
+    of their box along the frame's axes, used before, grew and shrank as the frame turned). Quadratic in
+    the points: callers pass a few hundred."""
+    if len(points) < 2:
+        return 0.0
+    c = points - points.mean(axis=0)
+    sq = np.einsum("ij,ij->i", c, c)
+    return float(np.sqrt(max((sq[:, None] + sq[None] - 2.0 * c @ c.T).max(), 0.0)))
+
+
 def fit_plane(points: np.ndarray, tol: float, seed: int = 0, iterations: int = PLANE_ITERATIONS,
               towards: np.ndarray | None = None, above: np.ndarray | None = None,
               reach: float = 0.0) -> tuple[np.ndarray, float, np.ndarray] | None:
@@ -52,7 +63,7 @@ def fit_plane(points: np.ndarray, tol: float, seed: int = 0, iterations: int = P
     if above is not None and towards is not None and len(above):
         above = above[:: max(1, len(above) // 500)]
         signed = above @ normals.T + offsets  # (points, planes): height of the object's points over each plane
-        extent = float(np.linalg.norm(above.max(axis=0) - above.min(axis=0)))
+        extent = extent_of(above)
         supports = (np.median(signed, axis=0) > tol) & (np.percentile(signed, 5, axis=0) < max(10 * tol, 0.5 * extent, reach))
         counts = np.where(supports, counts, -1)  # a plane the object stands on: on its side, and touching it
     best = int(np.argmax(counts))
@@ -105,6 +116,20 @@ def fit_table(depth: np.ndarray, cam, tol: float | None = None, rng: np.random.G
     return TableFit(vs, us, pts, med, tol, None if fit is None else (fit[0], fit[1]))
 
 
+def table_axes(n: np.ndarray, T_world_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit axes (e1, e2) in the plane with unit normal `n` (world), fixed to the camera: e1 along the
+    image's x (the camera's x axis projected onto the plane; its y where x is nearly along n), e2 = n x e1.
+    Grids laid on a table along them (the upright search's yaws, its slides) are the same grids in every
+    world frame, so the answer does not depend on where the caller's world happens to be (a renderer's, a
+    table's, a robot's)."""
+    for axis in (T_world_camera[:3, 0], T_world_camera[:3, 1]):
+        e1 = axis - (axis @ n) * n
+        if np.linalg.norm(e1) > 1e-6:
+            e1 = e1 / np.linalg.norm(e1)
+            return e1, np.cross(n, e1)
+    raise ValueError("table_axes: the normal is not a unit vector")
+
+
 def table_frame(depth: np.ndarray, cam, min_share: float = 0.3, seed: int = 0) -> np.ndarray | None:
     """T_world_camera of a world frame on the plane most of the depth lies on (a table): z = 0 on it,
     z up (towards the camera), the origin where the optical axis meets it (else below the camera), x
@@ -121,11 +146,8 @@ def table_frame(depth: np.ndarray, cam, min_share: float = 0.3, seed: int = 0) -
         return None
     n, d, _ = fit
     origin = np.array([0.0, 0.0, -d / n[2]]) if n[2] < -0.2 else -d * n  # the optical axis (+z) meets the plane
-    x = np.array([1.0, 0.0, 0.0]) - n[0] * n
-    if np.linalg.norm(x) < 1e-6:
-        x = np.array([0.0, 1.0, 0.0]) - n[1] * n
-    x /= np.linalg.norm(x)
+    x, y = table_axes(n, np.eye(4))
     T_camera_world = np.eye(4)
-    T_camera_world[:3, :3] = np.stack([x, np.cross(n, x), n], axis=1)
+    T_camera_world[:3, :3] = np.stack([x, y, n], axis=1)
     T_camera_world[:3, 3] = origin
     return np.linalg.inv(T_camera_world)

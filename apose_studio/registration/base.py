@@ -137,13 +137,12 @@ class NearGrid:
 
     def contains(self, points: np.ndarray) -> np.ndarray:
         """(N,) whether each point lies within the radius of the cloud."""
-        idx = np.floor((points - self.origin) / self.cell).astype(np.int64)
-        shape = np.array(self.occupied.shape)
-        inside = np.all((idx >= 0) & (idx < shape), axis=-1)
-        out = np.zeros(len(points), bool)
-        i = idx[inside]
-        out[inside] = self.occupied[i[:, 0], i[:, 1], i[:, 2]]
-        return out
+        q = (points - self.origin) / self.cell
+        shape = self.occupied.shape
+        inside = np.all((q >= 0) & (q < shape), axis=-1)
+        i = q.astype(np.intp)  # truncation: the floor wherever q >= 0, which is wherever the answer is looked up
+        flat = (i[:, 0] * shape[1] + i[:, 1]) * shape[2] + i[:, 2]
+        return np.take(self.occupied.reshape(-1), flat, mode="clip") & inside
 
 
 def prepare_base(mesh, n_samples: int = 20000, seed: int = 0, detect: bool = True) -> BaseObject:

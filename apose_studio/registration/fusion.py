@@ -87,11 +87,11 @@ def _name(view: View, i: int) -> str:
 
 
 def _problem(view: View, base: BaseObject, T_base_part: np.ndarray, params: Params, voxel: float) -> Task:
-    pts = project_to_cloud(view.depth, view.mask, view.camera, view.T_world_camera)
-    if len(pts) < MIN_POINTS:
-        raise Degenerate(f"only {len(pts)} valid depth points under its mask (need {MIN_POINTS})")
-    return prepare_task(pts, view.camera, view.T_world_camera, base, T_base_part, params, voxel,
-                           observe(view.depth, view.mask), light=True)
+    camera_pts = project_to_cloud(view.depth, view.mask, view.camera, np.eye(4))
+    if len(camera_pts) < MIN_POINTS:
+        raise Degenerate(f"only {len(camera_pts)} valid depth points under its mask (need {MIN_POINTS})")
+    return prepare_task(se3.transform_points(view.T_world_camera, camera_pts), view.camera, view.T_world_camera, base,
+                        T_base_part, params, voxel, observe(view.depth, view.mask), light=True, camera_pts=camera_pts)
 
 
 def _disagreement(problems: dict[int, Task], order: list[int], T_world_base: np.ndarray, voxel: float,
@@ -193,7 +193,7 @@ def fused_polish(problems: dict[int, Task], order: list[int], T_world_base: np.n
             continue
         src.append(se3.transform_points(T_base_world, w))
         nrm.append(n @ T_base_world[:3, :3].T)
-        tgt.append(np.asarray(pb.target_full.voxel_down_sample(voxel).points))
+        tgt.append(np.asarray(pb.target_at(voxel).points))
     if not src:
         return T_world_base
     model = cloud(np.concatenate(src), np.concatenate(nrm)).voxel_down_sample(0.5 * voxel)

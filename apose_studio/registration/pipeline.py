@@ -112,7 +112,8 @@ def estimate_mask(view: View, base: BaseObject, T_base_part: np.ndarray, params:
     t0 = time.perf_counter()
     if mask is None or not np.any(mask):
         return failed("empty mask: no pixels of the base object in this frame", preset=params.preset)
-    target_pts = project_to_cloud(depth, mask, cam, T_world_camera)  # PROJ3D: the target cloud
+    camera_pts = project_to_cloud(depth, mask, cam, np.eye(4))  # PROJ3D: the target cloud, in the camera's frame
+    target_pts = se3.transform_points(T_world_camera, camera_pts)
     timings["proj3d"] = time.perf_counter() - t0
     if len(target_pts) < MIN_POINTS:
         return failed(f"only {len(target_pts)} valid depth points under the mask (need {MIN_POINTS}); "
@@ -138,7 +139,7 @@ def estimate_mask(view: View, base: BaseObject, T_base_part: np.ndarray, params:
         else:
             t = time.perf_counter()
             pb = prepare_task(target_pts, cam, T_world_camera, base, T_base_part, params, voxel, observation, deadline,
-                              part_symmetries=part_symmetries)
+                              part_symmetries=part_symmetries, camera_pts=camera_pts)
             timings["features"] = time.perf_counter() - t
             result = estimate_default(pb, prior_T_world_base, trace_iterations, timings)
     except Degenerate as e:

@@ -17,17 +17,28 @@ from dataclasses import replace
 import numpy as np
 
 from apose_studio.geometry import se3
+from apose_studio.geometry.plane import table_axes
 from apose_studio.registration.base import place_source, raycast_source
 from apose_studio.registration.refine import polish
 from apose_studio.registration.scoring import agreement_tolerance, score_seen, visible_agreement
-from apose_studio.registration.stages import cloud, estimate_normals, global_registration, icp, normals_fpfh, trace_stages
+from apose_studio.registration.stages import (
+    cloud,
+    estimate_normals,
+    global_registration,
+    icp,
+    normals_fpfh,
+    trace_stages,
+)
 from apose_studio.registration.types import MIN_POINTS, Found, RegistrationResult, Start
 
 PRIOR_ACCEPT = 0.95  # the prior's pose is kept without a global search when both shares reach this
 UPRIGHT_YAW_STEP_DEG = 10.0
 UPRIGHT_STARTS = 4  # the best-screened yaws refined by coarse ICP (4 and 6 reach the same recall; 4 is 7 % faster)
+UPRIGHT_APART = 3  # the refined upright yaws lie at least this many yaw steps apart (spread_yaws)
 UPRIGHT_TWINS = 3  # at most this many (near-)symmetric turns of the best upright pose are refined too
 UPRIGHT_FALLBACK = 0.6  # below this share explained by the best upright start, the base is not upright: search freely
+RESTING_BELOW = 0.8  # below this share explained by the best upright start, the resting starts are tried too, and
+# the best pose turned round (turned_round)
 SCREEN_POINTS = 500  # target points the screening looks up per starting pose
 
 
@@ -74,16 +85,14 @@ def try_prior(pb, prior: np.ndarray, trace_iterations: bool, timings: dict, **kw
                               coverage=cand.coverage, **kw)
 
 
-def upright_starts(base, up: np.ndarray, target_pts: np.ndarray, cam_pos: np.ndarray,
+def upright_starts(base, up: np.ndarray, target_pts: np.ndarray, T_world_camera: np.ndarray,
                    model_pts: np.ndarray, model_nrm: np.ndarray) -> list:
     """(0, T_world_base) starts with the CAD's +z along `up`, one per yaw step about it, each moved so
-    the part of the model facing the camera is centred on the target."""
-    z = np.array([0.0, 0.0, 1.0])
-    axis = np.cross(z, up)
-    if np.linalg.norm(axis) > 1e-9:  # the turn that takes the CAD's +z onto the table's normal
-        R_up = se3.axis_angle_matrix(axis, float(np.arccos(np.clip(z @ up, -1.0, 1.0))))
-    else:  # already along it, or exactly opposite (a half turn about x)
-        R_up = np.eye(3) if up[2] > 0 else np.diag([1.0, -1.0, -1.0])
+    the part of the model facing the camera is centred on the target. Yaw 0 lays the CAD's +x along the
+    image's x on the table (plane.table_axes): the yaws are fixed to the camera, not to the world frame."""
+    e1, e2 = table_axes(up, T_world_camera)
+    R_up = np.stack([e1, e2, up], axis=1)  # the CAD's x, y, z onto the table's axes and normal
+    cam_pos = T_world_camera[:3, 3]
     centre = target_pts.mean(axis=0)
     R = se3.axis_angle_matrix(up, np.radians(np.arange(0.0, 360.0, UPRIGHT_YAW_STEP_DEG))) @ R_up  # (n, 3, 3)
     poses = place_source(base, centre, R)
@@ -97,18 +106,20 @@ def upright_starts(base, up: np.ndarray, target_pts: np.ndarray, cam_pos: np.nda
     return [(0, T) for T in poses]
 
 
-def resting_starts(starts: list, plane: tuple[np.ndarray, float], model_pts: np.ndarray, diameter: float) -> list:
+def resting_starts(starts: list, plane: tuple[np.ndarray, float], model_pts: np.ndarray, diameter: float,
+                   T_world_camera: np.ndarray) -> list:
     """Upright starts moved to stand on the table (the model's lowest point on the plane) and slid over it
     on a grid (RESTING_SHIFTS steps of RESTING_STEP of the diameter each way): for a base that is mostly
     hidden, where the part of it the camera sees is not the middle of what faces the camera, so centring
     the one on the other leaves every start a third of the base off (a gearbox casing behind a box: 36 mm
     on a 108 mm casing, no start near the truth)."""
     n, d = plane
-    e1 = se3.perpendicular(n)
-    e2 = np.cross(n, e1)
+    e1, e2 = table_axes(n, T_world_camera)  # the grid fixed to the camera, as the yaws are
     steps = RESTING_STEP * diameter * np.arange(-RESTING_SHIFTS, RESTING_SHIFTS + 1)
     shifts = (steps[:, None, None] * e1 + steps[None, :, None] * e2).reshape(-1, 3)
-    shifts = shifts[np.argsort(np.linalg.norm(shifts, axis=1), kind="stable")]  # the unshifted first: ties go to it
+    k = np.arange(-RESTING_SHIFTS, RESTING_SHIFTS + 1)
+    rings = (k[:, None] ** 2 + k[None, :] ** 2).reshape(-1)  # in grid steps, exact: ties broken alike in every frame
+    shifts = shifts[np.argsort(rings, kind="stable")]  # the unshifted first: ties go to it
     height = -d - float(model_pts[:, 2].min())  # n . t for the base's frame origin with its lowest point on the plane
     out = []
     for _, T in starts:
@@ -152,14 +163,18 @@ class ModelSearch:
         self.tp_few = tp[np.random.default_rng(p.seed).choice(len(tp), min(len(tp), SCREEN_POINTS), replace=False)]
 
     def target_features(self):
+        """The coarse target's FPFH, in the camera's frame (Task.target_cam)."""
         if self._f_target is None:
-            self._f_target = normals_fpfh(self.pb.target, self.pb.vg, self.pb.params, self.pb.cam_pos)
+            self._f_target = normals_fpfh(self.pb.target_cam, self.pb.vg, self.pb.params, np.zeros(3))
         return self._f_target
 
     def ransac(self, p=None) -> np.ndarray:
-        """T_world_base straight from RANSAC on FPFH matches (the model is in the base frame)."""
+        """T_world_base straight from RANSAC on FPFH matches (the model is in the base frame), run on the target
+        in the camera's frame: the same draws and the same pose whatever the caller's world frame is."""
         pb = self.pb
-        return global_registration(self.model, pb.target, self.f_model, self.target_features(), pb.vg, p or pb.params)
+        T_camera_base = global_registration(self.model, pb.target_cam, self.f_model, self.target_features(), pb.vg,
+                                            p or pb.params)
+        return pb.T_world_camera @ T_camera_base
 
     def explained(self, poses: list) -> np.ndarray:
         """Per pose: the share of (SCREEN_POINTS of) the target points near the model's outer surface."""
@@ -204,26 +219,65 @@ def prior_starts(pb, ms: ModelSearch, T_world_source: np.ndarray) -> list:
     registered to the target by RANSAC; plus the plain translated CAD. Marked -1: always refined."""
     out = []
     src_w, _ = raycast_source(pb.base, T_world_source, pb.T_world_camera, pb.cam)
-    if len(src_w) >= MIN_POINTS:
-        src = cloud(src_w).voxel_down_sample(pb.vg)
-        T_p = global_registration(src, pb.target, normals_fpfh(src, pb.vg, pb.params, pb.cam_pos), ms.target_features(),
-                                  pb.vg, pb.params)
-        out.append((-1, T_p @ T_world_source))
+    if len(src_w) >= MIN_POINTS:  # (in the camera's frame, as ModelSearch.ransac)
+        T_camera_world = se3.inv(pb.T_world_camera)
+        src = cloud(se3.transform_points(T_camera_world, src_w)).voxel_down_sample(pb.vg)
+        T_p = global_registration(src, pb.target_cam, normals_fpfh(src, pb.vg, pb.params, np.zeros(3)),
+                                  ms.target_features(), pb.vg, pb.params)
+        out.append((-1, pb.T_world_camera @ T_p @ T_camera_world @ T_world_source))
     out.append((-1, T_world_source))
     return out
+
+
+def spread_yaws(share: np.ndarray, n: int, apart: int) -> list[int]:
+    """The n best-screened of a ring of yaws (`share` per yaw step, in order round the circle), each at least
+    `apart` steps from those picked before it: the best few yaws are mostly neighbours in one basin, and a
+    near-round base (a watering can) then never has the turn that fits as well refined, and a wrong turn
+    was called confident. Fewer than n when the ring is too small to hold them apart."""
+    k = len(share)
+    picked: list[int] = []
+    for i in np.argsort(-share, kind="stable"):
+        if all(min(abs(int(i) - j), k - abs(int(i) - j)) >= apart for j in picked):
+            picked.append(int(i))
+            if len(picked) == n:
+                break
+    return picked
+
+
+def turned_round(pb, ms: ModelSearch, T_world_base: np.ndarray, up: np.ndarray) -> list:
+    """Starts turned about `up` through the base's centre at T_world_base (the best coarse pose), one per yaw step,
+    screened there, the best UPRIGHT_STARTS of them at least UPRIGHT_APART steps apart and from the pose itself.
+    The first screening centres the model on what is seen of it, which clutter beside the base pulls off;
+    the best coarse pose stands where the base is, so there the screening tells the yaws apart: a watering
+    can's right turn screened 0.83 around it and below every first start, and a turn 48 degrees off was
+    called confident."""
+    c = se3.transform_points(T_world_base, pb.base.centre[None])[0]
+    angles = np.radians(np.arange(0.0, 360.0, UPRIGHT_YAW_STEP_DEG))
+    R = se3.axis_angle_matrix(up, angles)
+    turns = np.tile(np.eye(4), (len(angles), 1, 1))
+    turns[:, :3, :3], turns[:, :3, 3] = R, c - R @ c
+    poses = turns @ T_world_base
+    share = ms.explained(list(poses))
+    share[0] = np.inf  # the pose itself, refined already: picked first, so the others keep apart from it
+    return [(0, poses[i]) for i in spread_yaws(share, UPRIGHT_STARTS + 1, UPRIGHT_APART)[1:]]
 
 
 def search_upright(pb, ms: ModelSearch, up: np.ndarray) -> Found | None:
     """Every yaw about the table's normal `up`, no RANSAC; None when nothing fits upright. When no yaw
     fits with what is seen centred, the yaws again standing on the table, slid over it (`resting_starts`)."""
     p, base = pb.params, pb.base
-    starts = upright_starts(base, up, pb.tp, pb.cam_pos, ms.model_pts, ms.model_nrm)
-    coarse = ms.coarse(starts, UPRIGHT_STARTS)
-    if (not coarse or coarse[0].explained < UPRIGHT_FALLBACK) and pb.table is not None:
-        resting = ms.coarse(resting_starts(starts, pb.table, ms.model_pts, base.diameter), UPRIGHT_STARTS)
+    starts = upright_starts(base, up, pb.tp, pb.T_world_camera, ms.model_pts, ms.model_nrm)
+    picked = spread_yaws(ms.explained([T for _, T in starts]), UPRIGHT_STARTS, UPRIGHT_APART)
+    coarse = ms.coarse([starts[i] for i in picked], UPRIGHT_STARTS)
+    if (not coarse or coarse[0].explained < RESTING_BELOW) and pb.table is not None:
+        resting = ms.coarse(resting_starts(starts, pb.table, ms.model_pts, base.diameter, pb.T_world_camera),
+                            UPRIGHT_STARTS)
         coarse = sorted(coarse + resting, key=lambda x: -x.explained)
     if not coarse or coarse[0].explained < UPRIGHT_FALLBACK:
         return None if not coarse else Found(coarse)
+    if coarse[0].explained < RESTING_BELOW:  # (a base the first yaws explain well is told apart by them)
+        coarse = sorted(coarse + ms.coarse(turned_round(pb, ms, coarse[0].T_coarse, up), UPRIGHT_STARTS),
+                        key=lambda x: -x.explained)
     twins: list[Start] = []
     if p.use_symmetries:
         # a nearly symmetric base (a motor block whose connector alone breaks its 4-fold turn) gives

@@ -3,8 +3,8 @@ any process (preset setting `deterministic`, on by default).
 
 Open3D 0.20's ICP sums across threads, and neither its seed nor OMP_NUM_THREADS=1 makes two runs agree
 to the last bit (measured: 0 of 32 frames identical across two processes). This follows Open3D's
-formulation (the same linearised point-to-plane step and convergence criteria) with k-d tree queries
-(geometry.nn). Open3D's RANSAC does repeat once seeded and on one thread (apose_studio/__init__.py sets
+formulation (the linearised point-to-plane step, taken about the points' centre and as a rotation
+vector, see icp_point_to_plane; its convergence criteria) with k-d tree queries (geometry.nn). Open3D's RANSAC does repeat once seeded and on one thread (apose_studio/__init__.py sets
 OMP_NUM_THREADS=1); a RANSAC of our own in numpy, tried first, found fewer right poses than Open3D's
 (free search, 36 frames: 18-22 against 28), so Open3D's stays.
 """
@@ -16,12 +16,16 @@ import numpy as np
 from apose_studio.geometry.nn import NearestTree
 
 
-def _small_rotation(a: float, b: float, c: float) -> np.ndarray:
-    """Rz(c) @ Ry(b) @ Rx(a), the update of a linearised point-to-plane step (as Open3D's)."""
-    ca, sa, cb, sb, cc, sc = np.cos(a), np.sin(a), np.cos(b), np.sin(b), np.cos(c), np.sin(c)
-    return np.array([[cc * cb, cc * sb * sa - sc * ca, cc * sb * ca + sc * sa],
-                     [sc * cb, sc * sb * sa + cc * ca, sc * sb * ca - cc * sa],
-                     [-sb, cb * sa, cb * ca]])
+def _small_rotation(w: np.ndarray) -> np.ndarray:
+    """The turn by the rotation vector w (its length the angle; Rodrigues), the update of a linearised
+    point-to-plane step. Open3D applies the step as Euler angles Rz Ry Rx about the frame's axes, which
+    differ from w at second order by how the axes lie; the rotation vector turns alike in every frame."""
+    angle = float(np.linalg.norm(w))
+    if angle < 1e-12:
+        return np.eye(3)
+    k = w / angle
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * (K @ K)
 
 
 def _solve_constrained(A: np.ndarray, b: np.ndarray, rcond: float = 1e-7) -> np.ndarray:
@@ -42,7 +46,14 @@ def icp_point_to_plane(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.ndarray
     `trace`, appends each iteration's T. `viewpoint` (the camera's position in the source's frame): pairs
     whose target normal faces away from it are dropped (a scene matched to a whole model: its far side).
     `min_step` (metres): also stop once an iteration moves the source by less than this (its translation, and
-    its rotation times the source's extent)."""
+    its rotation times the source's extent).
+
+    Each step turns about the matched points' centre. Linearised about the frame's origin instead (as
+    Open3D's is), a small turn moves points a metre away by a metre times the angle, the turn and the
+    shift trade off against each other, and the directions `_solve_constrained` drops depend on where the
+    origin lies: with the world frame of a frame moved 0.9 m (the same camera, the same depth), every
+    coarse pose of a fidget casing ended off the target. About the centre the step is the same wherever
+    the caller's world frame is."""
     tree = tgt_tree if tgt_tree is not None else NearestTree(tgt)
     T = np.array(T_init, dtype=float)
     if len(src) == 0 or len(tgt) == 0:
@@ -60,20 +71,22 @@ def icp_point_to_plane(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.ndarray
         return p[ok], i[ok], fit, rmse
 
     p, idx, fit, rmse = match(T)
-    extent = float(np.ptp(src, axis=0).max()) if min_step > 0 else 0.0
+    extent = 2.0 * float(np.linalg.norm(src - src.mean(axis=0), axis=1).max()) if min_step > 0 else 0.0  # any frame
     for _ in range(iterations):
         if len(p) < 6:
             break
         q, n = tgt[idx], tgt_normals[idx]
-        J = np.hstack([np.cross(p, n), n])
+        c = p.mean(axis=0)  # linearised about the matched points' centre, not the frame's origin (below)
+        J = np.hstack([np.cross(p - c, n), n])
         r = np.einsum("ij,ij->i", p - q, n)
         JtJ, Jtr = J.T @ J, J.T @ r
         try:
             x = _solve_constrained(JtJ, -Jtr)
         except np.linalg.LinAlgError:
             break
+        R = _small_rotation(x[:3])
         update = np.eye(4)
-        update[:3, :3], update[:3, 3] = _small_rotation(*x[:3]), x[3:]
+        update[:3, :3], update[:3, 3] = R, x[3:] + c - R @ c  # the turn about c
         T = update @ T
         if trace is not None:
             trace.append(T.copy())

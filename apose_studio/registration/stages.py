@@ -37,6 +37,15 @@ def cloud(points: np.ndarray, normals: np.ndarray | None = None):
     return pc
 
 
+def down_sample(points: np.ndarray, voxel: float, T_world_frame: np.ndarray):
+    """`points` (world) averaged per voxel of a grid fixed to the frame `T_world_frame` (the camera's), as an
+    open3d cloud in world coordinates. Open3D lays its grid along the axes the points are given in; laid
+    along the world's, the points kept, and so the answer, would change with where the caller's world
+    frame happens to be (a renderer's, a table's, a robot's) for the same frame."""
+    pc = cloud(se3.transform_points(se3.inv(T_world_frame), points)).voxel_down_sample(voxel)
+    return pc.transform(T_world_frame)
+
+
 def estimate_normals(pc, voxel: float, p: Params, camera_pos: np.ndarray | None) -> None:
     """Estimate normals once (oriented towards the camera when its position is known)."""
     import open3d as o3d  # heavy (~0.9 s to import): loaded where it is used

@@ -10,11 +10,12 @@ from functools import cached_property
 
 import numpy as np
 
+from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.geometry.nn import NearestTree
 from apose_studio.params import Params
 from apose_studio.registration.base import BaseObject
-from apose_studio.registration.stages import cloud
+from apose_studio.registration.stages import cloud, down_sample, estimate_normals
 from apose_studio.registration.table import table_plane
 from apose_studio.registration.types import Degenerate, Observation
 
@@ -29,14 +30,22 @@ class Task:
     observation: Observation
     voxel: float  # the fine resolution (metres); the searches work at voxel x params.global_voxel_factor
     target_pts: np.ndarray  # (N, 3) every masked depth point, world frame
-    target_full: object  # open3d PointCloud of target_pts
-    target: object  # open3d PointCloud, down-sampled at the coarse voxel, outliers removed
+    target: object  # open3d PointCloud, down-sampled at the coarse voxel, outliers removed, with normals
     fine: object  # open3d PointCloud, down-sampled at the fine voxel, with normals facing the camera
     fine_tree: object  # k-d tree of fine's points
     deadline: float = float("inf")  # time.perf_counter() by which the searches stop (params.max_seconds)
     notes: list = field(default_factory=list)  # what the time budget cut short
     part_symmetries: np.ndarray | None = None  # (n, 4, 4) T_part_part of the part to place, identity first: twins of
     # the base that place the part alike (modulo these) are one placement, not an ambiguity
+    target_cam: object = None  # `target` in the camera's frame (the global search's RANSAC runs there)
+    _down: dict = field(default_factory=dict, repr=False)  # voxel -> target_at(voxel)
+
+    def target_at(self, voxel: float):
+        """Every masked depth point down-sampled at `voxel` on a grid fixed to the camera (stages.down_sample),
+        an open3d cloud in world coordinates; built once per voxel size."""
+        if voxel not in self._down:
+            self._down[voxel] = down_sample(self.target_pts, voxel, self.T_world_camera)
+        return self._down[voxel]
 
     def out_of_time(self, what: str) -> bool:
         """Past the deadline: note that `what` was cut short, and say so."""
@@ -86,30 +95,38 @@ class Task:
 def prepare_task(target_pts: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray, base: BaseObject,
                     T_base_part: np.ndarray, p: Params, voxel: float, observation: Observation,
                     deadline: float = float("inf"), light: bool = False,
-                    part_symmetries: np.ndarray | None = None) -> Task:
+                    part_symmetries: np.ndarray | None = None, camera_pts: np.ndarray | None = None) -> Task:
     """The target down-sampled (coarse: flying pixels and speckle removed; fine: with normals). Raises
     Degenerate when too little of it is left, or when it is a line. `light`: for scoring and polishing
-    only (registration.fusion's other views): no outlier removal, no target normals."""
+    only (registration.fusion's other views): no outlier removal, no target normals. `camera_pts`: the target
+in the camera's frame, as PROJ3D back-projected it (target_pts carried back there otherwise, which differs
+from it in the last bits)."""
     import open3d as o3d  # heavy (~0.9 s to import): loaded where it is used
 
+    # built in the camera's frame, then carried into the world: every step below (the voxel grids, the outlier
+    # test, the normals) then gives the same points whatever the caller's world frame is
     vg = voxel * p.global_voxel_factor
-    target_full = cloud(target_pts)
-    target = target_full.voxel_down_sample(vg)
-    if len(target.points) >= 40 and not light:  # flying pixels and speckle: drop points far from their neighbours
-        target, _ = target.remove_statistical_outlier(nb_neighbors=12, std_ratio=3.0)
-    if len(target.points) < 10:
-        raise Degenerate(f"the target is degenerate: {len(target.points)} points after down-sampling to "
+    if camera_pts is None:
+        camera_pts = se3.transform_points(se3.inv(T_world_camera), target_pts)
+    in_camera = cloud(camera_pts)
+    target_cam = in_camera.voxel_down_sample(vg)
+    if len(target_cam.points) >= 40 and not light:  # flying pixels and speckle: drop points far from their neighbours
+        target_cam, _ = target_cam.remove_statistical_outlier(nb_neighbors=12, std_ratio=3.0)
+    if len(target_cam.points) < 10:
+        raise Degenerate(f"the target is degenerate: {len(target_cam.points)} points after down-sampling to "
                          f"{vg * 1000:.2f} mm (a flat speck or a few pixels?)")
-    tp = np.asarray(target.points)
+    tp = np.asarray(target_cam.points)
     if np.linalg.svd(tp - tp.mean(axis=0), compute_uv=False)[1] < 0.05 * vg:
         raise Degenerate("the target is degenerate: its points lie on a line")
-    fine = target_full.voxel_down_sample(voxel)
+    fine = in_camera.voxel_down_sample(voxel)
     if not light:
+        estimate_normals(target_cam, vg, p, np.zeros(3))  # (the searches' ICP and RANSAC need them)
         fine.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=p.normal_radius_factor * voxel, max_nn=30))
-        fine.orient_normals_towards_camera_location(T_world_camera[:3, 3])
-    return Task(base, T_base_part, p, cam, T_world_camera, observation, voxel, target_pts, target_full, target, fine,
-                   NearestTree(np.asarray(fine.points)), deadline,
-                   part_symmetries=part_symmetries)
+        fine.orient_normals_towards_camera_location(np.zeros(3))
+    target = o3d.geometry.PointCloud(target_cam).transform(T_world_camera)
+    fine.transform(T_world_camera)
+    return Task(base, T_base_part, p, cam, T_world_camera, observation, voxel, target_pts, target, fine,
+                NearestTree(np.asarray(fine.points)), deadline, part_symmetries=part_symmetries, target_cam=target_cam)
 
 
 def scale_problem(target_pts: np.ndarray, diameter: float) -> str | None:

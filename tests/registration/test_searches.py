@@ -127,3 +127,19 @@ def test_a_base_seen_only_on_its_top_still_stands_on_the_table(tmp_path):
     errs = [mssd(T, fr.T_world_part, ctx.part.samples, ctx.part.symmetries)
             for T in [r.T_world_part] + [a.T_world_part for a in r.alternatives]]
     assert min(errs) < 0.1 * ctx.part.diameter, errs
+
+
+def test_the_refined_upright_yaws_lie_apart_round_the_circle():
+    """spread_yaws: the best-screened yaw, then the next best at least `apart` steps from each picked, across
+    the 350 -> 0 degree seam too; the top four screened here are neighbours in one basin."""
+    from apose_studio.registration.searches import spread_yaws
+
+    share = np.zeros(36)
+    share[[0, 1, 35, 2, 34]] = [0.9, 0.89, 0.88, 0.87, 0.86]  # one basin round yaw 0
+    share[[18, 19]] = [0.8, 0.79]  # a second half a turn away
+    share[10] = 0.5
+    picked = spread_yaws(share, 4, 3)
+    assert picked == [0, 18, 10, 3]  # 1, 35, 2, 34 and 19 lie too near a better one; then the first of the rest
+    assert all(min(abs(a - b), 36 - abs(a - b)) >= 3 for a in picked for b in picked if a != b)
+    assert spread_yaws(share, 4, 1) == [0, 1, 35, 2]  # apart 1: the plain best four
+    assert len(spread_yaws(np.ones(4), 4, 3)) == 1  # a ring too small to hold two apart
