@@ -131,7 +131,7 @@ def estimate_mask(view: View, base: BaseObject, T_base_part: np.ndarray, params:
     deadline = t0 + params.max_seconds if params.max_seconds > 0 else float("inf")
     observation = observe(depth, mask)
     noise = observation.noise
-    pb = None
+    pb, free_due = None, False
     try:
         if params.global_source == "raycast":  # the paper: TFORM + RCAST of the CAD as oriented, then PCDREG
             result = estimate_paper(target_pts, cam, T_world_camera, base, T_base_part, params, voxel,
@@ -141,16 +141,31 @@ def estimate_mask(view: View, base: BaseObject, T_base_part: np.ndarray, params:
             pb = prepare_task(target_pts, cam, T_world_camera, base, T_base_part, params, voxel, observation, deadline,
                               part_symmetries=part_symmetries, camera_pts=camera_pts)
             timings["features"] = time.perf_counter() - t
-            result = estimate_default(pb, prior_T_world_base, trace_iterations, timings)
+            result, free_due = search_and_choose(pb, prior_T_world_base, trace_iterations, timings)
+            if free_due and not params.second_look:  # nothing to try before the free search
+                result, free_due = better_of_free_search(result, pb, prior_T_world_base, trace_iterations)[0], False
     except Degenerate as e:
         return failed(str(e), target_cloud=target_pts, timings=timings, preset=params.preset, voxel=voxel)
-    # ok only when the data supports the pose (the table fitted once per frame, where the search fitted it)
-    result = judge(replace(result, depth_noise=noise), view, base, plane=pb.table if pb is not None else _FIT)
-    if result.ok and params.use_symmetries:
-        result = replace(result, equivalent=twin_placements(result.T_world_base, result.T_world_part, base.symmetries))
-    if params.second_look and result.ok and not result.confident:
-        result = second_look(result, view, base, T_base_part, params, prior_T_world_base, trace_iterations,
-                             part_symmetries)
+
+    def supported(r: RegistrationResult) -> RegistrationResult:
+        """ok only when the data supports the pose (the table fitted once per frame, where the search fitted
+        it), with the base's exact twins; then, not confident, the second look."""
+        r = judge(replace(r, depth_noise=noise), view, base, plane=pb.table if pb is not None else _FIT)
+        if r.ok and params.use_symmetries:
+            r = replace(r, equivalent=twin_placements(r.T_world_base, r.T_world_part, base.symmetries))
+        if params.second_look and r.ok and not r.confident:
+            r = second_look(r, view, base, T_base_part, params, prior_T_world_base, trace_iterations, part_symmetries)
+        return r
+
+    upright, result = result, supported(result)
+    if free_due and not result.confident:  # the upright pose did not fit, and its second look did not settle it
+        try:
+            free, won = better_of_free_search(upright, pb, prior_T_world_base, trace_iterations)
+        except Degenerate:  # the free search saw nothing: the upright pose stands
+            free, won = upright, False
+        # the time of both searches, and of the upright pose's second look
+        result = supported(replace(free, timings={**result.timings, **free.timings})) if won else \
+            replace(result, timings={**result.timings, **free.timings})
     if result.ok:
         t = time.perf_counter()
         cut = model_cut_mask(result, view if result.second_look is None else replace(view, mask=result.second_look), base)
@@ -188,10 +203,10 @@ def second_look(result: RegistrationResult, view: View, base: BaseObject, T_base
         return result
     again = estimate_mask(replace(view, mask=cut), base, T_base_part, replace(params, second_look=False), prior,
                           trace_iterations, part_symmetries)
-    seconds = time.perf_counter() - t
+    timings = {**result.timings, "second look": result.timings.get("second look", 0.0) + time.perf_counter() - t}
     if not again.confident:
-        return replace(result, timings={**result.timings, "second look": seconds})
-    return replace(again, second_look=cut, timings={**result.timings, "second look": seconds})
+        return replace(result, timings=timings)
+    return replace(again, second_look=cut, timings=timings)
 
 
 def observe(depth: np.ndarray, mask: np.ndarray) -> Observation:
@@ -217,13 +232,22 @@ def frame_noise(depth: np.ndarray, mask: np.ndarray) -> float:
 
 
 def estimate_default(pb: Task, prior: np.ndarray | None, trace_iterations: bool, timings: dict) -> RegistrationResult:
-    """Ours on the prepared frame (PROJ3D done): the prior fast path, else search -> refine -> choose ->
-    polish -> compose. `timings` (seconds by stage) is added to."""
+    """Ours on the prepared frame (PROJ3D done): `search_and_choose`, then, where the upright search did not
+    fit, the free search too (the better of the two kept). `timings` (seconds by stage) is added to."""
+    result, free_due = search_and_choose(pb, prior, trace_iterations, timings)
+    return better_of_free_search(result, pb, prior, trace_iterations)[0] if free_due else result
+
+
+def search_and_choose(pb: Task, prior: np.ndarray | None, trace_iterations: bool,
+                      timings: dict) -> tuple[RegistrationResult, bool]:
+    """The prior fast path, else search -> refine -> choose -> polish -> compose, and whether the free search
+    is due: the search was the upright one (a table is seen) and its pose does not fit. `estimate_mask`
+    tries the second look before that free search; it seldom wins (docs/ESTIMATOR.md)."""
     p, base, voxel = pb.params, pb.base, pb.voxel
     if prior is not None and p.prior_fast_path:  # the caller knows the orientation: ICP from it, kept if it fits
         quick = try_prior(pb, prior, trace_iterations, timings, preset=p.preset)
         if quick is not None:
-            return quick
+            return quick, False
     t = time.perf_counter()
     ms = ModelSearch(pb)  # the whole model against the target: no assumption about the side seen
     timings["features"] = timings.get("features", 0.0) + time.perf_counter() - t
@@ -249,10 +273,9 @@ def estimate_default(pb: Task, prior: np.ndarray | None, trace_iterations: bool,
     close = close + neighbour_rivals(pb, refined, chosen)  # a mostly hidden base: neighbours that fit as well
     timings["icp"] += time.perf_counter() - t
     result = compose(pb, refined, chosen, close, T_world_source, timings)  # T_world_part = T_world_base @ T_base_part
-    if found.upright and not result.fits and p.free_after_upright and \
-            not pb.out_of_time("the free search after the upright one"):
-        return better_of_free_search(result, pb, prior, trace_iterations, timings)  # not upright
-    return replace(result, out_of_time="; ".join(pb.notes), problem=pb)
+    free_due = bool(found.upright and not result.fits and p.free_after_upright and
+                    not pb.out_of_time("the free search after the upright one"))
+    return replace(result, out_of_time="; ".join(pb.notes), problem=pb), free_due
 
 
 def compose(pb: Task, refined: list, chosen: int, close: list[int], T_world_source: np.ndarray,
@@ -276,19 +299,18 @@ def compose(pb: Task, refined: list, chosen: int, close: list[int], T_world_sour
                               coverage=float(c.coverage), preset=pb.params.preset)
 
 
-def better_of_free_search(result: RegistrationResult, pb: Task, prior, trace_iterations,
-                          timings: dict) -> RegistrationResult:
+def better_of_free_search(result: RegistrationResult, pb: Task, prior,
+                          trace_iterations) -> tuple[RegistrationResult, bool]:
     """The base lies on its side, is held in a hand or sits on a fixture: search freely too (on the same
-    prepared frame, with its own notes of what the time budget cut), keep the better of the two, and
-    count the time of both."""
+    prepared frame, with its own notes of what the time budget cut), keep the better of the two (by
+    coverage; the upright one on a tie), count the time of both. (kept, whether the free one won)"""
     free_timings: dict[str, float] = {}
     free = estimate_default(replace(pb, params=replace(pb.params, upright=False), notes=[]), prior, trace_iterations,
                             free_timings)
-    for k, v in timings.items():
+    for k, v in result.timings.items():
         free_timings[k] = free_timings.get(k, 0.0) + v
-    if free.coverage > result.coverage:
-        return free
-    return replace(result, timings=free_timings)
+    won = bool(free.coverage > result.coverage)
+    return replace(free if won else result, timings=free_timings), won
 
 
 CONFIDENCE_VOXELS_PER_DIAMETER = 50.0  # confidence is judged at diameter / 50 (ours) whatever the preset's voxel
