@@ -379,12 +379,9 @@ def test_the_paper_preset_is_not_confident_about_wrong_poses(tmp_path):
     assert wrong >= 1  # the case this test is about: the paper's wrong fits
 
 
-def test_second_look_cuts_clutter_from_the_mask(gearbox_dataset):
-    """A mask that took in a slab of table beside the base: the first estimate is right but not
-    confident (a third of the target is unexplained); the second look, on the mask cut to the model's
-    view at that pose, is confident, and its mask lies inside the given one."""
-    from dataclasses import replace
-
+def _slab_beside_the_base(gearbox_dataset):
+    """(step context, frame, view): the gearbox's first frame with a mask that took in a slab of table
+    beside the base, to its right (0.6 of the base's width)."""
     from apose_studio.data.dataset import Dataset
     from apose_studio.estimation import StepContext
 
@@ -394,16 +391,23 @@ def test_second_look_cuts_clutter_from_the_mask(gearbox_dataset):
     truth = fr.base_mask()
     ys, xs = np.nonzero(truth)
     slab = np.zeros_like(truth)
-    w = int(0.6 * np.ptp(xs))
-    slab[ys.min():ys.max(), xs.max() + 1:xs.max() + 1 + w] = True  # beside the base, to its right
-    mask = truth | slab
+    slab[ys.min():ys.max(), xs.max() + 1:xs.max() + 1 + int(0.6 * np.ptp(xs))] = True
+    return ctx, fr, View(fr.depth, truth | slab, fr.camera, fr.T_world_camera)
+
+
+def test_second_look_cuts_clutter_from_the_mask(gearbox_dataset):
+    """A mask that took in a slab of table beside the base: the first estimate is right but not
+    confident (a third of the target is unexplained); the second look, on the mask cut to the model's
+    view at that pose, is confident, and its mask lies inside the given one."""
+    from dataclasses import replace
+
+    ctx, fr, view = _slab_beside_the_base(gearbox_dataset)
     p = resolve_params("default", mask_hypotheses=False)  # the second look alone (the mask's readings find it too)
-    first = estimate(View(fr.depth, mask, fr.camera, fr.T_world_camera), ctx.base, ctx.view.T_base_part,
-                     replace(p, second_look=False))
-    r = estimate(View(fr.depth, mask, fr.camera, fr.T_world_camera), ctx.base, ctx.view.T_base_part, p)
+    first = estimate(view, ctx.base, ctx.view.T_base_part, replace(p, second_look=False))
+    r = estimate(view, ctx.base, ctx.view.T_base_part, p)
     d = ctx.part.diameter
     assert first.ok and not first.confident and mssd(first.T_world_part, fr.T_world_part, ctx.part.samples) < 0.1 * d
-    assert r.confident and r.second_look is not None and not (r.second_look & ~mask).any()
+    assert r.confident and r.second_look is not None and not (r.second_look & ~view.mask).any()
     assert mssd(r.T_world_part, fr.T_world_part, ctx.part.samples) < 0.1 * d and "second look" in r.timings
 
 
@@ -413,18 +417,9 @@ def test_the_second_look_comes_before_the_free_search(gearbox_dataset, monkeypat
     which seldom wins there (docs/ESTIMATOR.md), is not run. Without the second look it is."""
     from dataclasses import replace
 
-    from apose_studio.data.dataset import Dataset
-    from apose_studio.estimation import StepContext
     from apose_studio.registration import pipeline
 
-    ds = Dataset(gearbox_dataset)
-    ctx = StepContext(ds.assembly, load_parts(ds.assembly), 1)
-    fr = ds.frame(1, 0)
-    truth = fr.base_mask()
-    ys, xs = np.nonzero(truth)
-    slab = np.zeros_like(truth)
-    slab[ys.min():ys.max(), xs.max() + 1:xs.max() + 1 + int(0.6 * np.ptp(xs))] = True
-    view = View(fr.depth, truth | slab, fr.camera, fr.T_world_camera)
+    ctx, fr, view = _slab_beside_the_base(gearbox_dataset)
     runs = []
     free_search = pipeline.better_of_free_search
     monkeypatch.setattr(pipeline, "better_of_free_search", lambda *a, **k: runs.append(1) or free_search(*a, **k))
