@@ -810,11 +810,7 @@ def symmetry_transforms(symmetry: Symmetry | None, max_step: float = BOP_SYMMETR
         return np.eye(4)[None]
     n = symmetry.order if symmetry.order >= 2 else int(np.ceil(np.pi / max_step))
     origin = np.asarray(symmetry.origin)
-    out = []
-    for k in range(n):
-        R = se3.axis_angle_matrix(symmetry.axis, 2.0 * np.pi * k / n)
-        out.append(se3.make_T(R, origin - R @ origin))
-    return np.stack(out)
+    return np.stack([se3.turn_about(symmetry.axis, 2.0 * np.pi * k / n, origin) for k in range(n)])
 
 
 @dataclass(frozen=True, eq=False)

@@ -63,6 +63,16 @@ def axis_angle_matrix(axis, angle_rad) -> np.ndarray:
     return np.cos(th) * np.eye(3) + np.sin(th) * K + (1.0 - np.cos(th)) * np.outer(a, a)
 
 
+def turn_about(axis, angle_rad, point) -> np.ndarray:
+    """T turning by `angle_rad` about the line along `axis` through `point` (a base turned about its own
+    centre, a part about its symmetry axis): 4x4, or (n, 4, 4) for an array of n angles."""
+    R = axis_angle_matrix(axis, angle_rad)
+    p = np.asarray(point, dtype=float)
+    T = np.zeros(R.shape[:-2] + (4, 4))
+    T[..., :3, :3], T[..., :3, 3], T[..., 3, 3] = R, p - R @ p, 1.0
+    return T
+
+
 def scale_motion(T: np.ndarray, s: float) -> np.ndarray:
     """A rigid motion `s` times as large: the rotation's angle about its axis and the translation scaled by `s`
     (T^s for small motions; s = 2: the same motion twice, near enough for a frame-to-frame motion)."""

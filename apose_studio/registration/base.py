@@ -85,9 +85,7 @@ class BaseObject:
             c = pts.mean(axis=0)
             _, vecs = np.linalg.eigh(np.cov((pts - c).T))
             out = [np.eye(4)]
-            for i in range(3):
-                R = se3.axis_angle_matrix(vecs[:, i], np.pi)
-                out.append(se3.make_T(R, c - R @ c))
+            out += [se3.turn_about(vecs[:, i], np.pi, c) for i in range(3)]
             self._features["flips"] = np.stack(out)
         return self._features["flips"]
 

@@ -287,15 +287,12 @@ def neighbour_rivals(pb, refined: list[Refined], chosen: int) -> list[int]:
     angle = 2 * NEIGHBOUR_STEP  # radians: the rim (half the diameter away) moves s
     moves = [se3.make_T(t=s * e) for e in (e1, -e1, e2, -e2)] if hidden else []
     turns = [angle, -angle, 2 * angle, -2 * angle] if hidden else []
-    for a in turns:
-        R = se3.axis_angle_matrix(n, a)
-        moves.append(se3.make_T(R, c - R @ c))
+    moves += [se3.turn_about(n, a, c) for a in turns]
     if weak:  # all round, each turn first scored where it lands: most explain too little to be worth an ICP
         for a in np.radians(np.arange(TURN_STEP_DEG, 360.0, TURN_STEP_DEG)):
             if any(abs(np.angle(np.exp(1j * (a - b)))) <= angle / 2 for b in turns):
                 continue
-            R = se3.axis_angle_matrix(n, a)
-            M = se3.make_T(R, c - R @ c)
+            M = se3.turn_about(n, a, c)
             if score_pose(pb, M @ T_b, best.candidate.symmetry)[0].coverage >= TURN_SCREEN:
                 moves.append(M)
 

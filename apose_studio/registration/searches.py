@@ -194,12 +194,12 @@ class ModelSearch:
             starts += [(0, T_g @ S) for S in base.near_symmetries]
         return starts
 
-    def coarse(self, starts: list, n_try: int) -> list[Start]:
-        """Screen the (symmetry, pose) starts cheaply, refine the best `n_try` (and every start of the
-        prior's) by a few coarse ICP iterations, best first."""
+    def coarse(self, starts: list, n_try: int, share: np.ndarray | None = None) -> list[Start]:
+        """Screen the (symmetry, pose) starts cheaply (`share`: their screening, where the caller has it),
+        refine the best `n_try` (and every start of the prior's) by a few coarse ICP iterations, best first."""
         pb = self.pb
         vg, cam_pos = pb.vg, pb.cam_pos
-        share = self.explained([T for _, T in starts])
+        share = self.explained([T for _, T in starts]) if share is None else share
         screened = [starts[i] for i in np.argsort(-share, kind="stable")]
         out = []
         for k, T0 in screened[:n_try] + [s_ for s_ in screened[n_try:] if s_[0] == -1]:
@@ -244,8 +244,8 @@ def spread_yaws(share: np.ndarray, n: int, apart: int) -> list[int]:
     return picked
 
 
-def turned_round(pb, ms: ModelSearch, T_world_base: np.ndarray, up: np.ndarray) -> list:
-    """Starts turned about `up` through the base's centre at T_world_base (the best coarse pose), one per yaw step,
+def turned_round(pb, ms: ModelSearch, T_world_base: np.ndarray, up: np.ndarray) -> tuple[list, np.ndarray]:
+    """(starts, their screening): starts turned about `up` through the base's centre at T_world_base (the best coarse pose), one per yaw step,
     screened there, the best UPRIGHT_STARTS of them at least UPRIGHT_APART steps apart and from the pose itself.
     The first screening centres the model on what is seen of it, which clutter beside the base pulls off;
     the best coarse pose stands where the base is, so there the screening tells the yaws apart: a watering
@@ -253,13 +253,11 @@ def turned_round(pb, ms: ModelSearch, T_world_base: np.ndarray, up: np.ndarray) 
     called confident."""
     c = se3.transform_points(T_world_base, pb.base.centre[None])[0]
     angles = np.radians(np.arange(0.0, 360.0, UPRIGHT_YAW_STEP_DEG))
-    R = se3.axis_angle_matrix(up, angles)
-    turns = np.tile(np.eye(4), (len(angles), 1, 1))
-    turns[:, :3, :3], turns[:, :3, 3] = R, c - R @ c
-    poses = turns @ T_world_base
+    poses = se3.turn_about(up, angles, c) @ T_world_base
     share = ms.explained(list(poses))
     share[0] = np.inf  # the pose itself, refined already: picked first, so the others keep apart from it
-    return [(0, poses[i]) for i in spread_yaws(share, UPRIGHT_STARTS + 1, UPRIGHT_APART)[1:]]
+    picked = spread_yaws(share, UPRIGHT_STARTS + 1, UPRIGHT_APART)[1:]
+    return [(0, poses[i]) for i in picked], share[picked]
 
 
 def search_upright(pb, ms: ModelSearch, up: np.ndarray) -> Found | None:
@@ -267,8 +265,9 @@ def search_upright(pb, ms: ModelSearch, up: np.ndarray) -> Found | None:
     fits with what is seen centred, the yaws again standing on the table, slid over it (`resting_starts`)."""
     p, base = pb.params, pb.base
     starts = upright_starts(base, up, pb.tp, pb.T_world_camera, ms.model_pts, ms.model_nrm)
-    picked = spread_yaws(ms.explained([T for _, T in starts]), UPRIGHT_STARTS, UPRIGHT_APART)
-    coarse = ms.coarse([starts[i] for i in picked], UPRIGHT_STARTS)
+    share = ms.explained([T for _, T in starts])
+    picked = spread_yaws(share, UPRIGHT_STARTS, UPRIGHT_APART)
+    coarse = ms.coarse([starts[i] for i in picked], UPRIGHT_STARTS, share[picked])
     if (not coarse or coarse[0].explained < RESTING_BELOW) and pb.table is not None:
         resting = ms.coarse(resting_starts(starts, pb.table, ms.model_pts, base.diameter, pb.T_world_camera),
                             UPRIGHT_STARTS)
@@ -276,8 +275,8 @@ def search_upright(pb, ms: ModelSearch, up: np.ndarray) -> Found | None:
     if not coarse or coarse[0].explained < UPRIGHT_FALLBACK:
         return None if not coarse else Found(coarse)
     if coarse[0].explained < RESTING_BELOW:  # (a base the first yaws explain well is told apart by them)
-        coarse = sorted(coarse + ms.coarse(turned_round(pb, ms, coarse[0].T_coarse, up), UPRIGHT_STARTS),
-                        key=lambda x: -x.explained)
+        turned, turned_share = turned_round(pb, ms, coarse[0].T_coarse, up)
+        coarse = sorted(coarse + ms.coarse(turned, UPRIGHT_STARTS, turned_share), key=lambda x: -x.explained)
     twins: list[Start] = []
     if p.use_symmetries:
         # a nearly symmetric base (a motor block whose connector alone breaks its 4-fold turn) gives

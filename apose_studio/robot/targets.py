@@ -105,8 +105,7 @@ def symmetry_turns(symmetry: Symmetry | None) -> tuple[list[np.ndarray], list[st
     origin = np.asarray(symmetry.origin)
     turns, why = [], []
     for k in ks:
-        R = se3.axis_angle_matrix(symmetry.axis, 2.0 * np.pi * k / n)
-        turns.append(se3.make_T(R, origin - R @ origin))
+        turns.append(se3.turn_about(symmetry.axis, 2.0 * np.pi * k / n, origin))
         why.append(f"the part turned {360.0 * k / n:.4g} deg about its symmetry axis"
                    + (" (continuous symmetry: a sample)" if symmetry.order == 0 else ""))
     return turns, why

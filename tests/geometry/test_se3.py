@@ -182,3 +182,14 @@ def test_scale_motion_repeats_and_halves_a_motion():
     np.testing.assert_allclose(scale_motion(T, 3.0)[:3, 3], 3 * T[:3, 3])
     np.testing.assert_allclose(scale_motion(np.eye(4), 5.0), np.eye(4))
     np.testing.assert_allclose(scale_motion(T, 0.0), np.eye(4), atol=1e-12)
+
+
+def test_turn_about_a_line_by_hand():
+    """A quarter turn about the vertical line through (1, 0, 0): that line stays, the origin goes to (1, -1, 0);
+    an array of angles gives the same turns stacked."""
+    T = se3.turn_about([0.0, 0.0, 2.0], np.pi / 2, [1.0, 0.0, 0.0])
+    assert np.allclose(se3.transform_points(T, np.array([[1.0, 0.0, 5.0], [0.0, 0.0, 0.0]])),
+                       [[1.0, 0.0, 5.0], [1.0, -1.0, 0.0]])
+    assert np.allclose(T[3], [0, 0, 0, 1])
+    Ts = se3.turn_about([0.0, 0.0, 1.0], np.array([0.0, np.pi / 2]), [1.0, 0.0, 0.0])
+    assert Ts.shape == (2, 4, 4) and np.allclose(Ts[0], np.eye(4)) and np.allclose(Ts[1], T)
