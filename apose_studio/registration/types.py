@@ -81,8 +81,9 @@ class RegistrationResult:
     contradiction: float = float("nan")  # share of what the model shows (confirmed or contradicted) that the camera
     # sees past: the depth is farther than the model's surface there, so the model cannot be there
     second_look: np.ndarray | None = None  # the model-cut mask, when the second look gave this result
-    model_mask: np.ndarray | None = None  # the mask the result came from, cut to what the model shows at the final
-    # pose (an object in front of the base and clutter beside it removed): the base's mask as the estimate sees it
+    model_mask: np.ndarray | None = None  # the base's visible silhouette at the final pose: the mask the result came
+    # from cut to it (an object in front of the base and clutter beside it removed), and the pixels the mask missed
+    # within its reach (the prompt's box) where the depth lies on the model (pipeline.model_cut_mask)
     depth_noise: float = 0.0  # the frame's depth noise around the object (metres, one sigma), which widens tolerances
     out_of_time: str = ""  # what the time budget cut short (empty: nothing); such a result is never confident
     views: int = 1  # how many views the estimate fused (registration.fusion)

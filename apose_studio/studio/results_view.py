@@ -280,7 +280,7 @@ class ResultsView:
         if r is not None and r.ok and r.model_mask is not None and r.tracked:  # a played frame: no prompt of its own
             prompted, what = r.model_mask, "the tracked model's mask: where the depth agrees with it"
         elif r is not None and r.ok and r.model_mask is not None and uses_prompt(ins):  # (the prompt not segmented again)
-            prompted, what = r.model_mask, "the estimate's mask: the prompted one cut to the model's view"
+            prompted, what = r.model_mask, "the estimate's mask: what the model shows at the pose"
         else:
             prompted, what = overlay_mask(ins, fr), "prompted mask"
         outlines = []  # the base's model: truth under estimate
