@@ -20,7 +20,15 @@ import numpy as np
 from apose_studio.assembly.grasps import Grasp
 from apose_studio.assembly.model import Assembly
 from apose_studio.errors import AposeError
-from apose_studio.estimation import StepContext, array_mask, check_mask, estimate_pick, estimate_view, step_context
+from apose_studio.estimation import (
+    StepContext,
+    array_mask,
+    check_mask,
+    colour_registered,
+    estimate_pick,
+    estimate_view,
+    step_context,
+)
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.geometry.plane import table_frame
@@ -55,6 +63,8 @@ class PoseEstimate:
     T_world_part_approach: np.ndarray | None = None  # where the step's `approach` starts (None: the step has none)
     targets: object = None  # robot.targets.Targets: gripper poses in the robot's frame, when a hand-eye calibration
     # was given (robot_targets)
+    depth_shift_px: tuple[int, int] = (0, 0)  # how far the depth lay shifted (right, down) against the colour image
+    # around the prompt, moved back before the mask and the registration (estimation.colour_registered)
 
     def to_json(self) -> dict:
         def m(T):
@@ -69,6 +79,7 @@ class PoseEstimate:
                 "equivalent": [m(T) for T in self.equivalent],
                 "mask": {"source": self.mask_source, "pixels": int(self.mask.sum())},
                 "timings_s": {k: round(v, 4) for k, v in self.timings.items()},
+                "depth_shift_px": [int(v) for v in self.depth_shift_px],
                 **(self.targets.to_json() if self.targets is not None else {})}
 
 
@@ -84,13 +95,16 @@ def camera_from_K(K, width: int, height: int) -> CameraIntrinsics:
 def estimate_pose(rgb: np.ndarray, depth: np.ndarray, K, assembly, step: int, *, T_world_camera=None,
                   mask=None, box=None, point=None, preset: str = "default", orientation_prior: bool = False,
                   hand_eye=None, grasp: str | None = None, pick_box=None, pick_point=None, T_robot_flange=None,
-                  **params) -> PoseEstimate:
+                  align_depth: bool = False, **params) -> PoseEstimate:
     """The assembly pose of `step`'s part from one frame. rgb (H, W, 3) uint8; depth (H, W) metres (0 or
     NaN where missing); K 3x3. Raises AposeError on bad input; a failed estimate is ok=False with a reason.
 
     With `hand_eye` (a HandEye, or the path of a calibration file: robot.handeye) the estimate also carries
     `targets`: the gripper's poses in the robot's frame for `grasp` (default: the part's first), and with a
-    `pick_box` / `pick_point` around the loose part in the same frame, where to pick it (robot_targets)."""
+    `pick_box` / `pick_point` around the loose part in the same frame, where to pick it (robot_targets).
+
+    `align_depth` (with a box or point): the depth moved back onto the colour image when, around the prompt, it
+    lies shifted against it (estimation.colour_registered; `depth_shift_px` says how far it lay)."""
     t0 = time.perf_counter()
     depth = np.asarray(depth, np.float32)
     if depth.ndim != 2:
@@ -106,12 +120,14 @@ def estimate_pose(rgb: np.ndarray, depth: np.ndarray, K, assembly, step: int, *,
     ctx.base.warm_up(p)
     t_load = time.perf_counter() - t0
     t1 = time.perf_counter()
+    depth, shift = colour_registered(rgb, depth, box, point) if align_depth else (depth, (0, 0))
     if T_world_camera is None:
         T_world_camera = table_frame(depth, cam)
         T_world_camera = np.eye(4) if T_world_camera is None else T_world_camera
     m, source = array_mask(rgb, depth, cam, mask, box, point)
     view = View(depth, m, cam, np.asarray(T_world_camera, float), rgb=rgb, box=box)
     est = run_registration(view, source, ctx, p, orientation_prior, t0, time.perf_counter() - t1, t_load=t_load)
+    est.depth_shift_px = shift
     if hand_eye is None:
         return est
     pick = None
@@ -176,7 +192,7 @@ def run_registration(view: View, source: str, ctx: StepContext, params: Params, 
     mask = view.mask
     if r.reading:  # the estimate came from another reading of the mask (registration/hypotheses.py)
         source = f"{source}, {r.reading}"
-    if r.model_mask is not None:  # what the model shows at the pose: occluders in front and clutter beside it cut
+    if r.model_mask is not None:  # what the model shows at the pose: occluders and clutter cut, what the prompt missed added
         mask, source = r.model_mask, f"{source}, cut to the model's view"
     return pose_estimate(r, view.T_world_camera, ctx.view, mask, source,
                          {"load": t_load, "mask": t_mask, "registration": t2 - t1, "total": t2 - t0})

@@ -27,6 +27,7 @@ from apose_studio.data.dataset import Frame, read_image
 from apose_studio.errors import AposeError
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
+from apose_studio.geometry.sensor import depth_colour_shift, shift_image
 from apose_studio.masks.prompt import prompted_mask
 from apose_studio.masks.segment import depth_mask, load_model, table_objects
 from apose_studio.registration import BaseObject, Params, RegistrationResult, doubts, estimate, prepare_base
@@ -141,6 +142,29 @@ def check_mask(mask: np.ndarray, shape: tuple[int, int], what: str = "mask") -> 
         raise AposeError(f"{what} is {mask.shape[1] if mask.ndim > 1 else '?'}x{mask.shape[0]} but the depth is "
                          f"{shape[1]}x{shape[0]}; give a mask of the same size as the image")
     return mask > 0
+
+
+POINT_WINDOW_PX = 80  # a point prompt's depth and colour are compared this far around it each way
+
+
+def colour_registered(rgb, depth: np.ndarray, box=None, point=None) -> tuple[np.ndarray, tuple[int, int]]:
+    """(depth, (du, dv)): the depth moved back onto the colour image when, around the prompt (its box, or
+    POINT_WINDOW_PX round its point), it lies clearly shifted against it (geometry.sensor.depth_colour_shift:
+    (du, dv) is how far it lay right and down); the depth as it is, and (0, 0), otherwise or without a prompt.
+
+    A prompt is drawn on the colour image, and a Kinect's depth registered a few pixels off moves the cloud
+    under the mask sideways with it (benchmarks/captures.py, `real`: depth 3 px off, every right pose 4-7 mm
+    off). Asked for (`apose estimate --align-depth`, estimate_pose(align_depth=True)), not by default: on
+    frames registered exactly, a Kinect's edge bleeding and projector shadows made it find a shift now and
+    then (docs/CAPTURES_AND_BOP.md). Without a prompt nothing says where to compare: the whole image's edges
+    found wrong shifts."""
+    if rgb is None or (box is None and point is None):
+        return depth, (0, 0)
+    if box is None:
+        u, v = point
+        box = (u - POINT_WINDOW_PX, v - POINT_WINDOW_PX, u + POINT_WINDOW_PX + 1, v + POINT_WINDOW_PX + 1)
+    du, dv = depth_colour_shift(np.asarray(rgb), depth, box)
+    return (shift_image(depth, -du, -dv), (du, dv)) if (du, dv) != (0, 0) else (depth, (0, 0))
 
 
 def array_mask(rgb, depth, cam: CameraIntrinsics, mask=None, box=None, point=None) -> tuple[np.ndarray, str]:

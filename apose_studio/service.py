@@ -8,7 +8,8 @@ warm, and answers:
   mm = value x camera.depth_scale), `camera` (as a capture's camera.json: `cam_K` or `fx, fy, cx, cy`,
   `depth_scale`, optional BOP `cam_R_w2c` / `cam_t_w2c`), `step`, `box` [x0, y0, x1, y1] or `point` [u, v],
   optional `hand_eye` (a calibration as robot/handeye.py reads it, inline), `T_robot_flange`, `grasp`,
-  `pick_box` / `pick_point`, `orientation_prior`. The answer is the JSON `apose estimate --json` prints
+  `pick_box` / `pick_point`, `orientation_prior`, `align_depth` (with a box or point: the depth moved back
+  onto the colour image around it, as `apose estimate --align-depth`). The answer is the JSON `apose estimate --json` prints
   (with the robot targets when `hand_eye` is given).
 
 Rules, and why:
@@ -70,7 +71,7 @@ DEFAULT_WORKERS = min(2, os.cpu_count() or 1)  # estimates at once (--workers): 
 # 4 waiting clients ~1.3x sooner than one (benchmarks/serve.py); more only share the same cores
 MAX_PIXELS = 1920 * 1200  # a frame's pixels (--max-pixels): depth cameras give at most ~1 MP aligned to colour
 REQUEST_KEYS = ("rgb_png_b64", "depth_png_b64", "rgb_npy_b64", "depth_npy_b64", "camera", "step", "box", "point", "hand_eye",
-                "T_robot_flange", "grasp", "pick_box", "pick_point", "orientation_prior")
+                "T_robot_flange", "grasp", "pick_box", "pick_point", "orientation_prior", "align_depth")
 MAX_SIDE = 8192  # pixels a side of an array frame (as safeio's images)
 MAX_JSON_ITEMS = 4096  # commas, colons, brackets and braces in a JSON body (a request with hand-eye and grasp: ~150)
 NPZ_TYPE = "application/x-npz"  # a body of numpy.savez(rgb=, depth=, request=json text): no base64, no PNG decoding
@@ -144,7 +145,8 @@ class EstimationService:
                                 point=req["point"], T_world_camera=req["T_world_camera"],
                                 orientation_prior=req["orientation_prior"], hand_eye=req["hand_eye"],
                                 grasp=req["grasp"], pick_box=req["pick_box"], pick_point=req["pick_point"],
-                                T_robot_flange=req["T_robot_flange"], preset=self.preset, **self.overrides)
+                                T_robot_flange=req["T_robot_flange"], align_depth=req["align_depth"], preset=self.preset,
+                                **self.overrides)
         with self._count:
             self.served += 1
         return {**est.to_json(), "step": req["step"], "part": view.part, "base": list(view.base),
@@ -398,15 +400,18 @@ def parse_request(body: bytes, n_steps: int, max_pixels: int = 1920 * 1200, npz:
     grasp = req.get("grasp")
     if grasp is not None and not isinstance(grasp, str):
         raise BadRequest("grasp: expected a grasp's name")
-    prior = req.get("orientation_prior")
-    prior = False if prior is None else prior  # null is absent, as for the other optional keys
-    if not isinstance(prior, bool):
-        raise BadRequest("orientation_prior: expected true or false")
+    prior, align = (False if req.get(k) is None else req.get(k) for k in ("orientation_prior", "align_depth"))  # null is
+    # absent, as for the other optional keys
+    for key, value in (("orientation_prior", prior), ("align_depth", align)):
+        if not isinstance(value, bool):
+            raise BadRequest(f"{key}: expected true or false")
+    if align and req.get("box") is None and req.get("point") is None:
+        raise BadRequest("align_depth: the depth is compared with the colour image around a prompt; give box or point")
     return {"rgb": np.ascontiguousarray(rgb), "depth": depth,
             "K": cam.K, "step": step, "box": _pixels(req.get("box"), "box", 4), "point": _pixels(req.get("point"), "point", 2),
             "T_world_camera": T_world_camera, "hand_eye": hand_eye, "T_robot_flange": flange, "grasp": grasp,
             "pick_box": _pixels(req.get("pick_box"), "pick_box", 4), "pick_point": _pixels(req.get("pick_point"), "pick_point", 2),
-            "orientation_prior": prior}
+            "orientation_prior": prior, "align_depth": align}
 
 
 def peer_of(address: str) -> str:

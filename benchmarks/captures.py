@@ -3,7 +3,8 @@
 
     .venv/bin/python benchmarks/captures.py [--frames 6] [--conditions none,gaussian,realsense,kinect,stacked,hidden,real]
                                             [--assemblies fidget,helical_gearbox,planetary_reducer,desk_objects]
-                                            [--preset paper] [--margin-px 10] [--compare-depth] [--json ROWS.json]
+                                            [--preset paper] [--margin-px 10] [--compare-depth] [--align-depth]
+                                            [--json ROWS.json]
 
 Renders `apose render --clutter ...` datasets per condition (kept in artifacts/captures/ for the next
 run), then per frame: the box prompt (the ground truth's visible box, --margin-px wider per side, as
@@ -67,13 +68,14 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 from registration import ASSEMBLIES, DESK, loaded_assemblies, stage_table  # noqa: E402
 
 from apose_studio.data.dataset import Dataset  # noqa: E402
-from apose_studio.estimation import StepContext, estimate_frame  # noqa: E402
+from apose_studio.estimation import StepContext, colour_registered, estimate_frame  # noqa: E402
 from apose_studio.evaluate import score_frame
 from apose_studio.geometry import metrics  # noqa: E402
+from apose_studio.geometry.sensor import shift_image  # noqa: E402
 from apose_studio.masks.prompt import prompted_mask  # noqa: E402
 from apose_studio.masks.segment import iou  # noqa: E402
 from apose_studio.registration import resolve_params  # noqa: E402
-from apose_studio.synth.frame import RenderSettings, shift_image  # noqa: E402
+from apose_studio.synth.frame import RenderSettings  # noqa: E402
 from apose_studio.synth.render import render_dataset
 
 KINECT = dict(noise="kinect")
@@ -158,7 +160,8 @@ def base_add(ctx: StepContext, T_est: np.ndarray, T_true: np.ndarray) -> float:
     return float(np.mean(np.linalg.norm(est - true, axis=1)))
 
 
-def run(ds: Dataset, asm, models, params, margin_px: int, compare_depth: bool = False) -> list[dict]:
+def run(ds: Dataset, asm, models, params, margin_px: int, compare_depth: bool = False,
+        align_depth: bool = False) -> list[dict]:
     from apose_studio.registration.types import doubts
 
     rows = []
@@ -173,11 +176,14 @@ def run(ds: Dataset, asm, models, params, margin_px: int, compare_depth: bool = 
             if box is None:
                 continue  # the base is wholly hidden: nothing to prompt
             t0 = time.perf_counter()
-            mask = prompted_mask(frame.rgb, frame.depth, frame.camera, box=box).mask
-            t_mask = time.perf_counter() - t0
-            r = estimate_frame(frame, ctx, params, mask=mask, box=box)
+            depth, found = colour_registered(frame.rgb, frame.depth, box) if align_depth else (frame.depth, (0, 0))
+            seen = replace(frame, depth=depth)
+            t_align = time.perf_counter() - t0
+            mask = prompted_mask(seen.rgb, seen.depth, seen.camera, box=box).mask
+            t_mask = time.perf_counter() - t0 - t_align
+            r = estimate_frame(seen, ctx, params, mask=mask, box=box)
             seconds = time.perf_counter() - t0
-            stages = {"prompted mask": t_mask, **r.timings}
+            stages = {"depth onto colour": t_align, "prompted mask": t_mask, **r.timings}
             stages["rest"] = max(seconds - sum(stages.values()), 0.0)  # judging, choosing, what no stage names
             sc = score_frame(frame, r, ctx.part, mask, ctx.base.symmetries)
             d = ctx.part.diameter
@@ -202,7 +208,8 @@ def run(ds: Dataset, asm, models, params, margin_px: int, compare_depth: bool = 
                          "base_right": bool(add < 0.1 * ctx.base.diameter),
                          "confident": bool(r.ok and r.confident), "seconds": seconds, "stages": stages,
                          "noise_mm": r.depth_noise * 1000,
-                         "telling_px": telling_pixels(frame, ctx, shift)})
+                         "telling_px": telling_pixels(frame, ctx, shift),
+                         "depth_shift_px": list(shift), "shift_found_px": list(found)})
     return rows
 
 
@@ -216,6 +223,8 @@ def main() -> int:
     ap.add_argument("--margin-px", type=int, default=10, help="the prompt box: the visible mask's box this much wider "
                     "per side (default 10, as a user draws it)")
     ap.add_argument("--compare-depth", action="store_true", help="also score the DBSCAN depth mask with the same box")
+    ap.add_argument("--align-depth", action="store_true", help="move the depth back onto the colour image around the "
+                    "box first, as `apose estimate --align-depth` does")
     ap.add_argument("--json", help="write every frame's row here (assembly, condition, step, im_id, right, confident, "
                     "doubts, ...)")
     args = ap.parse_args()
@@ -235,7 +244,7 @@ def main() -> int:
                 if asm.camera is not None:
                     settings = replace(settings, camera=asm.camera)
                 render_dataset(asm, root, settings, overwrite=True, progress=False)
-            rows = run(Dataset(root), asm, models, params, args.margin_px, args.compare_depth)
+            rows = run(Dataset(root), asm, models, params, args.margin_px, args.compare_depth, args.align_depth)
             if args.compare_depth:
                 depth_ious = [r["depth_iou"] for r in rows if "depth_iou" in r]
                 rows = [r for r in rows if "depth_iou" not in r]

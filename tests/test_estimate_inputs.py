@@ -45,12 +45,36 @@ def test_capture_both_camera_forms_give_the_true_pose(capture):
         assert r.returncode == 0, r.stderr
         doc = json.loads(r.stdout)
         assert doc["ok"] and doc["mask"]["source"] == "box, cut to the model's view" and doc["mask"]["pixels"] > 1000
+        assert doc["depth_shift_px"] == [0, 0]  # not asked to look (--align-depth)
         for key in ("T_world_base", "T_world_part", "T_camera_part", "confident", "coverage", "ambiguous", "alternatives",
                     "timings_s"):
             assert key in doc
         T = np.asarray(doc["T_camera_part"])
         assert np.linalg.norm(T[:3, 3] - truth[:3, 3]) < 0.005, form  # within 5 mm of the renderer's pose
         assert mssd_to_truth(T, truth, capture["asm"], capture["frame"].part) < 0.005, form  # and not turned
+
+
+def test_a_capture_whose_depth_lies_off_its_colour_image(tmp_path):
+    """A Kinect-like desk capture whose depth lies 3 px off its colour image (the renderer's shift, as
+    captures.py's `real` row): `apose estimate --box --align-depth` says how far it found it and moved it back,
+    and the pose is within 5 mm (the watering can's label: 2.9 mm; 5.8 mm when benchmarks/captures.py left the
+    depth where it was). Without a prompt the flag is refused: nothing says where to compare."""
+    from .conftest import SAMPLES, rendered_frame
+
+    desk = SAMPLES / "desk_objects" / "assembly.yaml"
+    frame = rendered_frame(desk, 2, 0, seed=5, noise="kinect", noise_sigma_at_05m=0.0005, clutter="bench,stacked,textured",
+                           depth_bias_m=0.003, misregistration_px=3.0, distance_range_m=(0.65, 1.2))
+    cap = write_capture(frame, tmp_path / "cap")
+    box = ",".join(map(str, truth_box(frame.base_mask())))
+    r = run("estimate", cap, "--assembly", desk, "--step", 2, "--box", box, "--align-depth", "--json")
+    assert r.returncode == 0, r.stderr
+    doc = json.loads(r.stdout)
+    assert max(abs(v) for v in doc["depth_shift_px"]) >= 2
+    assert mssd_to_truth(np.asarray(doc["T_camera_part"]), _T_camera_part_truth(frame), desk, frame.part) < 0.005
+    r = run("estimate", cap, "--assembly", desk, "--step", 2, "--box", box, "--align-depth")
+    assert "off the colour image around the prompt; moved back" in r.stdout, r.stdout
+    r = run("estimate", cap, "--assembly", desk, "--step", 2, "--align-depth")
+    assert r.returncode == 2 and "give it with --box or --point" in r.stderr, (r.returncode, r.stderr)
 
 
 def test_bop_scene_folder_with_ground_truth(clutter_dataset):

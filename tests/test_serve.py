@@ -339,6 +339,12 @@ def test_header_tricks_and_oversized_frames_are_refused(server, frame):
                                                                   grasp="handle"))
     assert status == 400 and doc["error"].startswith("grasp: handle")
     assert call(server, "POST", "/estimate", request_body(frame, orientation_prior=None))[0] == 200  # null: absent
+    status, doc = call(server, "POST", "/estimate", request_body(frame, align_depth="yes"))
+    assert status == 400 and doc["error"] == "align_depth: expected true or false"
+    status, doc = call(server, "POST", "/estimate", dict(request_body(frame, align_depth=True), box=None, point=None))
+    assert status == 400 and doc["error"].startswith("align_depth: the depth is compared")
+    status, doc = call(server, "POST", "/estimate", request_body(frame, align_depth=True))
+    assert status == 200 and doc["ok"] and doc["depth_shift_px"] == [0, 0]  # a render registered exactly
 
 
 def test_slow_and_many_connections_do_not_lock_clients_out(frame, monkeypatch):

@@ -431,6 +431,10 @@ def _add_estimate(sub) -> None:
                    help="a box around the base object in pixels: the mask from depth and colour (several views: once per view)")
     p.add_argument("--point", metavar="U,V", action="append",
                    help="a click on the base object in pixels: the mask from depth and colour (several views: once per view)")
+    p.add_argument("--align-depth", action="store_true",
+                   help="with --box/--point: find how far the depth lies shifted against the colour image around the "
+                   "prompt (a Kinect v1 registered a few pixels off) and move it back before the mask and the "
+                   "registration (docs/CAPTURES_AND_BOP.md)")
     p.add_argument("--obj-map", action="append", metavar="PART=OBJ_ID",
                    help="BOP scene: which BOP obj_id each part is (repeatable), for the ground truth in scene_gt.json")
     p.add_argument("--json", action="store_true", help="print JSON (metres): ok, reason, T_world_base, T_world_part, "

@@ -23,6 +23,7 @@ from apose_studio.estimation import (
     MaskRequest,
     StepContext,
     array_mask,
+    colour_registered,
     estimate_instances,
     estimate_pick,
     find_mask,
@@ -97,6 +98,10 @@ def _pick(args, frame: Frame, ctx, params):
 
 
 def cmd_estimate(args) -> int:
+    if getattr(args, "align_depth", False) and (len(args.input) > 1 or args.views > 1 or args.instances
+                                                 or not (args.box or args.point)):
+        raise AposeError("--align-depth compares the depth with the colour image around one frame's prompt: give it "
+                         "with --box or --point and one frame")
     if len(args.input) > 1 or args.views > 1:
         if args.instances:
             raise AposeError("--instances all takes one frame; fused views find one instance")
@@ -118,9 +123,14 @@ def cmd_estimate(args) -> int:
     params = params_of(args, asm.registration)
     ctx.base.warm_up(params)
     t1 = time.perf_counter()
+    shift = (0, 0)
+    if getattr(args, "align_depth", False):  # the prompt is on the colour image: the depth moved onto it
+        depth, shift = colour_registered(frame.rgb, frame.depth, request.box, request.point)
+        frame = replace(frame, depth=depth)
     mask, source = find_mask(frame, request, asm, args.input[0])
     est = run_registration(replace(View.of(frame, mask), box=request.box), source, ctx, params, args.orientation_prior, t0,
                            time.perf_counter() - t1, trace_iterations=True, t_load=t1 - t0)
+    est.depth_shift_px = shift
     if hand_eye is not None:
         est.targets = robot_targets(est, asm, ctx, hand_eye, args.grasp, _pick(args, frame, ctx, params),
                                     _flange_of(frame, hand_eye, args.input[0]))
@@ -145,6 +155,9 @@ def cmd_estimate(args) -> int:
         return 0 if r.ok else 1
     print(f"step {args.step}, frame {args.frame}: place {ctx.part.id} on [{', '.join(ctx.view.base)}]  (preset {params.preset})")
     print(f"mask: {source}, {int(mask.sum())} pixels ({est.timings['mask'] * 1000:.0f} ms)")
+    if shift != (0, 0):
+        print(f"depth: lay {shift[0]:+d}, {shift[1]:+d} px (right, down) off the colour image around the prompt; moved back "
+              "before the mask and the registration")
     if not r.ok:
         print(f"estimation failed: {r.reason}")
         return 1

@@ -36,7 +36,7 @@ from apose_studio.params import PRESETS, resolve_params
 from apose_studio.registration import doubts, project_to_cloud
 from apose_studio.registration.next_view import next_view
 from apose_studio.studio import inspection
-from apose_studio.studio.prompt_panel import PROMPT_SOURCE, prompt_of, prompted_mask
+from apose_studio.studio.prompt_panel import PROMPT_SOURCE, colour_aligned, prompt_of, prompted_mask
 from apose_studio.studio.state import Event, shared
 from apose_studio.studio.widgets import VECTOR_MM, esc, scene_point_at_ray
 
@@ -58,6 +58,7 @@ class EstimateJob:
     prior: bool
     crop: tuple | None  # (T_world_box, size in metres) for depth masks, or None
     prompt: tuple | None = None  # (box, point) for mask "prompt"
+    align: bool = False  # with a prompt: the depth moved onto the colour image around it first (Align depth to colour)
 
     def params(self):
         """The estimator's parameters for this job (Upright applies to the default preset)."""
@@ -69,7 +70,7 @@ class EstimateJob:
         if self.crop is not None:
             mask = (mask, tuple(np.round(self.crop[0], 4).ravel()), tuple(np.round(self.crop[1], 4)))
         if self.prompt is not None:
-            mask = (mask, self.prompt)
+            mask = (mask, self.prompt, "depth onto colour") if self.align else (mask, self.prompt)
         preset = self.preset + (" free" if not self.upright and self.preset == "default" else "")
         return cache.key(self.frames_path, self.step, im_id, preset, mask, self.prior)
 
@@ -393,7 +394,8 @@ class InspectPanel:
             path += "#" + ",".join(f"{k}={v}" for k, v in sorted(self.frames.obj_of_part.items()))
         return EstimateJob(self.frames, path, asm, self.inspect_models(), step, tuple(ids),
                            self.i_preset.value, bool(self.i_upright.value), self.confined_mask(self.i_mask.value),
-                           bool(self.i_prior.value), crop, prompt)
+                           bool(self.i_prior.value), crop, prompt,
+                           prompt is not None and self.app.state.inspect.align_depth)
 
     def confined_mask(self, source: str) -> str:
         """The Mask choice as the estimator is given it: a built-in source by name, a model file (any other
@@ -524,7 +526,10 @@ class InspectPanel:
             keep = inspection.pixels_in_box(frame.depth, frame.camera, frame.T_world_camera, *job.crop)
             mask = depth_mask(frame.depth, frame.camera, keep=keep)
         if job.prompt is not None:
-            mask = prompted_mask(self.app.state.inspect.prompt_masks, frame, job.prompt)
+            masks = self.app.state.inspect.prompt_masks
+            mask = prompted_mask(masks, frame, job.prompt, job.align)
+            if job.align:  # the estimate on the depth the mask was found on
+                frame = colour_aligned(masks, frame, job.prompt)[0]
         box = job.prompt[0] if job.prompt is not None else None
         result, score = estimate_and_score(frame, ctx, params, job.mask, job.prior, trace_iterations=True, mask=mask,
                                            box=box)

@@ -8,9 +8,12 @@ Showing a mask chooses mask source "prompt" (MASK_SOURCE_CHOSEN) and redraws the
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from apose_studio.errors import AposeError
+from apose_studio.estimation import colour_registered
 from apose_studio.masks.prompt import parse_box, parse_point
 from apose_studio.masks.prompt import prompted_mask as segment
 from apose_studio.studio import inspection
@@ -39,15 +42,30 @@ def prompt_of(text: str) -> tuple[tuple | None, tuple | None]:
     return parse_prompt(text)
 
 
-def prompted_mask(masks: dict, frame, prompt: tuple) -> np.ndarray:
-    """The mask `prompt` gives on `frame`, kept in `masks` (by frame source, im_id, step and prompt) so that
-    redrawing the overlay is instant and an estimate uses the mask on show."""
-    key = (frame.source, frame.im_id, frame.step, prompt)
+def colour_aligned(masks: dict, frame, prompt: tuple):
+    """(frame, (du, dv)): `frame` with its depth moved back onto the colour image around `prompt` when it lies
+    shifted against it there (estimation.colour_registered), kept in `masks` beside the prompt's masks."""
+    key = (frame.source, frame.im_id, frame.step, prompt, "depth onto colour")
     if key not in masks:
         if len(masks) > 32:
             masks.clear()
         box, point = prompt
-        masks[key] = segment(frame.rgb, frame.depth, frame.camera, box=box, point=point).mask
+        masks[key] = colour_registered(frame.rgb, frame.depth, box, point)
+    depth, shift = masks[key]
+    return (replace(frame, depth=depth) if shift != (0, 0) else frame), shift
+
+
+def prompted_mask(masks: dict, frame, prompt: tuple, align: bool = False) -> np.ndarray:
+    """The mask `prompt` gives on `frame` (with `align`, on its depth moved onto the colour image first:
+    colour_aligned), kept in `masks` (by frame source, im_id, step, prompt and align) so that redrawing the
+    overlay is instant and an estimate uses the mask on show."""
+    key = (frame.source, frame.im_id, frame.step, prompt, align)
+    if key not in masks:
+        seen = colour_aligned(masks, frame, prompt)[0] if align else frame
+        if len(masks) > 32:
+            masks.clear()
+        box, point = prompt
+        masks[key] = segment(seen.rgb, seen.depth, seen.camera, box=box, point=point).mask
     return masks[key]
 
 
@@ -61,7 +79,7 @@ def overlay_mask(ins: InspectState, frame) -> np.ndarray | None:
     if frame is None or not uses_prompt(ins):
         return None
     try:
-        return prompted_mask(ins.prompt_masks, frame, prompt_of(ins.prompt_text))
+        return prompted_mask(ins.prompt_masks, frame, prompt_of(ins.prompt_text), ins.align_depth)
     except AposeError:
         return None
 
@@ -82,6 +100,10 @@ class PromptPanel:
             b.on_click(self.app.guarded("Drag a box")(self.on_drag_box))
             b = gui.add_button("Show mask", hint="the mask the prompt gives, drawn over the RGB image")
             b.on_click(self.app.guarded("Show mask")(lambda c: self.show_mask(c)))
+            self.i_align = gui.add_checkbox("Align depth to colour", False, hint="a Kinect v1's depth is often "
+                                            "registered a few pixels off its colour image: find the shift around the "
+                                            "prompt and move the depth back before the mask and the estimate")
+            self.i_align.on_update(self.app.guarded("Align depth to colour")(lambda c: self.on_align(c)))
 
     def on_prompt_typed(self) -> None:
         """A prompt typed (and sent with Enter) is the one to estimate with: Mask switches to prompt. A
@@ -99,7 +121,14 @@ class PromptPanel:
 
     def mask(self, frame, prompt=None) -> np.ndarray:
         """The mask of `prompt` (default: the typed one) on `frame`."""
-        return prompted_mask(self.app.state.inspect.prompt_masks, frame, prompt if prompt is not None else self.prompt())
+        ins = self.app.state.inspect
+        return prompted_mask(ins.prompt_masks, frame, prompt if prompt is not None else self.prompt(), ins.align_depth)
+
+    def on_align(self, client) -> None:
+        """Align depth to colour ticked or unticked: the mask on show and the next estimate follow it."""
+        self.app.state.inspect.align_depth = bool(self.i_align.value)
+        if self.app.state.inspect.frame is not None and uses_prompt(self.app.state.inspect):
+            self.show_mask(client)
 
     def show_mask(self, client) -> None:
         """Compute the prompt's mask (errors say what is wrong with the prompt) and draw it over the RGB."""
@@ -110,7 +139,12 @@ class PromptPanel:
         if self.app.state.inspect.mask_source != PROMPT_SOURCE:
             self.app.events.emit(Event.MASK_SOURCE_CHOSEN, source=PROMPT_SOURCE)  # the frame is redrawn, with the mask
         self.app.events.emit(Event.OVERLAY_CHANGED)
-        self.app.notify(client, "Mask", f"{int(m.sum())} pixels from the prompt; estimate with it (Mask: prompt)")
+        moved = ""
+        if self.app.state.inspect.align_depth:
+            du, dv = colour_aligned(self.app.state.inspect.prompt_masks, fr, self.prompt())[1]
+            moved = (f"; the depth lay {du:+d}, {dv:+d} px (right, down) off the colour image here, moved back"
+                     if (du, dv) != (0, 0) else "; the depth lies on the colour image here (no shift found)")
+        self.app.notify(client, "Mask", f"{int(m.sum())} pixels from the prompt{moved}; estimate with it (Mask: prompt)")
 
     def on_prompt_at_click(self, client) -> None:
         """The next click in the 3D view (by this tab) becomes the point prompt."""

@@ -105,7 +105,9 @@ class InspectState:
     advice: object | None = None  # where to look from to settle `result` (registration.next_view.NextView), or None
     mask_source: str = ""  # the Mask dropdown's choice (gt, depth, box, prompt, or a model path)
     prompt_text: str = ""  # the Prompt field: a box x0,y0,x1,y1 or a point u,v, in pixels
-    prompt_masks: dict = field(default_factory=dict)  # (frame source, im_id, step, prompt) -> mask
+    prompt_masks: dict = field(default_factory=dict)  # (frame source, im_id, step, prompt, align) -> mask
+    align_depth: bool = False  # the Prompt folder's "Align depth to colour": around the prompt, the depth moved
+    # back onto the colour image (estimation.colour_registered), for the mask and the estimate
     part_models: dict = field(default_factory=dict)  # id(assembly) -> its PartModels (one assembly's)
     hand_eye: object | None = None  # the cell's calibration (robot.handeye.HandEye) from the Robot folder, or None
     T_robot_flange: np.ndarray | None = None  # eye-in-hand: the arm at the capture (its camera.json, else the file's)

@@ -21,6 +21,7 @@ from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.geometry.noise import NOISE_MODELS, add_depth_noise, noise_texture
 from apose_studio.geometry.raycast import RayGrid, body, pixel_window
+from apose_studio.geometry.sensor import shift_image
 from apose_studio.synth.clutter import Pattern, clutter_around, hide_base, stack_on
 
 BASE_POSES = ("yaw", "fixed")
@@ -472,9 +473,3 @@ def misregistration(noise_seed: int, px: float) -> tuple[int, int]:
     return int(round(px * np.cos(angle))), int(round(px * np.sin(angle)))
 
 
-def shift_image(image: np.ndarray, du: int, dv: int) -> np.ndarray:
-    """image moved du pixels right and dv down; what comes in at the border is 0 (no depth)."""
-    out = np.zeros_like(image)
-    h, w = image.shape[:2]
-    out[max(dv, 0):h + min(dv, 0), max(du, 0):w + min(du, 0)] = image[max(-dv, 0):h + min(-dv, 0), max(-du, 0):w + min(-du, 0)]
-    return out
