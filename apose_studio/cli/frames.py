@@ -183,6 +183,9 @@ def cmd_estimate(args) -> int:
     if sc is not None:
         print(f"against ground truth: ADI {sc.adi * 1000:.3f} mm, MSSD {sc.mssd * 1000:.3f} mm, "
               f"te {sc.te * 1000:.3f} mm, re {sc.re_deg:.3f}°")
+        if sc.mssd_mod_base_sym is not None and sc.mssd_mod_base_sym < sc.mssd - 1e-9:  # the base's exact twin of it
+            print(f"  the same assembly as the truth turned by the base's symmetry (an 'equivalent' placement): MSSD "
+                  f"{sc.mssd_mod_base_sym * 1000:.3f} mm to that")
     if est.targets is not None:
         _print_targets(est.targets)
         if args.mcap:
