@@ -63,6 +63,8 @@ class PoseEstimate:
     T_world_part_approach: np.ndarray | None = None  # where the step's `approach` starts (None: the step has none)
     targets: object = None  # robot.targets.Targets: gripper poses in the robot's frame, when a hand-eye calibration
     # was given (robot_targets)
+    base_alternatives: list[np.ndarray] = field(default_factory=list)  # T_world_base of the base turned another way
+    # that places the part alike and fits as well: the part's place is sure, the base's own turn is not
     depth_shift_px: tuple[int, int] = (0, 0)  # how far the depth lay shifted (right, down) against the colour image
     # around the prompt, moved back before the mask and the registration (estimation.colour_registered)
 
@@ -77,6 +79,8 @@ class PoseEstimate:
                 "T_world_camera": m(self.T_world_camera), "confident": self.confident, "coverage": cov,
                 "doubts": self.doubts, "ambiguous": self.ambiguous, "alternatives": [m(T) for T in self.alternatives],
                 "equivalent": [m(T) for T in self.equivalent],
+                "base_confident": bool(self.confident and not self.base_alternatives),
+                "base_alternatives": [m(T) for T in self.base_alternatives],
                 "mask": {"source": self.mask_source, "pixels": int(self.mask.sum())},
                 "timings_s": {k: round(v, 4) for k, v in self.timings.items()},
                 "depth_shift_px": [int(v) for v in self.depth_shift_px],
@@ -205,4 +209,5 @@ def pose_estimate(r: RegistrationResult, T_world_camera, view, mask, source, tim
     return PoseEstimate(ok, r.reason, T_world_camera, r.T_world_base if ok else None, r.T_world_part if ok else None,
                         se3.inv(T_world_camera) @ r.T_world_part if ok else None, bool(r.confident), float(r.coverage),
                         bool(r.ambiguous), [c.T_world_part for c in r.alternatives], mask, source, dict(timings), r,
-                        "" if r.confident or not ok else doubts(r), r.equivalent if ok else [], approach)
+                        "" if r.confident or not ok else doubts(r), r.equivalent if ok else [], approach,
+                        base_alternatives=list(r.base_alternatives) if ok else [])

@@ -180,6 +180,10 @@ def cmd_estimate(args) -> int:
     if r.equivalent:
         print(f"the base object is symmetric: {len(r.equivalent)} other placement(s) of {ctx.part.id} are the same "
               "assembly (listed as 'equivalent' in --json)")
+    if r.base_alternatives:
+        print(f"the base's own pose is not sure: turned {len(r.base_alternatives)} other way(s) it fits as well and "
+              f"places {ctx.part.id} alike (the view hides what tells them apart; 'base_alternatives' in --json, "
+              "base_confident false)")
     if sc is not None:
         print(f"against ground truth: ADI {sc.adi * 1000:.3f} mm, MSSD {sc.mssd * 1000:.3f} mm, "
               f"te {sc.te * 1000:.3f} mm, re {sc.re_deg:.3f}°")

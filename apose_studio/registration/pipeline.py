@@ -24,6 +24,7 @@ from apose_studio.registration.paper import estimate_paper
 from apose_studio.registration.refine import (
     add_chosen_twins,
     add_symmetric_twins,
+    base_twins_alike,
     choose,
     neighbour_rivals,
     polish_chosen,
@@ -67,7 +68,22 @@ def estimate(view: View, base: BaseObject, T_base_part: np.ndarray, params: Para
     The mask as given first; when that estimate does not fit (and `params.mask_hypotheses`), the
     mask's other readings too (hypotheses.readings: without what lies on the base, without what stands
     in front), and the estimate whose model explains the frame best is returned (its `reading` names
-    the mask it came from)."""
+    the mask it came from). A confident result also says whether the base's own turn is sure
+    (`base_alternatives`: refine.base_twins_alike)."""
+    result = estimate_readings(view, base, T_base_part, params, prior_T_world_base, trace_iterations, part_symmetries)
+    pb = result.problem
+    if not (result.ok and result.confident and isinstance(pb, Task) and params.use_symmetries):
+        return result
+    t = time.perf_counter()
+    alternatives = base_twins_alike(pb, result.T_world_base)
+    return replace(result, base_alternatives=alternatives,
+                   timings={**result.timings, "base twins": time.perf_counter() - t})
+
+
+def estimate_readings(view: View, base: BaseObject, T_base_part: np.ndarray, params: Params,
+                      prior_T_world_base: np.ndarray | None = None, trace_iterations: bool = True,
+                      part_symmetries: np.ndarray | None = None) -> RegistrationResult:
+    """`estimate` but the base's twins: the mask as given, then its other readings when that does not fit."""
     first = estimate_mask(view, base, T_base_part, params, prior_T_world_base, trace_iterations, part_symmetries)
     if first.fits or not params.mask_hypotheses or params.global_source == "raycast":
         return first  # confident, or only ambiguous: a view problem that no reading of the mask can settle

@@ -18,6 +18,7 @@ from apose_studio.registration.scoring import (
     is_twin,
     pixels,
     poses_within,
+    same_placement,
     score_pose,
     score_seen,
 )
@@ -329,3 +330,34 @@ def add_chosen_twins(pb, refined: list[Refined], chosen: int) -> bool:
     n = len(refined)
     _add_twins_of(pb, refined, refined[chosen])
     return len(refined) > n
+
+
+def base_twins_alike(pb, T_world_base: np.ndarray) -> list[np.ndarray]:
+    """T_world_base of the base at T_world_base turned by each close twin or near-symmetry that places the part
+    alike (scoring.same_placement, modulo the part's own symmetries: a symmetric sun gear on a motor turned half
+    round goes to the same place), refined and polished as a close twin is, that explains the data within
+    TWIN_TIE_MARGIN of the pose itself. The part's placement is then sure and the base's own turn is not: the view
+    hides what tells them apart (benchmarks/captures.py: a planetary motor with its sun gear, half turned, 0.924
+    against the truth's 0.912, the gear 0.1 mm off either way, the motor 38 mm by ADD). Only reports: the pose
+    and `confident` stay as chosen."""
+    base = pb.base
+    turns = [S for S in list(base.close_twins) + list(base.near_symmetries)
+             if not any(poses_within(S, E, pb.voxel, 2.0) for E in base.symmetries)]
+    T_part = T_world_base @ pb.T_base_part
+    alike = [T_world_base @ S for S in turns
+             if same_placement(T_part, T_world_base @ S @ pb.T_base_part, pb.part_symmetries, 3 * pb.voxel, 5.0)]
+    if not alike:
+        return []
+    own = score_pose(pb, T_world_base)[0].score
+    out: list[np.ndarray] = []
+    for T in alike:
+        T = _refine_from(pb, T)
+        if pb.params.polish_voxel_factor > 0:
+            T, _ = polish(pb, T, None)
+        if poses_within(T, T_world_base, pb.voxel, 2.0) or any(poses_within(T, A, pb.voxel, 2.0) for A in out):
+            continue  # refined back onto the pose (or onto one already found)
+        if not same_placement(T_part, T @ pb.T_base_part, pb.part_symmetries, 3 * pb.voxel, 5.0):
+            continue
+        if score_pose(pb, T)[0].score >= own - TWIN_TIE_MARGIN:
+            out.append(T)
+    return out

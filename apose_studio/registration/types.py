@@ -97,6 +97,14 @@ class RegistrationResult:
     tracked: bool = False  # the pose was tracked from the frame before's (registration.track), not searched for
     reading: str = ""  # the reading of the mask the result came from ("": the mask as given; hypotheses.readings)
     problem: object = field(default=None, repr=False)  # the prepared registration problem (ours), for fusion
+    base_alternatives: list[np.ndarray] = field(default_factory=list)  # T_world_base of the base turned by a near-
+    # symmetry that places the part alike and explains the data as well (refine.base_twins_alike): the part's place is
+    # sure, the base's own turn is not (`confident` is about the part's placement; see `base_confident`)
+
+    @property
+    def base_confident(self) -> bool:
+        """`confident`, and the base's own pose too: no turn of it that places the part alike fits as well."""
+        return self.confident and not self.base_alternatives
 
     @property
     def seconds(self) -> float:

@@ -10,6 +10,7 @@ import pytest
 from apose_studio.assembly.mesh import load_parts
 from apose_studio.assembly.model import load_assembly
 from apose_studio.estimation import StepContext, estimate_frame
+from apose_studio.geometry import se3
 from apose_studio.geometry.metrics import mssd
 from apose_studio.masks.prompt import prompted_mask
 from apose_studio.masks.segment import iou
@@ -237,3 +238,25 @@ def test_depth_registered_off_the_colour_image_is_moved_back_onto_it():
                                  box=box)
     assert as_given.depth_shift_px == (0, 0)  # not asked: the depth as given
     assert error(est) < 0.005 and error(est) < error(as_given) - 0.0015, (error(est), error(as_given))
+
+
+def test_a_base_turned_the_view_cannot_tell_is_reported_when_the_part_goes_alike():
+    """A planetary motor with its sun gear on a bench, its connector hidden: the gear goes to the same place
+    whichever way the motor is turned (the gear is symmetric), and the estimate chose the motor half turned
+    (38 mm off by its own ADD), confident about the gear. The motor's other turns that place the gear alike and
+    fit as well are now reported (`base_alternatives`; the truth's turn among them) and `base_confident` is
+    false, as a check scoring the motor's own pose needs; `confident` (the gear's placement) is unchanged."""
+    planetary = SAMPLES / "planetary_reducer" / "assembly.yaml"
+    frame, r, mask, err = estimate_prompted(planetary, 2, 5, seed=5, noise="none", clutter="bench")
+    assert r.ok and r.confident and err < 0.1, (err, doubts(r))
+    turned = se3.rotation_angle_deg(r.T_world_base[:3, :3].T @ frame.T_world_base[:3, :3])
+    assert turned > 90  # the motor as the estimate has it
+    assert not r.base_confident and r.base_alternatives
+    assert min(se3.rotation_angle_deg(A[:3, :3].T @ frame.T_world_base[:3, :3]) for A in r.base_alternatives) < 3
+
+
+def test_a_base_whose_view_tells_its_turn_stays_base_confident():
+    """The gearbox casing (its input-shaft boss breaks its symmetry): confident and base_confident alike."""
+    frame, r, mask, err = estimate_prompted(GEARBOX, 1, 1, seed=5, noise="none", clutter="bench")
+    assert r.ok and r.confident and err < 0.1
+    assert r.base_confident and not r.base_alternatives
