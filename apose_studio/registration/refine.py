@@ -335,8 +335,9 @@ def add_chosen_twins(pb, refined: list[Refined], chosen: int) -> bool:
 def base_twins_alike(pb, T_world_base: np.ndarray) -> list[np.ndarray]:
     """T_world_base of the base at T_world_base turned by each close twin or near-symmetry that places the part
     alike (scoring.same_placement, modulo the part's own symmetries: a symmetric sun gear on a motor turned half
-    round goes to the same place), refined and polished as a close twin is, that explains the data within
-    TWIN_TIE_MARGIN of the pose itself. The part's placement is then sure and the base's own turn is not: the view
+    round goes to the same place) and that explains the data within TWIN_TIE_MARGIN of the pose itself: as the
+    turn gives it, or else refined and polished as a close twin is (a motor's half turn scored 0.554 as the
+    near-symmetry gives it and 0.912 refined: the truth's turn). The part's placement is then sure and the base's own turn is not: the view
     hides what tells them apart (benchmarks/captures.py: a planetary motor with its sun gear, half turned, 0.924
     against the truth's 0.912, the gear 0.1 mm off either way, the motor 38 mm by ADD). Only reports: the pose
     and `confident` stay as chosen."""
@@ -351,13 +352,20 @@ def base_twins_alike(pb, T_world_base: np.ndarray) -> list[np.ndarray]:
     own = score_pose(pb, T_world_base)[0].score
     out: list[np.ndarray] = []
     for T in alike:
+        turned = score_pose(pb, T)[0].score
+        if turned >= own - TWIN_TIE_MARGIN:  # ties as the turn gives it: no ICP needed to say so
+            if not any(poses_within(T, A, pb.voxel, 2.0) for A in out):
+                out.append(T)
+            continue
         T = _refine_from(pb, T)
-        if pb.params.polish_voxel_factor > 0:
-            T, _ = polish(pb, T, None)
         if poses_within(T, T_world_base, pb.voxel, 2.0) or any(poses_within(T, A, pb.voxel, 2.0) for A in out):
             continue  # refined back onto the pose (or onto one already found)
         if not same_placement(T_part, T @ pb.T_base_part, pb.part_symmetries, 3 * pb.voxel, 5.0):
             continue
+        if pb.params.polish_voxel_factor > 0:
+            T, _ = polish(pb, T, None)
         if score_pose(pb, T)[0].score >= own - TWIN_TIE_MARGIN:
             out.append(T)
     return out
+
+
