@@ -250,6 +250,9 @@ def metrics_markdown(score, result: RegistrationResult | None) -> str:
                      "base, and what tells them apart is not in view); the others are the magenta boxes")
     if not result.confident:
         flags.append(f"not confident: {doubts(result)}")
+    elif result.base_alternatives:
+        flags.append(f"the base's own turn is not sure: turned {len(result.base_alternatives)} other way(s) it fits as "
+                     "well and places the part alike (the view hides what tells them apart); the part's pose stands")
     table = "| metric | value |\n|---|---|\n" + "\n".join(f"| {k} | {v} |" for k, v in rows)
     verdict = ("**✔ ok and confident**: one placement that the data supports" if result.confident else
                "**⚠ ok, not confident**: do not act on this pose without a second look")

@@ -1,5 +1,7 @@
 """The Inspect tab's pure parts: boxes, projection, clouds per registration stage, the result cache."""
 
+from dataclasses import replace
+
 import numpy as np
 
 from apose_studio.geometry import se3
@@ -59,6 +61,20 @@ def test_metrics_panel_and_cache():
     assert c.get(k) is None
     c.put(k, ("r", "s"))
     assert c.get(c.key("/d", 1, 3, "default", "gt", False)) == ("r", "s") and c.get(c.key("/d", 1, 3, "paper", "gt", False)) is None
+
+
+def test_the_metrics_panel_says_when_the_base_s_own_turn_is_not_sure():
+    """Confident about the part, with another turn of the base that places it alike and fits as well
+    (base_alternatives): the panel stays confident and says the base's turn is not sure; without one it says
+    nothing of the kind."""
+    sure = RegistrationResult(ok=True, coverage=0.95, contradiction=0.0, spread=0.001, spread_allowed=0.01,
+                              off_table=0.0, continuation=0.0)
+    assert sure.confident and sure.base_confident
+    assert "turn is not sure" not in inspection.metrics_markdown(None, sure)
+    unsure = replace(sure, base_alternatives=[np.eye(4)])
+    assert unsure.confident and not unsure.base_confident
+    text = inspection.metrics_markdown(None, unsure)
+    assert "ok and confident" in text and "the base's own turn is not sure: turned 1 other way(s)" in text
 
 
 def test_point_on_ray_takes_the_nearest_hit():
