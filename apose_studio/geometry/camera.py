@@ -99,3 +99,13 @@ def fov_camera(width: int, height: int, hfov_deg: float) -> CameraIntrinsics:
 
 
 __all__ = ["FOCAL_PX", "CameraIntrinsics", "camera_from_dict", "camera_to_dict", "fov_camera", "is_number"]
+
+
+def box_region(shape: tuple[int, int], box, margin: int = 0) -> np.ndarray:
+    """(H, W) bool: the pixels of the box (x0, y0, x1, y1; right and bottom exclusive), `margin` pixels wider
+    per side, clipped to the image (a box off the image gives no pixels)."""
+    h, w = shape[:2]
+    x0, y0, x1, y1 = (int(v) for v in box)
+    out = np.zeros((h, w), bool)
+    out[max(y0 - margin, 0):max(min(y1 + margin, h), 0), max(x0 - margin, 0):max(min(x1 + margin, w), 0)] = True
+    return out

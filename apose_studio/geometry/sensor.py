@@ -11,6 +11,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from apose_studio.geometry.camera import box_region
+
 
 def quantisation_step(depth: np.ndarray, region: np.ndarray) -> float:
     """The sensor's depth step at the region's depth (metres): the median gap between neighbouring distinct
@@ -55,19 +57,16 @@ def occluding_edges(depth: np.ndarray) -> np.ndarray:
     z = np.where(valid, depth, 0).astype(np.float32)
     z = np.where(valid, cv2.medianBlur(z, 5), 0)
     valid &= z > 0
-    out = np.zeros(depth.shape, bool)
-    for axis in (0, 1):
-        a = z[:-1] if axis == 0 else z[:, :-1]
-        b = z[1:] if axis == 0 else z[:, 1:]
-        both = (valid[:-1] & valid[1:]) if axis == 0 else (valid[:, :-1] & valid[:, 1:])
-        jump = both & (np.abs(a - b) > np.maximum(0.004, 0.012 * np.minimum(a, b)))
-        if axis == 0:
-            out[:-1] |= jump & (a < b)
-            out[1:] |= jump & (b < a)
-        else:
-            out[:, :-1] |= jump & (a < b)
-            out[:, 1:] |= jump & (b < a)
-    return out
+
+    def along_rows(z: np.ndarray, valid: np.ndarray) -> np.ndarray:  # jumps between left and right neighbours
+        a, b = z[:, :-1], z[:, 1:]
+        jump = valid[:, :-1] & valid[:, 1:] & (np.abs(a - b) > np.maximum(0.004, 0.012 * np.minimum(a, b)))
+        out = np.zeros(z.shape, bool)
+        out[:, :-1] |= jump & (a < b)
+        out[:, 1:] |= jump & (b < a)
+        return out
+
+    return along_rows(z, valid) | along_rows(z.T, valid.T).T
 
 
 def depth_colour_shift(rgb: np.ndarray, depth: np.ndarray, box: tuple[int, int, int, int] | None = None) -> tuple[int, int]:
@@ -86,11 +85,7 @@ def depth_colour_shift(rgb: np.ndarray, depth: np.ndarray, box: tuple[int, int, 
     h, w = depth.shape
     edges = occluding_edges(depth)
     if box is not None:
-        x0, y0, x1, y1 = (int(v) for v in box)
-        m = WINDOW_MARGIN_PX
-        window = np.zeros((h, w), bool)
-        window[max(y0 - m, 0):max(y1 + m, 0), max(x0 - m, 0):max(x1 + m, 0)] = True
-        edges &= window
+        edges &= box_region(depth.shape, box, WINDOW_MARGIN_PX)
     vs, us = np.nonzero(edges)
     if len(us) < SHIFT_MIN_EDGES or rgb is None or rgb.ndim != 3:
         return 0, 0

@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 
 from apose_studio.geometry import se3
+from apose_studio.geometry.camera import box_region
 from apose_studio.geometry.nn import NearestTree
 from apose_studio.geometry.noise import estimate_depth_noise
 from apose_studio.geometry.sensor import quantisation_step
@@ -226,10 +227,7 @@ def mask_reach(view: View) -> np.ndarray:
     """Where the result's mask may take in pixels the mask missed (model_cut_mask): the prompt's box, which the
     user drew around all they see of the base, or else the mask REACH_PX wider."""
     if view.box is not None:
-        out = np.zeros(view.mask.shape, bool)
-        x0, y0, x1, y1 = (int(v) for v in view.box)
-        out[max(y0, 0):max(y1, 0), max(x0, 0):max(x1, 0)] = True
-        return out
+        return box_region(view.mask.shape, view.box)
     k = np.ones((2 * REACH_PX + 1, 2 * REACH_PX + 1), np.uint8)
     return cv2.dilate(view.mask.astype(np.uint8), k).astype(bool)
 

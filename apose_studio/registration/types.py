@@ -8,7 +8,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from apose_studio.geometry.camera import CameraIntrinsics
+from apose_studio.geometry.camera import CameraIntrinsics, box_region
 
 MIN_POINTS = 30  # fewer target points than this cannot constrain 6 DoF with any confidence
 BOX_SLACK, BOX_SLACK_PX = 0.05, 4  # a prompt box is drawn loosely: the model may show this much outside it
@@ -215,12 +215,8 @@ class View:
         BOX_SLACK_PX): where the user says no part of the base is seen. None without a box."""
         if self.box is None:
             return None
-        h, w = self.depth.shape
         x0, y0, x1, y1 = (int(v) for v in self.box)
-        m = max(BOX_SLACK_PX, int(BOX_SLACK * max(x1 - x0, y1 - y0)))
-        out = np.ones((h, w), bool)
-        out[max(y0 - m, 0):max(min(y1 + m, h), 0), max(x0 - m, 0):max(min(x1 + m, w), 0)] = False
-        return out
+        return ~box_region(self.depth.shape, self.box, max(BOX_SLACK_PX, int(BOX_SLACK * max(x1 - x0, y1 - y0))))
 
     @classmethod
     def of(cls, frame, mask: np.ndarray) -> "View":
