@@ -14,13 +14,17 @@ standing in front of it. The estimate on the mask as given is kept when it is co
 - *without patch k*: without one of the mask's two largest depth patches (the mask split where the
   depth jumps), when each part is large enough to hold the base (an object in front, a neighbour);
 
-and keeps the estimate whose model explains the most of the mask's depth with the least the camera
-sees past (`explained`): the mask and the pose are found together. When the best of these is still not
+and, with a prompt's box, before them all, *what lies wholly in the box* (`in_box`): not a part of the mask
+but the depth patches that lie inside the box, for the prompt may have kept an object in front that fills
+the box and lost the base it hides;
+
+and keeps the estimate whose model explains the most of that depth (the mask's and the box's own) with the
+least the camera sees past (`explained`): the mask and the pose are found together. When the best of these is still not
 confident, its mask is read once more, by depth only (a tin on the base *and* a box in front: either
 reading alone leaves the other in). Not by colour: once a foreign object is out, the two colour groups
 left are mostly the base's own (a casing and its gear, a duck and its label), and leaving one out
 dropped half the base (benchmarks/captures.py `real`: a label 8 mm off, confident). The readings are pure functions of
-the view, the base and the table; `explained` is the judge's evidence counted over the whole mask.
+the view, the base and the table; `explained` is the judge's evidence counted over the mask and every reading.
 """
 
 from __future__ import annotations
@@ -29,11 +33,13 @@ import cv2
 import numpy as np
 
 from apose_studio.geometry import se3
+from apose_studio.geometry.camera import box_region
 from apose_studio.geometry.noise import depth_edges
 from apose_studio.registration.base import BaseObject, raycast_source
 from apose_studio.registration.scoring import agreement_tolerance, depth_buffer, mask_edge
 from apose_studio.registration.types import MIN_POINTS, RegistrationResult, View
 
+MIN_PATCH_PX = 20  # depth patches smaller than this are noise (as prompt.py)
 MIN_READING_SHARE = 0.1  # a reading keeps at least this share of the mask's pixels (else it cannot hold the base)
 MIN_CUT_SHARE = 0.03  # ... and leaves out at least this share (else it is the mask as given)
 PATCHES = 2  # the largest depth patches each left out in turn
@@ -46,16 +52,20 @@ CONTRADICTION_WEIGHT = 5.0  # a pixel the camera sees past costs this many expla
 
 
 def readings(view: View, base: BaseObject, table: tuple[np.ndarray, float] | None, tol: float,
-             colour: bool = True) -> list[tuple[str, np.ndarray]]:
-    """(name, mask) of the other readings of `view.mask` (see the module doc), each a part of it that
-    leaves out at least MIN_CUT_SHARE and keeps at least MIN_READING_SHARE of its pixels with depth, none
-    two alike. `table`: the world plane (unit normal towards the camera, offset) the base stands on, or
-    None; `tol`: how far a surface may lie off its place (metres); `colour`: the colour readings too."""
+             colour: bool = True, box: bool = True) -> list[tuple[str, np.ndarray]]:
+    """(name, mask) of the other readings of `view.mask` (see the module doc): with `box` and a prompt's
+    box, first what lies wholly in the box (`in_box`) where the mask missed it; then parts of the mask,
+    each leaving out at least MIN_CUT_SHARE and keeping at least MIN_READING_SHARE of its pixels with
+    depth, none two alike. `table`: the world plane (unit normal towards the camera, offset) the base
+    stands on, or None; `tol`: how far a surface may lie off its place (metres); `colour`: the colour
+    readings too."""
     mask, depth = view.mask, view.depth
     valid = mask & np.isfinite(depth) & (depth > 0)
     n = int(valid.sum())
+    own = in_box(view, table, tol) if box else None
+    first = [("what lies wholly in the box", own)] if own is not None and _iou(own, valid) <= 0.9 else []
     if n < 2 * MIN_POINTS:
-        return []
+        return first
     out: list[tuple[str, np.ndarray]] = []
 
     def add(name: str, reading: np.ndarray) -> None:
@@ -77,7 +87,48 @@ def readings(view: View, base: BaseObject, table: tuple[np.ndarray, float] | Non
             add(f"without colour {k}", mask & ~group)
     for k, patch in enumerate(largest_patches(depth, mask, PATCHES, patches), start=1):
         add(f"without depth patch {k}", mask & ~patch)
-    return out[:MAX_READINGS]
+    return first + out[:MAX_READINGS]
+
+
+IN_BOX_SHARE = 0.9  # a depth patch with this share of its pixels inside the prompt's box is the box's own
+
+
+def in_box(view: View, table: tuple[np.ndarray, float] | None, tol: float) -> np.ndarray | None:
+    """(H, W) bool: the depth patches (split where the depth jumps, in a window of one box size around the
+    prompt's box, off the table by more than `tol` when a table is known) with at least IN_BOX_SHARE of
+    their pixels inside the box; None without a box or with fewer than MIN_POINTS such pixels.
+
+    A box is drawn around what is seen of the base. When an object in front hides most of it, that object
+    runs out of the box and the base does not; the prompted mask, which keeps what fills the box, can then
+    hold the object in front and none of the base (benchmarks/captures.py `hidden`)."""
+    if view.box is None:
+        return None
+    depth = view.depth
+    x0, y0, x1, y1 = (int(v) for v in view.box)
+    window = box_region(depth.shape, view.box, max(x1 - x0, y1 - y0))
+    inside = box_region(depth.shape, view.box)
+    keep = window & np.isfinite(depth) & (depth > 0)
+    if table is not None:
+        vs, us = np.nonzero(keep)
+        pts = se3.transform_points(view.T_world_camera, view.camera.backproject(us, vs, depth[vs, us]))
+        normal, offset = table
+        on_table = pts @ normal + offset <= tol
+        keep[vs[on_table], us[on_table]] = False
+    count, labels, _ = depth_patches(depth, keep)
+    sizes = np.bincount(labels.ravel(), minlength=count)
+    within = np.bincount(labels[inside], minlength=count)
+    own = (within >= IN_BOX_SHARE * sizes) & (sizes >= MIN_PATCH_PX)
+    own[0] = False
+    out = own[labels]
+    # the jumps they were split off at (as with_edge: an outline's pixels pin a flat face's place), not the
+    # pixels of patches that run out of the box
+    out |= (cv2.dilate(out.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0) & keep & inside & (labels == 0)
+    # the largest group of them (pieces closer than 9 px are one: an object's own depth edges split it), and
+    # groups at least a fifth its size: not a speck of something small that happens to lie in the box too
+    n, group = cv2.connectedComponents((cv2.dilate(out.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0).astype(np.uint8))
+    size = np.bincount(group[out], minlength=n)
+    out &= size[group] >= 0.2 * size.max()
+    return out if out.sum() >= MIN_POINTS else None
 
 
 def colour_groups(rgb: np.ndarray, mask: np.ndarray, iterations: int = 10) -> list[np.ndarray]:
@@ -197,12 +248,12 @@ def front_most(depth: np.ndarray, mask: np.ndarray, patches=None) -> np.ndarray:
     return out
 
 
-def explained(result: RegistrationResult, view: View, base: BaseObject) -> float:
-    """How well `result`'s pose explains the frame: masked pixels whose depth the model's surface there
-    confirms (within the agreement tolerance), less CONTRADICTION_WEIGHT times the pixels anywhere where
-    the camera sees past the model's surface (its outline's 2 px left out: mixed pixels) or where it shows
-    the base far outside the prompt's box. -inf for a failed result. Comparable across readings of one
-    mask: `view.mask` is the mask as given."""
+def explained(result: RegistrationResult, view: View, base: BaseObject, region: np.ndarray | None = None) -> float:
+    """How well `result`'s pose explains the frame: pixels of `region` (default `view.mask`) whose depth
+    the model's surface there confirms (within the agreement tolerance), less CONTRADICTION_WEIGHT times
+    the pixels anywhere where the camera sees past the model's surface (its outline's 2 px left out: mixed
+    pixels) or where it shows the base far outside the prompt's box. -inf for a failed result. Comparable
+    across readings of one mask when `region` holds them all (the mask as given and every reading)."""
     if not result.ok or result.T_world_base is None:
         return float("-inf")
     seen, _ = raycast_source(base, result.T_world_base, view.T_world_camera, view.camera)
@@ -214,7 +265,7 @@ def explained(result: RegistrationResult, view: View, base: BaseObject) -> float
     valid = shown & np.isfinite(d) & (d > 0)
     tol = agreement_tolerance(result.voxel, result.depth_noise)
     with np.errstate(invalid="ignore"):
-        confirmed = valid & view.mask & (np.abs(d - zbuf) < tol)
+        confirmed = valid & (view.mask if region is None else region) & (np.abs(d - zbuf) < tol)
         past = valid & (d > zbuf + tol) & ~mask_edge(shown)
         box = view.outside_box()
         if box is not None:  # shown where the user's box says the base is not (and nothing nearer hides it)

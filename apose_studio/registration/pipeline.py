@@ -92,16 +92,17 @@ def estimate_readings(view: View, base: BaseObject, T_base_part: np.ndarray, par
     table = table_plane(view.depth, view.mask, view.camera, view.T_world_camera, seed=params.seed,
                         base_size=base.diameter) if params.upright else None
     tol = agreement_tolerance(params.voxel(base.diameter), first.depth_noise)
-    first_score = explained(first, view, base)
+    todo = readings(view, base, table, tol)
+    region = np.logical_or.reduce([view.mask, *(m for _, m in todo)])  # every pixel some reading holds
+    first_score = explained(first, view, base, region)
     best, best_score, best_mask = first, first_score, view.mask
     # each reading once, upright where a table is seen; the chosen one gets the second look below
     quick = replace(params, second_look=False, free_after_upright=table is None)
-    todo = readings(view, base, table, tol)
     for round_ in range(2):
         for name, mask in todo:
             other = estimate_mask(replace(view, mask=mask), base, T_base_part, quick, prior_T_world_base,
                                   trace_iterations, part_symmetries)
-            score = explained(other, view, base)
+            score = explained(other, view, base, region)
             if score > best_score or (not best.ok and other.ok):
                 best, best_score, best_mask = replace(other, reading=name), score, mask
             if best.confident and best_score >= first_score:
@@ -112,7 +113,7 @@ def estimate_readings(view: View, base: BaseObject, T_base_part: np.ndarray, par
         # depth only (hypotheses.py: what colour splits now is mostly the base's own colours)
         prefix = best.reading
         todo = [(f"{prefix}, {name}", m) for name, m in readings(replace(view, mask=best_mask), base, table, tol,
-                                                                  colour=False)]
+                                                                  colour=False, box=False)]
     if best is not first and best.ok and not best.confident and params.second_look:
         best = replace(second_look(best, replace(view, mask=best_mask), base, T_base_part, params, prior_T_world_base,
                                    trace_iterations, part_symmetries), reading=best.reading)
@@ -312,7 +313,7 @@ def search_and_choose(pb: Task, prior: np.ndarray | None, trace_iterations: bool
         chosen, close = choose(pb, refined, R_prior)
     if p.polish_voxel_factor > 0 and chosen not in polished:
         polish_chosen(pb, refined, chosen)
-    close = close + neighbour_rivals(pb, refined, chosen)  # a mostly hidden base: neighbours that fit as well
+    close = close + neighbour_rivals(pb, refined, chosen, found.slid)  # a mostly hidden base: neighbours that fit as well
     timings["icp"] += time.perf_counter() - t
     result = compose(pb, refined, chosen, close, T_world_source, timings)  # T_world_part = T_world_base @ T_base_part
     free_due = bool(found.upright and not result.fits and p.free_after_upright and

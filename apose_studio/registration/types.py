@@ -188,11 +188,13 @@ class Start:
 @dataclass
 class Found:
     """What the searches found: coarse poses (best first), the best upright pose's near-symmetric
-    twins, and whether the base was taken to stand upright on a table."""
+    twins, whether the base was taken to stand upright on a table, and whether it was also slid over the
+    table (searches.resting_starts: no start centred on what is seen fitted)."""
 
     coarse: list[Start]
     twins: list[Start] = field(default_factory=list)
     upright: bool = False
+    slid: bool = False
 
 
 @dataclass(frozen=True, eq=False)

@@ -2,6 +2,8 @@
 table under the base, the outline), on synthetic scenes whose truth is built by hand; the render-based
 failure kinds of real desks are in test_real_desks.py."""
 
+from dataclasses import replace
+
 import numpy as np
 import trimesh
 
@@ -12,6 +14,7 @@ from apose_studio.registration.hypotheses import (
     colour_groups,
     explained,
     front_most,
+    in_box,
     largest_patches,
     readings,
     too_high,
@@ -114,6 +117,75 @@ def test_front_most_is_the_occluder_not_the_base_behind_it():
     base = _box_base()
     names = [n for n, _ in readings(view, base, None, tol=0.004)]
     assert "without what stands in front" in names
+
+
+def test_what_lies_wholly_in_the_box_is_not_the_object_running_out_of_it():
+    """A box prompt drawn round the strip that is seen of a base (0.90 m) behind an object in front (0.70 m)
+    that fills most of the box and runs far out of it, and a speck of something else in the box: what lies
+    wholly in the box is the strip, not the object in front, not the speck, not the far wall."""
+    depth = np.full((200, 260), 1.5, np.float32)  # a wall behind
+    depth[40:70, 60:180] = 0.90  # the base's strip, all in the box
+    depth[70:200, 20:240] = 0.70  # the object in front, running out of the box
+    depth[45:52, 200:207] = 0.80  # a speck of something small, in the box
+    view = View(depth, np.zeros(depth.shape, bool), CAM, se3.look_at([0.0, 0.0, 0.0], [0.0, 0.0, 1.0]),
+                box=(50, 30, 195, 120))
+    own = in_box(view, None, tol=0.004)
+    strip = depth == np.float32(0.90)
+    assert own is not None and (own & strip).sum() > 0.95 * strip.sum()
+    near_strip = np.zeros_like(strip)  # the jumps round the strip (their pixels are mixed): 2 px each way
+    near_strip[38:72, 58:182] = True
+    assert not (own & ~near_strip).any()  # not the object in front, not the speck, not the wall
+    base = _box_base()
+    names = [n for n, _ in readings(replace(view, mask=depth == np.float32(0.70)), base, None, tol=0.004)]
+    assert names[0] == "what lies wholly in the box"
+    assert in_box(replace(view, box=None), None, tol=0.004) is None  # no box: nothing to read it off
+
+
+def _screening(base, depth, mask, T_world_camera):
+    """A ModelSearch's screening parts over a hand-built scene (no Task: the scene's depth and mask, the
+    camera, the coarse voxel), for seen_past and unhidden."""
+    from types import SimpleNamespace
+
+    from apose_studio.registration.searches import ModelSearch
+    from apose_studio.registration.types import Observation
+
+    pb = SimpleNamespace(observation=Observation(mask, depth, np.zeros_like(mask)), cam=CAM,
+                         T_world_camera=T_world_camera, vg=base.diameter / 25, cam_pos=T_world_camera[:3, 3])
+    ms = object.__new__(ModelSearch)
+    ms.pb = pb
+    pts, nrm = base.mesh.sample(4000, return_index=True)
+    ms.model_pts, ms.model_nrm = np.asarray(pts), np.asarray(base.mesh.face_normals[nrm])
+    ms.model_few = np.arange(0, 4000, 20)
+    return ms, pb
+
+
+def test_screening_charges_a_pose_where_the_camera_sees_past_it_not_one_hidden_behind_something():
+    """A box on the table with a wall-like object in front of its left half. At the truth the camera sees
+    past none of it; slid onto bare table it sees past most of what faces it; slid behind the object in
+    front, nothing (it hides there, and the screening must not charge it). The ICP's source leaves out what
+    the object in front hides (scoring.unhidden), not what the base's own mask shows nearer."""
+    from apose_studio.registration.scoring import unhidden
+
+    base = _box_base()
+    camera = se3.look_at([0.0, -0.5, 0.25], [0.0, 0.0, 0.03])  # looking along +y
+    wall = trimesh.creation.box((0.2, 0.01, 0.2))
+    wall.apply_translation([-0.1, -0.08, 0.1])  # between the camera and the box's left half (x < 0)
+    depth, mask = _table_scene(base, np.eye(4), camera, [wall])
+    ms, pb = _screening(base, depth, mask, camera)
+    at = lambda x, y: se3.make_T(np.eye(3), [x, y, 0.0])  # noqa: E731
+    past = ms.seen_past([np.eye(4), at(0.2, 0.0), at(-0.12, 0.0)])
+    assert past[0] < 0.05 and past[1] > 0.5, past
+    assert past[2] < 0.2, past  # mostly behind the object in front
+    pts = se3.transform_points(np.eye(4), ms.model_pts)
+    shown = unhidden(pb, pts)
+    left, right = pts[:, 0] < -0.005, pts[:, 0] > 0.005
+    facing_front = ms.model_nrm[:, 1] < -0.9  # the box's face towards the camera and the wall
+    assert shown[right & facing_front].all()  # nothing stands in front of its right half
+    assert not shown[left & facing_front & (pts[:, 2] < 0.04)].any()  # the wall hides its left half's front
+    behind = se3.transform_points(at(0.0, 0.05), ms.model_pts)  # slid back: its own mask's pixels lie nearer
+    u, v = CAM.project(se3.transform_points(se3.inv(camera), behind))
+    on_mask = mask[np.round(v).astype(int), np.round(u).astype(int)]
+    assert on_mask.sum() > 100 and unhidden(pb, behind)[on_mask].all()
 
 
 def test_colour_groups_split_two_colours_not_one_objects_shading():

@@ -52,12 +52,14 @@ def estimate_prompted(assembly, step: int, im_id: int, **settings):
 def test_a_flat_object_lying_on_the_base_stays_out_of_its_mask():
     """A flat box lying on the gearbox casing's rim, its sides continuing the casing's depth: the prompt takes
     it in (before: "the depth contradicts 50 % of what the model shows", no pose). Without what stands higher
-    than the casing can reach, the pose is right and confident, and the result's mask leaves the box out."""
+    than the casing can reach, or without its colour, the pose is right and confident, and the result's mask
+    leaves the box out. (Both readings leave it out; which explains the frame best has changed with the
+    search: the colour one since the readings are judged over the box's own depth too.)"""
     frame, r, mask, err = estimate_prompted(GEARBOX, 1, 3, clutter="bench,stacked", **KINECT)
     truth = frame.base_mask()
     assert iou(mask, truth) < 0.7  # the prompted mask holds the flat box
     assert r.ok and r.confident and err < 0.1, (r.reason, r.reading, err)
-    assert r.reading == "below the base's height"
+    assert r.reading == "below the base's height" or r.reading.startswith("without colour"), r.reading
     assert iou(r.model_mask, truth) > iou(mask, truth) + 0.15
 
 
@@ -93,6 +95,34 @@ def test_a_base_mostly_hidden_behind_an_object_in_front():
     frame, r, mask, err = estimate_prompted(GEARBOX, 3, 0, clutter="hidden", pitch_range_deg=(20.0, 50.0), **KINECT)
     assert iou(mask, frame.base_mask()) < 0.6  # the prompted mask holds much of the box in front
     assert r.ok and (not r.confident or err < 0.1), (r.reason, r.reading, err)
+
+
+def test_a_base_whose_prompt_took_the_object_in_front_is_read_off_what_lies_wholly_in_the_box():
+    """Only a strip of a gearbox casing's top shows above a box standing in front of it; the box drawn round
+    the strip is mostly filled by the box in front, and the prompt takes that in and hardly any of the
+    casing. The box in front runs far out of the prompt's box, the strip does not: what lies wholly in the
+    box (hypotheses.in_box) is the casing. On it, the resting starts are screened less what the camera sees
+    past them (a hundred starts explain the strip as well) and refined on what nothing stands in front of
+    (scoring.unhidden: the box in front hides most of the casing's face towards the camera, and ICP pulled
+    the start the wrong way to match it). Before: no pose, "the depth contradicts 74 %"."""
+    frame, r, mask, err = estimate_prompted(GEARBOX, 2, 0, clutter="hidden", pitch_range_deg=(20.0, 50.0), **KINECT)
+    truth = frame.base_mask()
+    assert iou(mask, truth) < 0.4  # the prompted mask is mostly the box in front
+    assert r.ok and r.confident and err < 0.1, (r.reason, r.reading, err)
+    assert r.reading == "what lies wholly in the box"
+    assert iou(r.model_mask, truth) > 0.6
+
+
+def test_a_round_base_found_only_by_sliding_it_is_not_confident_when_turned():
+    """A watering can 30 % hidden at the bench's edge: no start centred on what is seen fits, the upright search
+    slides the can over the table, and the pose it ends with is turned 22 degrees about the round body (the
+    label 36 mm off) while the right turn, scored from the truth, comes within 0.012 of it. Screening the slid
+    starts less what the camera sees past them found that turn and called it confident; a pose found only by
+    sliding now has its neighbours tried as a mostly hidden one's are (refine.neighbour_rivals), and the
+    result is not confident."""
+    frame, r, mask, err = estimate_prompted(DESK, 2, 5, seed=5, noise="gaussian", clutter="bench")
+    assert r.ok
+    assert not r.confident or err < 0.1, (r.reading, err, doubts(r))
 
 
 def test_a_twin_turned_half_round_is_not_chosen_over_the_right_pose():
@@ -136,7 +166,8 @@ def test_the_object_in_front_is_left_out_of_a_mostly_hidden_base():
     assert iou(mask, frame.base_mask()) < 0.3  # the prompted mask is mostly the box in front
     assert r.ok and err < 0.3, (r.reason, r.reading, err)  # on the can, not the box
     assert not r.confident and "the placement allows" in doubts(r)
-    assert r.reading == "without what stands in front"
+    assert r.reading.startswith("without what stands in front"), r.reading  # (since the search for mostly
+    # hidden bases, read once more: one depth patch more left out)
     assert iou(r.model_mask, frame.base_mask()) > 0.5
 
 
