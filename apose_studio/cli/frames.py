@@ -173,6 +173,9 @@ def cmd_estimate(args) -> int:
           f"({', '.join(f'{k} {v * 1000:.0f}' for k, v in r.timings.items())} ms)")
     if sc is not None and sc.mask_iou is not None:
         print(f"mask ({source}): IoU {sc.mask_iou:.3f} against the ground-truth base mask")
+    if r.reading:  # the pose came from another reading of the mask (registration/hypotheses.py)
+        print(f"the pose came from another reading of the mask: {r.reading}; the result's mask ({est.mask_source}) "
+              f"has {int(est.mask.sum())} pixels")
     if not r.confident:
         print(f"not confident: {est.doubts}")
     if r.ambiguous:

@@ -108,6 +108,21 @@ def test_estimate_on_the_truths_symmetric_twin_says_it_is_the_same_assembly(fidg
     assert float(truth.split("MSSD ")[2].split(" mm")[0]) < 1.0
 
 
+def test_estimate_says_which_reading_of_the_mask_the_pose_came_from(tmp_path):
+    """A gearbox casing mostly hidden behind a box: the box prompt (drawn round what is seen of the casing, 10 px
+    wider) takes in the box in front, and the pose comes from what lies wholly in the prompt's box. The text
+    output says so, with the result's mask, where before it named only the prompted mask."""
+    out = tmp_path / "ds"
+    r = run("render", SAMPLES / "helical_gearbox" / "assembly.yaml", "--out", out, "--frames", "1", "--steps", "2",
+            "--clutter", "hidden", "--noise", "kinect", "--pitch-range", "20,50", "--seed", "5", "-q")
+    assert r.returncode == 0, r.stderr
+    r = run("estimate", out, "--step", "2", "--box", "260,171,384,251")
+    assert r.returncode == 0, r.stderr
+    assert "the pose came from another reading of the mask: what lies wholly in the box" in r.stdout, r.stdout
+    assert "not confident" not in r.stdout
+    assert float(r.stdout.split("MSSD ")[1].split(" mm")[0]) < 5.0, r.stdout
+
+
 def test_render_cli(tmp_path):
     out = tmp_path / "ds"
     r = run("render", SAMPLES / "helical_gearbox" / "assembly.yaml", "--out", out, "--frames", "2", "--steps", "1,3",
