@@ -244,6 +244,8 @@ def metrics_markdown(score, result: RegistrationResult | None) -> str:
                 ("te", f"{score.te * 1000:.2f} mm"), ("re", f"{score.re_deg:.2f}°")] + rows
     if score is not None and score.mask_iou is not None:
         rows.append(("mask IoU", f"{score.mask_iou:.3f}"))
+    if result.reading:  # the pose came from another reading of the mask (registration/hypotheses.py)
+        rows.append(("mask read as", html.escape(result.reading).replace("|", "&#124;")))
     flags = []
     if result.ambiguous:
         flags.append(f"ambiguous: {len(result.alternatives) + 1} placements fit the data equally (a (nearly) symmetric "

@@ -77,6 +77,16 @@ def test_the_metrics_panel_says_when_the_base_s_own_turn_is_not_sure():
     assert "ok and confident" in text and "the base's own turn is not sure: turned 1 other way(s)" in text
 
 
+def test_the_metrics_panel_names_the_reading_of_the_mask_the_pose_came_from():
+    """A pose read off another part of the prompt than its mask (a base mostly hidden behind an object the
+    prompt took in) is named in the panel, as `apose estimate` names it; the mask as given names none."""
+    r = RegistrationResult(ok=True, coverage=0.95, contradiction=0.0, spread=0.001, spread_allowed=0.01,
+                           off_table=0.0, continuation=0.0)
+    assert "mask read as" not in inspection.metrics_markdown(None, r)
+    text = inspection.metrics_markdown(None, replace(r, reading="what lies wholly in the box"))
+    assert "| mask read as | what lies wholly in the box |" in text
+
+
 def test_point_on_ray_takes_the_nearest_hit():
     pts = np.array([[0, 0, 2.0], [0, 0, 1.0], [0.5, 0, 0.5], [0, 0, -1.0]])
     np.testing.assert_allclose(inspection.point_on_ray(pts, np.zeros(3), np.array([0, 0, 3.0]), 0.01), [0, 0, 1.0])
