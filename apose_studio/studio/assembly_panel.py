@@ -195,7 +195,7 @@ class AssemblyPanel:
         if not name or bad:
             self.refresh_files()  # the field shows the name the draft keeps, not the refused one
             why = "the assembly needs a name" if not name else f"a name cannot hold the invisible character {bad}"
-            raise AposeError(f"{why}; it stays {esc(self.app.asm.name)!r}")
+            raise AposeError(f"{why}; it stays {self.app.asm.name!r}")
         self.app.set_assembly(replace(self.app.asm, name=name), client)
 
     def on_units(self, client) -> None:
@@ -235,7 +235,7 @@ class AssemblyPanel:
             files = [f for f, pid in part_of.items() if pid is None]
             if not files:
                 self.app.notify(client, "Nothing new in the folder",
-                                f"every mesh in {esc(path)} is a part already: " + esc(", ".join(already[:8])))
+                                f"every mesh in {path} is a part already: " + ", ".join(already[:8]))
                 return
         elif path.is_file():
             files = [path]
@@ -249,7 +249,7 @@ class AssemblyPanel:
                 failed.append(str(e))
         if added:
             self.app.notify(client, "Parts added", ", ".join(added) + (
-                f"; already parts, not added again: {esc(', '.join(already[:8]))}" if already else ""))
+                f"; already parts, not added again: {', '.join(already[:8])}" if already else ""))
         if failed:
             self.app.notify(client, "Some meshes were not added", "\n".join(failed[:5]), error=True)
         self.app.frame_camera_on_assembly()

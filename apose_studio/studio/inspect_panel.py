@@ -38,7 +38,7 @@ from apose_studio.registration.next_view import next_view
 from apose_studio.studio import inspection
 from apose_studio.studio.prompt_panel import PROMPT_SOURCE, colour_aligned, prompt_of, prompted_mask
 from apose_studio.studio.state import Event, shared
-from apose_studio.studio.widgets import VECTOR_MM, esc, scene_point_at_ray
+from apose_studio.studio.widgets import VECTOR_MM, scene_point_at_ray
 
 log = logging.getLogger(__name__)
 OPENED = itertools.count(1)  # live cameras opened: their results are cached apart (frame numbers restart)
@@ -679,9 +679,9 @@ class InspectPanel:
             unsure[-1] += (f"; look again from where the orange frustum in the 3D view shows: from there about {a.pixels} "
                            f"pixels tell the placements apart (from here {a.pixels_now})")
         if failed:
-            self.app.notify(client, "Estimation failed", esc("\n".join(failed[:5])), error=True)
+            self.app.notify(client, "Estimation failed", "\n".join(failed[:5]), error=True)
         elif unsure:
-            self.app.notify(client, "Estimated, not confident", esc("\n".join(unsure[:5])), error=True)
+            self.app.notify(client, "Estimated, not confident", "\n".join(unsure[:5]), error=True)
         else:
             # a step's summary is a result to read: it stays (until the tab's next message), a frame's fades
             self.app.notify(client, "Estimated", f"{len(ids)} frame(s) in {dt:.1f} s{self.truth_summary(job, ids)}",

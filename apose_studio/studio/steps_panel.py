@@ -222,9 +222,9 @@ class StepsPanel:
         hits = authoring.penetrations(self.app.asm, i, models)
         if hits:
             s = self.app.asm.steps[i]
-            where = "; ".join(f"{esc(b)}: {share:.0%} of its surface, up to {depth * 1000:.3g} mm deep" for b, share, depth
+            where = "; ".join(f"{b}: {share:.0%} of its surface, up to {depth * 1000:.3g} mm deep" for b, share, depth
                               in hits)
-            self.app.notify(client, "Parts go through each other", f"step {i + 1} puts {esc(s.part)} inside {where}. "
+            self.app.notify(client, "Parts go through each other", f"step {i + 1} puts {s.part} inside {where}. "
                             "The pose is kept; check the typed values (or drag the part out).", error=True)
         return bool(hits)
 
@@ -239,8 +239,8 @@ class StepsPanel:
         far = float(np.linalg.norm(T_base_part[:3, 3]))
         if far <= self.FAR_FACTOR * size:
             return False
-        self.app.notify(client, "Pose looks wrong", f"step {self.step_index + 1} puts {esc(s.part)} {far * 1000:.4g} mm "
-                        f"from the origin of {esc(s.base[0])}, {far / size:.0f}x the two parts' sizes "
+        self.app.notify(client, "Pose looks wrong", f"step {self.step_index + 1} puts {s.part} {far * 1000:.4g} mm "
+                        f"from the origin of {s.base[0]}, {far / size:.0f}x the two parts' sizes "
                         f"({size * 1000:.4g} mm): is a value in the wrong unit? The fields are in mm.", error=True)
         return True
 
