@@ -311,8 +311,8 @@ def search_upright(pb, ms: ModelSearch, up: np.ndarray) -> Found | None:
         rest = resting_starts(starts, pb.table, ms.model_pts, base.diameter, pb.T_world_camera)
         slid = True
         # screened less what the camera sees past: a small patch of a mostly hidden base is explained as
-        # well by hundreds of the slid starts (a gearbox casing's top behind a box: the start 3 % of its
-        # diameter off ranked 580th of 1764); most of them stand where the camera sees table behind
+        # well by hundreds of the slid starts (a gearbox casing's top behind a box: the start nearest the truth,
+        # the part on it 3 % of the part's diameter off, ranked 580th of 1764); most stand where the camera sees table behind
         rest_share = ms.explained([T for _, T in rest]) - ms.seen_past([T for _, T in rest])
         resting = ms.coarse(rest, UPRIGHT_STARTS, rest_share)
         coarse = sorted(coarse + resting, key=lambda x: -x.explained)
