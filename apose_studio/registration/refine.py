@@ -85,8 +85,7 @@ def refine_candidates(pb, starts: list[Start], trace_iterations: bool) -> list[R
         trace: list | None = [] if trace_iterations else None
         src_w, src_n = raycast_source(pb.base, s.T_coarse, pb.T_world_camera, pb.cam)  # what the camera would see
         shown = icp_source(pb, src_w)  # less what stands in front of a mostly hidden base
-        src = cloud(se3.transform_points(se3.inv(s.T_coarse), src_w[shown]))
-        src = src.voxel_down_sample(voxel)
+        src = cloud(se3.transform_points(se3.inv(s.T_coarse), src_w[shown])).voxel_down_sample(voxel)
         T = icp(src, pb.fine, s.T_coarse, pb.vg, p.icp_max_iterations, trace, p.deterministic, pb.fine_tree)
         if any(poses_within(T, r.candidate.T_world_base, voxel, 2.0) for r in out):
             continue  # converged onto a pose already refined: nothing new to score

@@ -12,7 +12,7 @@ from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.geometry.nn import NearestTree, local_normals
 from apose_studio.registration.base import raycast_source
 from apose_studio.registration.task import Task
-from apose_studio.registration.types import Candidate
+from apose_studio.registration.types import MIN_POINTS, Candidate
 
 MASK_MARGIN_PX = 2  # mask edges are a pixel or two off: a model point further outside contradicts its pose
 DISCRIMINATE_MIN_POINTS = 10  # fewer pixels than this where two placements differ: they are symmetric twins
@@ -320,16 +320,11 @@ def unhidden(pb, points_world: np.ndarray) -> np.ndarray:
     """(N,) bool: the points not hidden from the camera by something else, that is, not on a pixel outside
     the base's mask whose depth lies nearer than them by more than two coarse voxels (an object standing in
     front). The mask's own pixels never hide the base: a start too far back is not emptied by its target."""
-    obs, cam = pb.observation, pb.cam
-    c = se3.transform_points(se3.inv(pb.T_world_camera), points_world)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u, v = np.round(cam.project(c))
-    h, w = obs.depth.shape
-    inside = np.isfinite(u) & np.isfinite(v) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    ui, vi = u[inside].astype(int), v[inside].astype(int)
-    d = obs.depth[vi, ui]
-    hidden = np.zeros(len(c), bool)
-    hidden[inside] = ~obs.mask[vi, ui] & np.isfinite(d) & (d > 0) & (d < c[inside, 2] - 2.0 * pb.vg)
+    v, u, z, inside = pixels(points_world, pb.T_world_camera, pb.cam)
+    obs = pb.observation
+    d = obs.depth[v, u]  # (v, u) are 0 where not inside
+    with np.errstate(invalid="ignore"):
+        hidden = inside & ~obs.mask[v, u] & np.isfinite(d) & (d > 0) & (d < z - 2.0 * pb.vg)
     return ~hidden
 
 
@@ -343,8 +338,6 @@ def icp_source(pb, points_world: np.ndarray) -> np.ndarray:
     onto the strip of its top in view. Otherwise all of them: a flat object lying on the base hides a
     little of it, and the base's own outline there keeps the pose up (benchmarks/captures.py `stacked`:
     leaving those out too made 5 right poses wrong, 3 of them confident)."""
-    from apose_studio.registration.types import MIN_POINTS
-
     shown = unhidden(pb, points_world)
     n = int(shown.sum())
     if n < MIN_POINTS or n > (1.0 - MOSTLY_HIDDEN) * len(shown):
