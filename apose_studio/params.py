@@ -92,6 +92,9 @@ class Params:
     mask_hypotheses: bool = _p(True, "bool", "a result that is not confident is estimated again on other readings of "
                                "the mask (without what lies on the base or stands in front of it); the one whose model "
                                "explains the frame best is kept")
+    colour_check: bool = _p(True, "bool", "after the estimate, compare the depth's edges and the model's outline with the "
+                            "colour image's around the object; where both say the depth lies a few pixels off the "
+                            "colour (a Kinect's registration), move the pose back onto the colour image")
     # --- tracking (registration.track: a frame's pose from the frame before's)
     track_motion: float = _p(0.15, "float", "tracking follows the base this far between frames, x its diameter (the "
                              "depth searched around its last pose)", 0.01, 1.0)
@@ -117,7 +120,7 @@ PRESETS: dict[str, dict[str, Any]] = {
                   source_camera=fov_camera(1280, 720, 60.0), use_symmetries=False, use_orientation_prior=True,
                   deterministic=False, global_voxel_factor=1.0, ransac_retry_iterations=0, use_flips=False,
                   prior_fast_path=False, upright=False, polish_voxel_factor=0.0, max_seconds=0.0, second_look=False,
-                  mask_hypotheses=False),
+                  mask_hypotheses=False, colour_check=False),
 }
 PRESET_PARAMS: dict[str, Params] = {name: Params(**over) for name, over in PRESETS.items()}
 

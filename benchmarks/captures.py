@@ -211,7 +211,8 @@ def run(ds: Dataset, asm, models, params, margin_px: int, compare_depth: bool = 
                          "base_confident": bool(r.ok and r.base_confident),
                          "noise_mm": r.depth_noise * 1000,
                          "telling_px": telling_pixels(frame, ctx, shift),
-                         "depth_shift_px": list(shift), "shift_found_px": list(found)})
+                         "depth_shift_px": list(shift), "shift_found_px": list(found),
+                         "moved_onto_colour_px": list(r.depth_shift_px)})
     return rows
 
 

@@ -185,6 +185,19 @@ def rendered_frame(assembly: Path, step: int, im_id: int, **settings):
                  T_world_base=T_world_base, T_world_part=T_world_base @ view.T_base_part, im_id=im_id)
 
 
+def true_shift(shifted, unshifted, r: int = 6) -> tuple[int, int]:
+    """(du, dv) with shifted[v, u] == unshifted[v - dv, u - du] away from the border (np.roll, compared): how far
+    the renderer moved a depth image against the same render unshifted."""
+    import numpy as np
+
+    inner = (slice(r, -r), slice(r, -r))
+    for dv in range(-r, r + 1):
+        for du in range(-r, r + 1):
+            if np.array_equal(np.roll(unshifted, (dv, du), axis=(0, 1))[inner], shifted[inner]):
+                return du, dv
+    raise AssertionError("no shift maps one render onto the other")
+
+
 def plain_bop_scene(src: Path, dst: Path) -> Path:
     """A copy of a rendered scene folder (test/NNNNNN) with BOP's own files only: what a BOP dataset holds."""
     import shutil

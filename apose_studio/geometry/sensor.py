@@ -49,6 +49,41 @@ MAX_EDGE_PX = 20000  # at most this many depth-edge pixels are compared (every k
 # whole noisy 1080p frame held a million, and 169 shifts of them took 3 s
 
 
+def colour_edge_distance(rgb: np.ndarray) -> np.ndarray:
+    """(H, W) float32: each pixel's distance to the nearest colour edge (Canny on the grey image, blurred 3x3),
+    capped at EDGE_DIST_CAP_PX."""
+    grey = cv2.cvtColor(np.ascontiguousarray(rgb[..., :3], dtype=np.uint8), cv2.COLOR_RGB2GRAY)
+    colour = cv2.Canny(cv2.GaussianBlur(grey, (3, 3), 0), 40, 100) > 0
+    return np.minimum(cv2.distanceTransform((~colour).astype(np.uint8), cv2.DIST_L2, 3), EDGE_DIST_CAP_PX)
+
+
+OUTLINE_MIN_PX = 40  # fewer outline pixels than this: nothing to compare
+
+
+def outline_shift(rgb: np.ndarray, silhouette: np.ndarray) -> tuple[int, int]:
+    """(du, dv): how far the outline of `silhouette` (a model's, ray cast at a pose) must move, right and down,
+    up to SHIFT_MAX_PX each way, to lie nearest the colour image's edges: the move whose outline pixels have
+    the least mean (capped) distance to a colour edge; ties: the shortest. (0, 0) when the outline is too
+    short to tell or there is no colour image. The model's outline is clean where the depth's own edges bleed
+    and have holes: a pose fitted to depth that lies (du, dv) off the colour image needs (-du, -dv)."""
+    sil = silhouette.astype(np.uint8)
+    outline = silhouette & ~cv2.erode(sil, np.ones((3, 3), np.uint8)).astype(bool)
+    vs, us = np.nonzero(outline)
+    if len(us) < OUTLINE_MIN_PX or rgb is None or rgb.ndim != 3:
+        return 0, 0
+    h, w = silhouette.shape
+    dist = colour_edge_distance(rgb)  # over the whole image, as depth_colour_shift finds them
+
+    def mean_distance(du: int, dv: int) -> float:
+        u, v = us + du, vs + dv
+        inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        return float(dist[v[inside], u[inside]].mean()) if inside.any() else EDGE_DIST_CAP_PX
+
+    r = SHIFT_MAX_PX
+    scores = {(du, dv): mean_distance(du, dv) for dv in range(-r, r + 1) for du in range(-r, r + 1)}
+    return min(scores, key=lambda s: (scores[s], abs(s[0]) + abs(s[1]), s))
+
+
 def occluding_edges(depth: np.ndarray) -> np.ndarray:
     """(H, W) bool: the near side of each depth jump between two valid neighbours (median-filtered 5x5; a jump
     larger than 4 mm or 1.2 % of the depth): an object's outline as the depth sees it. Holes (no depth) make no
@@ -81,20 +116,30 @@ def depth_colour_shift(rgb: np.ndarray, depth: np.ndarray, box: tuple[int, int, 
     within a pixel along each axis; on the 504 frames of the other rows (registered exactly) a shift found on
     13, 6 of them gearbox frames under Kinect-like noise (near surfaces bleeding into far ones, projector
     shadows hiding one side of each object), so it is applied only when asked (estimation.colour_registered).
-    Over the whole image instead of the box, 9 of the 24 were missed and desk frames without noise shifted."""
+    Over the whole image instead of the box, 9 of the 24 were missed and desk frames without noise shifted.
+    With a box the depth's edges are found in the window alone (their filters reach 3 px: the window is read
+    4 px wider); the colour's over the whole image (Canny's hysteresis follows an edge beyond any window)."""
+    if rgb is None or rgb.ndim != 3:
+        return 0, 0
     h, w = depth.shape
-    edges = occluding_edges(depth)
-    if box is not None:
-        edges &= box_region(depth.shape, box, WINDOW_MARGIN_PX)
-    vs, us = np.nonzero(edges)
-    if len(us) < SHIFT_MIN_EDGES or rgb is None or rgb.ndim != 3:
+    if box is None:
+        vs, us = np.nonzero(occluding_edges(depth))
+    else:
+        x0, y0, x1, y1 = (int(v) for v in box)
+        m = WINDOW_MARGIN_PX
+        cx0, cy0, cx1, cy1 = max(x0 - m - 4, 0), max(y0 - m - 4, 0), min(x1 + m + 4, w), min(y1 + m + 4, h)
+        if cx1 <= cx0 or cy1 <= cy0:
+            return 0, 0
+        edges = occluding_edges(depth[cy0:cy1, cx0:cx1])
+        edges &= box_region(edges.shape, (x0 - cx0, y0 - cy0, x1 - cx0, y1 - cy0), m)
+        vs, us = np.nonzero(edges)
+        vs, us = vs + cy0, us + cx0
+    if len(us) < SHIFT_MIN_EDGES:
         return 0, 0
     if len(us) > MAX_EDGE_PX:
         step = -(-len(us) // MAX_EDGE_PX)
         vs, us = vs[::step], us[::step]
-    grey = cv2.cvtColor(np.ascontiguousarray(rgb[..., :3], dtype=np.uint8), cv2.COLOR_RGB2GRAY)
-    colour = cv2.Canny(cv2.GaussianBlur(grey, (3, 3), 0), 40, 100) > 0
-    dist = np.minimum(cv2.distanceTransform((~colour).astype(np.uint8), cv2.DIST_L2, 3), EDGE_DIST_CAP_PX)
+    dist = colour_edge_distance(rgb)
 
     def mean_distance(du: int, dv: int) -> float:
         u, v = us - du, vs - dv

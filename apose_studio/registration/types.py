@@ -95,6 +95,12 @@ class RegistrationResult:
     off_table: float = float("nan")  # how far the base's lowest point lies above (+) or in (-) the table it stands on,
     # beyond the slack (0: on it; NaN: no table seen): a pose that floats or sinks cannot be
     tracked: bool = False  # the pose was tracked from the frame before's (registration.track), not searched for
+    depth_shift_px: tuple[int, int] = (0, 0)  # how far (right, down) the depth lay shifted against the colour image
+    # where the pose was moved back onto it (estimation.onto_colour); (0, 0): not moved
+    colour_offset: float = 0.0  # how far (metres) the pose may lie off the base because the depth may lie
+    # `colour_offset_px` off the colour image, which the model's outline did not confirm (estimation.onto_colour):
+    # it counts against the confidence with the spread
+    colour_offset_px: tuple[int, int] = (0, 0)
     reading: str = ""  # the reading of the mask the result came from ("": the mask as given; hypotheses.readings)
     problem: object = field(default=None, repr=False)  # the prepared registration problem (ours), for fusion
     base_alternatives: list[np.ndarray] = field(default_factory=list)  # T_world_base of the base turned by a near-
@@ -113,12 +119,12 @@ class RegistrationResult:
     @property
     def fits(self) -> bool:
         """The fit part of `confident`: enough coverage, little contradiction, no search cut short, a pose the
-        data pins down (spread), resting on the table where one is seen, an outline that is an outline (not
+        data pins down (spread, with what a depth lying off the colour image may add: colour_offset), resting on the table where one is seen, an outline that is an outline (not
         a larger surface running on past it); an ambiguous result may fit: each of its placements explains
         the data."""
         return bool(self.ok and np.isfinite(self.coverage) and self.coverage >= CONFIDENT_COVERAGE
                     and not self.contradiction > CONFIDENT_CONTRADICTION and not self.out_of_time
-                    and not self.spread > self.spread_allowed and not abs(self.off_table) > 0
+                    and not self.spread + self.colour_offset > self.spread_allowed and not abs(self.off_table) > 0
                     and not self.continuation > CONFIDENT_CONTINUATION)
 
     @property
@@ -144,6 +150,12 @@ def doubts(result: RegistrationResult) -> str:
         why.append(f"the view leaves the pose free to move by {result.spread * 1000:.1f} mm, more than the "
                    f"{result.spread_allowed * 1000:.1f} mm the placement allows (what is seen, such as a flat face or "
                    "a cylinder's side, pins it down poorly)")
+    elif result.colour_offset and result.spread + result.colour_offset > result.spread_allowed:
+        du, dv = result.colour_offset_px
+        why.append(f"the depth may lie {du:+d}, {dv:+d} px (right, down) off the colour image here, which would put the "
+                   f"pose {result.colour_offset * 1000:.1f} mm off, more than the {result.spread_allowed * 1000:.1f} mm "
+                   "the placement allows with what the view leaves free (the depth's edges say so, the model's outline "
+                   "does not confirm it); align depth to colour (--align-depth) to move it back first")
     if result.continuation > CONFIDENT_CONTINUATION:
         why.append(f"the surface runs on past {result.continuation:.0%} of the model's outline (it may be laid onto "
                    "part of a larger object)")

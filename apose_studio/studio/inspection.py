@@ -246,6 +246,9 @@ def metrics_markdown(score, result: RegistrationResult | None) -> str:
         rows.append(("mask IoU", f"{score.mask_iou:.3f}"))
     if result.reading:  # the pose came from another reading of the mask (registration/hypotheses.py)
         rows.append(("mask read as", html.escape(result.reading).replace("|", "&#124;")))
+    if result.ok and tuple(result.depth_shift_px) != (0, 0):  # estimation.onto_colour moved the pose
+        du, dv = result.depth_shift_px
+        rows.append(("depth off colour", f"{du:+d}, {dv:+d} px (right, down); pose moved back onto the colour image"))
     flags = []
     if result.ambiguous:
         flags.append(f"ambiguous: {len(result.alternatives) + 1} placements fit the data equally (a (nearly) symmetric "

@@ -5,9 +5,9 @@ here by comparing the render with the same render unshifted (numpy alone, not th
 import numpy as np
 import pytest
 
-from apose_studio.geometry.sensor import depth_colour_shift, shift_image
+from apose_studio.geometry.sensor import depth_colour_shift, outline_shift, shift_image
 
-from ..conftest import SAMPLES, rendered_frame
+from ..conftest import SAMPLES, rendered_frame, true_shift
 
 DESK = SAMPLES / "desk_objects" / "assembly.yaml"
 REAL_DESK = dict(seed=5, noise="kinect", noise_sigma_at_05m=0.0005, clutter="bench,stacked,textured",
@@ -17,16 +17,6 @@ REAL_DESK = dict(seed=5, noise="kinect", noise_sigma_at_05m=0.0005, clutter="ben
 def prompt_box(mask: np.ndarray, margin: int = 10) -> tuple[int, int, int, int]:
     ys, xs = np.nonzero(mask)
     return int(xs.min()) - margin, int(ys.min()) - margin, int(xs.max()) + 1 + margin, int(ys.max()) + 1 + margin
-
-
-def true_shift(shifted: np.ndarray, unshifted: np.ndarray, r: int = 6) -> tuple[int, int]:
-    """(du, dv) with shifted[v, u] == unshifted[v - dv, u - du] away from the border (np.roll, compared)."""
-    inner = (slice(r, -r), slice(r, -r))
-    for dv in range(-r, r + 1):
-        for du in range(-r, r + 1):
-            if np.array_equal(np.roll(unshifted, (dv, du), axis=(0, 1))[inner], shifted[inner]):
-                return du, dv
-    raise AssertionError("no shift maps one render onto the other")
 
 
 def test_shift_image_moves_right_and_down():
@@ -58,3 +48,29 @@ def test_no_shift_without_edges_to_compare():
     rgb = rng.integers(0, 255, (120, 160, 3), dtype=np.uint8)
     assert depth_colour_shift(rgb, depth) == (0, 0)
     assert depth_colour_shift(rgb, np.zeros_like(depth), (10, 10, 100, 100)) == (0, 0)
+
+
+def _card(shape=(200, 240), rect=(60, 140, 70, 150)) -> tuple[np.ndarray, np.ndarray]:
+    """(rgb, silhouette): a red card on a grey bench, and where it lies (numpy slicing alone)."""
+    rgb = np.full((*shape, 3), 40, np.uint8)
+    rgb[rect[0]:rect[1], rect[2]:rect[3]] = (200, 50, 50)
+    sil = np.zeros(shape, bool)
+    sil[rect[0]:rect[1], rect[2]:rect[3]] = True
+    return rgb, sil
+
+
+@pytest.mark.parametrize("shift", [(3, -2), (-2, 0), (0, 4), (0, 0)])
+def test_a_model_outline_fitted_to_shifted_depth_is_moved_onto_the_colour_edges(shift):
+    """A pose fitted to depth that lies (du, dv) off the colour image puts the model's outline (du, dv) off the
+    colour's edges: the outline's shift is (-du, -dv); an outline on the colour's edges needs none."""
+    rgb, sil = _card()
+    du, dv = shift
+    fitted_to_depth = np.roll(sil, (dv, du), axis=(0, 1))
+    assert outline_shift(rgb, fitted_to_depth) == (-du, -dv)
+
+
+def test_no_outline_to_compare_gives_no_shift():
+    """A silhouette of a few pixels, or no colour image, tells nothing."""
+    rgb, sil = _card(rect=(60, 63, 70, 72))
+    assert outline_shift(np.roll(rgb, 3, axis=1), sil) == (0, 0)
+    assert outline_shift(rgb[..., 0], np.roll(_card()[1], 3, axis=1)) == (0, 0)
