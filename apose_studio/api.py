@@ -66,9 +66,7 @@ class PoseEstimate:
     base_alternatives: list[np.ndarray] = field(default_factory=list)  # T_world_base of the base turned another way
     # that places the part alike and fits as well: the part's place is sure, the base's own turn is not
     depth_shift_px: tuple[int, int] = (0, 0)  # how far the depth lay shifted (right, down) against the colour image
-    # around the object: moved back before the mask and the registration when asked (align_depth:
-    # estimation.colour_registered), and the pose moved back by what the colour check found after it
-    # (estimation.onto_colour; `colour_check`), the two added
+    # around the prompt, moved back before the mask and the registration (estimation.colour_registered)
 
     def to_json(self) -> dict:
         def m(T):
@@ -133,7 +131,7 @@ def estimate_pose(rgb: np.ndarray, depth: np.ndarray, K, assembly, step: int, *,
     m, source = array_mask(rgb, depth, cam, mask, box, point)
     view = View(depth, m, cam, np.asarray(T_world_camera, float), rgb=rgb, box=box)
     est = run_registration(view, source, ctx, p, orientation_prior, t0, time.perf_counter() - t1, t_load=t_load)
-    est.depth_shift_px = total_shift(shift, est.depth_shift_px)
+    est.depth_shift_px = shift
     if hand_eye is None:
         return est
     pick = None
@@ -204,12 +202,6 @@ def run_registration(view: View, source: str, ctx: StepContext, params: Params, 
                          {"load": t_load, "mask": t_mask, "registration": t2 - t1, "total": t2 - t0})
 
 
-def total_shift(asked: tuple[int, int], found: tuple[int, int]) -> tuple[int, int]:
-    """The depth's whole shift against the colour: what the caller's align_depth moved back before the
-    estimate plus what the colour check moved the pose back by after it."""
-    return int(asked[0]) + int(found[0]), int(asked[1]) + int(found[1])
-
-
 def pose_estimate(r: RegistrationResult, T_world_camera, view, mask, source, timings) -> PoseEstimate:
     """A registration result as the robot-facing record (T_camera_part, the approach pose, the doubts)."""
     ok = bool(r.ok)
@@ -218,5 +210,4 @@ def pose_estimate(r: RegistrationResult, T_world_camera, view, mask, source, tim
                         se3.inv(T_world_camera) @ r.T_world_part if ok else None, bool(r.confident), float(r.coverage),
                         bool(r.ambiguous), [c.T_world_part for c in r.alternatives], mask, source, dict(timings), r,
                         "" if r.confident or not ok else doubts(r), r.equivalent if ok else [], approach,
-                        base_alternatives=list(r.base_alternatives) if ok else [],
-                        depth_shift_px=tuple(r.depth_shift_px))
+                        base_alternatives=list(r.base_alternatives) if ok else [])

@@ -92,9 +92,9 @@ class Params:
     mask_hypotheses: bool = _p(True, "bool", "a result that is not confident is estimated again on other readings of "
                                "the mask (without what lies on the base or stands in front of it); the one whose model "
                                "explains the frame best is kept")
-    colour_check: bool = _p(True, "bool", "after the estimate, compare the depth's edges and the model's outline with the "
-                            "colour image's around the object; where both say the depth lies a few pixels off the "
-                            "colour (a Kinect's registration), move the pose back onto the colour image")
+    colour_check: bool = _p(True, "bool", "after the estimate, compare the depth's edges with the colour image's around "
+                            "the object; a shift found there (a Kinect's depth is often registered a few pixels off) "
+                            "counts against the confidence, by how far it would put the pose off")
     # --- tracking (registration.track: a frame's pose from the frame before's)
     track_motion: float = _p(0.15, "float", "tracking follows the base this far between frames, x its diameter (the "
                              "depth searched around its last pose)", 0.01, 1.0)

@@ -212,7 +212,7 @@ def run(ds: Dataset, asm, models, params, margin_px: int, compare_depth: bool = 
                          "noise_mm": r.depth_noise * 1000,
                          "telling_px": telling_pixels(frame, ctx, shift),
                          "depth_shift_px": list(shift), "shift_found_px": list(found),
-                         "moved_onto_colour_px": list(r.depth_shift_px)})
+                         "colour_offset_mm": r.colour_offset * 1000, "colour_offset_px": list(r.colour_offset_px)})
     return rows
 
 

@@ -59,7 +59,7 @@ def test_a_capture_whose_depth_lies_off_its_colour_image(tmp_path):
     captures.py's `real` row): `apose estimate --box --align-depth` says how far it found it and moved it back,
     and the pose is within 5 mm (the watering can's label: 2.9 mm; 5.8 mm when benchmarks/captures.py left the
     depth where it was). Without a prompt the flag is refused: nothing says where to compare. Without the flag
-    the colour check moves the pose back after the estimate, and says so."""
+    the pose is not confident, and the doubt names the flag."""
     from .conftest import SAMPLES, rendered_frame
 
     desk = SAMPLES / "desk_objects" / "assembly.yaml"
@@ -76,14 +76,11 @@ def test_a_capture_whose_depth_lies_off_its_colour_image(tmp_path):
     assert "off the colour image around the prompt; moved back" in r.stdout, r.stdout
     r = run("estimate", cap, "--assembly", desk, "--step", 2, "--align-depth")
     assert r.returncode == 2 and "give it with --box or --point" in r.stderr, (r.returncode, r.stderr)
-    # not asked: the colour check after the estimate finds the shift (the depth's edges and the model's outline
-    # agree) and moves the pose back onto the colour image; the text says so and how to keep it on the depth
+    # not asked: the colour check after the estimate finds the depth's edges off the colour's, and the pose it
+    # cannot trust as far is not confident; the doubt names the flag
     r = run("estimate", cap, "--assembly", desk, "--step", 2, "--box", box, "--json")
     doc = json.loads(r.stdout)
-    assert max(abs(v) for v in doc["depth_shift_px"]) >= 2, doc["depth_shift_px"]
-    assert mssd_to_truth(np.asarray(doc["T_camera_part"]), _T_camera_part_truth(frame), desk, frame.part) < 0.005
-    r = run("estimate", cap, "--assembly", desk, "--step", 2, "--box", box)
-    assert "the pose moved back onto the colour image (--param colour_check=false" in r.stdout, r.stdout
+    assert doc["ok"] and not doc["confident"] and "--align-depth" in doc["doubts"], doc["doubts"]
 
 
 def test_bop_scene_folder_with_ground_truth(clutter_dataset):

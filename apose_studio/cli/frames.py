@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from apose_studio.api import grasp_of, pose_estimate, robot_targets, run_registration, total_shift
+from apose_studio.api import grasp_of, pose_estimate, robot_targets, run_registration
 from apose_studio.assembly.model import Assembly, load_assembly
 from apose_studio.cli.common import check_output_file, finite, params_of, parse_prompt, pose_lines
 from apose_studio.cli.views import cmd_estimate_views
@@ -130,7 +130,7 @@ def cmd_estimate(args) -> int:
     mask, source = find_mask(frame, request, asm, args.input[0])
     est = run_registration(replace(View.of(frame, mask), box=request.box), source, ctx, params, args.orientation_prior, t0,
                            time.perf_counter() - t1, trace_iterations=True, t_load=t1 - t0)
-    est.depth_shift_px = total_shift(shift, est.depth_shift_px)
+    est.depth_shift_px = shift
     if hand_eye is not None:
         est.targets = robot_targets(est, asm, ctx, hand_eye, args.grasp, _pick(args, frame, ctx, params),
                                     _flange_of(frame, hand_eye, args.input[0]))
@@ -158,11 +158,6 @@ def cmd_estimate(args) -> int:
     if shift != (0, 0):
         print(f"depth: lay {shift[0]:+d}, {shift[1]:+d} px (right, down) off the colour image around the prompt; moved back "
               "before the mask and the registration")
-    if r.ok and r.depth_shift_px != (0, 0):
-        du, dv = r.depth_shift_px
-        print(f"depth: lay {du:+d}, {dv:+d} px (right, down) off the colour image around the object (its edges and the "
-              "model's outline agree); the pose moved back onto the colour image (--param colour_check=false keeps it "
-              "on the depth)")
     if not r.ok:
         print(f"estimation failed: {r.reason}")
         return 1

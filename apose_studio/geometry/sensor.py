@@ -45,6 +45,7 @@ SHIFT_GAIN = 0.8  # ... nor one whose edges lie no nearer the colour's than this
 SHIFT_MIN_EDGES = 100  # fewer depth-edge pixels than this in the window: nothing to align
 EDGE_DIST_CAP_PX = 5.0  # a depth edge farther than this from any colour edge counts this far (edges of one image only)
 WINDOW_MARGIN_PX = 40  # the edges are compared in the prompt's box this much wider per side
+COLOUR_PAD_PX = 40  # the colour image's edges are found this far round the depth's edges (see depth_colour_shift)
 MAX_EDGE_PX = 20000  # at most this many depth-edge pixels are compared (every k-th in image order beyond): a box over a
 # whole noisy 1080p frame held a million, and 169 shifts of them took 3 s
 
@@ -55,33 +56,6 @@ def colour_edge_distance(rgb: np.ndarray) -> np.ndarray:
     grey = cv2.cvtColor(np.ascontiguousarray(rgb[..., :3], dtype=np.uint8), cv2.COLOR_RGB2GRAY)
     colour = cv2.Canny(cv2.GaussianBlur(grey, (3, 3), 0), 40, 100) > 0
     return np.minimum(cv2.distanceTransform((~colour).astype(np.uint8), cv2.DIST_L2, 3), EDGE_DIST_CAP_PX)
-
-
-OUTLINE_MIN_PX = 40  # fewer outline pixels than this: nothing to compare
-
-
-def outline_shift(rgb: np.ndarray, silhouette: np.ndarray) -> tuple[int, int]:
-    """(du, dv): how far the outline of `silhouette` (a model's, ray cast at a pose) must move, right and down,
-    up to SHIFT_MAX_PX each way, to lie nearest the colour image's edges: the move whose outline pixels have
-    the least mean (capped) distance to a colour edge; ties: the shortest. (0, 0) when the outline is too
-    short to tell or there is no colour image. The model's outline is clean where the depth's own edges bleed
-    and have holes: a pose fitted to depth that lies (du, dv) off the colour image needs (-du, -dv)."""
-    sil = silhouette.astype(np.uint8)
-    outline = silhouette & ~cv2.erode(sil, np.ones((3, 3), np.uint8)).astype(bool)
-    vs, us = np.nonzero(outline)
-    if len(us) < OUTLINE_MIN_PX or rgb is None or rgb.ndim != 3:
-        return 0, 0
-    h, w = silhouette.shape
-    dist = colour_edge_distance(rgb)  # over the whole image, as depth_colour_shift finds them
-
-    def mean_distance(du: int, dv: int) -> float:
-        u, v = us + du, vs + dv
-        inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        return float(dist[v[inside], u[inside]].mean()) if inside.any() else EDGE_DIST_CAP_PX
-
-    r = SHIFT_MAX_PX
-    scores = {(du, dv): mean_distance(du, dv) for dv in range(-r, r + 1) for du in range(-r, r + 1)}
-    return min(scores, key=lambda s: (scores[s], abs(s[0]) + abs(s[1]), s))
 
 
 def occluding_edges(depth: np.ndarray) -> np.ndarray:
@@ -139,14 +113,24 @@ def depth_colour_shift(rgb: np.ndarray, depth: np.ndarray, box: tuple[int, int, 
     if len(us) > MAX_EDGE_PX:
         step = -(-len(us) // MAX_EDGE_PX)
         vs, us = vs[::step], us[::step]
-    dist = colour_edge_distance(rgb)
+    r = SHIFT_MAX_PX
+    # the colour's edges in the edges' box, COLOUR_PAD_PX wider (the filters and the distance transform then
+    # read the same there as over the whole image, but where Canny's hysteresis follows an edge from afar)
+    p = COLOUR_PAD_PX
+    cx0, cy0 = max(int(us.min()) - p, 0), max(int(vs.min()) - p, 0)
+    cx1, cy1 = min(int(us.max()) + p + 1, w), min(int(vs.max()) + p + 1, h)
+    dist = colour_edge_distance(rgb[cy0:cy1, cx0:cx1])
+    us, vs, w, h = us - cx0, vs - cy0, cx1 - cx0, cy1 - cy0
+    clear = us.min() >= r and vs.min() >= r and us.max() < w - r and vs.max() < h - r  # no shift leaves the crop
+    flat, at = dist.ravel(), vs * w + us
 
     def mean_distance(du: int, dv: int) -> float:
+        if clear:
+            return float(flat[at - dv * w - du].mean())
         u, v = us - du, vs - dv
         inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
         return float(dist[v[inside], u[inside]].mean()) if inside.any() else EDGE_DIST_CAP_PX
 
-    r = SHIFT_MAX_PX
     scores = {(du, dv): mean_distance(du, dv) for dv in range(-r, r + 1) for du in range(-r, r + 1)}
     best = min(scores, key=lambda s: (scores[s], abs(s[0]) + abs(s[1]), s))  # ties: the shortest, then fixed order
     if max(abs(best[0]), abs(best[1])) < SHIFT_MIN_PX or scores[best] >= SHIFT_GAIN * scores[(0, 0)]:

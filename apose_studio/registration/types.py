@@ -95,11 +95,9 @@ class RegistrationResult:
     off_table: float = float("nan")  # how far the base's lowest point lies above (+) or in (-) the table it stands on,
     # beyond the slack (0: on it; NaN: no table seen): a pose that floats or sinks cannot be
     tracked: bool = False  # the pose was tracked from the frame before's (registration.track), not searched for
-    depth_shift_px: tuple[int, int] = (0, 0)  # how far (right, down) the depth lay shifted against the colour image
-    # where the pose was moved back onto it (estimation.onto_colour); (0, 0): not moved
-    colour_offset: float = 0.0  # how far (metres) the pose may lie off the base because the depth may lie
-    # `colour_offset_px` off the colour image, which the model's outline did not confirm (estimation.onto_colour):
-    # it counts against the confidence with the spread
+    colour_offset: float = 0.0  # how far (metres) the pose may lie off the base because the depth lies
+    # `colour_offset_px` (right, down) off the colour image by its edges (estimation.colour_checked): it counts
+    # against the confidence with the spread; 0: no shift found
     colour_offset_px: tuple[int, int] = (0, 0)
     reading: str = ""  # the reading of the mask the result came from ("": the mask as given; hypotheses.readings)
     problem: object = field(default=None, repr=False)  # the prepared registration problem (ours), for fusion
@@ -152,10 +150,10 @@ def doubts(result: RegistrationResult) -> str:
                    "a cylinder's side, pins it down poorly)")
     elif result.colour_offset and result.spread + result.colour_offset > result.spread_allowed:
         du, dv = result.colour_offset_px
-        why.append(f"the depth may lie {du:+d}, {dv:+d} px (right, down) off the colour image here, which would put the "
-                   f"pose {result.colour_offset * 1000:.1f} mm off, more than the {result.spread_allowed * 1000:.1f} mm "
-                   "the placement allows with what the view leaves free (the depth's edges say so, the model's outline "
-                   "does not confirm it); align depth to colour (--align-depth) to move it back first")
+        why.append(f"the depth's edges lie {du:+d}, {dv:+d} px (right, down) off the colour image's here: if the depth is "
+                   f"registered that far off, the pose is {result.colour_offset * 1000:.1f} mm off, more than the "
+                   f"{result.spread_allowed * 1000:.1f} mm the placement allows with what the view leaves free; if it is "
+                   "(a Kinect's often is), align depth to colour (--align-depth) to move it back first")
     if result.continuation > CONFIDENT_CONTINUATION:
         why.append(f"the surface runs on past {result.continuation:.0%} of the model's outline (it may be laid onto "
                    "part of a larger object)")

@@ -246,9 +246,10 @@ def metrics_markdown(score, result: RegistrationResult | None) -> str:
         rows.append(("mask IoU", f"{score.mask_iou:.3f}"))
     if result.reading:  # the pose came from another reading of the mask (registration/hypotheses.py)
         rows.append(("mask read as", html.escape(result.reading).replace("|", "&#124;")))
-    if result.ok and tuple(result.depth_shift_px) != (0, 0):  # estimation.onto_colour moved the pose
-        du, dv = result.depth_shift_px
-        rows.append(("depth off colour", f"{du:+d}, {dv:+d} px (right, down); pose moved back onto the colour image"))
+    if result.ok and result.colour_offset > 0:  # estimation.colour_checked found the depth's edges off the colour's
+        du, dv = result.colour_offset_px
+        rows.append(("depth vs colour", f"edges {du:+d}, {dv:+d} px apart (right, down): up to "
+                     f"{result.colour_offset * 1000:.1f} mm off; tick Align depth to colour if the depth is registered off"))
     flags = []
     if result.ambiguous:
         flags.append(f"ambiguous: {len(result.alternatives) + 1} placements fit the data equally (a (nearly) symmetric "

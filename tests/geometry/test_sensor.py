@@ -5,7 +5,7 @@ here by comparing the render with the same render unshifted (numpy alone, not th
 import numpy as np
 import pytest
 
-from apose_studio.geometry.sensor import depth_colour_shift, outline_shift, shift_image
+from apose_studio.geometry.sensor import depth_colour_shift, shift_image
 
 from ..conftest import SAMPLES, rendered_frame, true_shift
 
@@ -50,27 +50,19 @@ def test_no_shift_without_edges_to_compare():
     assert depth_colour_shift(rgb, np.zeros_like(depth), (10, 10, 100, 100)) == (0, 0)
 
 
-def _card(shape=(200, 240), rect=(60, 140, 70, 150)) -> tuple[np.ndarray, np.ndarray]:
-    """(rgb, silhouette): a red card on a grey bench, and where it lies (numpy slicing alone)."""
-    rgb = np.full((*shape, 3), 40, np.uint8)
-    rgb[rect[0]:rect[1], rect[2]:rect[3]] = (200, 50, 50)
-    sil = np.zeros(shape, bool)
-    sil[rect[0]:rect[1], rect[2]:rect[3]] = True
-    return rgb, sil
-
-
-@pytest.mark.parametrize("shift", [(3, -2), (-2, 0), (0, 4), (0, 0)])
-def test_a_model_outline_fitted_to_shifted_depth_is_moved_onto_the_colour_edges(shift):
-    """A pose fitted to depth that lies (du, dv) off the colour image puts the model's outline (du, dv) off the
-    colour's edges: the outline's shift is (-du, -dv); an outline on the colour's edges needs none."""
-    rgb, sil = _card()
-    du, dv = shift
-    fitted_to_depth = np.roll(sil, (dv, du), axis=(0, 1))
-    assert outline_shift(rgb, fitted_to_depth) == (-du, -dv)
-
-
-def test_no_outline_to_compare_gives_no_shift():
-    """A silhouette of a few pixels, or no colour image, tells nothing."""
-    rgb, sil = _card(rect=(60, 63, 70, 72))
-    assert outline_shift(np.roll(rgb, 3, axis=1), sil) == (0, 0)
-    assert outline_shift(rgb[..., 0], np.roll(_card()[1], 3, axis=1)) == (0, 0)
+@pytest.mark.parametrize("du,dv", [(3, 0), (-2, 3)])
+def test_a_shift_is_found_on_an_object_at_the_image_border(du, dv):
+    """A block touching the image's left border, its depth moved (du, dv) against the colour image (numpy
+    slicing alone): the shift is found with a box that reaches the border (where shifted edges leave the
+    image and only those inside count), to within a pixel each way (the depth's edge is its near side's pixel,
+    Canny's the one of steepest colour)."""
+    h, w = 240, 320
+    rgb = np.full((h, w, 3), 60, np.uint8)
+    rgb[100:200, 0:120] = (220, 200, 40)
+    depth = np.full((h, w), 1.0, np.float32)
+    depth[100:200, 0:120] = 0.9
+    shifted = shift_image(depth, du, dv)
+    shifted[shifted == 0] = 1.0  # what came in at the border: the table
+    found = depth_colour_shift(rgb, shifted, (0, 90, 130, 210))
+    assert abs(found[0] - du) <= 1 and abs(found[1] - dv) <= 1 and found != (0, 0), found
+    assert depth_colour_shift(rgb, depth, (0, 90, 130, 210)) == (0, 0)

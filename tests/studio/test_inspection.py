@@ -87,14 +87,14 @@ def test_the_metrics_panel_names_the_reading_of_the_mask_the_pose_came_from():
     assert "| mask read as | what lies wholly in the box |" in text
 
 
-def test_the_metrics_panel_says_when_the_pose_was_moved_back_onto_the_colour_image():
-    """A pose moved back onto the colour image (the depth lay a few pixels off it: estimation.onto_colour) says
-    by how much; one left where the depth put it says nothing."""
+def test_the_metrics_panel_says_when_the_depth_lies_off_the_colour_image():
+    """A result whose depth's edges lie off the colour image's (estimation.colour_checked) says by how much and
+    what that may cost, and names the studio's remedy; one without says nothing."""
     r = RegistrationResult(ok=True, coverage=0.95, contradiction=0.0, spread=0.001, spread_allowed=0.01,
                            off_table=0.0, continuation=0.0)
-    assert "depth off colour" not in inspection.metrics_markdown(None, r)
-    text = inspection.metrics_markdown(None, replace(r, depth_shift_px=(3, -2)))
-    assert "| depth off colour | +3, -2 px (right, down); pose moved back onto the colour image |" in text
+    assert "depth vs colour" not in inspection.metrics_markdown(None, r)
+    text = inspection.metrics_markdown(None, replace(r, colour_offset=0.0042, colour_offset_px=(3, -2)))
+    assert "| depth vs colour | edges +3, -2 px apart (right, down): up to 4.2 mm off; tick Align depth to colour" in text
 
 
 def test_point_on_ray_takes_the_nearest_hit():
