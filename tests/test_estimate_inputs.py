@@ -59,7 +59,7 @@ def test_a_capture_whose_depth_lies_off_its_colour_image(tmp_path):
     captures.py's `real` row): `apose estimate --box --align-depth` says how far it found it and moved it back,
     and the pose is within 5 mm (the watering can's label: 2.9 mm; 5.8 mm when benchmarks/captures.py left the
     depth where it was). Without a prompt the flag is refused: nothing says where to compare. Without the flag
-    the pose is not confident, and the doubt names the flag."""
+    but with the colour check on, the pose is not confident, and the doubt names the flag."""
     from .conftest import SAMPLES, rendered_frame
 
     desk = SAMPLES / "desk_objects" / "assembly.yaml"
@@ -76,9 +76,9 @@ def test_a_capture_whose_depth_lies_off_its_colour_image(tmp_path):
     assert "off the colour image around the prompt; moved back" in r.stdout, r.stdout
     r = run("estimate", cap, "--assembly", desk, "--step", 2, "--align-depth")
     assert r.returncode == 2 and "give it with --box or --point" in r.stderr, (r.returncode, r.stderr)
-    # not asked: the colour check after the estimate finds the depth's edges off the colour's, and the pose it
-    # cannot trust as far is not confident; the doubt names the flag
-    r = run("estimate", cap, "--assembly", desk, "--step", 2, "--box", box, "--json")
+    # not aligned, with the colour check: the depth's edges found off the colour's after the estimate, the pose
+    # that far from trustworthy is not confident; the doubt names the flag
+    r = run("estimate", cap, "--assembly", desk, "--step", 2, "--box", box, "--json", "--param", "colour_check=true")
     doc = json.loads(r.stdout)
     assert doc["ok"] and not doc["confident"] and "--align-depth" in doc["doubts"], doc["doubts"]
 

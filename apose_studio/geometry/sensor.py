@@ -80,12 +80,22 @@ def occluding_edges(depth: np.ndarray) -> np.ndarray:
 
 def depth_colour_shift(rgb: np.ndarray, depth: np.ndarray, box: tuple[int, int, int, int] | None = None) -> tuple[int, int]:
     """(du, dv): how many pixels right and down the depth image lies shifted against the colour image (the
-    depth at (u, v) shows what the colour shows at (u - du, v - dv)); (0, 0) when no shift is clear.
+    depth at (u, v) shows what the colour shows at (u - du, v - dv)); (0, 0) when no shift is clear
+    (shift_evidence, gated by SHIFT_MIN_PX and SHIFT_GAIN)."""
+    best, ratio = shift_evidence(rgb, depth, box)
+    if max(abs(best[0]), abs(best[1])) < SHIFT_MIN_PX or not ratio < SHIFT_GAIN:
+        return 0, 0
+    return best
+
+
+def shift_evidence(rgb: np.ndarray, depth: np.ndarray, box: tuple[int, int, int, int] | None = None) -> tuple[tuple[int, int], float]:
+    """((du, dv), ratio): the shift of the depth image against the colour image that lays their edges nearest,
+    and their mean distance there over unshifted (1.0, and (0, 0), when there is nothing to compare).
 
     The depth's occluding edges are compared with the colour's edges (Canny) in `box` (the prompt's, wider by
     WINDOW_MARGIN_PX; None: the whole image) for every shift up to SHIFT_MAX_PX each way: the shift whose depth
     edges lie nearest the colour's (their mean distance, each capped at EDGE_DIST_CAP_PX) wins, if it is at
-    least SHIFT_MIN_PX long and brings them nearer by SHIFT_GAIN. Measured on benchmarks/captures.py's renders
+    least SHIFT_MIN_PX long and brings them nearer by SHIFT_GAIN (depth_colour_shift). Measured on benchmarks/captures.py's renders
     with the prompt's box: on the `real` row (depth registered 3 px off) the shift of 23 of 24 frames found to
     within a pixel along each axis; on the 504 frames of the other rows (registered exactly) a shift found on
     13, 6 of them gearbox frames under Kinect-like noise (near surfaces bleeding into far ones, projector
@@ -94,7 +104,7 @@ def depth_colour_shift(rgb: np.ndarray, depth: np.ndarray, box: tuple[int, int, 
     With a box the depth's edges are found in the window alone (their filters reach 3 px: the window is read
     4 px wider); the colour's over the whole image (Canny's hysteresis follows an edge beyond any window)."""
     if rgb is None or rgb.ndim != 3:
-        return 0, 0
+        return (0, 0), 1.0
     h, w = depth.shape
     if box is None:
         vs, us = np.nonzero(occluding_edges(depth))
@@ -103,13 +113,13 @@ def depth_colour_shift(rgb: np.ndarray, depth: np.ndarray, box: tuple[int, int, 
         m = WINDOW_MARGIN_PX
         cx0, cy0, cx1, cy1 = max(x0 - m - 4, 0), max(y0 - m - 4, 0), min(x1 + m + 4, w), min(y1 + m + 4, h)
         if cx1 <= cx0 or cy1 <= cy0:
-            return 0, 0
+            return (0, 0), 1.0
         edges = occluding_edges(depth[cy0:cy1, cx0:cx1])
         edges &= box_region(edges.shape, (x0 - cx0, y0 - cy0, x1 - cx0, y1 - cy0), m)
         vs, us = np.nonzero(edges)
         vs, us = vs + cy0, us + cx0
     if len(us) < SHIFT_MIN_EDGES:
-        return 0, 0
+        return (0, 0), 1.0
     if len(us) > MAX_EDGE_PX:
         step = -(-len(us) // MAX_EDGE_PX)
         vs, us = vs[::step], us[::step]
@@ -133,6 +143,4 @@ def depth_colour_shift(rgb: np.ndarray, depth: np.ndarray, box: tuple[int, int, 
 
     scores = {(du, dv): mean_distance(du, dv) for dv in range(-r, r + 1) for du in range(-r, r + 1)}
     best = min(scores, key=lambda s: (scores[s], abs(s[0]) + abs(s[1]), s))  # ties: the shortest, then fixed order
-    if max(abs(best[0]), abs(best[1])) < SHIFT_MIN_PX or scores[best] >= SHIFT_GAIN * scores[(0, 0)]:
-        return 0, 0
-    return best
+    return best, scores[best] / max(scores[(0, 0)], 1e-9)
