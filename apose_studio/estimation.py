@@ -231,22 +231,19 @@ def colour_checked(result: RegistrationResult, view: View, params: Params) -> Re
     Kinect's registration), the pose fitted to the depth lies off the base by as much (a pixel at depth z is
     z / f metres), and nothing in the depth shows it. So the depth's edges are compared with the colour's in
     the prompt's box (or the mask's; geometry.sensor.shift_evidence), and a clear shift found there
-    (CLEAR_SHIFT_MAX_PX, CLEAR_SHIFT_GAIN: stricter than --align-depth's) is held against the confidence as
-    `colour_offset`: with the spread it must stay within the placement's
-    allowance (half the line a right pose keeps to; the other half is left for what no frame shows, such as
-    a constant depth bias). The pose is not moved: on frames registered exactly, a Kinect's bleeding edges and
-    projector shadows, or a rim's shading along a silhouette, made the edges find a shift now and then (13 of
-    504 frames of benchmarks/captures.py's rows registered exactly by depth_colour_shift's looser gate; 5 of 120
-    of benchmarks/tune.py's, 2 of them noise-free), and the model's outline against the colour's edges was
-    fooled by the same shading, so only the user can say that the depth is off (`--align-depth`, *Align depth to colour*, which moves it back
-    before the mask and the registration).
+    (CLEAR_SHIFT_MAX_PX, CLEAR_SHIFT_GAIN: stricter than --align-depth's gate) is held against the confidence
+    as `colour_offset`: with the spread it must stay within the placement's allowance (half the line a right
+    pose keeps to; the other half is left for what no frame shows, such as a constant depth bias).
 
-    Off by default (`params.colour_check`): even the clear gate held a shift against frames registered exactly
-    where an object's own shading runs along its outline: the gearbox casing's rim on 9 of 18 noise-free
-    benchmarks/tune.py frames, 13 of the 280 there in all, and 2 of 4 frames of a rendered camera path, against
-    1 of the 504 frames of benchmarks/captures.py's rows registered exactly and 21 of the 24 of its `real` row.
-    Worth turning on for a Kinect v1 or Xtion, whose depth is often registered a few pixels off, when the
-    objects do not have such rims; only with a colour image and an ok result."""
+    The pose is not moved, and the check is off by default (`params.colour_check`): on frames registered
+    exactly, where an object's own shading runs along its outline, the edges find a clear shift too (the
+    gearbox casing's rim on 9 of 18 noise-free benchmarks/tune.py frames, 22 of the 280 there in all, and 2 of
+    4 frames of a rendered camera path, against 1 of the 504 frames of benchmarks/captures.py's rows registered
+    exactly and 21 of the 24 of its `real` row), and the model's outline against the colour's edges, tried as
+    a second opinion, was fooled by the same shading. Only the user can say that the depth is off
+    (`--align-depth`, *Align depth to colour*, which move it back before the mask and the registration). Worth
+    turning on for a Kinect v1 or Xtion, whose depth is often registered a few pixels off, with objects without
+    such rims; only with a colour image and an ok result."""
     if not (params.colour_check and result.ok and view.rgb is not None):
         return result
     t0 = time.perf_counter()
