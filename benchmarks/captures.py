@@ -3,7 +3,7 @@
 
     .venv/bin/python benchmarks/captures.py [--frames 6] [--conditions none,gaussian,realsense,kinect,stacked,hidden,real]
                                             [--assemblies fidget,helical_gearbox,planetary_reducer,desk_objects]
-                                            [--preset paper] [--margin-px 10] [--compare-depth] [--align-depth]
+                                            [--preset paper] [--param NAME=VALUE] [--margin-px 10] [--compare-depth] [--align-depth]
                                             [--json ROWS.json]
 
 Renders `apose render --clutter ...` datasets per condition (kept in artifacts/captures/ for the next
@@ -75,6 +75,7 @@ from apose_studio.geometry import metrics  # noqa: E402
 from apose_studio.geometry.sensor import shift_image  # noqa: E402
 from apose_studio.masks.prompt import prompted_mask  # noqa: E402
 from apose_studio.masks.segment import iou  # noqa: E402
+from apose_studio.params import parse_param  # noqa: E402
 from apose_studio.registration import resolve_params  # noqa: E402
 from apose_studio.synth.frame import RenderSettings  # noqa: E402
 from apose_studio.synth.render import render_dataset
@@ -225,13 +226,16 @@ def main() -> int:
     ap.add_argument("--preset", default="default", choices=["default", "paper"])
     ap.add_argument("--margin-px", type=int, default=10, help="the prompt box: the visible mask's box this much wider "
                     "per side (default 10, as a user draws it)")
+    ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                    help="an estimator parameter over the preset (repeatable), as `apose estimate --param` takes it, e.g. "
+                    "colour_check=true")
     ap.add_argument("--compare-depth", action="store_true", help="also score the DBSCAN depth mask with the same box")
     ap.add_argument("--align-depth", action="store_true", help="move the depth back onto the colour image around the "
                     "box first, as `apose estimate --align-depth` does")
     ap.add_argument("--json", help="write every frame's row here (assembly, condition, step, im_id, right, confident, "
                     "doubts, ...)")
     args = ap.parse_args()
-    params = resolve_params(args.preset)
+    params = resolve_params(args.preset, **dict(parse_param(t) for t in args.param))
     table: dict[str, list[dict]] = {}
     conditions = args.conditions.split(",")
     unknown = [c for c in conditions if c not in CONDITIONS]
