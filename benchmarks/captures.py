@@ -69,6 +69,7 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 from registration import ASSEMBLIES, DESK, loaded_assemblies, stage_table  # noqa: E402
 
 from apose_studio.data.dataset import Dataset  # noqa: E402
+from apose_studio.errors import AposeError  # noqa: E402
 from apose_studio.estimation import StepContext, colour_registered, estimate_frame  # noqa: E402
 from apose_studio.evaluate import score_frame
 from apose_studio.geometry import metrics  # noqa: E402
@@ -235,7 +236,10 @@ def main() -> int:
     ap.add_argument("--json", help="write every frame's row here (assembly, condition, step, im_id, right, confident, "
                     "doubts, ...)")
     args = ap.parse_args()
-    params = resolve_params(args.preset, **dict(parse_param(t) for t in args.param))
+    try:
+        params = resolve_params(args.preset, **dict(parse_param(t) for t in args.param))
+    except AposeError as e:
+        ap.error(str(e))
     table: dict[str, list[dict]] = {}
     conditions = args.conditions.split(",")
     unknown = [c for c in conditions if c not in CONDITIONS]
