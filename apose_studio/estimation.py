@@ -208,7 +208,9 @@ def find_mask(frame: Frame, request: MaskRequest, asm: Assembly, name: str = "")
 def estimate_view(view: View, ctx: StepContext, params: Params, orientation_prior: bool = False,
                   trace_iterations: bool = False) -> RegistrationResult:
     """Step `ctx`'s assembly pose in one view. With orientation_prior the CAD's orientation is taken as
-    the base's orientation in the world (what `--base-pose fixed` renders, and the paper assumes)."""
+    the base's orientation in the world (what `--base-pose fixed` renders, and the paper assumes). With
+    `params.colour_check`, a clear shift of the depth against the colour image costs confidence
+    (colour_checked)."""
     ctx.base.warm_up(params)
     result = estimate(view, ctx.base, ctx.view.T_base_part, params,
                       prior_T_world_base=np.eye(4) if orientation_prior else None,
@@ -249,22 +251,17 @@ def colour_checked(result: RegistrationResult, view: View, params: Params) -> Re
     t0 = time.perf_counter()
     region = result.model_mask if result.model_mask is not None and result.model_mask.shape == view.depth.shape \
         else view.mask
-    window = view.box
+    window = view.box if view.box is not None else truth_box(view.mask, 0.0)  # the prompt's box, or the mask's
     if window is None:
-        vs, us = np.nonzero(view.mask)
-        if len(us) == 0:
-            return result
-        window = (int(us.min()), int(vs.min()), int(us.max()) + 1, int(vs.max()) + 1)
+        return result
     (du, dv), ratio = shift_evidence(np.asarray(view.rgb), view.depth, window)
-    timings = {**result.timings, "colour check": 0.0}
     if SHIFT_MIN_PX <= max(abs(du), abs(dv)) <= CLEAR_SHIFT_MAX_PX and ratio < CLEAR_SHIFT_GAIN:
         z = view.depth[region & np.isfinite(view.depth) & (view.depth > 0)]
         zc = float(np.median(z)) if len(z) else float(se3.transform_points(se3.inv(view.T_world_camera),
                                                                             result.T_world_base[None, :3, 3])[0, 2])
         result = replace(result, colour_offset=float(np.hypot(du * zc / view.camera.fx, dv * zc / view.camera.fy)),
                          colour_offset_px=(int(du), int(dv)))
-    timings["colour check"] = time.perf_counter() - t0
-    return replace(result, timings=timings)
+    return replace(result, timings={**result.timings, "colour check": time.perf_counter() - t0})
 
 
 def held_to_part(result: RegistrationResult, part: PartModel) -> RegistrationResult:

@@ -94,9 +94,9 @@ def shift_evidence(rgb: np.ndarray, depth: np.ndarray, box: tuple[int, int, int,
 
     The depth's occluding edges are compared with the colour's edges (Canny) in `box` (the prompt's, wider by
     WINDOW_MARGIN_PX; None: the whole image) for every shift up to SHIFT_MAX_PX each way: the shift whose depth
-    edges lie nearest the colour's (their mean distance, each capped at EDGE_DIST_CAP_PX) wins, if it is at
-    least SHIFT_MIN_PX long and brings them nearer by SHIFT_GAIN (depth_colour_shift). Measured on benchmarks/captures.py's renders
-    with the prompt's box: on the `real` row (depth registered 3 px off) the shift of 23 of 24 frames found to
+    edges lie nearest the colour's (their mean distance, each capped at EDGE_DIST_CAP_PX) wins; depth_colour_shift
+    takes it if it is at least SHIFT_MIN_PX long and brings them nearer by SHIFT_GAIN. Measured on
+    benchmarks/captures.py's renders with the prompt's box: on the `real` row (depth registered 3 px off) the shift of 23 of 24 frames found to
     within a pixel along each axis; on the 504 frames of the other rows (registered exactly) a shift found on
     13, 6 of them gearbox frames under Kinect-like noise (near surfaces bleeding into far ones, projector
     shadows hiding one side of each object), so it is applied only when asked (estimation.colour_registered).

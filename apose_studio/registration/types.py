@@ -117,9 +117,9 @@ class RegistrationResult:
     @property
     def fits(self) -> bool:
         """The fit part of `confident`: enough coverage, little contradiction, no search cut short, a pose the
-        data pins down (spread, with what a depth lying off the colour image may add: colour_offset), resting on the table where one is seen, an outline that is an outline (not
-        a larger surface running on past it); an ambiguous result may fit: each of its placements explains
-        the data."""
+        data pins down (spread, with what a depth lying off the colour image may add: colour_offset), resting
+        on the table where one is seen, an outline that is an outline (not a larger surface running on past
+        it); an ambiguous result may fit: each of its placements explains the data."""
         return bool(self.ok and np.isfinite(self.coverage) and self.coverage >= CONFIDENT_COVERAGE
                     and not self.contradiction > CONFIDENT_CONTRADICTION and not self.out_of_time
                     and not self.spread + self.colour_offset > self.spread_allowed and not abs(self.off_table) > 0
