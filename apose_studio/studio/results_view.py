@@ -83,6 +83,10 @@ class ResultsView:
     def draw_frame(self) -> None:
         """The frame and its estimate in the 3D view (each thing in its legend colour, labelled) and the
         RGB overlay in the panel."""
+        with self.app.server.atomic():
+            self._draw_frame()
+
+    def _draw_frame(self) -> None:
         fr = self.app.state.inspect.frame
         scene = self.app.server.scene
         part_model = self.app.state.part_model()
@@ -121,9 +125,9 @@ class ResultsView:
             base = self.base_mesh()  # the base object's model where the estimate puts it: does it fit the cloud?
             if self._ghost[0] is not part_model.mesh:  # shaded once per part, not on every frame drawn
                 self._ghost = (part_model.mesh, shaded(part_model.mesh))
-            self.posed_mesh("/inspect/base_est", base, r.T_world_base, lambda: self.app.server.scene.add_mesh_simple(
-                "/inspect/base_est", base.vertices.astype(np.float32), base.faces.astype(np.uint32), color=inspection.GREEN,
-                wireframe=True))
+            self.posed_mesh("/inspect/base_est", base, r.T_world_base, lambda: self.app.server.scene.add_line_segments(
+                "/inspect/base_est", inspection.feature_edges(base).astype(np.float32), inspection.GREEN, thickness=1.5,
+                thickness_units="screen"))
             self.posed_mesh("/inspect/ghost", self._ghost[1], r.T_world_part, lambda: self.app.server.scene.add_mesh_simple(
                 "/inspect/ghost", *self._ghost[1], color=inspection.GREEN, opacity=0.45))
             grasp = self.draw_gripper(r.T_world_part)
@@ -399,6 +403,10 @@ class ResultsView:
     def show_stage(self) -> None:
         if self._syncing:
             return
+        with self.app.server.atomic():
+            self._show_stage()
+
+    def _show_stage(self) -> None:
         if not self.stages:
             self.i_stage_md.content = "" if self.app.state.inspect.result is None else "_no registration trace (estimation failed)_"
             return
