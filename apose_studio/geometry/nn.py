@@ -93,17 +93,16 @@ class NearestTree:
         return d.reshape(shape), i.reshape(shape)
 
 
-def local_normals(points: np.ndarray, k: int = 12, at: np.ndarray | None = None) -> np.ndarray:
+def local_normals(points: np.ndarray, k: int = 12) -> np.ndarray:
     """(N, 3) unit normal of each point: the direction of least spread of its k nearest points (itself
-    included), the normal of the plane fitted to them. Sign arbitrary. Needs N >= k. `at` (indices into
-    points): the normals of those points only, their neighbours still among all the points.
+    included), the normal of the plane fitted to them. Sign arbitrary. Needs N >= k.
 
     The 3 x 3 scatter matrices' smallest eigenvectors in closed form (the trigonometric eigenvalue of a
     symmetric 3 x 3 matrix, then the widest cross product of two rows of A - lambda I), vectorised: on
     2,500 points of a noisy cylinder 7.8 ms against 10.3 ms with numpy's batched eigh, the normals within
     1e-5 degrees of eigh's (tests/geometry/test_nn.py). Where the two smallest spreads are equal (a line of points) any direction across it is a normal,
     as with eigh."""
-    _, nb = NearestTree(points).query(points if at is None else points[at], k=k)
+    _, nb = NearestTree(points).query(points, k=k)
     x = points[nb]
     d = x - x.mean(axis=1, keepdims=True)
     a00, a11, a22 = (d[..., 0] ** 2).sum(1), (d[..., 1] ** 2).sum(1), (d[..., 2] ** 2).sum(1)
@@ -123,7 +122,7 @@ def local_normals(points: np.ndarray, k: int = 12, at: np.ndarray | None = None)
     cands = np.stack([np.cross(r0, r1), np.cross(r0, r2), np.cross(r1, r2)], axis=1)  # (N, 3, 3)
     norms = np.linalg.norm(cands, axis=2)
     best = np.argmax(norms, axis=1)
-    rows = np.arange(len(nb))
+    rows = np.arange(len(points))
     v, nv = cands[rows, best], norms[rows, best]
     # A - lambda I of rank < 2 (a line of points, or no spread at all): its rows' cross products are rounding
     # noise; eigh picks a direction across the line there

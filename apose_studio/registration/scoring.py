@@ -120,9 +120,6 @@ def score_seen(pb: "Task", T_world_base: np.ndarray, src_w: np.ndarray, symmetry
                      coverage), src_w
 
 
-SPREAD_POINTS = 1000  # target points pose_spread fits normals to (a 3,000-point target: 3 ms -> 1 ms)
-
-
 def pose_spread(target_world: np.ndarray, T_world_base: np.ndarray, base, sigma: float, tol: float) -> float:
     """How far the data lets the pose move (metres): three sigmas of the least constrained rigid motion,
     measured at the base's rim (rotations times its radius), from point-to-plane ICP's information matrix
@@ -141,13 +138,10 @@ def pose_spread(target_world: np.ndarray, T_world_base: np.ndarray, base, sigma:
     p = pts[d < tol]
     if len(p) < 12:
         return float("inf")
-    # every k-th point (at most SPREAD_POINTS) with its normal among all of them: the information matrix sums
-    # over the points, so the sample's, scaled by how many it stands for, estimates the whole's
-    at = np.arange(0, len(p), -(-len(p) // SPREAD_POINTS))
-    n = local_normals(p, 12, at=at)  # each point's direction of least spread among its 12 nearest
+    n = local_normals(p, 12)  # each point's direction of least spread among its 12 nearest
     radius = base.diameter / 2
-    J = np.hstack([np.cross(p[at] - p.mean(axis=0), n) / radius, n])  # (rim displacement of a turn, translation)
-    weakest = float(np.linalg.eigvalsh(J.T @ J)[0]) * len(p) / len(at)
+    J = np.hstack([np.cross(p - p.mean(axis=0), n) / radius, n])  # (rim displacement of a turn, translation)
+    weakest = float(np.linalg.eigvalsh(J.T @ J)[0])
     return 3.0 * sigma / np.sqrt(max(weakest, 1e-12))
 
 

@@ -81,13 +81,6 @@ def test_local_normals_agree_with_eigh_of_the_same_neighbourhoods(shape):
     assert np.degrees(np.arccos(np.clip(cos[well_defined], 0, 1))).max() < 1e-3
 
 
-def test_local_normals_at_some_points_are_those_points_normals_among_all():
-    rng = np.random.default_rng(3)
-    p = np.c_[rng.uniform(0, 0.1, 900), rng.uniform(0, 0.1, 900), rng.normal(scale=1e-3, size=900)]
-    at = np.arange(0, 900, 7)
-    np.testing.assert_array_equal(local_normals(p, 12, at=at), local_normals(p, 12)[at])
-
-
 def test_a_non_finite_query_is_refused_as_scipy_refuses_it():
     """pykdtree answers a NaN or inf query point with a far, wrong neighbour (index 2**32 - 1); the wrapper
     refuses it, as scipy's cKDTree does, so that no such answer reaches a registration."""
