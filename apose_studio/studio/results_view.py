@@ -83,10 +83,6 @@ class ResultsView:
     def draw_frame(self) -> None:
         """The frame and its estimate in the 3D view (each thing in its legend colour, labelled) and the
         RGB overlay in the panel."""
-        with self.app.server.atomic():
-            self._draw_frame()
-
-    def _draw_frame(self) -> None:
         fr = self.app.state.inspect.frame
         scene = self.app.server.scene
         part_model = self.app.state.part_model()
@@ -403,10 +399,6 @@ class ResultsView:
     def show_stage(self) -> None:
         if self._syncing:
             return
-        with self.app.server.atomic():
-            self._show_stage()
-
-    def _show_stage(self) -> None:
         if not self.stages:
             self.i_stage_md.content = "" if self.app.state.inspect.result is None else "_no registration trace (estimation failed)_"
             return
