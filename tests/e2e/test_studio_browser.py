@@ -97,8 +97,8 @@ def settled(locator) -> None:
 
 def estimate_shown(page, studio, timeout: float = 120.0) -> None:
     """After *Estimate frame*: wait until the page itself shows the result (the replay's last stage), not only the
-    server: the result lands in the panel's folders as one batch, and a click on a folder title made before it
-    lands can hit whatever the batch moves under the pointer (one CI run lost the Robot folder's click so)."""
+    server: the result's folders fill in as its messages arrive, and a click on a folder title made before then
+    can hit whatever they move under the pointer (one CI run lost the Robot folder's click so)."""
     wait_until(lambda: studio.inspect.result is not None, "the estimate", timeout=timeout)
     page.get_by_text(re.compile(r"final \(\d+/\d+\)")).first.wait_for(timeout=timeout * 1000)
 
