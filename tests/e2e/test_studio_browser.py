@@ -83,8 +83,19 @@ def type_into(page, label: str, text: str, index: int = 0) -> None:
 def open_folder(page, title: str, inside) -> None:
     """Open the GUI folder `title` and wait until `inside` (a locator in it) is wholly shown. A folder grows
     open over a few frames with what follows clipped, and a click in that time can land on no button: on two
-    loaded cores one press of 'Estimate views together' was lost so, the page unchanged (CI)."""
-    page.get_by_text(title, exact=True).click()
+    loaded cores one press of 'Estimate views together' was lost so, the page unchanged (CI). The title's own
+    click can be lost the same way while the panel above it changes: pressed again (up to twice) when the
+    folder has not opened 15 s later."""
+    from playwright.sync_api import TimeoutError as PlaywrightTimeout
+
+    for attempt in range(3):
+        page.get_by_text(title, exact=True).click()
+        try:
+            inside.wait_for(state="visible", timeout=15000)
+            break
+        except PlaywrightTimeout:
+            if attempt == 2:
+                raise
     settled(inside)
 
 
