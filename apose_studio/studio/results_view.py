@@ -51,6 +51,7 @@ class ResultsView:
         self._drawn_frame: tuple | None = None  # what identifies the frame whose camera and scene cloud are drawn
         self._meshes_drawn: dict = {}  # node name -> the mesh it shows (posed_mesh)
         self._source_of: list | None = None  # the replay whose source cloud the "/inspect/source" node holds
+        self._label_layers: dict[str, str | None] = {}  # label node -> the layer of what it names (label_layer)
         app.events.on(Event.FRAME_CHANGED, self.draw_frame)
         app.events.on(Event.RESULT_READY, self.draw_frame)
         app.events.on(Event.OVERLAY_CHANGED, self.draw_overlay)
@@ -144,8 +145,10 @@ class ResultsView:
             set(self.app.nodes) else set()
         self.i_legend.content = legend_html({text for text, _, _ in labels} | grippers |
                                             ({"source cloud"} if r is not None and r.ok else set()))
+        self._label_layers = {}
         for k, (text, where, anchor) in enumerate(labels):
             name = f"/inspect/label_{k}"
+            self._label_layers[name] = label_layer(text)
             self.app.node(name, scene.add_label(name, text, position=tuple(float(v) for v in where), anchor=anchor,
                                              font_screen_scale=1.2))
         self.stages = inspection.replay(r) if (r is not None and r.ok) else []
@@ -446,5 +449,18 @@ class ResultsView:
         for name, layer in which.items():
             if name in self.app.nodes:
                 h = self.app.nodes[name]
-                h._apose_visible = bool(self.layers[layer].value)
+                own = self._label_layers.get(name) if layer == "labels" else None  # a label goes with what it names
+                h._apose_visible = bool(self.layers[layer].value) and (own is None or bool(self.layers[own].value))
                 h.visible = h._apose_visible and self.app.current_view == "Inspect"
+
+
+def label_layer(text: str) -> str | None:
+    """The Layers checkbox of what a 3D label names ("truth" -> boxes, "place" -> gripper, ...): the label is hidden
+    with it. None for a label of no layer of its own."""
+    if text in ("truth", "estimate", "alternative"):
+        return "boxes"
+    if text in ("place", "pre-place", "pick"):
+        return "gripper"
+    if text.startswith("robot base"):
+        return "robot base"
+    return "target cloud" if text == "target cloud" else None

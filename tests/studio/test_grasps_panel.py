@@ -95,6 +95,10 @@ def test_an_estimate_shows_the_gripper_where_it_places_the_part(studio, tmp_path
     T = se3.make_T(se3.quat_wxyz_to_matrix(np.asarray(h.wxyz)), np.asarray(h.position))
     np.testing.assert_allclose(T, r.T_world_part @ G, atol=1e-5)
     assert "gripper" in st.results.i_legend.content
+    place = [n for n, layer in st.results._label_layers.items() if layer == "gripper"]
+    assert place and all(st.nodes[n].visible for n in place)  # its label, "place"
     st.results.layers["gripper"].value = False
     st.results.apply_layers()
     assert not st.nodes["/inspect/gripper"].visible
+    assert not any(st.nodes[n].visible for n in place)  # a label goes with what it names
+    assert st.nodes[next(n for n, layer in st.results._label_layers.items() if layer == "boxes")].visible
