@@ -259,7 +259,7 @@ def metrics_markdown(score, result: RegistrationResult | None) -> str:
             ("time", f"{result.seconds * 1000:.0f} ms"), ("coverage", f"{result.coverage:.0%}")]
     if score is not None and score.adi is not None:
         rows = [("ADI", f"{score.adi * 1000:.2f} mm"), ("MSSD", mssd_text(score)),
-                ("te", f"{score.te * 1000:.2f} mm"), ("re", f"{score.re_deg:.2f}°")] + rows
+                ("te (translation error)", f"{score.te * 1000:.2f} mm"), ("re (rotation error)", f"{score.re_deg:.2f}°")] + rows
     if score is not None and score.mask_iou is not None:
         rows.append(("mask IoU", f"{score.mask_iou:.3f}"))
     if result.reading:  # the pose came from another reading of the mask (registration/hypotheses.py)

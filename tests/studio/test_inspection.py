@@ -134,3 +134,12 @@ def test_the_base_at_the_estimate_is_drawn_by_its_folds_and_borders():
     assert len(inspection.feature_edges(trimesh.creation.icosphere(3))) == 0
     assert len(inspection.feature_edges(box, max_segments=5)) == 5
     assert len(inspection.feature_edges(box, angle_deg=95.0)) == 0
+
+
+def test_the_metrics_panel_names_its_errors_against_the_truth():
+    from types import SimpleNamespace
+
+    score = SimpleNamespace(adi=0.0002, mssd=0.0003, mssd_mod_base_sym=0.0003, te=0.0004, re_deg=0.5, mask_iou=None)
+    r = RegistrationResult(ok=True, fitness=0.9, inlier_rmse=0.001, coverage=0.95, spread=0.0)
+    text = inspection.metrics_markdown(score, r)
+    assert "| te (translation error) | 0.40 mm |" in text and "| re (rotation error) | 0.50° |" in text
