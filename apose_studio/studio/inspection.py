@@ -42,17 +42,18 @@ def box_segments(corners_part: np.ndarray, T_world_part: np.ndarray) -> np.ndarr
     return c[BOX_EDGES]
 
 
-def feature_edges(mesh, angle_deg: float = 25.0, max_segments: int = 6000) -> np.ndarray:
+def feature_edges(mesh, angle_deg: float, max_segments: int = 6000) -> np.ndarray:
     """(M, 2, 3) line segments of a mesh's outline, in the mesh's frame: the edges where its surface folds by
-    more than `angle_deg` and its open borders; at most `max_segments` (the sharpest folds first, borders
-    always). The base at the estimate is drawn so: a full wireframe of an 8,000-triangle base took ~115 ms of
-    each frame drawn in software WebGL (benchmarks/studio_browser.py), and its mesh of lines hid the cloud."""
+    more than `angle_deg` (the studio passes widgets.SHARP_EDGE_DEG, the creases its meshes are drawn with) and
+    its open borders; at most `max_segments` (the sharpest folds first, borders always). The base at the
+    estimate is drawn so: a full wireframe of an 8,000-triangle base took ~115 ms of each frame drawn in
+    software WebGL (benchmarks/studio_browser.py), and its mesh of lines hid the cloud."""
     v = np.asarray(mesh.vertices, float)
     if len(mesh.faces) == 0:
         return np.zeros((0, 2, 3))
     angles = np.asarray(mesh.face_adjacency_angles, float)
-    folds = np.asarray(mesh.face_adjacency_edges)[angles > np.radians(angle_deg)]
-    folds = folds[np.argsort(-angles[angles > np.radians(angle_deg)], kind="stable")]
+    sharp = angles > np.radians(angle_deg)
+    folds = np.asarray(mesh.face_adjacency_edges)[sharp][np.argsort(-angles[sharp], kind="stable")]
     edges = np.sort(np.asarray(mesh.edges_unique), axis=1)
     counts = np.bincount(np.asarray(mesh.edges_unique_inverse), minlength=len(edges))
     border = edges[counts == 1]  # an edge of one face only: where the surface ends

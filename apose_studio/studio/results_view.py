@@ -21,7 +21,7 @@ from apose_studio.robot.grasping import gripper_mesh
 from apose_studio.studio import inspection
 from apose_studio.studio.prompt_panel import overlay_mask, uses_prompt
 from apose_studio.studio.state import Event
-from apose_studio.studio.widgets import LAYERS, esc, legend_html, pos, shaded, wxyz
+from apose_studio.studio.widgets import LAYERS, SHARP_EDGE_DEG, esc, legend_html, pos, shaded, wxyz
 
 log = logging.getLogger(__name__)
 
@@ -123,7 +123,7 @@ class ResultsView:
             if self._ghost[0] is not part_model.mesh:  # shaded once per part, not on every frame drawn
                 self._ghost = (part_model.mesh, shaded(part_model.mesh))
             self.posed_mesh("/inspect/base_est", base, r.T_world_base, lambda: self.app.server.scene.add_line_segments(
-                "/inspect/base_est", inspection.feature_edges(base).astype(np.float32), inspection.GREEN, thickness=1.5,
+                "/inspect/base_est", inspection.feature_edges(base, SHARP_EDGE_DEG).astype(np.float32), inspection.GREEN, thickness=1.5,
                 thickness_units="screen"))
             self.posed_mesh("/inspect/ghost", self._ghost[1], r.T_world_part, lambda: self.app.server.scene.add_mesh_simple(
                 "/inspect/ghost", *self._ghost[1], color=inspection.GREEN, opacity=0.45))
@@ -454,13 +454,11 @@ class ResultsView:
                 h.visible = h._apose_visible and self.app.current_view == "Inspect"
 
 
+LABEL_LAYERS = {"truth": "boxes", "estimate": "boxes", "alternative": "boxes", "place": "gripper",
+                "pre-place": "gripper", "pick": "gripper", "target cloud": "target cloud"}
+
+
 def label_layer(text: str) -> str | None:
-    """The Layers checkbox of what a 3D label names ("truth" -> boxes, "place" -> gripper, ...): the label is hidden
-    with it. None for a label of no layer of its own."""
-    if text in ("truth", "estimate", "alternative"):
-        return "boxes"
-    if text in ("place", "pre-place", "pick"):
-        return "gripper"
-    if text.startswith("robot base"):
-        return "robot base"
-    return "target cloud" if text == "target cloud" else None
+    """The Layers checkbox of what a 3D label names (LABEL_LAYERS; "robot base (FRAME)" -> robot base): the label
+    is hidden with it. None for a label of no layer of its own."""
+    return "robot base" if text.startswith("robot base") else LABEL_LAYERS.get(text)

@@ -123,16 +123,16 @@ def test_the_base_at_the_estimate_is_drawn_by_its_folds_and_borders():
     import trimesh
 
     box = trimesh.creation.box((0.1, 0.2, 0.3))  # 12 triangles: 12 folds of 90 degrees, 6 flat diagonals
-    seg = inspection.feature_edges(box)
+    seg = inspection.feature_edges(box, 30.0)
     assert seg.shape == (12, 2, 3)
     lengths = sorted(np.round(np.linalg.norm(seg[:, 0] - seg[:, 1], axis=1), 6))
     assert lengths == [0.1] * 4 + [0.2] * 4 + [0.3] * 4  # the box's edges, no diagonal
     square = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], [[0, 1, 2], [0, 2, 3]], process=False)
-    seg = inspection.feature_edges(square)  # flat and open: its four borders only
+    seg = inspection.feature_edges(square, 30.0)  # flat and open: its four borders only
     assert sorted(np.round(np.linalg.norm(seg[:, 0] - seg[:, 1], axis=1), 6)) == [1.0] * 4
-    # a smooth sphere folds nowhere by 25 degrees; capped, the sharpest folds come first
-    assert len(inspection.feature_edges(trimesh.creation.icosphere(3))) == 0
-    assert len(inspection.feature_edges(box, max_segments=5)) == 5
+    # a smooth sphere folds nowhere by 30 degrees; capped, the sharpest folds come first
+    assert len(inspection.feature_edges(trimesh.creation.icosphere(3), 30.0)) == 0
+    assert len(inspection.feature_edges(box, 30.0, max_segments=5)) == 5
     assert len(inspection.feature_edges(box, angle_deg=95.0)) == 0
 
 
