@@ -14,7 +14,9 @@ Goals: training <= 10 min on this CPU, base-object IoU >= 0.90, recall within 2 
 from __future__ import annotations
 
 import argparse
+import atexit
 import os
+import shutil
 import sys
 import tempfile
 import time
@@ -42,6 +44,7 @@ def main() -> int:
     ap.add_argument("--assemblies", default="helical_gearbox,planetary_reducer")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="apose-bench-seg-"))
+    atexit.register(shutil.rmtree, tmp, ignore_errors=True)  # renders and copies: gone when the run ends
     rows = []
     for name in args.assemblies.split(","):
         asm = load_assembly(REPO / "sample_assemblies" / name / "assembly.yaml")

@@ -23,7 +23,9 @@ import apose_studio  # noqa: F401  (first: its thread settings apply only before
 # isort: split
 
 import argparse
+import atexit
 import os
+import shutil
 import statistics
 import sys
 import tempfile
@@ -120,6 +122,7 @@ def main() -> int:
     ap.add_argument("--browser", action="store_true", help="connect headless Chromium while measuring")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="apose-bench-studio-"))
+    atexit.register(shutil.rmtree, tmp, ignore_errors=True)  # renders and copies: gone when the run ends
     mesh = dense_torus(args.triangles)
     stl = tmp / "dense_part.stl"
     mesh.export(stl)

@@ -20,6 +20,7 @@ Goals (issue 28): estimate wall <= compute + 0.3 s, open <= 1 s, Play starts at 
 from __future__ import annotations
 
 import argparse
+import atexit
 import os
 import re
 import shutil
@@ -107,6 +108,7 @@ def main() -> int:
     from playwright.sync_api import sync_playwright
 
     tmp = Path(tempfile.mkdtemp(prefix="apose-bench-studio-browser-"))
+    atexit.register(shutil.rmtree, tmp, ignore_errors=True)  # renders and copies: gone when the run ends
     # the studio opens files inside its workspace (here: tmp) only
     sample = Path(shutil.copytree(REPO / "sample_assemblies" / args.sample, tmp / args.sample)) / "assembly.yaml"
     ds = tmp / "ds"
