@@ -71,7 +71,7 @@ class ResultsView:
             self.i_full = gui.add_checkbox("Full image", False, hint="show the whole RGB image instead of the part around the object")
             self.i_full.on_update(self.app.guarded("Full image")(lambda c: self.draw_overlay()))
         with gui.add_folder("Registration replay"):
-            self.i_stage = gui.add_slider("Stage", 0, 1, 1, 0, disabled=True)
+            self.i_stage = gui.add_slider("Stage", 1, 2, 1, 1, disabled=True)  # 1..n, as the stage text counts
             self.i_stage.on_update(self.app.guarded("Stage")(lambda c: self.show_stage()))
             b = gui.add_button("Play registration")
             b.on_click(self.app.guarded("Play registration")(self.on_play_registration))
@@ -154,8 +154,8 @@ class ResultsView:
         self.stages = inspection.replay(r) if (r is not None and r.ok) else []
         self._syncing = True
         try:
-            self.i_stage.max = max(len(self.stages) - 1, 1)
-            self.i_stage.value = max(len(self.stages) - 1, 0)
+            self.i_stage.max = max(len(self.stages), 2)
+            self.i_stage.value = max(len(self.stages), 1)
             self.i_stage.disabled = len(self.stages) < 2
         finally:
             self._syncing = False
@@ -379,7 +379,7 @@ class ResultsView:
         """Show replay stage `k`, the slider moved to it without its callback."""
         self._syncing = True
         try:
-            self.i_stage.value = k
+            self.i_stage.value = k + 1
         finally:
             self._syncing = False
         self.show_stage()
@@ -405,7 +405,7 @@ class ResultsView:
         if not self.stages:
             self.i_stage_md.content = "" if self.app.state.inspect.result is None else "_no registration trace (estimation failed)_"
             return
-        k = int(np.clip(self.i_stage.value, 0, len(self.stages) - 1))
+        k = int(np.clip(self.i_stage.value - 1, 0, len(self.stages) - 1))  # the slider counts from 1
         s = self.stages[k]
         h = self.app.nodes.get("/inspect/source")
         if h is None or self._source_of is not self.stages:  # the cloud is sent once per estimate; a stage moves it
@@ -434,7 +434,7 @@ class ResultsView:
 
         def play():  # 0.2-0.4 s a stage (at most ~6 s in all): slow enough to follow the fit
             for k in range(n):
-                self.i_stage.value = k
+                self.i_stage.value = k + 1
                 time.sleep(max(0.2, min(0.4, 6.0 / n)))
 
         self.app.start_thread(play, name="registration replay")

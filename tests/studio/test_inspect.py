@@ -38,7 +38,10 @@ def test_inspect_estimate_replay_and_cache(studio, gearbox_dataset):
     source = st.nodes["/inspect/source"]
     final = {n: world(n) for n in ("/inspect/source", "/inspect/ghost", "/inspect/box_est")}
     np.testing.assert_allclose(final["/inspect/source"], st.results.stages[-1].source_world, atol=1e-4)  # 0.1 mm: as drawn
-    st.results.i_stage.value = 0
+    n = len(st.results.stages)  # the slider and the stage text count alike, 1..n (a newcomer saw 0-11 beside 1-12)
+    assert (st.results.i_stage.min, st.results.i_stage.max, st.results.i_stage.value) == (1, n, n)
+    assert f"({n}/{n})" in st.results.i_stage_md.content
+    st.results.i_stage.value = 1  # the slider counts stages from 1
     first = {n: world(n) for n in final}
     assert np.abs(first["/inspect/source"] - final["/inspect/source"]).max() > 0 and "initial" in st.results.i_stage_md.content
     np.testing.assert_allclose(first["/inspect/source"], st.results.stages[0].source_world, atol=1e-4)

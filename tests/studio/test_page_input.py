@@ -179,7 +179,7 @@ def test_disabled_and_hidden_widgets_take_no_input_and_props_stay_the_servers(st
     masks = tuple(st.inspect.i_mask.options)
     stage = st.results.i_stage
     stage.disabled = True
-    tab.set(stage, value=1)  # a disabled slider
+    tab.set(stage, value=2)  # a disabled slider
     units = st.files.f_units
     units.visible = False
     tab.set(units, value="cm")  # a hidden dropdown
@@ -189,11 +189,11 @@ def test_disabled_and_hidden_widgets_take_no_input_and_props_stay_the_servers(st
     other = next(p for p in st.asm.parts if p != part.value)
     tab.set(part, value=other)  # a dropdown in a hidden folder
     tab.set(stage, disabled=False)  # a page may not enable what the server disabled
-    tab.set(stage, value=1, update_cb=[])
+    tab.set(stage, value=2, update_cb=[])
     tab.set(units, visible=True)
     tab.set(st.inspect.i_mask, options=["/etc/shadow"])
     tab.settle()
-    assert stage.value == 0 and stage.disabled
+    assert stage.value == 1 and stage.disabled
     assert units.value == "mm" and not units.visible and st.asm.units == "mm"
     assert part.value != other
     assert tuple(st.inspect.i_mask.options) == masks and "/etc/shadow" not in masks
