@@ -30,7 +30,11 @@ CYAN = (0, 200, 255)  # the mask on the RGB overlay
 MAGENTA = (220, 60, 220)  # other placements that fit as well as the estimate (an ambiguous result)
 GRIPPER = (150, 156, 170)  # light steel: the gripper at a grasp (robot/grasping.py), in no part palette
 LEGEND = (("target cloud", RED), ("source cloud", BLUE), ("estimate", GREEN), ("truth (dashed)", AMBER),
-          ("alternatives", MAGENTA), ("gripper", GRIPPER))
+          ("part at estimate (see-through)", (160, 225, 170)),
+          ("base at estimate (outline)", GREEN), ("alternatives", MAGENTA), ("gripper", GRIPPER),
+          ("scene cloud (the image's colours)", (150, 150, 150)))
+ON_TRUTH = 0.02  # an estimate this close to the truth (placement MSSD, share of the part's diameter) draws its box on
+# the truth's: one label, "estimate on truth", says so instead of two labels for what looks like one box
 
 # the 12 edges of a box whose corners are ordered as mesh.PartModel.box_corners() (x major, z minor)
 BOX_EDGES = np.array([[0, 1], [2, 3], [4, 5], [6, 7], [0, 2], [1, 3], [4, 6], [5, 7], [0, 4], [1, 5], [2, 6], [3, 7]])

@@ -141,10 +141,13 @@ class ResultsView:
                                                                 point_shape="circle", precision="float32"))  # float16
             # (viser's default) rounds positions to 0.25-0.5 mm at half a metre: as much as the fits it shows
             labels.append(("target cloud", tgt[np.argmax(tgt[:, 2])], "bottom-right"))
-        grippers = {"gripper"} if {"/inspect/gripper", "/inspect/gripper_pick", "/inspect/gripper_preplace"} & \
-            set(self.app.nodes) else set()
-        self.i_legend.content = legend_html({text for text, _, _ in labels} | grippers |
-                                            ({"source cloud"} if r is not None and r.ok else set()))
+        labels = on_truth(labels, self.app.state.inspect.score, d)
+        drawn = {"gripper": {"/inspect/gripper", "/inspect/gripper_pick", "/inspect/gripper_preplace"},
+                 "part at estimate": {"/inspect/ghost"}, "base at estimate": {"/inspect/base_est"},
+                 "scene cloud": {"/inspect/scene"}}
+        self.i_legend.content = legend_html({text for text, _, _ in labels} |
+                                            {name for name, nodes in drawn.items() if nodes & set(self.app.nodes)} |
+                                            ({"source cloud"} if r is not None and r.ok else set()))  # (drawn below)
         self._label_layers = {}
         for k, (text, where, anchor) in enumerate(labels):
             name = f"/inspect/label_{k}"
@@ -446,6 +449,10 @@ class ResultsView:
                  "/inspect/gripper": "gripper", "/inspect/gripper_preplace": "gripper", "/inspect/gripper_pick": "gripper",
                  "/inspect/robot": "robot base"}
         which.update({n: "labels" for n in self.app.nodes if n.startswith("/inspect/label_")})
+        present = {layer for name, layer in which.items() if name in self.app.nodes}
+        for layer, box in self.layers.items():  # a checkbox only for what this frame draws (no robot base: none)
+            if box.visible != (layer in present):
+                box.visible = layer in present
         for name, layer in which.items():
             if name in self.app.nodes:
                 h = self.app.nodes[name]
@@ -454,7 +461,19 @@ class ResultsView:
                 h.visible = h._apose_visible and self.app.current_view == "Inspect"
 
 
-LABEL_LAYERS = {"truth": "boxes", "estimate": "boxes", "alternative": "boxes", "place": "gripper",
+def on_truth(labels: list, score, diameter: float) -> list:
+    """`labels` (text, where, anchor) with "truth" and "estimate" made one "estimate on truth" label at the
+    estimate's place when the estimate lies within ON_TRUTH of the part's diameter of the truth (placement MSSD):
+    its green box is then drawn on the dashed amber one, and two labels for what reads as one box left the user
+    asking where the other was."""
+    m = inspection.placement_mssd(score)
+    texts = [t for t, _, _ in labels]
+    if m is None or m > inspection.ON_TRUTH * diameter or not {"truth", "estimate"} <= set(texts):
+        return labels
+    return [("estimate on truth", w, a) if t == "estimate" else (t, w, a) for t, w, a in labels if t != "truth"]
+
+
+LABEL_LAYERS = {"truth": "boxes", "estimate": "boxes", "estimate on truth": "boxes", "alternative": "boxes", "place": "gripper",
                 "pre-place": "gripper", "pick": "gripper", "target cloud": "target cloud"}
 
 

@@ -49,9 +49,12 @@ def hex_colour(color) -> str:
 
 def legend_html(shown=None) -> str:
     """The colours of the Inspect view, each with its name; `shown`: the names drawn now (an entry is
-    listed when its name starts with one of them: "truth" lists "truth (dashed)"), None: all of them. A
-    capture has no truth, and a frame not yet estimated no estimate: the legend lists only what is there."""
-    entries = [(name, rgb) for name, rgb in inspection.LEGEND if shown is None or any(name.startswith(s) for s in shown)]
+    listed when its name before any " (" is one of them: "truth" lists "truth (dashed)"; "estimate on truth", the
+    label of both boxes in one place, lists both), None: all of them. A capture has no truth, and a frame not yet
+    estimated no estimate: the legend lists only what is there."""
+    if shown is not None and "estimate on truth" in shown:
+        shown = set(shown) | {"estimate", "truth"}
+    entries = [(name, rgb) for name, rgb in inspection.LEGEND if shown is None or name.split(" (")[0] in shown]
     items = "".join(f"<span style='white-space:nowrap;margin-right:10px'><span style='display:inline-block;width:14px;"
                     f"height:4px;vertical-align:middle;background:{hex_colour([c / 255 for c in rgb])}'></span> {esc(name)}</span>"
                     for name, rgb in entries)

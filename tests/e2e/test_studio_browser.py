@@ -224,7 +224,10 @@ def test_inspect_estimate_a_frame(browser, studio, gearbox_dataset):
     assert studio.inspect.result.ok and studio.inspect.score.mssd < 0.002
     page.get_by_text("MSSD", exact=True).first.wait_for(timeout=10000)
     page.get_by_text("final", exact=True).first.wait_for(timeout=10000)
-    page.get_by_text("truth (dashed)").first.wait_for(timeout=10000)  # the legend
+    page.get_by_text("truth (dashed)").first.wait_for(timeout=10000)  # the legend, naming every colour drawn
+    page.get_by_text("part at estimate (see-through)").first.wait_for(timeout=10000)
+    labels = {h.text for n, h in studio.nodes.items() if n.startswith("/inspect/label_")}  # drawn in WebGL, not the DOM
+    assert "estimate on truth" in labels and "truth" not in labels, labels  # one label: the boxes coincide
     # the object under inspection fills the view: its box spans a good part of the 3D view's width
     # (before: about 80 px of 1012)
     cam = client_of(studio, page).camera

@@ -501,3 +501,42 @@ def test_a_bop_scene_needs_an_assembly_to_open(studio, gearbox_dataset, tmp_path
     st.inspect.i_path.value = str(plain_bop_scene(gearbox_dataset / "test" / "000001", tmp_path / "000001"))
     act(st, lambda c: st.inspect.on_open_data(c))
     assert "a BOP scene needs an assembly" in errors(st)[-1][1]
+
+
+def test_the_legend_names_every_colour_drawn_and_layers_list_only_what_is_there(studio, gearbox_dataset, capture):
+    """Newcomer: the legend named neither the see-through part, the base's outline nor the scene cloud, and
+    Layers offered a robot base where none was drawn. Each thing drawn is in the legend; a layer's checkbox is
+    shown only while its layer has something in the view."""
+    from .conftest import open_capture
+
+    st = open_capture(studio, capture)
+    legend, layers = st.results.i_legend.content, st.results.layers
+    assert "scene cloud (the image&#x27;s colours)" in legend and "part at estimate" not in legend
+    assert layers["scene cloud"].visible and not layers["robot base"].visible and not layers["boxes"].visible
+    st = studio(SAMPLES / "helical_gearbox" / "assembly.yaml", gearbox_dataset)
+    act(st, st.inspect.run_estimation, False)
+    legend = st.results.i_legend.content
+    assert all(n in legend for n in ("part at estimate (see-through)", "base at estimate (outline)", "scene cloud")), legend
+    assert st.results.layers["boxes"].visible and st.results.layers["part at estimate"].visible
+    assert not st.results.layers["robot base"].visible  # a rendered dataset without a robot cell
+
+
+def test_an_estimate_on_the_truth_is_labelled_once(studio, gearbox_dataset):
+    """Newcomer: a right estimate's green box lies on the truth's dashed one, and its two labels ('truth',
+    'estimate') left them asking where the other box was. Within ON_TRUTH of the part's diameter one label says
+    'estimate on truth'; farther off both stay (decided here from the frame's own score)."""
+    from types import SimpleNamespace
+
+    from apose_studio.studio.inspection import ON_TRUTH, placement_mssd
+    from apose_studio.studio.results_view import on_truth
+
+    labels = [("truth", np.zeros(3), "top-right"), ("estimate", np.ones(3), "bottom-left"), ("target cloud", np.ones(3), "x")]
+    near, far = (SimpleNamespace(mssd=m, mssd_mod_base_sym=None) for m in (0.5 * ON_TRUTH * 0.1, 2 * ON_TRUTH * 0.1))
+    assert [t for t, _, _ in on_truth(labels, near, 0.1)] == ["estimate on truth", "target cloud"]
+    assert on_truth(labels, far, 0.1) == labels and on_truth(labels, None, 0.1) == labels  # off it, or no truth
+    st = studio(SAMPLES / "helical_gearbox" / "assembly.yaml", gearbox_dataset)
+    act(st, st.inspect.run_estimation, False)
+    texts = {h.text for n, h in st.nodes.items() if n.startswith("/inspect/label_")}
+    close = placement_mssd(st.inspect.score) <= ON_TRUTH * st.state.part_model().diameter
+    assert ("estimate on truth" in texts) == close and ("truth" in texts) == (not close), texts
+    assert "truth (dashed)" in st.results.i_legend.content and "estimate" in st.results.i_legend.content
