@@ -19,7 +19,10 @@ but the depth patches that lie inside the box, for the prompt may have kept an o
 the box and lost the base it hides;
 
 and keeps the estimate whose model explains the most of that depth (the mask's and the box's own) with the
-least the camera sees past (`explained`): the mask and the pose are found together. When the best of these is still not
+least the camera sees past (`explained`), an estimate the depth does not contradict first
+(`pipeline.uncontradicted`: a pose raised onto a plate lying on the base explains the plate's pixels too, more
+than the right pose explains, and only its sides, seen past, give it away): the mask and the pose are found
+together. When the best of these is still not
 confident, its mask is read once more, by depth only (a tin on the base *and* a box in front: either
 reading alone leaves the other in). Not by colour: once a foreign object is out, the two colour groups
 left are mostly the base's own (a casing and its gear, a duck and its label), and leaving one out

@@ -47,6 +47,7 @@ from apose_studio.registration.stages import project_to_cloud, trace_stages
 from apose_studio.registration.table import table_plane
 from apose_studio.registration.task import Task, prepare_task, scale_problem
 from apose_studio.registration.types import (
+    CONFIDENT_CONTRADICTION,
     CONFIDENT_COVERAGE,
     CONFIDENT_SPREAD,
     MIN_POINTS,
@@ -103,7 +104,7 @@ def estimate_readings(view: View, base: BaseObject, T_base_part: np.ndarray, par
             other = estimate_mask(replace(view, mask=mask), base, T_base_part, quick, prior_T_world_base,
                                   trace_iterations, part_symmetries)
             score = explained(other, view, base, region)
-            if score > best_score or (not best.ok and other.ok):
+            if (other.ok, uncontradicted(other), score) > (best.ok, uncontradicted(best), best_score):
                 best, best_score, best_mask = replace(other, reading=name), score, mask
             if best.confident and best_score >= first_score:
                 break  # a confident reading that explains the frame at least as well: the others cannot do better
@@ -119,6 +120,13 @@ def estimate_readings(view: View, base: BaseObject, T_base_part: np.ndarray, par
                                    trace_iterations, part_symmetries), reading=best.reading)
     seconds = time.perf_counter() - t
     return replace(best, timings={**best.timings, "other readings": seconds})
+
+
+def uncontradicted(result: RegistrationResult) -> bool:
+    """The depth contradicts (sees past) no more of what the model shows than a confident result allows. Among the
+    readings of a mask, such a result beats one the depth contradicts, whatever each explains: a pose raised onto
+    a plate lying on the base explains the plate's pixels too, and only its sides, seen past, give it away."""
+    return bool(result.ok and not result.contradiction > CONFIDENT_CONTRADICTION)
 
 
 def estimate_mask(view: View, base: BaseObject, T_base_part: np.ndarray, params: Params,
