@@ -24,7 +24,8 @@ least the camera sees past (`explained`), an estimate the depth does not contrad
 than the right pose explains, and only its sides, seen past, give it away): the mask and the pose are found
 together. When the best of these is still not
 confident, its mask is read once more, by depth only (a tin on the base *and* a box in front: either
-reading alone leaves the other in). Not by colour: once a foreign object is out, the two colour groups
+reading alone leaves the other in); when none of them beat the mask as given, what two of them both keep
+(`both_out`) is estimated instead. Not by colour: once a foreign object is out, the two colour groups
 left are mostly the base's own (a casing and its gear, a duck and its label), and leaving one out
 dropped half the base (benchmarks/captures.py `real`: a label 8 mm off, confident). The readings are pure functions of
 the view, the base and the table; `explained` is the judge's evidence counted over the mask and every reading.
@@ -66,7 +67,7 @@ def readings(view: View, base: BaseObject, table: tuple[np.ndarray, float] | Non
     valid = mask & np.isfinite(depth) & (depth > 0)
     n = int(valid.sum())
     own = in_box(view, table, tol) if box else None
-    first = [("what lies wholly in the box", own)] if own is not None and _iou(own, valid) <= 0.9 else []
+    first = [(IN_BOX_NAME, own)] if own is not None and _iou(own, valid) <= 0.9 else []
     if n < 2 * MIN_POINTS:
         return first
     out: list[tuple[str, np.ndarray]] = []
@@ -93,6 +94,22 @@ def readings(view: View, base: BaseObject, table: tuple[np.ndarray, float] | Non
     return first + out[:MAX_READINGS]
 
 
+def both_out(todo: list[tuple[str, np.ndarray]]) -> list[tuple[str, np.ndarray]]:
+    """Readings that leave out what two of `todo`'s readings (parts of one mask) each leave out, in their order
+    (what lies wholly in the box, not a part of the mask, is not paired), none two alike, at most MAX_READINGS:
+    a tin on the base and a box in front of it, each left out by one reading, the other still pulling its pose
+    off."""
+    parts = [(name, m) for name, m in todo if name != IN_BOX_NAME]
+    out: list[tuple[str, np.ndarray]] = []
+    for i, (n1, a) in enumerate(parts):
+        for n2, b in parts[i + 1:]:
+            both = a & b
+            if both.sum() >= MIN_POINTS and not any(_iou(both, m) > 0.9 for _, m in [*parts, *out]):
+                out.append((f"{n1}, {n2}", both))
+    return out[:MAX_READINGS]
+
+
+IN_BOX_NAME = "what lies wholly in the box"
 IN_BOX_SHARE = 0.9  # a depth patch with this share of its pixels inside the prompt's box is the box's own
 
 

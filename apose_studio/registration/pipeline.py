@@ -20,7 +20,7 @@ from apose_studio.geometry.noise import estimate_depth_noise
 from apose_studio.geometry.sensor import quantisation_step
 from apose_studio.params import Params
 from apose_studio.registration.base import BaseObject, place_source, raycast_source
-from apose_studio.registration.hypotheses import explained, readings
+from apose_studio.registration.hypotheses import both_out, explained, readings
 from apose_studio.registration.paper import estimate_paper
 from apose_studio.registration.refine import (
     add_chosen_twins,
@@ -108,8 +108,11 @@ def estimate_readings(view: View, base: BaseObject, T_base_part: np.ndarray, par
                 best, best_score, best_mask = replace(other, reading=name), score, mask
             if best.confident and best_score >= first_score:
                 break  # a confident reading that explains the frame at least as well: the others cannot do better
-        if round_ or best is first or best.confident:
+        if round_ or best.confident:
             break
+        if best is first:  # no reading beat the mask as given: each may have left out one of two things; both out
+            todo = both_out(todo)
+            continue
         # a mask with two things in it (a tin on the base and a box in front): the best reading read again, by
         # depth only (hypotheses.py: what colour splits now is mostly the base's own colours)
         prefix = best.reading

@@ -279,3 +279,32 @@ def test_quantisation_step_is_read_off_the_depth():
     assert abs(quantisation_step(steps.astype(np.float32), region) - 0.003) < 2e-4
     assert quantisation_step((np.round(z / 0.0001) * 0.0001).astype(np.float32), region) < 3e-4  # 0.1 mm PNG steps
     assert quantisation_step(np.zeros((100, 100), np.float32), region) == 0.0
+
+
+def test_both_out_pairs_the_readings_that_are_parts_of_the_mask():
+    """Each pair of readings (parts of one mask) gives what both keep, named by both; the box's own patches
+    (not a part of the mask) are not paired, a pair like a reading already there is dropped, and a pair with
+    too few pixels to hold the base is not offered."""
+    from apose_studio.registration.hypotheses import IN_BOX_NAME, MAX_READINGS, both_out
+    from apose_studio.registration.types import MIN_POINTS
+
+    mask = np.zeros((40, 60), bool)
+    mask[5:35, 5:55] = True
+    top, left, thin = mask.copy(), mask.copy(), mask.copy()
+    top[5:12] = False  # leaves out a tin lying on top
+    left[:, 5:15] = False  # leaves out a box in front
+    thin[:, 6:] = False  # keeps a sliver: with either of the others, too little
+    box = mask.copy()
+    pairs = both_out([(IN_BOX_NAME, box), ("below the base's height", top), ("without what stands in front", left),
+                      ("sliver", thin)])
+    assert [n for n, _ in pairs] == ["below the base's height, without what stands in front"]
+    np.testing.assert_array_equal(pairs[0][1], top & left)
+    assert (top & left).sum() >= MIN_POINTS > (top & thin).sum()
+    same = both_out([("a", top), ("b", top.copy())])  # what both keep is the reading itself: nothing new
+    assert same == []
+    many = []
+    for k in range(5):  # five readings, each leaving out its own 8 columns: ten distinct pairs
+        r = mask.copy()
+        r[:, 5 + 8 * k:13 + 8 * k] = False
+        many.append((f"r{k}", r))
+    assert [n for n, _ in both_out(many)] == ["r0, r1", "r0, r2", "r0, r3", "r0, r4"][:MAX_READINGS]
