@@ -68,7 +68,10 @@ def check_box(box, shape: tuple[int, int]) -> tuple[int, int, int, int]:
     h, w = shape
     x0, y0, x1, y1 = (int(v) for v in box)
     if x1 <= x0 or y1 <= y0:
-        raise PromptError(f"box {x0},{y0},{x1},{y1}: expected x0 < x1 and y0 < y1 (left, top, right, bottom in pixels)")
+        as_size = (f"; if {x1},{y1} are its width and height (x,y,w,h, as a COCO or BOP bbox gives it), the box is "
+                   f"{x0},{y0},{x0 + x1},{y0 + y1}") if x1 > 0 and y1 > 0 and x0 >= 0 and y0 >= 0 else ""
+        raise PromptError(f"box {x0},{y0},{x1},{y1}: expected x0 < x1 and y0 < y1 (left, top, right, bottom in "
+                          f"pixels){as_size}")
     if (x1 - x0 < MIN_BOX_PX or y1 - y0 < MIN_BOX_PX) and 0 <= x0 and x1 <= w and 0 <= y0 and y1 <= h:
         raise PromptError(f"box {x0},{y0},{x1},{y1} is {x1 - x0}x{y1 - y0} pixels; draw it around the whole object "
                           f"(at least {MIN_BOX_PX}x{MIN_BOX_PX} pixels), or click on the object instead")

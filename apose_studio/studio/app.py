@@ -109,7 +109,7 @@ class Studio:
         self.robot = RobotPanel(self)  # after results: its targets are listed once the view is drawn
         with self.lock:  # a page that connects while the start-up files load waits for them
             screen_messages(server, lambda *a, **k: self.notify(*a, **k))  # before any page's message is handled
-            self.build_gui()
+            self.build_gui(inspect_first=dataset is not None)
             server.on_client_connect(self.on_connect)
             limit_uploads(server, MAX_UPLOAD_BYTES, lambda *a, **k: self.notify(*a, **k))
             if assembly is not None:  # named on the command line: the user's own files, not the page's
@@ -208,7 +208,7 @@ class Studio:
             log.info("tab %s: camera not turned upright (%s)", client.client_id, e)
         self.mates.listen(client)
 
-    def build_gui(self) -> None:
+    def build_gui(self, inspect_first: bool = False) -> None:
         gui = self.server.gui
         gui.configure_theme(control_layout="fixed", control_width="large", show_share_button=False,
                             brand_color=(40, 90, 230))
@@ -225,24 +225,33 @@ class Studio:
         self.view.on_click(lambda e: self.guarded("3D view")(lambda c: self.on_view_button(e.target.value))(e))
         b = gui.add_button("Download image (PNG)", hint="the 3D view as this tab shows it, as a PNG file (for reports)")
         b.on_click(self.guarded("Download image")(self.on_download_image))
-        tabs = gui.add_tab_group()
-        with tabs.add_tab("Assembly"):
-            self.edit_row = gui.add_button_group("Edit", ("Undo", "Redo"))
-            self.edit_row.on_click(lambda e: self.guarded(e.target.value)(lambda c: self.undo_redo(e.target.value, c))(e))
-            for label, modifier in (("Undo", "cmd/ctrl"), ("Redo", "cmd/ctrl+shift")):
-                cmd = gui.add_command(label, description=f"{label} the last authoring edit", hotkey="Z", modifier=modifier)
-                cmd.on_trigger(lambda e, label=label: self.guarded(label)(lambda c: self.undo_redo(label, c))(e))
-            self.files.build()
-            self.steps.build()
-            self.mates.build()
-            self.grasps.build()
-        with tabs.add_tab("Inspect"):
-            self.inspect.build()
-            self.sequence.build()
-            self.prompt.build()
-            self.views.build()
-            self.results.build()
-            self.robot.build()
+        tabs = self.tabs = gui.add_tab_group()
+
+        def assembly_tab() -> None:
+            with tabs.add_tab("Assembly"):
+                self.edit_row = gui.add_button_group("Edit", ("Undo", "Redo"))
+                self.edit_row.on_click(lambda e: self.guarded(e.target.value)(lambda c: self.undo_redo(e.target.value, c))(e))
+                for label, modifier in (("Undo", "cmd/ctrl"), ("Redo", "cmd/ctrl+shift")):
+                    cmd = gui.add_command(label, description=f"{label} the last authoring edit", hotkey="Z", modifier=modifier)
+                    cmd.on_trigger(lambda e, label=label: self.guarded(label)(lambda c: self.undo_redo(label, c))(e))
+                self.files.build()
+                self.steps.build()
+                self.mates.build()
+                self.grasps.build()
+
+        def inspect_tab() -> None:
+            with tabs.add_tab("Inspect"):
+                self.inspect.build()
+                self.sequence.build()
+                self.prompt.build()
+                self.views.build()
+                self.results.build()
+                self.robot.build()
+
+        # a page opens on the first tab (viser 1.1.1 cannot select one from the server): started with data to
+        # inspect (`--dataset`), the Inspect tab comes first, beside the Inspect view it opens on
+        for build in ((inspect_tab, assembly_tab) if inspect_first else (assembly_tab, inspect_tab)):
+            build()
         self.server.scene.add_grid("/grid", width=1.0, height=1.0, cell_size=0.01, section_size=0.1,
                                    plane="xy", position=(0.0, 0.0, -0.0005))
         self.show_view("Assembly")

@@ -93,6 +93,7 @@ class InspectPanel:
         app.events.on(Event.MASK_SOURCE_CHOSEN, self.on_mask_source_chosen)
         app.events.on(Event.FRAMING_ASKED, self.frame_camera_on_frame)
         app.events.on(Event.FRAME_PLAYED, self.on_frame_played)
+        app.events.on(Event.PROMPT_CHANGED, self.on_prompt_changed)
 
     def build(self) -> None:
         gui = self.app.server.gui
@@ -363,6 +364,18 @@ class InspectPanel:
         direction[2] = max(direction[2], 0.6 * np.linalg.norm(direction[:2]))  # from above the table
         return "beside", np.concatenate([centre, [1.3 * radius], direction])
 
+    def on_prompt_changed(self) -> None:
+        """A new prompt typed while Mask is 'prompt': the frame shows the result made with this prompt (the cache's),
+        or none, never one made with the prompt before (a newcomer typed a malformed box and still saw the last
+        box's pose, 'ok and confident', beside the refusal)."""
+        if self.frame is None or self.app.state.inspect.mask_source != PROMPT_SOURCE:
+            return
+        cached = self.app.cache.get(self.cache_key(self.app.state.inspect.step, int(self.frame.im_id)))
+        result, score = cached if cached is not None else (None, None)
+        if result is not self.result:
+            self.result, self.score = result, score
+            self.app.events.emit(Event.FRAME_CHANGED)
+
     def on_mask_source_chosen(self, source: str) -> None:
         if self.i_mask.value != source:
             self.i_mask.value = source  # its callback redraws the frame, with the new mask
@@ -432,6 +445,7 @@ class InspectPanel:
             try:
                 self.i_frame.max = max(len(ids) - 1, 1)
                 self.i_frame.disabled = len(ids) <= 1
+                self.i_frame.visible = True
                 if self.i_frame.value > len(ids) - 1:
                     self.i_frame.value = 0
             finally:
@@ -441,6 +455,7 @@ class InspectPanel:
             self._syncing = True
             try:
                 self.i_frame.value, self.i_frame.disabled = 0, True
+                self.i_frame.visible = False  # (a slider from 0 to 1 over one image read as two frames)
             finally:
                 self._syncing = False
             im_id = self.frames.last.im_id if isinstance(self.frames, LiveCamera) else 0

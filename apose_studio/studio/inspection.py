@@ -153,6 +153,20 @@ def draw_outline(image: np.ndarray, mask: np.ndarray, colour: tuple[int, int, in
     return image
 
 
+WHITE = (255, 255, 255)
+
+
+def draw_prompt(image: np.ndarray, box: tuple | None, point: tuple | None) -> np.ndarray:
+    """The prompt typed (a box x0,y0,x1,y1, its right and bottom edges exclusive; or a point u,v) drawn onto
+    `image` in white (in place, returned): the user sees what the mask was asked for."""
+    if box is not None:
+        x0, y0, x1, y1 = (int(v) for v in box)
+        cv2.rectangle(image, (x0, y0), (x1 - 1, y1 - 1), WHITE, 1, cv2.LINE_8)
+    if point is not None:
+        cv2.drawMarker(image, (int(point[0]), int(point[1])), WHITE, cv2.MARKER_CROSS, 9, 1)
+    return image
+
+
 def silhouette(mesh, T_world_mesh: np.ndarray, T_world_camera: np.ndarray, cam: CameraIntrinsics) -> np.ndarray:
     """(H, W) bool: the pixels the mesh at T_world_mesh covers in the camera (one ray per pixel centre)."""
     return np.isfinite(raycast_depth(mesh, T_world_mesh, T_world_camera, cam))

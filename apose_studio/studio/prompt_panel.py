@@ -14,7 +14,7 @@ import numpy as np
 
 from apose_studio.errors import AposeError
 from apose_studio.estimation import colour_registered
-from apose_studio.masks.prompt import parse_box, parse_point
+from apose_studio.masks.prompt import check_box, parse_box, parse_point
 from apose_studio.masks.prompt import prompted_mask as segment
 from apose_studio.studio import inspection
 from apose_studio.studio.state import Event, InspectState
@@ -108,10 +108,16 @@ class PromptPanel:
     def on_prompt_typed(self) -> None:
         """A prompt typed (and sent with Enter) is the one to estimate with: Mask switches to prompt. A
         malformed one says what is wrong and leaves the Mask choice alone."""
+        changed = self.app.state.inspect.prompt_text != self.i_prompt.value
         self.app.state.inspect.prompt_text = self.i_prompt.value
+        if changed:
+            self.app.events.emit(Event.PROMPT_CHANGED)  # before any refusal below: the old prompt's result goes too
         if not self.i_prompt.value.strip():
             return
-        prompt_of(self.i_prompt.value)  # raises with the expected form
+        box, _ = prompt_of(self.i_prompt.value)  # raises with the expected form
+        fr = self.app.state.inspect.frame
+        if box is not None and fr is not None:
+            check_box(box, fr.depth.shape)  # an inverted box (x,y,w,h typed) or one off the image: said now, not at Estimate
         if self.app.state.inspect.mask_source != PROMPT_SOURCE:
             self.app.events.emit(Event.MASK_SOURCE_CHOSEN, source=PROMPT_SOURCE)
 
@@ -138,6 +144,7 @@ class PromptPanel:
         m = self.mask(fr)
         if self.app.state.inspect.mask_source != PROMPT_SOURCE:
             self.app.events.emit(Event.MASK_SOURCE_CHOSEN, source=PROMPT_SOURCE)  # the frame is redrawn, with the mask
+        self.app.state.inspect.mask_asked = True  # (after any redraw above: it shows the prompt's mask, not the estimate's)
         self.app.events.emit(Event.OVERLAY_CHANGED)
         moved = ""
         if self.app.state.inspect.align_depth:

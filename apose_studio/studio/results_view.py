@@ -19,7 +19,7 @@ from apose_studio.errors import AposeError
 from apose_studio.geometry import se3
 from apose_studio.robot.grasping import gripper_mesh
 from apose_studio.studio import inspection
-from apose_studio.studio.prompt_panel import overlay_mask, uses_prompt
+from apose_studio.studio.prompt_panel import overlay_mask, prompt_of, uses_prompt
 from apose_studio.studio.state import Event
 from apose_studio.studio.widgets import LAYERS, SHARP_EDGE_DEG, esc, legend_html, pos, shaded, wxyz
 
@@ -85,6 +85,7 @@ class ResultsView:
         """The frame and its estimate in the 3D view (each thing in its legend colour, labelled) and the
         RGB overlay in the panel."""
         fr = self.app.state.inspect.frame
+        self.app.state.inspect.mask_asked = False  # a new frame, prompt or estimate: the RGB shows the estimate's mask
         scene = self.app.server.scene
         part_model = self.app.state.part_model()
         Tc = fr.T_world_camera
@@ -140,7 +141,8 @@ class ResultsView:
             self.app.node("/inspect/target", scene.add_point_cloud("/inspect/target", tgt, inspection.RED, point_size=d / 120,
                                                                 point_shape="circle", precision="float32"))  # float16
             # (viser's default) rounds positions to 0.25-0.5 mm at half a metre: as much as the fits it shows
-            labels.append(("target cloud", tgt[np.argmax(tgt[:, 2])], "bottom-right"))
+            # at the cloud's foot, hanging below it: at its top it sat on the estimate's label (the box's top corner)
+            labels.append(("target cloud", tgt[np.argmin(tgt[:, 2])], "top-right"))
         labels = on_truth(labels, self.app.state.inspect.score, d)
         drawn = {"gripper": {"/inspect/gripper", "/inspect/gripper_pick", "/inspect/gripper_preplace"},
                  "part at estimate": {"/inspect/ghost"}, "base at estimate": {"/inspect/base_est"},
@@ -283,7 +285,9 @@ class ResultsView:
             boxes += [(c.T_world_part, inspection.MAGENTA) for c in r.alternatives]
         image = inspection.draw_boxes(fr.rgb, fr.camera, fr.T_world_camera, corners, boxes)
         ins = self.app.state.inspect
-        if r is not None and r.ok and r.model_mask is not None and r.tracked:  # a played frame: no prompt of its own
+        if ins.mask_asked and uses_prompt(ins):  # Show mask: the prompt's own mask, even beside an estimate
+            prompted, what = overlay_mask(ins, fr), "prompted mask (Show mask)"
+        elif r is not None and r.ok and r.model_mask is not None and r.tracked:  # a played frame: no prompt of its own
             prompted, what = r.model_mask, "the tracked model's mask: where the depth agrees with it"
         elif r is not None and r.ok and r.model_mask is not None and uses_prompt(ins):  # (the prompt not segmented again)
             prompted, what = r.model_mask, "the estimate's mask: what the model shows at the pose"
@@ -296,6 +300,9 @@ class ResultsView:
             outlines.append((r.T_world_base, inspection.GREEN))
         if prompted is not None:  # the prompt's mask (or the estimate's) as its outline, under the model's
             inspection.draw_outline(image, prompted, inspection.CYAN)
+        typed = typed_prompt(ins)
+        if typed is not None:  # the box (or point) typed: what the mask was asked for
+            inspection.draw_prompt(image, *typed)
         shapes = []  # the base's silhouettes: the crop shows all of them
         for T, colour in outlines:
             shapes.append(inspection.silhouette(self.base_mesh(), T, fr.T_world_camera, fr.camera))
@@ -306,6 +313,9 @@ class ResultsView:
             if not boxes:  # no boxes: around the base object, if its mask is known
                 vs, us = np.nonzero(prompted if prompted is not None else fr.base_mask())
                 uv = np.stack([us, vs], axis=1)[:: max(1, len(us) // 500)]
+            if typed is not None and typed[0] is not None:  # the typed box is in the crop
+                x0, y0, x1, y1 = typed[0]
+                uv = np.concatenate([uv, np.array([[x0, y0], [x1, y1]], float)])
             for shape in shapes:
                 vs, us = np.nonzero(shape)
                 uv = np.concatenate([uv, np.stack([us, vs], axis=1)[:: max(1, len(us) // 500)]])
@@ -314,7 +324,8 @@ class ResultsView:
         self.i_image.image = inspection.enlarge(image)
         truth = ", truth (amber)" if fr.T_world_part is not None else ""
         self.i_image.label = (f"RGB: estimate (green: the base's outline, the part's box){truth}" if boxes else "RGB") + (
-            f"; {what} (cyan outline), {int(prompted.sum())} pixels" if prompted is not None else "")
+            f"; {what} (cyan outline), {int(prompted.sum())} pixels" if prompted is not None else "") + (
+            "; the typed prompt (white)" if typed is not None else "")
 
     def on_download_pose(self, client) -> None:
         ins = self.app.state.inspect
@@ -471,6 +482,16 @@ def on_truth(labels: list, score, diameter: float) -> list:
     if m is None or m > inspection.ON_TRUTH * diameter or not {"truth", "estimate"} <= set(texts):
         return labels
     return [("estimate on truth", w, a) if t == "estimate" else (t, w, a) for t, w, a in labels if t != "truth"]
+
+
+def typed_prompt(ins) -> tuple | None:
+    """(box, point) typed into 'Prompt (px)' while Mask is 'prompt' and usable, else None."""
+    if not uses_prompt(ins):
+        return None
+    try:
+        return prompt_of(ins.prompt_text)
+    except AposeError:
+        return None
 
 
 LABEL_LAYERS = {"truth": "boxes", "estimate": "boxes", "estimate on truth": "boxes", "alternative": "boxes", "place": "gripper",

@@ -44,6 +44,7 @@ class Event(str, Enum):
     RESULT_READY = "result ready"  # a new estimate is in `state.inspect.result` / `score` for `state.inspect.frame`
     MASK_SOURCE_CHOSEN = "mask source chosen"  # the user chose mask source `source` outside the Mask dropdown
     OVERLAY_CHANGED = "overlay changed"  # what the RGB overlay shows changed (a prompt's mask): redraw it
+    PROMPT_CHANGED = "prompt changed"  # the typed prompt changed (usable or not): a result made with another is not shown
     FRAMING_ASKED = "framing asked"  # the cameras should look at the object under inspection (an export records them)
     PLAYED = "played"  # Play sequence put part `pid` at `T_world_part` (pid None: the play ended)
     FRAME_PLAYED = "frame played"  # the Sequence folder's player put frame `im_id` (and its result) on show
@@ -60,6 +61,7 @@ PAYLOAD: dict[Event, tuple[str, ...]] = {
     Event.RESULT_READY: (),
     Event.MASK_SOURCE_CHOSEN: ("source",),
     Event.OVERLAY_CHANGED: (),
+    Event.PROMPT_CHANGED: (),
     Event.FRAMING_ASKED: (),
     Event.PLAYED: ("pid", "T_world_part"),
     Event.FRAME_PLAYED: ("im_id",),
@@ -106,6 +108,8 @@ class InspectState:
     mask_source: str = ""  # the Mask dropdown's choice (gt, depth, box, prompt, or a model path)
     prompt_text: str = ""  # the Prompt field: a box x0,y0,x1,y1 or a point u,v, in pixels
     prompt_masks: dict = field(default_factory=dict)  # (frame source, im_id, step, prompt, align) -> mask
+    mask_asked: bool = False  # Show mask was pressed: the RGB shows the prompt's mask (not the estimate's) until the
+    # frame is drawn anew (another frame, prompt or estimate)
     align_depth: bool = False  # the Prompt folder's "Align depth to colour": around the prompt, the depth moved
     # back onto the colour image (estimation.colour_registered), for the mask and the estimate
     part_models: dict = field(default_factory=dict)  # id(assembly) -> its PartModels (one assembly's)

@@ -212,6 +212,24 @@ def test_author_a_step_and_save(browser, studio, tmp_path):
     page.close()
 
 
+def test_started_with_data_the_page_opens_on_the_inspect_tab(browser, gearbox_dataset, tmp_path_factory):
+    """`apose studio A.yaml --dataset D`: the 3D view shows the frame, and the page opens on the Inspect tab beside it
+    (a newcomer found the Assembly tab open with the Inspect view); without data, on the Assembly tab."""
+    from apose_studio.studio import serve
+
+    server, st = serve(SAMPLES / "helical_gearbox" / "assembly.yaml", gearbox_dataset, host="127.0.0.1",
+                       port=free_port(), root=tmp_path_factory.getbasetemp())
+    try:
+        page = browser.new_page(viewport={"width": 1400, "height": 900})
+        page.goto(st.url)
+        page.get_by_role("button", name="Open data").wait_for(timeout=90000)  # the Inspect tab's, shown
+        expect(page.get_by_role("tab", name="Inspect")).to_have_attribute("aria-selected", "true")
+        assert not page.get_by_role("button", name="Add part(s)").is_visible()  # the Assembly tab's, behind its tab
+        assert "● Inspect" in st.view.options
+    finally:
+        server.stop()
+
+
 def test_inspect_estimate_a_frame(browser, studio, gearbox_dataset):
     page = open_page(browser, studio)
     open_data(page, studio, gearbox_dataset)

@@ -110,6 +110,7 @@ def test_a_capture_offers_the_masks_that_work_and_a_typed_prompt_is_used(studio,
     from apose_studio.studio import inspection
 
     st = open_capture(studio, capture)
+    assert not st.inspect.i_frame.visible  # one image: no Frame slider (a newcomer read 0..1 as two frames)
     options = list(st.inspect.i_mask.options)
     assert "gt" not in options and "box" not in options and {"depth", "prompt"} <= set(options)
     assert st.inspect.i_mask.value == "depth" and st.state.inspect.mask_source == "depth"
@@ -117,6 +118,13 @@ def test_a_capture_offers_the_masks_that_work_and_a_typed_prompt_is_used(studio,
     act(st, lambda c: st.prompt.on_prompt_typed())
     assert "x0,y0,x1,y1" in errors(st)[-1][1] and st.inspect.i_mask.value == "depth"
     fr = Dataset(gearbox_dataset).frame(1, 1)  # the frame the capture was made from
+    x0, y0, x1, y1 = truth_box(fr.base_mask())
+    st.prompt.i_prompt.value = f"{x0},{y0},{x1 - x0},{y1 - y0}"  # x,y,w,h as a BOP bbox gives it: said at Enter
+    act(st, lambda c: st.prompt.on_prompt_typed())
+    assert f"the box is {x0},{y0},{x1},{y1}" in errors(st)[-1][1] and st.inspect.i_mask.value == "depth", errors(st)[-1]
+    st.prompt.i_prompt.value = "900,900,1000,1000"  # off this image: said at Enter too
+    act(st, lambda c: st.prompt.on_prompt_typed())
+    assert "outside the" in errors(st)[-1][1] and st.inspect.i_mask.value == "depth"
     st.prompt.i_prompt.value = ",".join(map(str, truth_box(fr.base_mask())))
     act(st, lambda c: st.prompt.on_prompt_typed())
     assert st.inspect.i_mask.value == "prompt" and st.state.inspect.mask_source == "prompt"
@@ -129,11 +137,31 @@ def test_a_capture_offers_the_masks_that_work_and_a_typed_prompt_is_used(studio,
     for colour in (inspection.CYAN, inspection.GREEN):  # the mask's outline, the base model's outline at the estimate
         assert (image == np.array(colour, np.uint8)).all(axis=-1).sum() > 50, colour
     assert "cyan outline" in st.results.i_image.label
+    assert "the typed prompt (white)" in st.results.i_image.label and (image == 255).all(axis=-1).sum() > 50
+    assert "the estimate's mask" in st.results.i_image.label
+    # Show mask beside an estimate shows the prompt's own mask (a newcomer saw the estimate's stay), until redrawn
+    act(st, lambda c: st.prompt.show_mask(c))
+    prompted = st.prompt.mask(st.inspect.frame)
+    assert f"prompted mask (Show mask) (cyan outline), {int(prompted.sum())} pixels" in st.results.i_image.label
+    assert int(prompted.sum()) != int(r.model_mask.sum())  # two different masks: the label tells which is drawn
+    from apose_studio.studio.state import Event
+
+    act(st, lambda c: st.events.emit(Event.RESULT_READY))  # (as an estimate's arrival redraws the frame)
+    assert "the estimate's mask" in st.results.i_image.label
     assert "/inspect/base_est" in st.nodes  # the base object's model drawn where the estimate puts it
     T = st.inspect.frame.T_world_camera  # a capture opens at its sensor's pose, the image's up as the view's up
     cam = st.server.initial_camera
     assert np.allclose(cam.position, T[:3, 3]) and np.allclose(cam.up, -T[:3, 1])
     assert st.results.i_metrics.content.startswith("**✔ ok and confident**") == r.confident
+    good = st.prompt.i_prompt.value
+    st.prompt.i_prompt.value = "the can"  # malformed: refused, and the last box's pose is no longer shown
+    act(st, lambda c: st.prompt.on_prompt_typed())
+    assert "x0,y0,x1,y1" in errors(st)[-1][1]
+    assert st.inspect.result is None and "No estimate for this frame yet" in st.results.i_metrics.content
+    assert "/inspect/box_est" not in st.nodes
+    st.prompt.i_prompt.value = good  # the box typed again: its estimate (cached) is shown again
+    act(st, lambda c: st.prompt.on_prompt_typed())
+    assert st.inspect.result is r and "/inspect/box_est" in st.nodes
     # a prompt that fails: the earlier estimate does not stay on screen as if it were the answer to it
     st.prompt.i_prompt.value = "2,2,40,40"  # a corner of bare table
     act(st, lambda c: st.prompt.on_prompt_typed())
@@ -458,7 +486,7 @@ def test_a_bop_scene_opens_with_its_images_and_the_typed_obj_ids_give_its_truth(
     act(st, lambda c: st.inspect.on_open_data(c))
     assert not errors(st), st.notes
     assert "a BOP scene of 2 image(s)" in st.notes[-1][1] and "BOP object ids" in st.notes[-1][1]
-    assert st.inspect.i_frame.max == 1 and not st.inspect.i_frame.disabled
+    assert st.inspect.i_frame.max == 1 and not st.inspect.i_frame.disabled and st.inspect.i_frame.visible
     assert "gt" not in st.inspect.i_mask.options and "/inspect/box_gt" not in st.nodes
     st.inspect.i_obj_map.value = "no_such_part=3"
     act(st, lambda c: st.inspect.on_obj_map(c))
