@@ -693,10 +693,18 @@ class InspectPanel:
             a = self.app.state.inspect.advice
             unsure[-1] += (f"; look again from where the orange frustum in the 3D view shows: from there about {a.pixels} "
                            f"pixels tell the placements apart (from here {a.pixels_now})")
+        hint = []
+        if (failed or unsure) and self.app.state.inspect.mask_source == PROMPT_SOURCE:
+            # a prompt marks whatever the user chose: the base model fitted to another object says only 'ambiguous'
+            # or 'poor fit' (a newcomer on the wrong step went to take another view instead of changing the step)
+            step = self.app.state.inspect.step
+            base = ", ".join(self.inspect_assembly().steps[step - 1].base)
+            hint = [f"(step {step} registers {base}: if the prompt marks another object, choose that object's step in "
+                    "Inspect step)"]
         if failed:
-            self.app.notify(client, "Estimation failed", "\n".join(failed[:5]), error=True)
+            self.app.notify(client, "Estimation failed", "\n".join(failed[:5] + hint), error=True)
         elif unsure:
-            self.app.notify(client, "Estimated, not confident", "\n".join(unsure[:5]), error=True)
+            self.app.notify(client, "Estimated, not confident", "\n".join(unsure[:5] + hint), error=True)
         else:
             # a step's summary is a result to read: it stays (until the tab's next message), a frame's fades
             self.app.notify(client, "Estimated", f"{len(ids)} frame(s) in {dt:.1f} s{self.truth_summary(job, ids)}",

@@ -162,6 +162,15 @@ def test_a_capture_offers_the_masks_that_work_and_a_typed_prompt_is_used(studio,
     st.prompt.i_prompt.value = good  # the box typed again: its estimate (cached) is shown again
     act(st, lambda c: st.prompt.on_prompt_typed())
     assert st.inspect.result is r and "/inspect/box_est" in st.nodes
+    # the same box on the wrong step: the base model fitted to another object; the notice names what the step registers
+    st.inspect.i_step.value = st.inspect.i_step.options[2]  # step 3: the cover onto the casing, pinion and gear
+    act(st, st.inspect.run_estimation, False)
+    other = st.inspect.result
+    assert other is not None and not (other.ok and other.confident)
+    title, body, _ = errors(st)[-1]
+    assert title in ("Estimated, not confident", "Estimation failed") and "(step 3 registers " in body, errors(st)[-1]
+    assert "choose that object's step" in body
+    st.inspect.i_step.value = st.inspect.i_step.options[0]
     # a prompt that fails: the earlier estimate does not stay on screen as if it were the answer to it
     st.prompt.i_prompt.value = "2,2,40,40"  # a corner of bare table
     act(st, lambda c: st.prompt.on_prompt_typed())
