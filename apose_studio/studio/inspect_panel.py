@@ -318,6 +318,8 @@ class InspectPanel:
             self.i_mask.value = "gt"  # ids): its masks, as a dataset opens on them
         self.app.state.inspect.mask_source = self.i_mask.value
 
+    FILL = 2.0  # an estimated object framed from its sensor: its radius times this fills half the view's height
+
     def frame_camera_on_frame(self, again: bool = True) -> None:
         """Frame the object under inspection (its mask, else the estimate's points, else the middle of the
         depth image). A capture is seen from its sensor's pose, as the camera saw it (a real scene seen from
@@ -337,15 +339,26 @@ class InspectPanel:
         self._last_framing = framing
         kind, args = framing
         if kind == "sensor":
-            self.app.view_from(fr.T_world_camera, args[:3], 2.0 * np.arctan2(fr.camera.height / 2.0, fr.camera.fy))
+            fov = 2.0 * np.arctan2(fr.camera.height / 2.0, fr.camera.fy)
+            T = fr.T_world_camera
+            radius = float(args[15])
+            if radius > 0:  # an estimate's target: nearer along the sensor's ray to it, until it fills the view
+                centre, eye = args[:3], T[:3, 3]
+                far = float(np.linalg.norm(eye - centre))
+                near = min(far, self.FILL * radius / np.tan(fov / 2.0))
+                T = T.copy()
+                T[:3, 3] = centre + (eye - centre) * (near / max(far, 1e-9))
+            self.app.view_from(T, args[:3], fov)
         else:
             self.app.look_at(args[:3], args[3], args[4:])
 
     def framing(self, fr) -> tuple[str, np.ndarray] | None:
-        """How frame_camera_on_frame frames `fr`: ("sensor", centre + the camera's 3x4 pose) or ("beside",
-        centre + radius + direction); None when nothing in the frame has depth."""
+        """How frame_camera_on_frame frames `fr`: ("sensor", centre + the camera's 3x4 pose + the estimated
+        target's radius, 0 before an estimate) or ("beside", centre + radius + direction); None when nothing in
+        the frame has depth."""
         mask = fr.base_mask()
-        if not mask.any() and self.result is not None and len(self.result.target_cloud):
+        estimated = not mask.any() and self.result is not None and len(self.result.target_cloud)
+        if estimated:
             pts = self.result.target_cloud
         else:
             if not mask.any():
@@ -356,8 +369,10 @@ class InspectPanel:
         if not len(pts):
             return None
         centre = np.median(pts, axis=0)
-        if not fr.masks or not isinstance(self.frames, Dataset):  # a real frame: as its sensor saw it
-            return "sensor", np.concatenate([centre, fr.T_world_camera[:3, :].ravel()])
+        if not fr.masks or not isinstance(self.frames, Dataset):  # a real frame: as its sensor saw it (once estimated,
+            # nearer along the sensor's ray: the object small amid the whole bench was hard to judge)
+            radius = float(np.percentile(np.linalg.norm(pts - centre, axis=1), 95)) if estimated else 0.0
+            return "sensor", np.concatenate([centre, fr.T_world_camera[:3, :].ravel(), [radius]])
         radius = max(float(np.percentile(np.linalg.norm(pts - centre, axis=1), 95)), 0.02)
         to_camera = fr.T_world_camera[:3, 3] - centre
         direction = se3.axis_angle_matrix([0.0, 0.0, 1.0], np.radians(35.0)) @ to_camera

@@ -332,7 +332,8 @@ def test_inspect_a_capture_with_a_typed_box(browser, studio, tmp_path):
     """A real-capture folder (made from a cluttered Kinect-like render, with a BOP camera.json): the Mask
     offers no ground-truth source and starts on depth; a box typed into Prompt (px) and sent with Enter
     switches it to prompt; Estimate frame gives a pose on the renderer's; the RGB overlay is shown at
-    least 300 px wide with the model's outline; the 3D view opens at the sensor's pose."""
+    least 300 px wide with the model's outline; the 3D view opens at the sensor's pose and, once estimated,
+    closes in on the object along the sensor's ray."""
     from apose_studio.assembly.model import load_assembly
     from apose_studio.data.dataset import Dataset
     from apose_studio.estimation import truth_box
@@ -361,6 +362,9 @@ def test_inspect_a_capture_with_a_typed_box(browser, studio, tmp_path):
     T_camera_part = np.linalg.inv(studio.inspect.frame.T_world_camera) @ r.T_world_part
     truth = np.linalg.inv(fr.T_world_camera) @ fr.T_world_part
     assert mssd_to_truth(T_camera_part, truth, asm_path, fr.part) < 0.1 * studio.inspect.part_model().diameter
+    centre = np.median(r.target_cloud, axis=0)  # estimated: the page's view nearer along the sensor's ray to the object
+    wait_until(lambda: np.linalg.norm(np.asarray(cam.position) - centre) < 0.8 * np.linalg.norm(T[:3, 3] - centre),
+               "the view to close in on the estimated object")
     green = np.array(inspection.GREEN, np.uint8)
     wait_until(lambda: (np.asarray(studio.results.i_image.image) == green).all(axis=-1).sum() > 50,
                "the model's outline on the RGB overlay")  # drawn once the result is shown

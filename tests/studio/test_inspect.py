@@ -149,9 +149,13 @@ def test_a_capture_offers_the_masks_that_work_and_a_typed_prompt_is_used(studio,
     act(st, lambda c: st.events.emit(Event.RESULT_READY))  # (as an estimate's arrival redraws the frame)
     assert "the estimate's mask" in st.results.i_image.label
     assert "/inspect/base_est" in st.nodes  # the base object's model drawn where the estimate puts it
-    T = st.inspect.frame.T_world_camera  # a capture opens at its sensor's pose, the image's up as the view's up
-    cam = st.server.initial_camera
-    assert np.allclose(cam.position, T[:3, 3]) and np.allclose(cam.up, -T[:3, 1])
+    T = st.inspect.frame.T_world_camera  # a capture is seen from its sensor, the image's up as the view's up; once
+    cam = st.server.initial_camera  # estimated, nearer along the sensor's ray to the object (it stayed small amid the bench)
+    centre = np.asarray(cam.look_at)
+    ray, to_cam = T[:3, 3] - centre, np.asarray(cam.position) - centre
+    assert np.allclose(np.cross(ray, to_cam), 0.0, atol=1e-9) and ray @ to_cam > 0 and np.allclose(cam.up, -T[:3, 1])
+    assert np.linalg.norm(to_cam) < 0.8 * np.linalg.norm(ray)
+    assert np.linalg.norm(centre - np.median(r.target_cloud, axis=0)) < 1e-9
     assert st.results.i_metrics.content.startswith("**✔ ok and confident**") == r.confident
     good = st.prompt.i_prompt.value
     st.prompt.i_prompt.value = "the can"  # malformed: refused, and the last box's pose is no longer shown
