@@ -162,6 +162,8 @@ class ResultsView:
             self.i_stage.max = max(len(self.stages), 2)
             self.i_stage.value = max(len(self.stages), 1)
             self.i_stage.disabled = len(self.stages) < 2
+            if self.i_stage.visible != (len(self.stages) >= 2):  # no estimate, no stages: no slider (it read 1..2)
+                self.i_stage.visible = len(self.stages) >= 2
         finally:
             self._syncing = False
         self.show_stage()

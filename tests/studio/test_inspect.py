@@ -39,6 +39,7 @@ def test_inspect_estimate_replay_and_cache(studio, gearbox_dataset):
     final = {n: world(n) for n in ("/inspect/source", "/inspect/ghost", "/inspect/box_est")}
     np.testing.assert_allclose(final["/inspect/source"], st.results.stages[-1].source_world, atol=1e-4)  # 0.1 mm: as drawn
     n = len(st.results.stages)  # the slider and the stage text count alike, 1..n (a newcomer saw 0-11 beside 1-12)
+    assert st.results.i_stage.visible  # (hidden before an estimate: it read 1..2 with no stages)
     assert (st.results.i_stage.min, st.results.i_stage.max, st.results.i_stage.value) == (1, n, n)
     assert f"({n}/{n})" in st.results.i_stage_md.content
     st.results.i_stage.value = 1  # the slider counts stages from 1
@@ -554,6 +555,7 @@ def test_the_legend_names_every_colour_drawn_and_layers_list_only_what_is_there(
     legend, layers = st.results.i_legend.content, st.results.layers
     assert "scene cloud (the image&#x27;s colours)" in legend and "part at estimate" not in legend
     assert layers["scene cloud"].visible and not layers["robot base"].visible and not layers["boxes"].visible
+    assert not st.results.i_stage.visible  # no estimate: no replay stages to slide through
     st = studio(SAMPLES / "helical_gearbox" / "assembly.yaml", gearbox_dataset)
     act(st, st.inspect.run_estimation, False)
     legend = st.results.i_legend.content
