@@ -74,12 +74,23 @@ def uses_prompt(ins: InspectState) -> bool:
     return ins.mask_source == PROMPT_SOURCE and bool(ins.prompt_text.strip())
 
 
-def overlay_mask(ins: InspectState, frame) -> np.ndarray | None:
-    """The prompted mask to draw over the RGB image: with Mask 'prompt' and a usable prompt, else None."""
-    if frame is None or not uses_prompt(ins):
+def typed_prompt(ins: InspectState) -> tuple | None:
+    """(box, point) typed into 'Prompt (px)' while Mask is 'prompt', None when there is none or it is malformed."""
+    if not uses_prompt(ins):
         return None
     try:
-        return prompted_mask(ins.prompt_masks, frame, prompt_of(ins.prompt_text), ins.align_depth)
+        return prompt_of(ins.prompt_text)
+    except AposeError:
+        return None
+
+
+def overlay_mask(ins: InspectState, frame) -> np.ndarray | None:
+    """The prompted mask to draw over the RGB image: with Mask 'prompt' and a usable prompt, else None."""
+    prompt = typed_prompt(ins) if frame is not None else None
+    if prompt is None:
+        return None
+    try:
+        return prompted_mask(ins.prompt_masks, frame, prompt, ins.align_depth)
     except AposeError:
         return None
 

@@ -19,7 +19,7 @@ from apose_studio.errors import AposeError
 from apose_studio.geometry import se3
 from apose_studio.robot.grasping import gripper_mesh
 from apose_studio.studio import inspection
-from apose_studio.studio.prompt_panel import overlay_mask, prompt_of, uses_prompt
+from apose_studio.studio.prompt_panel import overlay_mask, typed_prompt, uses_prompt
 from apose_studio.studio.state import Event
 from apose_studio.studio.widgets import LAYERS, SHARP_EDGE_DEG, esc, legend_html, pos, shaded, wxyz
 
@@ -144,11 +144,9 @@ class ResultsView:
             # at the cloud's foot, hanging below it: at its top it sat on the estimate's label (the box's top corner)
             labels.append(("target cloud", tgt[np.argmin(tgt[:, 2])], "top-right"))
         labels = on_truth(labels, self.app.state.inspect.score, d)
-        drawn = {"gripper": {"/inspect/gripper", "/inspect/gripper_pick", "/inspect/gripper_preplace"},
-                 "part at estimate": {"/inspect/ghost"}, "base at estimate": {"/inspect/base_est"},
-                 "scene cloud": {"/inspect/scene"}}
+        # the legend names what is drawn: the labels' things and the layers with a node (their names are the legend's)
         self.i_legend.content = legend_html({text for text, _, _ in labels} |
-                                            {name for name, nodes in drawn.items() if nodes & set(self.app.nodes)} |
+                                            {layer for node, layer in NODE_LAYERS.items() if node in self.app.nodes} |
                                             ({"source cloud"} if r is not None and r.ok else set()))  # (drawn below)
         self._label_layers = {}
         for k, (text, where, anchor) in enumerate(labels):
@@ -456,11 +454,7 @@ class ResultsView:
         self.app.start_thread(play, name="registration replay")
 
     def apply_layers(self) -> None:
-        which = {"/inspect/scene": "scene cloud", "/inspect/target": "target cloud", "/inspect/source": "source cloud",
-                 "/inspect/box_gt": "boxes", "/inspect/box_est": "boxes", "/inspect/box_alt": "boxes",
-                 "/inspect/ghost": "part at estimate", "/inspect/base_est": "base at estimate", "/inspect/camera": "camera",
-                 "/inspect/gripper": "gripper", "/inspect/gripper_preplace": "gripper", "/inspect/gripper_pick": "gripper",
-                 "/inspect/robot": "robot base"}
+        which = dict(NODE_LAYERS)
         which.update({n: "labels" for n in self.app.nodes if n.startswith("/inspect/label_")})
         present = {layer for name, layer in which.items() if name in self.app.nodes}
         for layer, box in self.layers.items():  # a checkbox only for what this frame draws (no robot base: none)
@@ -474,6 +468,13 @@ class ResultsView:
                 h.visible = h._apose_visible and self.app.current_view == "Inspect"
 
 
+NODE_LAYERS = {"/inspect/scene": "scene cloud", "/inspect/target": "target cloud", "/inspect/source": "source cloud",
+               "/inspect/box_gt": "boxes", "/inspect/box_est": "boxes", "/inspect/box_alt": "boxes",
+               "/inspect/ghost": "part at estimate", "/inspect/base_est": "base at estimate", "/inspect/camera": "camera",
+               "/inspect/gripper": "gripper", "/inspect/gripper_preplace": "gripper", "/inspect/gripper_pick": "gripper",
+               "/inspect/robot": "robot base"}  # node -> its Layers checkbox (and legend entry, where it has one)
+
+
 def on_truth(labels: list, score, diameter: float) -> list:
     """`labels` (text, where, anchor) with "truth" and "estimate" made one "estimate on truth" label at the
     estimate's place when the estimate lies within ON_TRUTH of the part's diameter of the truth (placement MSSD):
@@ -484,16 +485,6 @@ def on_truth(labels: list, score, diameter: float) -> list:
     if m is None or m > inspection.ON_TRUTH * diameter or not {"truth", "estimate"} <= set(texts):
         return labels
     return [("estimate on truth", w, a) if t == "estimate" else (t, w, a) for t, w, a in labels if t != "truth"]
-
-
-def typed_prompt(ins) -> tuple | None:
-    """(box, point) typed into 'Prompt (px)' while Mask is 'prompt' and usable, else None."""
-    if not uses_prompt(ins):
-        return None
-    try:
-        return prompt_of(ins.prompt_text)
-    except AposeError:
-        return None
 
 
 LABEL_LAYERS = {"truth": "boxes", "estimate": "boxes", "estimate on truth": "boxes", "alternative": "boxes", "place": "gripper",
