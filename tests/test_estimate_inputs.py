@@ -306,3 +306,20 @@ def test_a_capture_with_a_jpeg_colour_image_opens(capture, tmp_path):
     frame = open_frames(folder)
     png_frame = load_capture(capture["ours"])
     assert frame.rgb.shape == png_frame.rgb.shape and np.abs(frame.rgb.astype(int) - png_frame.rgb.astype(int)).mean() < 3
+
+
+def test_a_box_reaching_off_the_image_is_taken_as_typed_and_an_inverted_one_is_explained(capture):
+    """`--box -5,-5,20,20` (a box reaching past the image's corner) was taken by argparse for an option
+    ("expected one argument"); `--box X,Y,W,H` (a BOP/COCO bbox) was refused without a hint. Both reach the
+    prompt's own check now, which names the box and the fix."""
+    from apose_studio.cli.commands import build_parser, joined_pixel_values
+
+    argv = ["estimate", "cap", "--step", "2", "--box", "-5,-5,20,20", "--point", "-1,3", "--pick-box", "-2.5,0,9,9"]
+    args = build_parser().parse_args(joined_pixel_values(argv))
+    assert args.box == ["-5,-5,20,20"] and args.point == ["-1,3"] and args.pick_box == "-2.5,0,9,9"
+    assert joined_pixel_values(["--box", "-x"]) == ["--box", "-x"]  # an option stays an option
+    x0, y0, x1, y1 = (int(v) for v in capture["box"].split(","))
+    r = run("estimate", capture["ours"], "--assembly", capture["asm"], "--step", 2, "--box", f"{x0},{y0},{x1 - x0},{y1 - y0}")
+    assert r.returncode == 2 and f"the box is {x0},{y0},{x1},{y1}" in r.stderr, r.stderr
+    r = run("estimate", capture["ours"], "--assembly", capture["asm"], "--step", 2, "--box", f"-5,-5,{x1},{y1}", "--json")
+    assert r.returncode in (0, 1) and "expected one argument" not in r.stderr, r.stderr

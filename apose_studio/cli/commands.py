@@ -6,6 +6,7 @@ import argparse
 import json
 import logging
 import os
+import re
 import sys
 import time
 from dataclasses import replace
@@ -601,9 +602,28 @@ def main(argv=None) -> int:
         sys.stdout, sys.stderr = out, err
 
 
+PIXEL_FLAGS = ("--box", "--point", "--pick-box")  # values that may start with a minus (a box reaching off the image)
+
+
+def joined_pixel_values(argv: list[str]) -> list[str]:
+    """`--box -5,-5,20,20` as `--box=-5,-5,20,20`: argparse takes a value that starts with '-' (and is not a
+    plain negative number) for an option and said only "expected one argument"."""
+    out: list[str] = []
+    i = 0
+    while i < len(argv):
+        a = argv[i]
+        if a in PIXEL_FLAGS and i + 1 < len(argv) and re.match(r"-[0-9.]", argv[i + 1]):
+            out.append(f"{a}={argv[i + 1]}")
+            i += 2
+            continue
+        out.append(a)
+        i += 1
+    return out
+
+
 def _main(argv=None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(joined_pixel_values(list(sys.argv[1:] if argv is None else argv)))
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
                         format="%(levelname)s: %(message)s")
     if not getattr(args, "func", None):
