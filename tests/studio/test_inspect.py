@@ -315,6 +315,9 @@ def test_prompted_mask_on_a_cluttered_capture(studio, clutter_dataset, tmp_path)
     act(st, lambda c: st.prompt.prompt_at_ray(T[:3, 3], ray, c))
     u, v = map(int, st.prompt.i_prompt.value.split(","))
     assert fr.base_mask()[v, u] and abs(u - us[k]) <= 8 and abs(v - vs[k]) <= 8  # the first scene point near the ray
+    # the click's prompt goes the typed one's way: the prompt in use, the last box's result off the view, drawn white
+    assert st.state.inspect.prompt_text == f"{u},{v}" and st.inspect.result is None
+    assert "the typed prompt (white)" in st.results.i_image.label
     assert iou(st.prompt.mask(st.inspect.frame), fr.base_mask()) > 0.5
 
 
