@@ -48,7 +48,7 @@ from apose_studio.studio.steps_panel import StepsPanel
 from apose_studio.studio.views_panel import ViewsPanel
 from apose_studio.studio.viser_adapter import limit_uploads, screen_messages
 from apose_studio.studio.webguard import Workspace, check_token, new_token, start_viser, studio_url
-from apose_studio.studio.widgets import ACTIVE, MAX_UPLOAD_BYTES, VIEWS
+from apose_studio.studio.widgets import ACTIVE, MAX_UPLOAD_BYTES, VIEWS, send_download
 
 log = logging.getLogger(__name__)
 RENDER_TIMEOUT_S = 30.0  # for a page's image of its 3D view (software WebGL takes ~1 s)
@@ -295,7 +295,7 @@ class Studio:
         ok, png = cv2.imencode(".png", cv2.cvtColor(np.asarray(rgb, np.uint8)[..., :3], cv2.COLOR_RGB2BGR))
         if not ok:
             raise AposeError("the image could not be encoded as PNG")
-        client.send_file_download(f"apose_{self.current_view.lower()}_view.png", png.tobytes())
+        send_download(client, f"apose_{self.current_view.lower()}_view.png", png.tobytes())
 
     def node(self, name: str, handle, visible: bool = True):
         handle._apose_visible = visible

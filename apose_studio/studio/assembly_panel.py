@@ -19,7 +19,7 @@ from apose_studio.errors import AposeError
 from apose_studio.safeio import check_path_text, read_bytes
 from apose_studio.studio import authoring
 from apose_studio.studio.state import Event, shared
-from apose_studio.studio.widgets import MAX_UPLOAD_BYTES, UNITS, esc, hex_colour
+from apose_studio.studio.widgets import MAX_UPLOAD_BYTES, UNITS, esc, hex_colour, send_download
 from apose_studio.text import unsafe_char
 
 log = logging.getLogger(__name__)
@@ -182,9 +182,7 @@ class AssemblyPanel:
         self.app.require_valid()
         folder = self.save_target().parent if self.f_path.value.strip() else authoring.folder_of(self.app.asm)
         text = dump_assembly(self.app.asm, folder)
-        if client is None:
-            raise AposeError("no browser to send the download to")
-        client.send_file_download(f"{self.app.asm.name}.yaml", text.encode("utf-8"))
+        send_download(client, f"{self.app.asm.name}.yaml", text.encode("utf-8"))
 
     def on_name(self, client) -> None:
         if self._syncing:

@@ -21,7 +21,7 @@ from apose_studio.robot.grasping import gripper_mesh
 from apose_studio.studio import inspection
 from apose_studio.studio.prompt_panel import overlay_mask, typed_prompt, uses_prompt
 from apose_studio.studio.state import Event
-from apose_studio.studio.widgets import LAYERS, SHARP_EDGE_DEG, esc, legend_html, pos, shaded, wxyz
+from apose_studio.studio.widgets import LAYERS, SHARP_EDGE_DEG, esc, legend_html, pos, send_download, shaded, wxyz
 
 log = logging.getLogger(__name__)
 
@@ -335,17 +335,14 @@ class ResultsView:
         report = inspection.pose_report(r, ins.frame.T_world_camera)
         report.update({"source": ins.frames_path, "step": ins.step, "frame": int(ins.frame.im_id),
                        "units": "metres (matrices), mm (translation_mm)"})
-        if client is None:
-            raise AposeError("no browser to send the download to")
-        client.send_file_download(f"pose_step{ins.step}_frame{ins.frame.im_id}.json",
-                                  json.dumps(report, indent=1).encode("utf-8"))
+        send_download(client, f"pose_step{ins.step}_frame{ins.frame.im_id}.json", json.dumps(report, indent=1).encode("utf-8"))
 
     def on_export_replay(self, client) -> None:
         if client is None:
             raise AposeError("no browser to send the download to")
         ins = self.app.state.inspect
         page = self.replay_html()
-        client.send_file_download(f"replay_step{ins.step}_frame{ins.frame.im_id}.html", page.encode("utf-8"))
+        send_download(client, f"replay_step{ins.step}_frame{ins.frame.im_id}.html", page.encode("utf-8"))
 
     def replay_html(self) -> str:
         """The Inspect view of this frame and its estimate as one standalone HTML page: viser's scene

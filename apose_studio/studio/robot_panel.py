@@ -29,7 +29,7 @@ from apose_studio.robot.handeye import capture_flange, read_hand_eye
 from apose_studio.studio import inspection
 from apose_studio.studio.prompt_panel import parse_prompt, prompted_mask
 from apose_studio.studio.state import Event
-from apose_studio.studio.widgets import esc, pixel_at_ray
+from apose_studio.studio.widgets import esc, pixel_at_ray, send_download
 
 ROWS = (("T_robot_gripper_place", "place"), ("T_robot_gripper_preplace", "pre-place"),
         ("T_robot_gripper_pick", "pick"), ("T_robot_gripper_lift", "lift"), ("T_robot_part", "part placed"),
@@ -236,6 +236,5 @@ class RobotPanel:
                "place": None if r is None else {"ok": bool(r.ok), "confident": bool(r.confident), "reason": r.reason,
                                                 "doubts": "" if r.confident or not r.ok else doubts(r)},
                **t.to_json()}
-        client.send_file_download(f"targets_step{ins.step}_frame{ins.frame.im_id}.json",
-                                  json.dumps(doc, indent=1).encode("utf-8"))
+        send_download(client, f"targets_step{ins.step}_frame{ins.frame.im_id}.json", json.dumps(doc, indent=1).encode("utf-8"))
 

@@ -84,3 +84,12 @@ def pixel_at_ray(frame, origin, direction) -> str:
     hit = scene_point_at_ray(frame, origin, direction)
     u, v = frame.camera.project(se3.transform_points(se3.inv(frame.T_world_camera), hit[None]))
     return f"{int(round(float(u[0])))},{int(round(float(v[0])))}"
+
+
+def send_download(client, filename: str, content: bytes) -> None:
+    """`content` saved by the browser of `client` as `filename` at once, as a button's click promises
+    (viser's `save_immediately`): viser's default shows a link in a notification that a second click saves,
+    and users took the first click's notification for the download done."""
+    if client is None:
+        raise AposeError("no browser to send the download to")
+    client.send_file_download(filename, content, save_immediately=True)

@@ -939,10 +939,19 @@ def test_an_exported_replay_opens_from_disk_with_no_network(browser, studio, gea
     open_data(page, studio, gearbox_dataset)
     page.get_by_role("button", name="Estimate frame").click()
     wait_until(lambda: "final" in studio.results.i_stage_md.content, "the estimate", timeout=120)
-    page.get_by_role("button", name="Export replay (HTML)").click()
+    # Download pose: one click saves the JSON; its T_world_part is the frame's truth (the renderer's, not the estimate's)
+    frame = studio.state.inspect.frame
+    with page.expect_download(timeout=60000) as dl:
+        page.get_by_role("button", name="Download pose (JSON)").click()
+    assert dl.value.suggested_filename == f"pose_step{studio.state.inspect.step}_frame{frame.im_id}.json"
+    dl.value.save_as(tmp_path / "pose.json")
+    pose = json.loads((tmp_path / "pose.json").read_text())
+    assert pose["step"] == studio.state.inspect.step and pose["frame"] == int(frame.im_id)
+    T = np.asarray(pose["T_world_part"]["matrix"])
+    assert np.linalg.norm(T[:3, 3] - frame.T_world_part[:3, 3]) < 0.005
     name = f"replay_step{studio.state.inspect.step}_frame{studio.inspect.frame.im_id}.html"
-    with page.expect_download(timeout=60000) as dl:  # viser offers the file as a link in a notification
-        page.get_by_text(name).first.click()
+    with page.expect_download(timeout=60000) as dl:  # the button's one click saves the file (no link to click again)
+        page.get_by_role("button", name="Export replay (HTML)").click()
     out = tmp_path / "replay.html"
     dl.value.save_as(out)
     assert dl.value.suggested_filename == name
@@ -978,9 +987,8 @@ def test_download_image_of_the_3d_view(browser, studio, tmp_path):
     page.get_by_role("button", name="Open").click()
     wait_until(lambda: len(studio.asm.steps) == 3, "the sample to open")
     time.sleep(2.0)
-    page.get_by_role("button", name="Download image (PNG)").click()
-    with page.expect_download(timeout=90000) as dl:  # viser offers the file as a link in a notification
-        page.get_by_text("apose_assembly_view.png").first.click()
+    with page.expect_download(timeout=90000) as dl:  # the button's one click saves the file
+        page.get_by_role("button", name="Download image (PNG)").click()
     out = tmp_path / "view.png"
     dl.value.save_as(out)
     img = cv2.imread(str(out))

@@ -71,7 +71,8 @@ def test_robot_folder_draws_the_cell_and_the_gripper_at_place_preplace_and_pick(
     sent = {}
 
     class Tab:
-        def send_file_download(self, name, data):
+        def send_file_download(self, name, data, save_immediately=False):
+            assert save_immediately  # saved on the button's click, not offered as a link to click again
             sent[name] = json.loads(data)
 
     st.robot.on_download(Tab())
