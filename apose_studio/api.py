@@ -128,7 +128,7 @@ def estimate_pose(rgb: np.ndarray, depth: np.ndarray, K, assembly, step: int, *,
     if T_world_camera is None:
         T_world_camera = table_frame(depth, cam)
         T_world_camera = np.eye(4) if T_world_camera is None else T_world_camera
-    m, source = array_mask(rgb, depth, cam, mask, box, point)
+    m, source = array_mask(rgb, depth, cam, mask, box, point, region=ctx.base.region is not None)
     view = View(depth, m, cam, np.asarray(T_world_camera, float), rgb=rgb, box=box)
     est = run_registration(view, source, ctx, p, orientation_prior, t0, time.perf_counter() - t1, t_load=t_load)
     est.depth_shift_px = shift

@@ -23,14 +23,16 @@ import numpy as np
 
 from apose_studio.assembly.mesh import PartModel, base_mesh, load_parts
 from apose_studio.assembly.model import Assembly, load_assembly
+from apose_studio.assembly.roi import Roi
 from apose_studio.data.dataset import Frame, read_image
 from apose_studio.errors import AposeError
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.geometry.sensor import SHIFT_MIN_PX, depth_colour_shift, shift_evidence, shift_image
-from apose_studio.masks.prompt import prompted_mask
+from apose_studio.masks.prompt import box_depth, prompted_mask
 from apose_studio.masks.segment import depth_mask, load_model, table_objects
 from apose_studio.registration import BaseObject, Params, RegistrationResult, doubts, estimate, prepare_base
+from apose_studio.registration.base import Region
 from apose_studio.registration.fusion import estimate_views
 from apose_studio.registration.next_view import next_view
 from apose_studio.registration.table import table_plane
@@ -45,8 +47,23 @@ class StepContext:
 
     def __init__(self, asm: Assembly, models: dict[str, PartModel], step: int):
         self.view = asm.step_view(step)
-        self.base: BaseObject = prepare_base(base_mesh(models, self.view))
+        self.base: BaseObject = prepare_base(base_mesh(models, self.view), region=base_region(models, self.view))
         self.part = models[self.view.part]
+
+
+def base_region(models: dict[str, PartModel], view) -> Region | None:
+    """The extent of a step's base where a member is a region of a larger part (`roi`): each member's roi, or a
+    whole member's box; None when every member is whole."""
+    members = view.T_base_members
+    if all(models[pid].roi is None for pid in members):
+        return None
+    boxes = []
+    for pid, T_base_member in members.items():
+        m = models[pid]
+        lo, hi = m.aabb
+        roi = m.roi if m.roi is not None else Roi("box", tuple((lo + hi) / 2), size=tuple(hi - lo))
+        boxes.append((roi, se3.inv(T_base_member)))
+    return Region(tuple(boxes))
 
 
 _CONTEXTS: dict = {}
@@ -167,13 +184,16 @@ def colour_registered(rgb, depth: np.ndarray, box=None, point=None) -> tuple[np.
     return (shift_image(depth, -du, -dv), (du, dv)) if (du, dv) != (0, 0) else (depth, (0, 0))
 
 
-def array_mask(rgb, depth, cam: CameraIntrinsics, mask=None, box=None, point=None) -> tuple[np.ndarray, str]:
+def array_mask(rgb, depth, cam: CameraIntrinsics, mask=None, box=None, point=None,
+               region: bool = False) -> tuple[np.ndarray, str]:
     """The base's mask for frames held in arrays, and where it came from: the caller's `mask`, else a
-    box / point prompt, else depth alone."""
+    box / point prompt (`region`: the step's base is a region of a larger part, masks.prompt.prompted_mask),
+    else depth alone."""
     if mask is not None:
         return check_mask(mask, depth.shape), "given"
     if box is not None or point is not None:
-        return prompted_mask(rgb, depth, cam, box=box, point=point).mask, "box" if box is not None else "point"
+        return (prompted_mask(rgb, depth, cam, box=box, point=point, region=region).mask,
+                "box" if box is not None else "point")
     return depth_mask(depth, cam), "depth"
 
 
@@ -187,13 +207,14 @@ class MaskRequest:
     point: tuple[int, int] | None = None
 
 
-def find_mask(frame: Frame, request: MaskRequest, asm: Assembly, name: str = "") -> tuple[np.ndarray, str]:
+def find_mask(frame: Frame, request: MaskRequest, asm: Assembly, name: str = "",
+              region: bool = False) -> tuple[np.ndarray, str]:
     """The base's mask in `frame` as `request` asks, and its source's name. `name` says in errors which
-    input the frame came from."""
+    input the frame came from; `region`: the step's base is a region of a larger part (array_mask)."""
     if request.box is not None or request.point is not None:
         if request.source not in (None, "depth"):
             raise AposeError(f"--mask {request.source} and --box/--point: give one way to find the object")
-        return array_mask(frame.rgb, frame.depth, frame.camera, box=request.box, point=request.point)
+        return array_mask(frame.rgb, frame.depth, frame.camera, box=request.box, point=request.point, region=region)
     source = request.source or ("gt" if frame.masks else "depth")
     if source.lower().endswith(IMAGE_SUFFIXES):
         return check_mask(read_image(Path(source), cv2.IMREAD_GRAYSCALE), frame.depth.shape, source), source
@@ -210,12 +231,50 @@ def estimate_view(view: View, ctx: StepContext, params: Params, orientation_prio
     """Step `ctx`'s assembly pose in one view. With orientation_prior the CAD's orientation is taken as
     the base's orientation in the world (what `--base-pose fixed` renders, and the paper assumes). With
     `params.colour_check`, a clear shift of the depth against the colour image costs confidence
-    (colour_checked)."""
+    (colour_checked). A base that is a region of a larger part, prompted by a box, is registered to the box's
+    depth patches (region_target)."""
     ctx.base.warm_up(params)
+    view = region_target(view, ctx.base)
     result = estimate(view, ctx.base, ctx.view.T_base_part, params,
                       prior_T_world_base=np.eye(4) if orientation_prior else None,
                       trace_iterations=trace_iterations, part_symmetries=ctx.part.symmetries)
     return held_to_part(colour_checked(result, view, params), ctx.part)
+
+
+def region_target(view: View, base: BaseObject) -> View:
+    """The view whose mask is the prompt box's pixels with depth (masks.prompt.box_depth), where the base is a
+    region of a larger part (`roi`) and a box prompted it, whatever mask the caller made; `view` as it is
+    otherwise. What of the box lies outside the region does not count for or against the pose
+    (BaseObject.belongs). Measured on engine-head renders: the prompted mask's colour cut had kept a few stray
+    pixels of a seat (1 of 7 frames), and its table fit took the head's deck for the table (refused boxes)."""
+    if base.region is None or view.box is None:
+        return view
+    try:
+        mask = box_depth(view.depth, view.box)
+    except AposeError:  # a box off the image: the mask as given is judged (and refused) as usual
+        return view
+    return replace(view, mask=near_box_centre(mask, view.depth, view.camera, view.box, REGION_REACH * base.diameter))
+
+
+REGION_REACH = 0.75  # region_target: the box's pixels whose points lie farther than this share of the region's diameter
+# from the point seen at the box's centre are the larger part's (an engine head's side walls, the table beyond it)
+
+
+def near_box_centre(mask: np.ndarray, depth: np.ndarray, cam, box, reach: float) -> np.ndarray:
+    """`mask` without the pixels whose points lie farther than `reach` (metres) from the point seen at the box's
+    centre (the median depth of its middle third, on the middle pixel's ray): a box drawn round a region is
+    centred on it, while the larger part runs on to its corners. `mask` as it is when its middle has no depth."""
+    x0, y0, x1, y1 = (int(v) for v in box)
+    cx0, cx1, cy0, cy1 = x0 + (x1 - x0) // 3, x1 - (x1 - x0) // 3, y0 + (y1 - y0) // 3, y1 - (y1 - y0) // 3
+    middle = depth[cy0:cy1, cx0:cx1][mask[cy0:cy1, cx0:cx1]]
+    if not len(middle):
+        return mask
+    centre = cam.backproject((x0 + x1 - 1) / 2, (y0 + y1 - 1) / 2, float(np.median(middle)))
+    vs, us = np.nonzero(mask)
+    far = np.linalg.norm(cam.backproject(us, vs, depth[vs, us]) - centre, axis=1) > reach
+    out = mask.copy()
+    out[vs[far], us[far]] = False
+    return out
 
 
 CLEAR_SHIFT_MAX_PX = 4  # colour_checked: a shift of the depth against the colour held against the confidence is at

@@ -24,6 +24,7 @@ from scipy.spatial import ConvexHull
 
 from apose_studio import safeio
 from apose_studio.assembly.model import Assembly, Part, StepView, Symmetry
+from apose_studio.assembly.roi import Roi, region_mesh
 from apose_studio.errors import AposeError, MeshError
 from apose_studio.geometry import se3
 from apose_studio.geometry.units import MAX_COORDINATE_M, UNIT_TO_M, suspicious_unit
@@ -827,6 +828,13 @@ class PartModel:
     symmetries: np.ndarray  # (n, 4, 4) T_part_part, identity first
     color: tuple[float, float, float]
     unit_warning: str | None = None
+    roi: Roi | None = None  # as a base, only this region is registered (`region`)
+    region: trimesh.Trimesh | None = None  # the faces in `roi` (part frame), cut once at load
+
+    @property
+    def registered_mesh(self) -> trimesh.Trimesh:
+        """What registration matches when this part is a base: its region where it has an roi, else its mesh."""
+        return self.region if self.region is not None else self.mesh
 
     @property
     def size(self) -> np.ndarray:
@@ -845,13 +853,15 @@ PALETTE = [(0.90, 0.62, 0.0), (0.34, 0.71, 0.91), (0.0, 0.62, 0.45), (0.94, 0.89
 
 def build_part_model(part_id: str, mesh: trimesh.Trimesh, symmetry: Symmetry | None = None,
                      color=None, index: int = 0, n_samples: int = 4000, unit_warning: str | None = None,
-                     diameter_m: float | None = None) -> PartModel:
+                     diameter_m: float | None = None, roi: Roi | None = None) -> PartModel:
+    region = region_mesh(mesh, roi, f"part {part_id!r}") if roi is not None else None
     T_part_obb, obb_extents = oriented_box(mesh)
     return PartModel(
         id=part_id, mesh=mesh, diameter=diameter(mesh.vertices) if diameter_m is None else diameter_m, aabb=np.array(mesh.bounds, dtype=float),
         T_part_obb=T_part_obb, obb_extents=obb_extents,
         samples=sample_surface(mesh, n_samples, seed=index), symmetries=symmetry_transforms(symmetry),
-        color=tuple(color) if color is not None else PALETTE[index % len(PALETTE)], unit_warning=unit_warning)
+        color=tuple(color) if color is not None else PALETTE[index % len(PALETTE)], unit_warning=unit_warning,
+        roi=roi, region=region)
 
 
 _MESH_CACHE: dict = {}  # (file identity, unit, solid) -> (mesh, diameter): each file is read once
@@ -892,7 +902,11 @@ def load_part(part: Part, unit: str, index: int = 0) -> PartModel:
         warning = (f"part {part.id!r} ({part.mesh.name}) is {d:.4g} m across when read as {unit}; "
                    f"it looks like it is in {guess} — set `units: {guess}` or rescale the mesh")
         log.warning(warning)
-    return build_part_model(part.id, mesh, part.symmetry, part.color, index, unit_warning=warning, diameter_m=d)
+    try:
+        return build_part_model(part.id, mesh, part.symmetry, part.color, index, unit_warning=warning, diameter_m=d,
+                                roi=part.roi)
+    except MeshError as e:  # the roi holds none of the surface: said as the part's, with the file
+        raise MeshError(f"{part.mesh.name}: {str(e).removeprefix(f'part {part.id!r}: ')}") from None
 
 
 def load_parts(asm: Assembly) -> dict[str, PartModel]:
@@ -926,16 +940,24 @@ def _count_new(model: PartModel, seen: set, triangles: int, pid: str) -> int:
     return triangles
 
 
-def merged_mesh(models: dict[str, PartModel], poses: dict[str, np.ndarray]) -> trimesh.Trimesh:
-    """One mesh of several parts, each moved by its pose (e.g. T_base_member)."""
+def merged_mesh(models: dict[str, PartModel], poses: dict[str, np.ndarray], regions: bool = False) -> trimesh.Trimesh:
+    """One mesh of several parts, each moved by its pose (e.g. T_base_member); with `regions`, a part with
+    an roi only as its region."""
     meshes = []
     for pid, T in poses.items():
-        m = models[pid].mesh.copy()
+        m = (models[pid].registered_mesh if regions else models[pid].mesh).copy()
         m.apply_transform(T)
         meshes.append(m)
     return trimesh.util.concatenate(meshes)
 
 
 def base_mesh(models: dict[str, PartModel], view: StepView) -> trimesh.Trimesh:
-    """The base object of a step as one mesh in the frame of base[0]."""
+    """The base object of a step as registration matches it, one mesh in the frame of base[0]: a member
+    with an roi is only its region (assembly/roi.py)."""
+    return merged_mesh(models, view.T_base_members, regions=True)
+
+
+def base_body_mesh(models: dict[str, PartModel], view: StepView) -> trimesh.Trimesh:
+    """The base object of a step as the camera sees it, whole parts (regions uncut), frame of base[0]: what
+    the renderer stands on the table."""
     return merged_mesh(models, view.T_base_members)

@@ -20,6 +20,7 @@ from apose_studio.assembly.fileio import atomic_write_text, describe_path, parse
 from apose_studio.assembly.fileio import yaml_number as _num
 from apose_studio.assembly.grasps import Grasp, Gripper, check_widths, grasp_to_dict, gripper_to_dict, parse_grasps, parse_gripper
 from apose_studio.assembly.mates import Approach, Mate, MateError, approach_to_dict, mate_to_dict, parse_approach, parse_mates
+from apose_studio.assembly.roi import Roi, parse_roi, roi_to_dict
 from apose_studio.assembly.yamlcheck import Checker, kind, rotation
 from apose_studio.errors import AposeError, AssemblyError, Problem
 from apose_studio.geometry import se3
@@ -29,7 +30,7 @@ from apose_studio.params import RegistrationConfig, registration_from_dict, regi
 
 FORMAT = "apose-assembly/1"
 _TOP_KEYS = ("format", "name", "units", "parts", "steps", "camera", "registration", "gripper")
-_PART_KEYS = ("mesh", "solid", "color", "symmetry", "grasps")
+_PART_KEYS = ("mesh", "solid", "color", "symmetry", "grasps", "roi")
 _SYM_KEYS = ("axis", "origin", "order")
 _STEP_KEYS = ("part", "base", "pose_in_base", "mates", "approach")
 _POSE_KEYS = ("translation", "rotation")
@@ -58,6 +59,7 @@ class Part:
     symmetry: Symmetry | None = None
     solid: str | None = None  # the named solid of a STEP file with several (None: the whole file)
     grasps: tuple[Grasp, ...] = ()  # how the gripper holds it (assembly/grasps.py); the first is the default
+    roi: Roi | None = None  # as a base, only this region of the mesh is registered (assembly/roi.py)
 
 
 @dataclass(frozen=True, eq=False)
@@ -151,12 +153,18 @@ class Assembly:
         return StepView(number, step.part, step.base, self.root_of(step.base[0]), step.T_base_part, members, step.approach,
                         self.twins_of(step.base))
 
+    def base_is_region(self, number: int) -> bool:
+        """Whether step `number`'s base has a member that is a region of a larger part (`roi`): its prompt is a
+        box, whose pixels with depth are the target (masks.prompt.box_depth)."""
+        return any(self.parts[p].roi is not None for p in self.steps[number - 1].base if p in self.parts)
+
     def twins_of(self, base: tuple[str, ...]) -> tuple[str, ...]:
-        """The other roots made of the same mesh file as a one-part root `base` (its instances), in file order."""
-        if len(base) != 1 or base[0] not in self.roots or base[0] not in self.parts:
+        """The other roots made of the same mesh file as a one-part root `base` (its instances), in file order.
+        A region (a part with `roi`) has none: the roots that share its mesh are other regions of one body."""
+        if len(base) != 1 or base[0] not in self.roots or base[0] not in self.parts or self.parts[base[0]].roi is not None:
             return ()
         mesh = Path(self.parts[base[0]].mesh).resolve()
-        return tuple(p for p in self.roots if p != base[0] and p in self.parts
+        return tuple(p for p in self.roots if p != base[0] and p in self.parts and self.parts[p].roi is None
                      and Path(self.parts[p].mesh).resolve() == mesh)
 
     def completed(self) -> dict[str, dict[str, np.ndarray]]:
@@ -188,7 +196,7 @@ def _parse_parts(c: Checker, parts_raw, folder: Path, scale: float) -> dict[str,
             c.add(f"parts.{kind(pid)}" if not isinstance(pid, str) or len(pid) > 40 else key,
                   f"a part id is {PART_ID_RULE}; rename it (and where steps use it)")
             continue
-        spec = c.mapping(spec, key, _PART_KEYS, "a mapping with mesh (and optional color, symmetry)")
+        spec = c.mapping(spec, key, _PART_KEYS, "a mapping with mesh (and optional color, symmetry, grasps, roi)")
         if spec is None:
             continue
         mesh = spec.get("mesh")
@@ -213,7 +221,8 @@ def _parse_parts(c: Checker, parts_raw, folder: Path, scale: float) -> dict[str,
             c.add(f"{key}.solid", f"expected the name of a solid in the STEP file, got {kind(solid)}")
             solid = None
         grasps = parse_grasps(c, spec["grasps"], f"{key}.grasps", scale) if spec.get("grasps") is not None else ()
-        parts[pid] = Part(pid, mesh_path, color, symmetry, solid, grasps)
+        roi = parse_roi(c, spec["roi"], f"{key}.roi", scale) if spec.get("roi") is not None else None
+        parts[pid] = Part(pid, mesh_path, color, symmetry, solid, grasps, roi)
     return parts
 
 
@@ -432,6 +441,8 @@ def assembly_to_dict(asm: Assembly, folder: Path) -> dict:
             spec["symmetry"] = sym
         if p.grasps:
             spec["grasps"] = [grasp_to_dict(g, s) for g in p.grasps]
+        if p.roi is not None:
+            spec["roi"] = roi_to_dict(p.roi, s)
         parts[pid] = spec
     steps = []
     for st in asm.steps:

@@ -127,7 +127,7 @@ def cmd_estimate(args) -> int:
     if getattr(args, "align_depth", False):  # the prompt is on the colour image: the depth moved onto it
         depth, shift = colour_registered(frame.rgb, frame.depth, request.box, request.point)
         frame = replace(frame, depth=depth)
-    mask, source = find_mask(frame, request, asm, args.input[0])
+    mask, source = find_mask(frame, request, asm, args.input[0], region=ctx.base.region is not None)
     est = run_registration(replace(View.of(frame, mask), box=request.box), source, ctx, params, args.orientation_prior, t0,
                            time.perf_counter() - t1, trace_iterations=True, t_load=t1 - t0)
     est.depth_shift_px = shift

@@ -89,9 +89,9 @@ def cmd_track(args) -> int:
     def detect(frame: Frame, box):
         """The first frame's mask as asked; after a loss, a box prompt where the base was last seen."""
         if box is not None:
-            mask, _ = array_mask(frame.rgb, frame.depth, frame.camera, box=box)
+            mask, _ = array_mask(frame.rgb, frame.depth, frame.camera, box=box, region=ctx.base.region is not None)
         elif frame.im_id == first[0]:
-            mask, _ = find_mask(frame, request, asm, args.input)
+            mask, _ = find_mask(frame, request, asm, args.input, region=ctx.base.region is not None)
         else:  # a prompt is drawn on the first frame; a later one with nothing to start from uses the data's masks
             mask, _ = find_mask(frame, replace(request, box=None, point=None), asm, args.input)
         prompt = box if box is not None else request.box if frame.im_id == first[0] else None

@@ -63,7 +63,7 @@ def view_masks(args, frames, asm) -> list[tuple[np.ndarray, str]]:
     out = []
     for k, fr in enumerate(frames):
         request = MaskRequest(args.mask, *(parse_prompt(args, flag, k, len(frames)) for flag in ("box", "point")))
-        out.append(find_mask(fr, request, asm, fr.source or args.input[0]))
+        out.append(find_mask(fr, request, asm, fr.source or args.input[0], region=asm.base_is_region(args.step)))
     return out
 
 

@@ -241,17 +241,41 @@ def complete(mask: np.ndarray, s: Surfaces, in_box: np.ndarray, lab: np.ndarray 
     return out & ~other
 
 
+def box_depth(depth: np.ndarray, box) -> np.ndarray:
+    """(H, W) bool: the pixels of `box` (checked) with depth. The target of a base that is a region of a larger
+    part (a part's `roi`): the region is the part's own surface running on, of its colour and at its depth, so
+    neither the patches nor the colour cut can tell it from the rest of the part, and in a box around a seat on an
+    engine head the deck is the widest plane, which the table fit takes for the table. The registration counts
+    only what lies in the region at a pose (registration.base.BaseObject.belongs)."""
+    h, w = depth.shape
+    x0, y0, x1, y1 = check_box(box, (h, w))
+    out = np.zeros((h, w), bool)
+    out[y0:y1, x0:x1] = np.isfinite(depth[y0:y1, x0:x1]) & (depth[y0:y1, x0:x1] > 0)
+    return out
+
+
 def prompted_mask(rgb: np.ndarray, depth: np.ndarray, cam: CameraIntrinsics, box=None, point=None,
-                  colour: bool = True) -> PromptedMask:
+                  colour: bool = True, region: bool = False) -> PromptedMask:
     """The base object's mask from a box (x0, y0, x1, y1) or a click (u, v). `colour=False`: depth
     patches only. A box is worked on in a window around it (the box and one box size on every side:
-    enough table for the plane, and where touching things run out of the box), a click on the image."""
+    enough table for the plane, and where touching things run out of the box), a click on the image.
+    `region`: the base is a region of a larger part (an roi): the box's pixels with depth (box_depth); a
+    click cannot say how far a region reaches, and is refused."""
     t0 = time.perf_counter()
     h, w = depth.shape
     if rgb.shape[:2] != (h, w):
         raise PromptError(f"RGB is {rgb.shape[1]}x{rgb.shape[0]} but depth is {w}x{h}; align depth to colour first")
     if box is None and point is None:
         raise PromptError("give a box (x0,y0,x1,y1) or a point (u,v) on the object")
+    if region:
+        if box is None:
+            raise PromptError(f"point {point[0]},{point[1]}: this step's base is a region of a larger part (its roi), and "
+                              "a click cannot say how far the region reaches; draw a box around the region instead")
+        mask = box_depth(depth, box)
+        if mask.sum() < MIN_PATCH_PX:
+            raise PromptError(f"box {','.join(map(str, box))} holds {int(mask.sum())} pixels with depth; draw it around "
+                              "the region where the camera sees depth")
+        return PromptedMask(mask, "region box", time.perf_counter() - t0)
     if box is None:
         out = _prompted(rgb, depth, cam, None, tuple(int(v) for v in point), colour)
     else:

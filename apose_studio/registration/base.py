@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import threading
 from collections import OrderedDict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -45,7 +45,16 @@ class BaseObject:
     # feature, so every result's twins under them are scored (near_symmetries includes them)
     near_symmetries: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))  # turns that almost fit but
     # are not symmetries (a motor block whose connector alone breaks its 4-fold symmetry): extra starting poses
+    region: "Region | None" = None  # where the base has a member that is a region of a larger part (`roi`): what
+    # of the target belongs to it; None: the whole base is the object
     _features: dict = field(default_factory=dict, repr=False)  # voxel -> (model cloud, FPFH): per step, not per frame
+
+    def belongs(self, points_world: np.ndarray, T_world_base: np.ndarray, margin: float) -> np.ndarray:
+        """(N,) which target points (world) belong to the base at T_world_base: all of them, unless the base is
+        a region of a larger part, whose surface runs on past the region by nature (Region)."""
+        if self.region is None:
+            return np.ones(len(points_world), bool)
+        return self.region.contains(se3.transform_points(se3.inv(T_world_base), points_world), margin)
 
     def model_features(self, voxel: float, p: "Params"):
         key = (round(voxel, 9), p.normal_radius_factor, p.feature_radius_factor)
@@ -109,6 +118,23 @@ class BaseObject:
 
 
 @dataclass(frozen=True)
+class Region:
+    """The extent of a base with a region member (a part with `roi`: a rocker-arm seat of an engine head): each
+    member's roi, or for a whole member its box, with T_member_base. A target point belongs to the base where it
+    lies in one of them (within a margin); the rest of the larger part is not evidence for or against the pose."""
+
+    boxes: tuple  # ((Roi, T_member_base), ...)
+
+    def contains(self, points_base: np.ndarray, margin: float) -> np.ndarray:
+        out = np.zeros(len(points_base), bool)
+        for roi, T_member_base in self.boxes:
+            grown = replace(roi, size=tuple(v + 2 * margin for v in roi.size)) if roi.kind == "box" \
+                else replace(roi, radius=roi.radius + margin)
+            out |= grown.contains(se3.transform_points(T_member_base, points_base))
+        return out
+
+
+@dataclass(frozen=True)
 class NearGrid:
     """Points within `radius` of a cloud, as a boolean voxel grid: a lookup per query point instead of a
     k-d tree search (screening 36 poses x 500 points takes a fraction of a millisecond). Cells are
@@ -143,13 +169,13 @@ class NearGrid:
         return np.take(self.occupied.reshape(-1), flat, mode="clip") & inside
 
 
-def prepare_base(mesh, n_samples: int = 20000, seed: int = 0, detect: bool = True) -> BaseObject:
+def prepare_base(mesh, n_samples: int = 20000, seed: int = 0, detect: bool = True, region: Region | None = None) -> BaseObject:
     pts, face = sample_surface(mesh, n_samples, seed, return_faces=True)
     normals = np.asarray(mesh.face_normals)[face]
     d = diameter(mesh.vertices)
     lo, hi = mesh.bounds
     if not detect:
-        return BaseObject(mesh, d, (lo + hi) / 2, pts, normals, np.eye(4)[None], np.zeros(1))
+        return BaseObject(mesh, d, (lo + hi) / 2, pts, normals, np.eye(4)[None], np.zeros(1), region=region)
     turns, mean = detect_symmetries(pts, d, tolerance=NEAR_SYMMETRY_TOLERANCE)
     offsets = np.zeros(len(turns))
     close = mean < SYMMETRY_TOLERANCE * d  # only these can be exact: the largest offset decides
@@ -158,7 +184,7 @@ def prepare_base(mesh, n_samples: int = 20000, seed: int = 0, detect: bool = Tru
     exact = close & (offsets < EXACT_SYMMETRY_MAX_M)
     exact[0] = True
     return BaseObject(mesh, d, (lo + hi) / 2, pts, normals, turns[exact], offsets[exact], turns[close & ~exact],
-                      turns[~exact])
+                      turns[~exact], region=region)
 
 
 def place_source(base: BaseObject, target_centre: np.ndarray, R_world_base: np.ndarray | None = None) -> np.ndarray:

@@ -452,8 +452,9 @@ def judge(result: RegistrationResult, view: View, base: BaseObject, plane=_FIT) 
         # scale-aware tolerance, on what the camera sees of the model at the final pose, like ours
 
         seen, _ = raycast_source(base, result.T_world_base, T_world_camera, cam)
-        if len(seen) and len(result.target_cloud):
-            d = NearestTree(seen).query(result.target_cloud, distance_upper_bound=tol)[0]
+        target = result.target_cloud[base.belongs(result.target_cloud, result.T_world_base, tol)]
+        if len(seen) and len(target):
+            d = NearestTree(seen).query(target, distance_upper_bound=tol)[0]
             coverage = float(np.mean(d < tol))
     if seen is not None and len(seen):
         confirmed, contradicted = evidence(seen, T_world_camera, cam, depth, mask, ~(mask | mask_edge(mask)), tol,
@@ -484,8 +485,11 @@ def judge(result: RegistrationResult, view: View, base: BaseObject, plane=_FIT) 
     spread = pose_spread(result.target_cloud, result.T_world_base, base, sigma, tol)
     if plane is _FIT:  # the table the base stands on (Task.table, when the caller has it)
         plane = table_plane(depth, mask, cam, T_world_camera, base_size=base.diameter)
+    whole = base.region is None  # a region of a larger part neither stands on the table nor has an outline of its
+    # own: the part's surface runs on past the roi's cut by nature, so neither is judged (NaN)
     judged = replace(result, coverage=coverage, contradiction=contradiction, spread=spread,
-                     spread_allowed=CONFIDENT_SPREAD * base.diameter, off_table=off_table(result, view, base, tol, plane),
+                     spread_allowed=CONFIDENT_SPREAD * base.diameter,
+                     off_table=off_table(result, view, base, tol, plane) if whole else float("nan"),
                      continuation=outline_continuation(seen, view, tol, plane, max(TABLE_SLACK * base.diameter, 3 * tol))
-                     if seen is not None and len(seen) else float("nan"))
+                     if whole and seen is not None and len(seen) else float("nan"))
     return judged if reason is None else replace(judged, ok=False, reason=reason + "; no pose is reported")

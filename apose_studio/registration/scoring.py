@@ -106,9 +106,12 @@ def score_pose(pb: "Task", T_world_base: np.ndarray, symmetry: int = 0) -> tuple
 
 def score_seen(pb: "Task", T_world_base: np.ndarray, src_w: np.ndarray, symmetry: int = 0) -> tuple[Candidate, np.ndarray]:
     """score_pose with what the camera sees of the base at T_world_base given (world points). One
-    query gives the fitness and RMSE (within thr) and the coverage (within 2 voxels)."""
+    query gives the fitness and RMSE (within thr) and the coverage (within 2 voxels), over the target points
+    that belong to the base there (all of them, unless it is a region of a larger part: BaseObject.belongs)."""
     thr, fine_pts = pb.thr, pb.fine_pts
     loose = max(thr, 2 * pb.voxel, NOISE_SIGMAS * pb.observation.noise)
+    if pb.base.region is not None:  # a region of a larger part: the target beyond the region is that part's
+        fine_pts = fine_pts[pb.base.belongs(fine_pts, T_world_base, loose)]
     d = NearestTree(src_w).query(fine_pts, distance_upper_bound=loose)[0] if len(src_w) and len(fine_pts) \
         else np.full(len(fine_pts), np.inf)
     inl = d < thr

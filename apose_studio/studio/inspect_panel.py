@@ -557,7 +557,7 @@ class InspectPanel:
             mask = depth_mask(frame.depth, frame.camera, keep=keep)
         if job.prompt is not None:
             masks = self.app.state.inspect.prompt_masks
-            mask = prompted_mask(masks, frame, job.prompt, job.align)
+            mask = prompted_mask(masks, frame, job.prompt, job.align, job.assembly.base_is_region(job.step))
             if job.align:  # the estimate on the depth the mask was found on
                 frame = colour_aligned(masks, frame, job.prompt)[0]
         box = job.prompt[0] if job.prompt is not None else None

@@ -55,17 +55,18 @@ def colour_aligned(masks: dict, frame, prompt: tuple):
     return (replace(frame, depth=depth) if shift != (0, 0) else frame), shift
 
 
-def prompted_mask(masks: dict, frame, prompt: tuple, align: bool = False) -> np.ndarray:
+def prompted_mask(masks: dict, frame, prompt: tuple, align: bool = False, region: bool = False) -> np.ndarray:
     """The mask `prompt` gives on `frame` (with `align`, on its depth moved onto the colour image first:
-    colour_aligned), kept in `masks` (by frame source, im_id, step, prompt and align) so that redrawing the
-    overlay is instant and an estimate uses the mask on show."""
-    key = (frame.source, frame.im_id, frame.step, prompt, align)
+    colour_aligned; `region`: the step's base is a region of a larger part, masks.prompt.prompted_mask), kept in
+    `masks` (by frame source, im_id, step, prompt, align and region) so that redrawing the overlay is instant
+    and an estimate uses the mask on show."""
+    key = (frame.source, frame.im_id, frame.step, prompt, align, region)
     if key not in masks:
         seen = colour_aligned(masks, frame, prompt)[0] if align else frame
         if len(masks) > 32:
             masks.clear()
         box, point = prompt
-        masks[key] = segment(seen.rgb, seen.depth, seen.camera, box=box, point=point).mask
+        masks[key] = segment(seen.rgb, seen.depth, seen.camera, box=box, point=point, region=region).mask
     return masks[key]
 
 
@@ -84,13 +85,13 @@ def typed_prompt(ins: InspectState) -> tuple | None:
         return None
 
 
-def overlay_mask(ins: InspectState, frame) -> np.ndarray | None:
+def overlay_mask(ins: InspectState, frame, region: bool = False) -> np.ndarray | None:
     """The prompted mask to draw over the RGB image: with Mask 'prompt' and a usable prompt, else None."""
     prompt = typed_prompt(ins) if frame is not None else None
     if prompt is None:
         return None
     try:
-        return prompted_mask(ins.prompt_masks, frame, prompt, ins.align_depth)
+        return prompted_mask(ins.prompt_masks, frame, prompt, ins.align_depth, region)
     except AposeError:
         return None
 
@@ -139,7 +140,8 @@ class PromptPanel:
     def mask(self, frame, prompt=None) -> np.ndarray:
         """The mask of `prompt` (default: the typed one) on `frame`."""
         ins = self.app.state.inspect
-        return prompted_mask(ins.prompt_masks, frame, prompt if prompt is not None else self.prompt(), ins.align_depth)
+        return prompted_mask(ins.prompt_masks, frame, prompt if prompt is not None else self.prompt(), ins.align_depth,
+                             self.app.state.inspect_assembly().base_is_region(ins.step))
 
     def on_align(self, client) -> None:
         """Align depth to colour ticked or unticked: the mask on show and the next estimate follow it."""

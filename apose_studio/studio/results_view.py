@@ -286,13 +286,13 @@ class ResultsView:
         image = inspection.draw_boxes(fr.rgb, fr.camera, fr.T_world_camera, corners, boxes)
         ins = self.app.state.inspect
         if ins.mask_asked and uses_prompt(ins):  # Show mask: the prompt's own mask, even beside an estimate
-            prompted, what = overlay_mask(ins, fr), "prompted mask (Show mask)"
+            prompted, what = overlay_mask(ins, fr, self.app.state.inspect_assembly().base_is_region(ins.step)), "prompted mask (Show mask)"
         elif r is not None and r.ok and r.model_mask is not None and r.tracked:  # a played frame: no prompt of its own
             prompted, what = r.model_mask, "the tracked model's mask: where the depth agrees with it"
         elif r is not None and r.ok and r.model_mask is not None and uses_prompt(ins):  # (the prompt not segmented again)
             prompted, what = r.model_mask, "the estimate's mask: what the model shows at the pose"
         else:
-            prompted, what = overlay_mask(ins, fr), "prompted mask"
+            prompted, what = overlay_mask(ins, fr, self.app.state.inspect_assembly().base_is_region(ins.step)), "prompted mask"
         outlines = []  # the base's model: truth under estimate
         if fr.T_world_base is not None:
             outlines.append((fr.T_world_base, inspection.AMBER))

@@ -138,7 +138,7 @@ class SequencePanel:
             if box is None and frame.im_id == first:  # the user's settings, for the frame they were made on
                 return self.app.estimate_frame(job, frame.im_id)[0]
             if box is not None:  # where the base was last seen: a box prompt there
-                mask, _ = array_mask(frame.rgb, frame.depth, frame.camera, box=box)
+                mask, _ = array_mask(frame.rgb, frame.depth, frame.camera, box=box, region=ctx.base.region is not None)
                 return estimate_view(replace(View.of(frame, mask), box=box), ctx, params, job.prior)
             return self.app.estimate_frame(replace(job, ids=(frame.im_id,)), frame.im_id)[0]
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import trimesh
 
-from apose_studio.assembly.mesh import PartModel, base_mesh
+from apose_studio.assembly.mesh import PartModel, base_body_mesh
 from apose_studio.assembly.model import StepView
 from apose_studio.errors import RenderError
 from apose_studio.geometry import se3
@@ -203,7 +203,7 @@ def distractor_pool(base_diameter: float) -> list[trimesh.Trimesh]:
 def sample_scene(models: dict[str, PartModel], view: StepView, settings: RenderSettings,
                  rng: np.random.Generator, base: trimesh.Trimesh | None = None) -> Scene:
     """Base object on the table (fixed or random yaw and position), the loose part beside it, distractors."""
-    base = base if base is not None else base_mesh(models, view)
+    base = base if base is not None else base_body_mesh(models, view)
     if settings.base_pose == "fixed":
         T_world_base = _resting_pose(base, 0.0, (0.0, 0.0))
     else:

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from apose_studio.assembly.mesh import PartModel, base_mesh, load_parts
+from apose_studio.assembly.mesh import PartModel, base_body_mesh, load_parts
 from apose_studio.assembly.model import Assembly
 from apose_studio.data.dataset import FORMAT, SceneWriter, write_json, write_models
 from apose_studio.data.outdir import OutputLock, check_output_dir, make_output_dir, remove_previous_dataset, write_manifest
@@ -65,7 +65,7 @@ def _render_into(asm: Assembly, out, settings: RenderSettings, numbers: list[int
     try:
         for number in numbers:
             view = asm.step_view(number)
-            base = base_mesh(models, view)
+            base = base_body_mesh(models, view)
             writer = SceneWriter(out, number, {
                 "step": number, "part": view.part, "base": list(view.base),
                 "part_obj_id": obj_ids[view.part], "base_obj_ids": [obj_ids[p] for p in view.base],
