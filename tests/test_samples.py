@@ -27,7 +27,7 @@ def regenerated(tmp_path_factory):
 
 
 @pytest.mark.parametrize("name,n_parts,n_steps", [("helical_gearbox", 4, 3), ("planetary_reducer", 5, 4),
-                                                  ("desk_objects", 8, 4)])
+                                                  ("desk_objects", 8, 4), ("engine_head", 16, 8)])
 def test_committed_samples_are_what_the_script_makes(regenerated, name, n_parts, n_steps):
     committed, fresh = SAMPLES / name, regenerated / name
     assert (committed / "assembly.yaml").read_text() == (fresh / "assembly.yaml").read_text()

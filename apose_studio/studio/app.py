@@ -428,7 +428,7 @@ class Studio:
         """A part's loaded mesh and derived geometry, cached by file, unit, colour and index."""
         asm = asm if asm is not None else self.asm
         part = asm.parts[pid]
-        key = (str(part.mesh), part.solid, asm.units, part.color, list(asm.parts).index(pid))
+        key = (str(part.mesh), part.solid, asm.units, part.color, list(asm.parts).index(pid), part.roi)
         if key not in self.models:
             self.models[key] = load_part(part, asm.units, key[4])
         return self.models[key]

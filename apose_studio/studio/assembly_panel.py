@@ -15,12 +15,15 @@ from pathlib import Path
 from apose_studio.assembly.fileio import atomic_write_bytes, describe_path
 from apose_studio.assembly.mesh import supported_extensions
 from apose_studio.assembly.model import dump_assembly, load_assembly, save_assembly
+from apose_studio.assembly.roi import ROI_KINDS, Roi, region_mesh
 from apose_studio.errors import AposeError
 from apose_studio.safeio import check_path_text, read_bytes
 from apose_studio.studio import authoring
 from apose_studio.studio.state import Event, shared
-from apose_studio.studio.widgets import MAX_UPLOAD_BYTES, UNITS, esc, hex_colour, send_download
+from apose_studio.studio.widgets import MAX_UPLOAD_BYTES, UNITS, VECTOR_MM, esc, hex_colour, send_download
 from apose_studio.text import unsafe_char
+
+ROI_CHOICES = ("whole part", *ROI_KINDS)  # the Region dropdown: no roi, or its shape
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +68,14 @@ class AssemblyPanel:
             self.f_part.on_update(self.app.guarded("Part")(lambda c: self.show_part_colour()))
             self.f_color = gui.add_rgb("Colour", (230, 158, 0))
             self.f_color.on_update(self.app.guarded("Colour")(self.on_color))
+            self.f_roi = gui.add_dropdown("Region (roi)", ROI_CHOICES, hint="as a base, only this region of the part is "
+                                          "registered (a seat on an engine head); drawn cyan on the part")
+            self.f_roi_centre = gui.add_vector3("Region centre (mm)", (0.0, 0.0, 0.0), step=0.5, **VECTOR_MM,
+                                                hint="in the part's own frame")
+            self.f_roi_size = gui.add_vector3("Region size (mm)", (50.0, 50.0, 50.0), step=0.5, **VECTOR_MM,
+                                              hint="a box's full sides; a sphere's diameter is the first number")
+            b = gui.add_button("Set region")
+            b.on_click(self.app.guarded("Set region")(self.on_roi))
             b = gui.add_button("Remove part", color="red")
             b.on_click(self.app.guarded("Remove part")(self.on_remove_part))
 
@@ -284,9 +295,15 @@ class AssemblyPanel:
         self.app.notify(client, "Part uploaded", f"{pid} ← {name} (saved as {target})")
 
     def show_part_colour(self) -> None:
-        """The Colour field shows the selected part's colour."""
+        """The Colour and Region fields show the selected part's."""
         if self.f_part.value not in self.app.asm.parts:
             return
+        roi = self.app.asm.parts[self.f_part.value].roi
+        self.f_roi.value = ROI_CHOICES[0] if roi is None else roi.kind
+        if roi is not None:
+            self.f_roi_centre.value = tuple(round(v * 1000.0, 3) for v in roi.center)
+            self.f_roi_size.value = tuple(round(v * 1000.0, 3) for v in roi.size) if roi.kind == "box" else \
+                (round(2000.0 * roi.radius, 3),) * 3
         rgb = tuple(int(round(255 * c)) for c in self.app.model(self.f_part.value).color)
         if tuple(self.f_color.value) != rgb:
             self._syncing = True
@@ -302,6 +319,26 @@ class AssemblyPanel:
         rgb = tuple(c / 255.0 for c in self.f_color.value)
         self.app.events.emit(Event.MESHES_CHANGED, pid=pid)
         self.app.set_assembly(authoring.set_part_color(self.app.asm, pid, rgb), client)
+
+    def on_roi(self, client) -> None:
+        """Set region: the selected part's roi from the Region fields (none: the whole part). A region that holds
+        none of the part's surface is refused, saying where the part lies."""
+        pid = self.f_part.value
+        if pid not in self.app.asm.parts:
+            raise AposeError("choose a part first (Part), then its region")
+        kind = self.f_roi.value
+        roi = None
+        if kind != ROI_CHOICES[0]:
+            centre = tuple(float(v) / 1000.0 for v in self.f_roi_centre.value)
+            size = tuple(float(v) / 1000.0 for v in self.f_roi_size.value)
+            if min(size if kind == "box" else size[:1]) <= 0:
+                raise AposeError(f"Region size: {'every side' if kind == 'box' else 'the diameter'} must be above 0 mm")
+            roi = Roi("box", centre, size=size) if kind == "box" else Roi("sphere", centre, radius=size[0] / 2)
+            region_mesh(self.app.model(pid).mesh, roi, f"part {pid!r}")  # refused here, before the draft changes
+        self.app.events.emit(Event.MESHES_CHANGED, pid=pid)
+        self.app.set_assembly(authoring.set_part_roi(self.app.asm, pid, roi), client)
+        self.app.notify(client, "Region", f"{pid}: the whole part" if roi is None else
+                        f"{pid}: {len(self.app.model(pid).region.faces)} faces in its {kind} (drawn cyan)")
 
     def on_remove_part(self, client) -> None:
         pid = self.f_part.value

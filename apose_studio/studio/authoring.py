@@ -86,6 +86,13 @@ def set_part_color(asm: Assembly, part_id: str, color) -> Assembly:
     return replace(asm, parts=parts)
 
 
+def set_part_roi(asm: Assembly, part_id: str, roi) -> Assembly:
+    """The draft with part `part_id`'s region of interest (an assembly.roi.Roi in metres, or None: the whole part)."""
+    parts = dict(asm.parts)
+    parts[part_id] = replace(parts[part_id], roi=roi)
+    return replace(asm, parts=parts)
+
+
 def unplaced_parts(asm: Assembly) -> list[str]:
     """Parts no step places yet, in file order (candidates for a new step's part)."""
     placed = {s.part for s in asm.steps}

@@ -17,9 +17,11 @@ import numpy as np
 
 from apose_studio.errors import AposeError
 from apose_studio.geometry import se3
-from apose_studio.studio import authoring
+from apose_studio.studio import authoring, inspection
 from apose_studio.studio.state import Event, shared
 from apose_studio.studio.widgets import VECTOR_DEG, VECTOR_MM, esc, pos, shaded, wxyz
+
+REGION_LIFT_M = 0.0004  # a part's region faces are drawn this far out along their normals, over the part's own
 
 log = logging.getLogger(__name__)
 
@@ -451,6 +453,7 @@ class StepsPanel:
                 h.position, h.wxyz = pos(T), wxyz(T)
         for pid in [p for p in self.mesh_handles if p not in asm.parts]:
             self.mesh_handles.pop(pid).remove()
+        self.draw_regions(asm)
         if gizmo:
             self.place_gizmo()
         elif self.step_index is not None and self.step_index < len(asm.steps):  # the dragged part follows the hand
@@ -458,6 +461,25 @@ class StepsPanel:
             if step.part in self.mesh_handles and step.base[0] in self._preview:
                 T = self._preview[step.base[0]] @ self.app.asm.steps[self.step_index].T_base_part
                 self.mesh_handles[step.part].position, self.mesh_handles[step.part].wxyz = pos(T), wxyz(T)
+
+    def draw_regions(self, asm) -> None:
+        """Each shown part's region (its roi): the box's edges (a sphere's bounding box) and the faces in it, cyan
+        over the part: what registration matches when the part is a base."""
+        for name in [n for n in self.app.nodes if n.startswith("/assembly/roi")]:
+            self.app.nodes.pop(name).remove()
+        for pid, part in asm.parts.items():
+            T = self._preview.get(pid)
+            if part.roi is None or T is None:
+                continue
+            region = self.app.model(pid, asm).region.copy()
+            region.vertices = region.vertices + REGION_LIFT_M * region.vertex_normals  # drawn over the part, not in it
+            seg = inspection.box_segments(part.roi.corners(), np.eye(4)).astype(np.float32)
+            name = f"/assembly/roi_{pid}"
+            self.app.node(name, self.app.server.scene.add_line_segments(
+                name, seg, inspection.CYAN, thickness=3.0, thickness_units="screen", wxyz=wxyz(T), position=pos(T)))
+            name = f"/assembly/roi_faces_{pid}"
+            self.app.node(name, self.app.server.scene.add_mesh_simple(
+                name, *shaded(region), color=inspection.CYAN, opacity=0.6, wxyz=wxyz(T), position=pos(T)))
 
     def preview_radius(self) -> float:
         ds = [self.app.model(p, self.app.valid_asm).diameter for p in self._preview if p in self.app.valid_asm.parts]

@@ -1135,3 +1135,47 @@ def test_play_a_recording_with_the_base_tracked(browser, studio, tmp_path):
     time.sleep(1.0)
     shot(page, "sequence_played.png")
     page.close()
+
+
+def test_the_engine_heads_seats_are_drawn_as_regions_and_a_region_is_set_from_the_page(browser, studio, tmp_path):
+    """The engine-head sample opened in the page: each seat's region (its roi) is drawn cyan on the head, where the
+    seat is on screen. A region set from the page (Part, Region (roi), its centre and size, Set region) is the
+    draft's, drawn, and saved as the file's roi."""
+    import cv2
+
+    from apose_studio.geometry import se3
+
+    shutil.copytree(SAMPLES / "engine_head", tmp_path / "engine")
+    path = tmp_path / "engine" / "assembly.yaml"
+    page = open_page(browser, studio)
+    type_into(page, "Assembly file", str(path))
+    page.get_by_role("button", name="Open").click()
+    wait_until(lambda: len(studio.asm.steps) == 8, "the sample to open")
+    wait_until(lambda: "/assembly/roi_seat_1" in studio.nodes, "the seats' regions drawn")
+    time.sleep(3.0)
+    shot(page, "engine_regions.png")
+    img = cv2.imread(str(ARTIFACTS / "engine_regions.png"))
+    cam = client_of(studio, page).camera
+    T = studio.steps._preview["seat_1"]
+    centre = se3.transform_points(T, np.asarray(studio.asm.parts["seat_1"].roi.center)[None])
+    u, v = to_screen(page, cam, centre)[0].astype(int)
+    patch = img[max(v - 6, 0):v + 7, max(u - 6, 0):u + 7].reshape(-1, 3).astype(int)  # BGR
+    assert np.any((patch[:, 0] > patch[:, 2] + 60) & (patch[:, 1] > patch[:, 2] + 30)), "no cyan at seat 1's region"
+    # a sphere round the arm's bore, set from the page on arm_1
+    field(page, "Part").first.click()
+    page.get_by_role("option", name="arm_1", exact=True).click()
+    wait_until(lambda: studio.files.f_part.value == "arm_1", "the part chosen")
+    field(page, "Region (roi)").first.click()
+    page.get_by_role("option", name="sphere", exact=True).click()
+    wait_until(lambda: studio.files.f_roi.value == "sphere", "the region's shape chosen")
+    for i, value in enumerate(("0", "0", "4")):
+        type_into(page, "Region centre (mm)", value, index=i)
+    type_into(page, "Region size (mm)", "20", index=0)
+    page.get_by_role("button", name="Set region").click()
+    wait_until(lambda: studio.asm.parts["arm_1"].roi is not None, "the region set")
+    roi = studio.asm.parts["arm_1"].roi
+    assert roi.kind == "sphere" and np.isclose(roi.radius, 0.010) and np.allclose(roi.center, (0, 0, 0.004))
+    wait_until(lambda: "/assembly/roi_arm_1" in studio.nodes, "the arm's region drawn")
+    page.get_by_role("button", name="Save").click()
+    wait_until(lambda: "sphere" in path.read_text(), "the file saved")
+    assert yaml.safe_load(path.read_text())["parts"]["arm_1"]["roi"] == {"sphere": {"center": [0, 0, 4], "radius": 10}}

@@ -240,3 +240,44 @@ def test_a_refused_name_is_not_left_in_the_field(studio, gearbox_copy):
     st.files.f_name.value = "gear\u200bbox"  # a zero-width space: looks like "gearbox", is not
     assert "invisible character \\u200b" in errors(st)[-1][1] and st.asm.name == "helical_gearbox"
     assert st.files.f_name.value == "helical_gearbox" and st.problems == []
+
+
+def test_a_region_set_on_a_part_is_drawn_saved_undone_and_a_stray_one_refused(studio, tmp_path):
+    """Set region: the casing's region of interest from the Region fields, drawn cyan on the part (its box's edges
+    and the faces in it), saved as the file's `roi`, undone with Undo; a region beside the part is refused naming
+    where the part lies, and the draft keeps its region."""
+    import shutil
+
+    shutil.copytree(SAMPLES / "helical_gearbox", tmp_path / "gb")
+    path = tmp_path / "gb" / "assembly.yaml"
+    st = studio(path)
+    st.files.f_part.value = "casing"
+    st.files.f_roi.value = "box"
+    st.files.f_roi_centre.value = (-20.0, 0.0, 20.0)  # round the input-shaft boss (mm, the casing's frame)
+    st.files.f_roi_size.value = (40.0, 64.0, 20.0)
+    act(st, st.files.on_roi)
+    assert errors(st) == []
+    roi = st.asm.parts["casing"].roi
+    assert roi.kind == "box" and np.allclose(roi.center, (-0.02, 0, 0.02)) and np.allclose(roi.size, (0.04, 0.064, 0.02))
+    assert "/assembly/roi_casing" in st.nodes and "/assembly/roi_faces_casing" in st.nodes
+    faces = st.nodes["/assembly/roi_faces_casing"]
+    v = np.asarray(faces.vertices)
+    assert len(v) and np.all(np.abs(v - (-0.02, 0, 0.02)) <= np.array([0.02, 0.032, 0.01]) + 0.004)  # within the box
+    act(st, st.files.on_save)
+    assert yaml.safe_load(path.read_text())["parts"]["casing"]["roi"] == {"box": {"center": [-20, 0, 20],
+                                                                                  "size": [40, 64, 20]}}
+    st.files.f_roi_centre.value = (500.0, 0.0, 0.0)  # beside the part
+    act(st, st.files.on_roi)
+    assert any("roi holds 0 of" in n[1] and "move the roi onto the surface" in n[1] for n in errors(st))
+    assert st.asm.parts["casing"].roi == roi  # the refused region changed nothing
+    st.files.f_roi.value = "whole part"
+    act(st, st.files.on_roi)
+    assert st.asm.parts["casing"].roi is None and "/assembly/roi_casing" not in st.nodes
+    act(st, lambda c: st.undo_redo("Undo", c))
+    assert st.asm.parts["casing"].roi == roi and "/assembly/roi_casing" in st.nodes
+    st.files.f_part.value = "pinion"  # the fields show the chosen part's region (none)
+    st.files.show_part_colour()
+    assert st.files.f_roi.value == "whole part"
+    st.files.f_part.value = "casing"
+    st.files.show_part_colour()
+    assert st.files.f_roi.value == "box" and tuple(st.files.f_roi_size.value) == (40.0, 64.0, 20.0)
