@@ -109,17 +109,21 @@ def region_mesh(mesh: trimesh.Trimesh, roi: Roi, what: str = "the part") -> trim
 
 
 SPLIT_SHARE = 1 / 8  # region_mesh: faces reaching into the roi are split to edges at most this share of its shortest side
+MAX_SPLIT_FACES = 200_000  # ... but into at most about this many faces: a 1 mm roi on a face a metre long would
+# otherwise become millions of faces (the edges stay longer then, and the region's border follows them)
 
 
 def _split_near(mesh: trimesh.Trimesh, roi: Roi) -> trimesh.Trimesh:
-    """`mesh` with the faces whose boxes overlap the roi's box split (trimesh.remesh.subdivide_to_size)."""
+    """`mesh` with the faces whose boxes overlap the roi's box split (trimesh.remesh.subdivide_to_size) to edges of
+    SPLIT_SHARE of the roi's shortest side, or longer where that would make more than MAX_SPLIT_FACES faces."""
     corners = roi.corners()
     lo, hi = corners.min(axis=0), corners.max(axis=0)
     tri = np.asarray(mesh.triangles)
     near = np.all(tri.max(axis=1) >= lo, axis=1) & np.all(tri.min(axis=1) <= hi, axis=1)
     if not near.any():
         return mesh
-    v, f = trimesh.remesh.subdivide_to_size(mesh.vertices, mesh.faces[near], float(np.min(hi - lo)) * SPLIT_SHARE,
-                                            max_iter=12)
+    area = float(np.asarray(mesh.area_faces)[near].sum())
+    edge = max(float(np.min(hi - lo)) * SPLIT_SHARE, np.sqrt(area / (0.43 * MAX_SPLIT_FACES)))  # a face ~0.43 edge^2
+    v, f = trimesh.remesh.subdivide_to_size(mesh.vertices, mesh.faces[near], edge, max_iter=12)
     rest = mesh.faces[~near]
     return trimesh.Trimesh(np.vstack([mesh.vertices, v]), np.vstack([rest, f + len(mesh.vertices)]), process=False)

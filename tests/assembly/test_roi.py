@@ -120,3 +120,21 @@ def test_the_engine_sample_puts_each_arm_round_its_seats_post():
         v = np.asarray(head.vertices)
         near = np.linalg.norm(v[:, :2] - T[:2, 3], axis=1) < 0.0051
         assert near.sum() >= 16 and np.isclose(v[near, 2].max(), T[2, 3] + 0.011, atol=1e-4)
+
+
+def test_a_tiny_roi_on_a_huge_face_is_cut_in_bounded_time_and_size():
+    """A 1 mm box on a 2 m slab: the faces near it are split into at most about MAX_SPLIT_FACES (not the millions
+    that edges of an eighth of a millimetre would make), and the region still lies round the roi."""
+    import time
+
+    from apose_studio.assembly.roi import MAX_SPLIT_FACES, Roi, region_mesh
+
+    slab = trimesh.creation.box((2.0, 2.0, 0.01))
+    roi = Roi("box", (0.3, 0.2, 0.005), size=(0.001, 0.001, 0.004))
+    t = time.perf_counter()
+    with pytest.raises(MeshError, match="roi holds"):  # a 1 mm box on edges of ~3 mm holds no face's centre, or few
+        region_mesh(slab, roi)
+    bigger = Roi("box", (0.3, 0.2, 0.005), size=(0.02, 0.02, 0.004))
+    region = region_mesh(slab, bigger)
+    assert time.perf_counter() - t < 20
+    assert len(region.faces) < MAX_SPLIT_FACES and np.all(np.abs(region.triangles_center[:, :2] - (0.3, 0.2)) <= 0.01)
