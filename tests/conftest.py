@@ -113,6 +113,39 @@ def clutter_dataset(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="session")
+def engine_dataset(tmp_path_factory) -> Path:
+    """The engine-head sample's seat 1 (a region of the head) on a cluttered bench, RealSense-like, two views 0.45-0.8 m
+    away (rendered once)."""
+    from apose_studio.assembly.model import load_assembly
+    from apose_studio.synth.frame import RenderSettings
+    from apose_studio.synth.render import render_dataset
+
+    out = tmp_path_factory.mktemp("engine") / "ds"
+    asm = load_assembly(SAMPLES / "engine_head" / "assembly.yaml")
+    render_dataset(asm, out, RenderSettings(frames=2, noise="realsense", clutter=True, seed=5, distance_range_m=(0.45, 0.8)),
+                   steps=[1], progress=False)
+    return out
+
+
+def region_box(frame, asm, margin: int = 10) -> tuple[int, int, int, int]:
+    """The box a user draws round what the camera sees of `frame`'s step's seat (a region): where the region's
+    ray-cast surface is the head's first surface, within the renderer's visible mask of the head."""
+    import numpy as np
+
+    from apose_studio.assembly.mesh import load_parts
+    from apose_studio.geometry.raycast import raycast_depth
+
+    models = load_parts(asm)
+    seat = asm.steps[frame.step - 1].base[0]
+    z_region = raycast_depth(models[seat].region, frame.T_world_base, frame.T_world_camera, frame.camera)
+    z_head = raycast_depth(models[seat].mesh, frame.T_world_base, frame.T_world_camera, frame.camera)
+    seen = np.isfinite(z_region) & (z_region <= z_head + 1e-4) & frame.base_mask()
+    assert seen.sum() > 300, "the seat is out of view in this render"
+    ys, xs = np.nonzero(seen)
+    return int(xs.min()) - margin, int(ys.min()) - margin, int(xs.max()) + 1 + margin, int(ys.max()) + 1 + margin
+
+
+@pytest.fixture(scope="session")
 def live_approach(tmp_path_factory) -> list:
     """A camera closing in on gearbox step 2's base over a cluttered bench in 60 small steps (a hand-held or
     eye-in-hand stream's, ~8 mm a frame), RealSense-like noise: the frames of the live-camera tests."""

@@ -13,9 +13,8 @@ import pytest
 from apose_studio.assembly.mesh import load_parts
 from apose_studio.data.dataset import Dataset
 from apose_studio.geometry import metrics
-from apose_studio.geometry.raycast import raycast_depth
 
-from ..conftest import SAMPLES
+from ..conftest import SAMPLES, region_box
 
 APOSE = [sys.executable, "-m", "apose_studio.cli.commands"]
 ENGINE = SAMPLES / "engine_head" / "assembly.yaml"
@@ -35,17 +34,9 @@ def engine(tmp_path_factory):
     return Dataset(out)
 
 
-def seat_box(ds: Dataset, step: int, im_id: int, margin: int = 10):
-    """The box a user draws round what the camera sees of the step's seat (its region the head's first surface)."""
+def seat_box(ds: Dataset, step: int, im_id: int):
     frame = ds.frame(step, im_id)
-    models = load_parts(ds.assembly)
-    seat = ds.assembly.steps[step - 1].base[0]
-    z_region = raycast_depth(models[seat].region, frame.T_world_base, frame.T_world_camera, frame.camera)
-    z_head = raycast_depth(models[seat].mesh, frame.T_world_base, frame.T_world_camera, frame.camera)
-    seen = np.isfinite(z_region) & (z_region <= z_head + 1e-4) & frame.base_mask()
-    assert seen.sum() > 300, "the seat is out of view in this render"
-    ys, xs = np.nonzero(seen)
-    return frame, (int(xs.min()) - margin, int(ys.min()) - margin, int(xs.max()) + 1 + margin, int(ys.max()) + 1 + margin)
+    return frame, region_box(frame, ds.assembly)
 
 
 @pytest.mark.parametrize("step", [1, 6])

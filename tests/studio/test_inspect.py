@@ -586,3 +586,31 @@ def test_an_estimate_on_the_truth_is_labelled_once(studio, gearbox_dataset):
     close = placement_mssd(st.inspect.score) <= ON_TRUTH * st.state.part_model().diameter
     assert ("estimate on truth" in texts) == close and ("truth" in texts) == (not close), texts
     assert "truth (dashed)" in st.results.i_legend.content and "estimate" in st.results.i_legend.content
+
+
+def test_a_seat_of_an_engine_head_is_inspected_from_a_box_and_a_click_is_told_to_draw_one(studio, engine_dataset):
+    """The engine sample's seat 1 is a region of the head: a box typed round it gives the box's depth as the mask (not
+    the colour-cut patches, which a region shares with its part) and a right, confident pose; a click is refused
+    with the fix (draw a box), where an ordinary base takes a click."""
+    from apose_studio.data.dataset import Dataset
+
+    from ..conftest import region_box
+
+    ds = Dataset(engine_dataset)
+    fr = ds.frame(1, 0)
+    st = studio(SAMPLES / "engine_head" / "assembly.yaml", engine_dataset)
+    st.inspect.i_mask.value = "prompt"
+    box = region_box(fr, ds.assembly)
+    st.prompt.i_prompt.value = ",".join(map(str, box))
+    mask = st.prompt.mask(st.inspect.frame)
+    x0, y0, x1, y1 = box
+    inside = np.zeros(mask.shape, bool)
+    inside[max(y0, 0):y1, max(x0, 0):x1] = True
+    assert mask.sum() > 0 and not (mask & ~inside).any()  # the box's depth, nothing outside it
+    act(st, st.inspect.run_estimation, False)
+    r = st.inspect.result
+    assert r is not None and r.ok and r.confident, st.notes
+    assert mssd_to_truth(r.T_world_part, fr.T_world_part, SAMPLES / "engine_head" / "assembly.yaml", fr.part) < 0.005
+    st.prompt.i_prompt.value = f"{(x0 + x1) // 2},{(y0 + y1) // 2}"
+    act(st, st.inspect.run_estimation, False)
+    assert "draw a box around the region" in errors(st)[-1][1]
