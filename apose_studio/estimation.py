@@ -232,7 +232,7 @@ def estimate_view(view: View, ctx: StepContext, params: Params, orientation_prio
     the base's orientation in the world (what `--base-pose fixed` renders, and the paper assumes). With
     `params.colour_check`, a clear shift of the depth against the colour image costs confidence
     (colour_checked). A base that is a region of a larger part, prompted by a box, is registered to the box's
-    depth patches (region_target)."""
+    pixels with depth near its centre (region_target)."""
     ctx.base.warm_up(params)
     view = region_target(view, ctx.base)
     result = estimate(view, ctx.base, ctx.view.T_base_part, params,
