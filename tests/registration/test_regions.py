@@ -92,3 +92,40 @@ def test_rendered_scenes_hold_the_head_once(engine):
     info = json.loads((engine.root / "test" / "000001" / "scene_assembly.json").read_text())
     assert ids.count(info["base_obj_ids"][0]) == 1 and info["instance_obj_ids"] == [info["base_obj_ids"][0]]
     assert sorted(ids) == sorted([*info["base_obj_ids"], info["part_obj_id"]])
+
+
+def test_a_seat_is_tracked_as_the_camera_closes_in(tmp_path):
+    """An eye-in-hand camera approaching seat 1 (Kinect-like, cluttered): from a confident estimate on the box round
+    the seat, every frame is followed right and confident (tracked, or estimated anew from the box where the tracker
+    lets go)."""
+    from apose_studio.assembly.model import load_assembly
+    from apose_studio.estimation import Tracker, estimate_frame, step_context
+    from apose_studio.masks.prompt import prompted_mask
+    from apose_studio.params import resolve_params
+    from apose_studio.synth.frame import RenderSettings
+    from apose_studio.synth.render import render_dataset
+
+    from ..conftest import mssd_to_truth
+
+    out = tmp_path / "approach"
+    render_dataset(load_assembly(ENGINE), out, RenderSettings(frames=8, trajectory="approach", noise="kinect",
+                                                              clutter=("bench",), seed=4, distance_range_m=(0.45, 0.8)),
+                   steps=[1], progress=False)
+    ds = Dataset(out)
+    asm, ctx = step_context(ds.assembly, 1)
+    params = resolve_params("default", asm.registration)
+
+    def detect(frame, box):
+        box = region_box(frame, ds.assembly)
+        mask = prompted_mask(frame.rgb, frame.depth, frame.camera, box=box, region=True).mask
+        return estimate_frame(frame, ctx, params, mask=mask, box=box)
+
+    tracker = Tracker(ctx, params, detect)
+    modes = []
+    for im_id in ds.image_ids(1):
+        frame = ds.frame(1, im_id)
+        s = tracker.step(frame)
+        modes.append(s.mode)
+        assert s.result.ok and s.result.confident, (im_id, s.mode, s.result.reason)
+        assert mssd_to_truth(s.result.T_world_part, frame.T_world_part, ENGINE, ctx.view.part) < 0.1 * ctx.part.diameter
+    assert modes.count("tracked") >= 5, modes
