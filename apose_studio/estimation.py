@@ -21,7 +21,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from apose_studio.assembly.mesh import PartModel, base_mesh, load_parts
+from apose_studio.assembly.mesh import PartModel, base_body_mesh, base_mesh, load_parts
 from apose_studio.assembly.model import Assembly, load_assembly
 from apose_studio.assembly.roi import Roi
 from apose_studio.data.dataset import Frame, read_image
@@ -31,7 +31,7 @@ from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.geometry.sensor import SHIFT_MIN_PX, depth_colour_shift, shift_evidence, shift_image
 from apose_studio.masks.prompt import box_depth, prompted_mask
 from apose_studio.masks.segment import depth_mask, load_model, table_objects
-from apose_studio.registration import BaseObject, Params, RegistrationResult, doubts, estimate, prepare_base
+from apose_studio.registration import BaseObject, Params, RegistrationResult, doubts, estimate, failed, prepare_base
 from apose_studio.registration.base import Region
 from apose_studio.registration.fusion import estimate_views
 from apose_studio.registration.next_view import next_view
@@ -63,7 +63,44 @@ def base_region(models: dict[str, PartModel], view) -> Region | None:
         lo, hi = m.aabb
         roi = m.roi if m.roi is not None else Roi("box", tuple((lo + hi) / 2), size=tuple(hi - lo))
         boxes.append((roi, se3.inv(T_base_member)))
-    return Region(tuple(boxes))
+    return Region(tuple(boxes), body=base_body_mesh(models, view), twins=region_twins(models, view))
+
+
+def same_mesh(a, b) -> bool:
+    """Whether two meshes are one shape (one object, or the same faces and vertices: a rendered dataset keeps a copy
+    of the mesh file per part)."""
+    return a is b or (a.vertices.shape == b.vertices.shape and np.array_equal(a.faces, b.faces)
+                      and np.allclose(a.vertices, b.vertices, atol=1e-9))
+
+
+TWIN_MATCH = 0.01  # region_twins: two regions are alike when one moved onto the other lies within this share of its
+# diameter of it (mean distance of surface samples)
+
+
+def region_twins(models: dict[str, PartModel], view) -> tuple:
+    """((name, S), ...) for a base that is one region (`roi`) of a part: the other parts that are regions of the
+    same mesh alike to it, S the shift (T_base_base) that lays this region onto that one. Regions whose roi centres
+    differ by a shift that lays one onto the other (seats in a row on an engine head) are found; turned ones are not
+    looked for."""
+    if len(view.T_base_members) != 1:
+        return ()
+    (pid,) = view.T_base_members
+    mine = models[pid]
+    if mine.roi is None:
+        return ()
+    from apose_studio.geometry.nn import NearestTree
+
+    out = []
+    for other, m in models.items():
+        if other == pid or m.roi is None or m.roi.kind != mine.roi.kind or not same_mesh(m.mesh, mine.mesh):
+            continue
+        S = np.eye(4)
+        S[:3, 3] = np.subtract(m.roi.center, mine.roi.center)
+        moved = se3.transform_points(S, mine.region.vertices[:: max(1, len(mine.region.vertices) // 2000)])
+        d = NearestTree(np.asarray(m.region.vertices)).query(moved)[0]
+        if float(np.mean(d)) < TWIN_MATCH * float(np.linalg.norm(mine.region.extents)):
+            out.append((other, S))
+    return tuple(out)
 
 
 _CONTEXTS: dict = {}
@@ -234,6 +271,10 @@ def estimate_view(view: View, ctx: StepContext, params: Params, orientation_prio
     (colour_checked). A base that is a region of a larger part, prompted by a box, is registered to the box's
     pixels with depth near its centre (region_target)."""
     ctx.base.warm_up(params)
+    if ctx.base.region is not None and view.box is None:
+        return failed(f"{ctx.view.base[0]} is a region of a larger part (its roi): its target is what a box drawn round "
+                      "it holds; give one (--box, or a box prompt), not a mask of the whole part or a click",
+                      preset=params.preset)
     view = region_target(view, ctx.base)
     result = estimate(view, ctx.base, ctx.view.T_base_part, params,
                       prior_T_world_base=np.eye(4) if orientation_prior else None,
@@ -262,14 +303,16 @@ REGION_REACH = 0.75  # region_target: the box's pixels whose points lie farther 
 
 def near_box_centre(mask: np.ndarray, depth: np.ndarray, cam, box, reach: float) -> np.ndarray:
     """`mask` without the pixels whose points lie farther than `reach` (metres) from the point seen at the box's
-    centre (the median depth of its middle third, on the middle pixel's ray): a box drawn round a region is
+    centre (of the middle third's pixels in the mask, the one at their median depth): a box drawn round a region is
     centred on it, while the larger part runs on to its corners. `mask` as it is when its middle has no depth."""
     x0, y0, x1, y1 = (int(v) for v in box)
     cx0, cx1, cy0, cy1 = x0 + (x1 - x0) // 3, x1 - (x1 - x0) // 3, y0 + (y1 - y0) // 3, y1 - (y1 - y0) // 3
-    middle = depth[cy0:cy1, cx0:cx1][mask[cy0:cy1, cx0:cx1]]
-    if not len(middle):
+    vs, us = np.nonzero(mask[cy0:cy1, cx0:cx1])
+    if not len(vs):
         return mask
-    centre = cam.backproject((x0 + x1 - 1) / 2, (y0 + y1 - 1) / 2, float(np.median(middle)))
+    z = depth[vs + cy0, us + cx0]
+    k = int(np.argmin(np.abs(z - np.median(z))))  # a pixel seen there: the centre is a point of the target
+    centre = cam.backproject(us[k] + cx0, vs[k] + cy0, float(z[k]))
     vs, us = np.nonzero(mask)
     far = np.linalg.norm(cam.backproject(us, vs, depth[vs, us]) - centre, axis=1) > reach
     out = mask.copy()
@@ -367,8 +410,12 @@ def estimate_pick(view: View, part: PartModel, params: Params) -> RegistrationRe
 
 def estimate_frames(views: list[View], ctx: StepContext, params: Params,
                     orientation_prior: bool = False) -> RegistrationResult:
-    """One fused estimate from several views of one placement (registration.fusion)."""
+    """One fused estimate from several views of one placement (registration.fusion); not of a region of a larger
+    part (fusion scores all of each target)."""
     ctx.base.warm_up(params)
+    if ctx.base.region is not None:
+        return failed(f"{ctx.view.base[0]} is a region of a larger part (its roi): fused views do not take regions yet; "
+                      "estimate one view with a box round the region", preset=params.preset)
     return held_to_part(estimate_views(views, ctx.base, ctx.view.T_base_part, params,
                                        np.eye(4) if orientation_prior else None, ctx.part.symmetries), ctx.part)
 
@@ -416,7 +463,11 @@ def estimate_instances(frame: Frame, ctx: StepContext, params: Params, orientati
     several, what the found model does not explain searched again), poses of one instance merged (the
     confident one, else the better fitting), the rest in a stable order: left to right in the image by the
     base's centre. Each keeps its own confidence. `estimate(view)`: the estimator per candidate (default
-    estimate_view with these params)."""
+    estimate_view with these params). A base that is a region of a larger part (roi) is refused: its instances are
+    not groups of depth on the table."""
+    if ctx.base.region is not None:
+        raise AposeError(f"{ctx.view.base[0]} is a region of a larger part (its roi): --instances all finds instances of "
+                         "whole parts standing on the table; prompt each region with a box (--box) instead")
     diameter = ctx.base.diameter
     run = estimate or (lambda view: estimate_view(view, ctx, params, orientation_prior))
     todo = [(box, group, True) for box, group in instance_boxes(frame, diameter)]

@@ -97,7 +97,8 @@ def run(ds: Dataset, margin_px: int) -> list[dict]:
             rows.append({"seat": seat, "im_id": im_id, "visible": float(visible), "counted": visible >= MIN_VISIBLE,
                          "place": "centre" if centre else "corner", "right": right,
                          "confident": bool(r.ok and r.confident), "seconds": seconds,
-                         "mssd_mm": float(sc.mssd_mod_base_sym * 1000) if r.ok else None})
+                         "mssd_mm": float(sc.mssd_mod_base_sym * 1000) if r.ok else None,
+                         "sunk": float(r.sunk) if r.ok else None, "body_past": float(r.body_past) if r.ok else None})
     return rows
 
 

@@ -58,6 +58,8 @@ def parse_roi(c: Checker, raw, key: str, scale: float) -> Roi | None:
         c.add(key, f"expected one of box or sphere, got {', '.join(map(str, spec)) or 'neither'}")
         return None
     (shape, body), = spec.items()
+    if shape not in ROI_KINDS:  # named by Checker.mapping as an unknown key
+        return None
     where = f"{key}.{shape}"
     allowed = ("center", "size") if shape == "box" else ("center", "radius")
     body = c.mapping(body, where, allowed, "{center: [x, y, z], size: [sx, sy, sz]}" if shape == "box"
@@ -75,7 +77,10 @@ def parse_roi(c: Checker, raw, key: str, scale: float) -> Roi | None:
             return None
         return Roi("box", tuple(v * scale for v in center), size=tuple(v * scale for v in size))
     radius = body.get("radius")
-    ok = isinstance(radius, (int, float)) and not isinstance(radius, bool) and np.isfinite(radius) and 0 < radius <= limit
+    try:  # a whole number of 400 digits is an int that numpy cannot test
+        ok = isinstance(radius, (int, float)) and not isinstance(radius, bool) and 0 < float(radius) <= limit
+    except OverflowError:
+        ok = False
     if not ok:
         c.add(f"{where}.radius", f"expected a length above 0 (at most {limit:g}{unit}), got {kind(radius)}")
         return None
@@ -98,11 +103,20 @@ def region_mesh(mesh: trimesh.Trimesh, roi: Roi, what: str = "the part") -> trim
     the region follows the roi's outline and not the CAD's triangles (a deck drawn as two long triangles).
     Raises MeshError naming `what` when the region holds (almost) none of the surface: an roi drawn beside
     the part, or in other units than the file's."""
+    n_file = len(mesh.faces)
     mesh = _split_near(mesh, roi)
     inside = roi.contains(np.asarray(mesh.triangles_center))
     if int(inside.sum()) < MIN_REGION_FACES:
         lo, hi = np.asarray(mesh.bounds)
-        raise MeshError(f"{what}: its roi holds {int(inside.sum())} of the mesh's {len(mesh.faces)} faces (the mesh spans "
+        corners = roi.corners()
+        tri = np.asarray(mesh.triangles)
+        touching = np.all(tri.max(axis=1) >= corners.min(axis=0), axis=1) & np.all(tri.min(axis=1) <= corners.max(axis=0), axis=1)
+        if touching.any():  # on the surface, but smaller than the faces there (split as far as MAX_SPLIT_FACES lets)
+            edge = float(np.median(np.max(np.linalg.norm(tri[touching] - np.roll(tri[touching], 1, axis=1), axis=2), axis=1)))
+            raise MeshError(f"{what}: its roi holds {int(inside.sum())} face centres: it is smaller than the mesh's faces "
+                            f"there (edges of {edge * 1000:.3g} mm once split); make it at least {2 * edge * 1000:.3g} mm "
+                            "across, in the file's units")
+        raise MeshError(f"{what}: its roi holds none of the mesh's {n_file} faces (the mesh spans "
                         f"{np.round(lo * 1000, 1).tolist()} to {np.round(hi * 1000, 1).tolist()} mm in its own frame); "
                         "move the roi onto the surface to register, in the file's units")
     return mesh.submesh([np.nonzero(inside)[0]], append=True, repair=False)
@@ -113,17 +127,28 @@ MAX_SPLIT_FACES = 200_000  # ... but into at most about this many faces: a 1 mm 
 # otherwise become millions of faces (the edges stay longer then, and the region's border follows them)
 
 
+def split_faces(longest: np.ndarray, edge: float) -> int:
+    """How many faces splitting faces whose longest edges are `longest` to edges of at most `edge` makes (at most:
+    subdivide_to_size halves every edge of a face per round, four faces for one)."""
+    rounds = np.ceil(np.log2(np.maximum(np.asarray(longest, float) / edge, 1.0)))
+    return int(np.sum(4.0 ** np.minimum(rounds, 30)))
+
+
 def _split_near(mesh: trimesh.Trimesh, roi: Roi) -> trimesh.Trimesh:
     """`mesh` with the faces whose boxes overlap the roi's box split (trimesh.remesh.subdivide_to_size) to edges of
-    SPLIT_SHARE of the roi's shortest side, or longer where that would make more than MAX_SPLIT_FACES faces."""
+    SPLIT_SHARE of the roi's shortest side, or longer where that would make more than MAX_SPLIT_FACES faces
+    (split_faces counts them before any is made)."""
     corners = roi.corners()
     lo, hi = corners.min(axis=0), corners.max(axis=0)
     tri = np.asarray(mesh.triangles)
     near = np.all(tri.max(axis=1) >= lo, axis=1) & np.all(tri.min(axis=1) <= hi, axis=1)
     if not near.any():
         return mesh
-    area = float(np.asarray(mesh.area_faces)[near].sum())
-    edge = max(float(np.min(hi - lo)) * SPLIT_SHARE, np.sqrt(area / (0.43 * MAX_SPLIT_FACES)))  # a face ~0.43 edge^2
-    v, f = trimesh.remesh.subdivide_to_size(mesh.vertices, mesh.faces[near], edge, max_iter=12)
+    longest = np.max(np.linalg.norm(tri[near] - np.roll(tri[near], 1, axis=1), axis=2), axis=1)
+    edge = float(np.min(hi - lo)) * SPLIT_SHARE
+    while split_faces(longest, edge) > MAX_SPLIT_FACES:  # a long, thin face splits 4-fold per halving of its longest
+        edge *= 2.0  # edge, whatever its area: a 2 m shaft of 256 faces had become millions
+    rounds = int(np.max(np.ceil(np.log2(np.maximum(longest / edge, 1.0))))) + 1
+    v, f = trimesh.remesh.subdivide_to_size(mesh.vertices, mesh.faces[near], edge, max_iter=rounds)
     rest = mesh.faces[~near]
     return trimesh.Trimesh(np.vstack([mesh.vertices, v]), np.vstack([rest, f + len(mesh.vertices)]), process=False)

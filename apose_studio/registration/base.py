@@ -124,6 +124,10 @@ class Region:
     lies in one of them (within a margin); the rest of the larger part is not evidence for or against the pose."""
 
     boxes: tuple  # ((Roi, T_member_base), ...)
+    body: object = None  # the base's members whole (trimesh, base frame): the larger part the region belongs to, whose
+    # rest the depth must not see past at a region's pose (pipeline.judge: `body_past`)
+    twins: tuple = ()  # ((name, S), ...): the other regions of the same part alike to this one (rocker-arm seats of
+    # one head), S: T_base_base moving this region onto that one; only the rest of the part tells them apart
 
     def contains(self, points_base: np.ndarray, margin: float) -> np.ndarray:
         out = np.zeros(len(points_base), bool)

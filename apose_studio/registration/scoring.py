@@ -180,6 +180,22 @@ def evidence(points_world: np.ndarray, T_world_camera, cam: CameraIntrinsics, de
     return int(confirmed.sum()), int(contradicted.sum())
 
 
+def hidden_share(points_world: np.ndarray, T_world_camera, cam: CameraIntrinsics, depth_obs: np.ndarray,
+                 tol: float) -> float:
+    """The share of the model points a pose shows (in the image, where the depth has a reading) that lie behind a
+    nearer observed surface by more than `tol`. For a whole base these are occluders, and the mask's readings judge
+    them; for a region of a larger part, whose target is all of a box, a region laid onto a flat surface (a seat's
+    pad on the table) hides its deck and sides below that surface. NaN when no point has a reading."""
+    if len(points_world) == 0:
+        return float("nan")
+    v, u, z, inside = pixels(points_world, T_world_camera, cam)
+    d = depth_obs[v[inside], u[inside]]
+    valid = np.isfinite(d) & (d > 0)
+    if not valid.any():
+        return float("nan")
+    return float(np.mean(d[valid] < z[inside][valid] - tol))
+
+
 def discriminate(pb: "Task", close: list[int], cands: list[Candidate], traces: list) -> list[int]:
     """Break near-ties between placements by their differences only (a nearly symmetric motor block
     differs in one connector). For each pair, the pixels where one placement shows a surface that the

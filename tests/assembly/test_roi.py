@@ -67,6 +67,8 @@ def test_an_roi_is_read_in_the_files_units_and_saved_as_written(slab_dir):
     ("{box: {center: [0, 0, 0], size: [1, 1, 1], turn: 3}}", "parts.seat_a.roi.box", "turn"),
     ("{box: {center: [0, 0, 1e12], size: [1, 1, 1]}}", "parts.seat_a.roi.box.center[2]", "beyond belief"),
     ("[1, 2, 3]", "parts.seat_a.roi", "box"),
+    ("{sphere: {center: [0, 0, 0], radius: -10000000000000000000000000}}", "parts.seat_a.roi.sphere.radius", "above 0"),
+    ("{cylinder: {center: [0, 0, 0], size: [1, 1, 1]}}", "parts.seat_a.roi.cylinder", "unknown key"),
 ])
 def test_a_bad_roi_is_refused_naming_its_key(slab_dir, roi, key, said):
     text = SLAB_YAML.replace("{box: {center: [-60, 0, 10], size: [40, 40, 30]}}", roi)
@@ -99,7 +101,7 @@ def test_regions_of_one_mesh_are_not_each_others_twins(slab_dir):
 def test_an_roi_beside_the_part_is_refused_naming_the_part_and_the_fix(slab_dir):
     text = SLAB_YAML.replace("center: [-60, 0, 10], size", "center: [-600, 0, 10], size")
     (slab_dir / "beside.yaml").write_text(text)
-    with pytest.raises(MeshError, match=r"part 'seat_a'.*slab.stl.*roi holds 0 of.*move the roi onto the surface"):
+    with pytest.raises(MeshError, match=r"part .seat_a.*slab.stl.*roi holds none of the mesh.s 12 faces.*move the roi onto the surface"):
         load_parts(load_assembly(slab_dir / "beside.yaml"))
 
 
@@ -132,9 +134,26 @@ def test_a_tiny_roi_on_a_huge_face_is_cut_in_bounded_time_and_size():
     slab = trimesh.creation.box((2.0, 2.0, 0.01))
     roi = Roi("box", (0.3, 0.2, 0.005), size=(0.001, 0.001, 0.004))
     t = time.perf_counter()
-    with pytest.raises(MeshError, match="roi holds"):  # a 1 mm box on edges of ~3 mm holds no face's centre, or few
-        region_mesh(slab, roi)
+    with pytest.raises(MeshError, match=r"smaller than the mesh's faces there .*make it at least [0-9.]+ mm across"):
+        region_mesh(slab, roi)  # on the surface, but smaller than the faces it may be split into
     bigger = Roi("box", (0.3, 0.2, 0.005), size=(0.02, 0.02, 0.004))
     region = region_mesh(slab, bigger)
     assert time.perf_counter() - t < 20
     assert len(region.faces) < MAX_SPLIT_FACES and np.all(np.abs(region.triangles_center[:, :2] - (0.3, 0.2)) <= 0.01)
+
+
+def test_a_small_roi_on_a_long_thin_mesh_is_cut_in_bounded_time_and_size():
+    """A shaft 2 m long and 2 mm across (256 long, thin faces) with a 10 mm roi: each face would split 4-fold per
+    halving of its 2 m edge; the split stops at about MAX_SPLIT_FACES faces (it had taken 6.6 GB)."""
+    import time
+
+    from apose_studio.assembly.roi import MAX_SPLIT_FACES, Roi, region_mesh
+
+    shaft = trimesh.creation.cylinder(radius=0.001, height=2.0, sections=64)
+    t = time.perf_counter()
+    try:
+        region = region_mesh(shaft, Roi("box", (0.0, 0.0, 0.0), size=(0.01, 0.01, 0.01)))
+        assert len(region.faces) <= MAX_SPLIT_FACES
+    except MeshError as e:
+        assert "make it at least" in str(e)
+    assert time.perf_counter() - t < 20

@@ -96,8 +96,9 @@ def test_rendered_scenes_hold_the_head_once(engine):
 
 def test_a_seat_is_tracked_as_the_camera_closes_in(tmp_path):
     """An eye-in-hand camera approaching seat 1 (Kinect-like, cluttered): from a confident estimate on the box round
-    the seat, every frame is followed right and confident (tracked, or estimated anew from the box where the tracker
-    lets go)."""
+    the seat, the frames are followed (tracked, or estimated anew from the box where the tracker lets go), most of
+    them tracked right and confident, and none confident and wrong (where the seat is small and far, the first
+    estimate is 72 mm off and said not confident: the rest of the head stands where the camera sees the bench)."""
     from apose_studio.assembly.model import load_assembly
     from apose_studio.estimation import Tracker, estimate_frame, step_context
     from apose_studio.masks.prompt import prompted_mask
@@ -121,11 +122,67 @@ def test_a_seat_is_tracked_as_the_camera_closes_in(tmp_path):
         return estimate_frame(frame, ctx, params, mask=mask, box=box)
 
     tracker = Tracker(ctx, params, detect)
-    modes = []
+    tracked_right = 0
     for im_id in ds.image_ids(1):
         frame = ds.frame(1, im_id)
         s = tracker.step(frame)
-        modes.append(s.mode)
-        assert s.result.ok and s.result.confident, (im_id, s.mode, s.result.reason)
-        assert mssd_to_truth(s.result.T_world_part, frame.T_world_part, ENGINE, ctx.view.part) < 0.1 * ctx.part.diameter
-    assert modes.count("tracked") >= 5, modes
+        r = s.result
+        right = r.ok and mssd_to_truth(r.T_world_part, frame.T_world_part, ENGINE, ctx.view.part) < 0.1 * ctx.part.diameter
+        assert right or not (r.ok and r.confident), (im_id, s.mode)
+        tracked_right += s.mode == "tracked" and right and r.confident
+    assert tracked_right >= 5, tracked_right
+
+
+def test_a_box_beside_the_head_gives_no_confident_seat(engine):
+    """A seat's box drawn on the bench beside the head (table, perhaps clutter): the region laid on the table fits the
+    table's points (its pad's top is flat), but its deck and sides lie below the table top, which hides them; the
+    pose is not called confident (`sunk`). Before the check, such a pose was confident 411 mm off."""
+    from apose_studio.estimation import StepContext, estimate_frame
+    from apose_studio.masks.prompt import prompted_mask
+    from apose_studio.registration import resolve_params
+
+    asm = engine.assembly
+    ctx = StepContext(asm, load_parts(asm), 1)
+    params = resolve_params("default")
+    tried = 0
+    for im_id in engine.image_ids(1):
+        frame, (x0, y0, x1, y1) = seat_box(engine, 1, im_id)
+        w, h = x1 - x0, y1 - y0
+        head = frame.base_mask()
+        H, W = head.shape
+        for top, left in [(t, l) for t in range(0, H - h, h // 2) for l in range(0, W - w, w // 2)]:
+            box = (left, top, left + w, top + h)
+            if head[max(top - 20, 0):top + h + 20, max(left - 20, 0):left + w + 20].any():
+                continue  # the head (or near it): not beside it
+            mask = prompted_mask(frame.rgb, frame.depth, frame.camera, box=box, region=True).mask
+            r = estimate_frame(frame, ctx, params, mask=mask, box=box)
+            tried += 1
+            assert not (r.ok and r.confident), (im_id, box)
+            if tried >= 3:
+                return
+    assert tried, "no box beside the head in these renders"
+
+
+def test_instances_of_a_region_are_refused_with_the_fix(engine):
+    r = run("estimate", engine.root, "--step", 1, "--instances", "all")
+    assert r.returncode == 2 and "region of a larger part" in r.stderr and "--box" in r.stderr, r.stderr
+
+
+def test_a_box_round_the_neighbouring_seat_gives_no_confident_pose(engine):
+    """The seats look alike: a box drawn round seat 2 while step 1 (seat 1) is estimated fits seat 1's region there,
+    80 mm off. The rest of the head at that pose overhangs the real head's end, where the camera sees the bench:
+    not confident (`body_past`). Before the check, such a pose was confident 79 mm off."""
+    from apose_studio.estimation import StepContext, estimate_frame
+    from apose_studio.masks.prompt import prompted_mask
+    from apose_studio.registration import resolve_params
+
+    asm = engine.assembly
+    ctx = StepContext(asm, load_parts(asm), 1)
+    params = resolve_params("default")
+    for im_id in engine.image_ids(1):
+        frame = engine.frame(1, im_id)
+        box = region_box(replace(frame, step=2), asm)  # seat 2: a region of the same head, at the head's pose
+        mask = prompted_mask(frame.rgb, frame.depth, frame.camera, box=box, region=True).mask
+        r = estimate_frame(frame, ctx, params, mask=mask, box=box)
+        err = metrics.mssd(r.T_world_part, frame.T_world_part, ctx.part.samples, ctx.part.symmetries) if r.ok else np.inf
+        assert not (r.ok and r.confident and err > 0.1 * ctx.part.diameter), (im_id, err, r.body_past)

@@ -268,7 +268,7 @@ def test_a_region_set_on_a_part_is_drawn_saved_undone_and_a_stray_one_refused(st
                                                                                   "size": [40, 64, 20]}}
     st.files.f_roi_centre.value = (500.0, 0.0, 0.0)  # beside the part
     act(st, st.files.on_roi)
-    assert any("roi holds 0 of" in n[1] and "move the roi onto the surface" in n[1] for n in errors(st))
+    assert any("roi holds none of the mesh" in n[1] and "move the roi onto the surface" in n[1] for n in errors(st))
     assert st.asm.parts["casing"].roi == roi  # the refused region changed nothing
     st.files.f_roi.value = "whole part"
     act(st, st.files.on_roi)
