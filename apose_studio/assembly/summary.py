@@ -20,9 +20,31 @@ def show_json(asm, models) -> dict:
     return {
         "name": asm.name,
         "parts": {pid: {"mesh": str(p.mesh), "diameter": models[pid].diameter, "root": asm.root_of(pid),
-                        "T_root_part": asm.T_root_part(pid).tolist()} for pid, p in asm.parts.items()},
+                        "T_root_part": asm.T_root_part(pid).tolist(), **_roi_json(p, models[pid])}
+                  for pid, p in asm.parts.items()},
         "steps": [_step_json(i, s) for i, s in enumerate(asm.steps)],
     }
+
+
+def _roi_json(part, model) -> dict:
+    """{"roi": ...} for a part that is a region (metres: kind, center, size or radius, the region's diameter), else {}."""
+    if part.roi is None:
+        return {}
+    r = part.roi
+    shape = {"size": list(r.size)} if r.kind == "box" else {"radius": r.radius}
+    return {"roi": {"kind": r.kind, "center": list(r.center), **shape,
+                    "region_diameter": float(np.linalg.norm(model.region.extents))}}
+
+
+def region_text(part, model) -> str:
+    """', region: box 64.0 x 50.0 x 40.0 mm at (...) mm' for a part with an roi, else ''."""
+    if part.roi is None:
+        return ""
+    r = part.roi
+    c = ", ".join(f"{v * 1000:.1f}" for v in r.center)
+    shape = (f"box {' x '.join(f'{v * 1000:.1f}' for v in r.size)} mm" if r.kind == "box"
+             else f"sphere {2000 * r.radius:.1f} mm across")
+    return f", region (roi): {shape} at ({c}) mm, {np.linalg.norm(model.region.extents) * 1000:.1f} mm across"
 
 
 def _step_json(i: int, s) -> dict:
@@ -45,7 +67,8 @@ def show_text(asm, models) -> str:
         sym = ""
         if p.symmetry is not None:
             sym = f", {'continuous' if p.symmetry.order == 0 else str(p.symmetry.order) + '-fold'} symmetry"
-        lines.append(f"  {pid:<{w}}  {p.mesh.name}  {size} mm, diameter {m.diameter * 1000:.1f} mm, {root}{sym}")
+        lines.append(f"  {pid:<{w}}  {p.mesh.name}  {size} mm, diameter {m.diameter * 1000:.1f} mm, {root}{sym}"
+                     f"{region_text(p, m)}")
         if m.unit_warning:
             lines.append(f"  {'':<{w}}  warning: {m.unit_warning}")
     lines += ["", "steps:"]

@@ -171,13 +171,12 @@ def cmd_estimate(args) -> int:
     print(f"registration: fitness {r.fitness:.4f}, inlier RMSE {r.inlier_rmse * 1000:.3f} mm, voxel {r.voxel * 1000:.2f} mm, "
           f"{len(r.stages) - 3} ICP iterations, {r.seconds * 1000:.0f} ms "
           f"({', '.join(f'{k} {v * 1000:.0f}' for k, v in r.timings.items())} ms)")
-    if sc is not None and sc.mask_iou is not None:
+    if sc is not None and sc.mask_iou is not None and ctx.base.region is None:  # a region's truth mask is its whole part's
         print(f"mask ({source}): IoU {sc.mask_iou:.3f} against the ground-truth base mask")
     if r.reading:  # the pose came from another reading of the mask (registration/hypotheses.py)
         print(f"the pose came from another reading of the mask: {r.reading}; the result's mask ({est.mask_source}) "
               f"has {int(est.mask.sum())} pixels")
-    if not r.confident:
-        print(f"not confident: {est.doubts}")
+    print("confident: the data supports this one placement" if r.confident else f"not confident: {est.doubts}")
     if r.ambiguous:
         _print_alternatives(r, ctx.part.id)
     if r.equivalent:

@@ -338,7 +338,7 @@ class AssemblyPanel:
         self.app.events.emit(Event.MESHES_CHANGED, pid=pid)
         self.app.set_assembly(authoring.set_part_roi(self.app.asm, pid, roi), client)
         self.app.notify(client, "Region", f"{pid}: the whole part" if roi is None else
-                        f"{pid}: {len(self.app.model(pid).region.faces)} faces in its {kind} (drawn cyan)")
+                        f"{pid}: {self.app.model(pid).region.area * 1e4:.1f} cm² of its surface in its {kind} (drawn cyan)")
 
     def on_remove_part(self, client) -> None:
         pid = self.f_part.value
@@ -369,6 +369,8 @@ class AssemblyPanel:
                 rows.append(f"<tr><td>{esc(pid)}</td><td colspan=4 style='color:#c00'>{esc(e)}</td></tr>")
                 continue
             size = " × ".join(f"{v * 1000:.1f}" for v in m.size)
+            if m.region is not None:  # what registers when the part is a base: its region, drawn cyan
+                size += "<br><span style='color:#08a'>region: " + " × ".join(f"{v * 1000:.1f}" for v in m.region.extents) + "</span>"
             warn = f"<br><span style='color:#c60'>⚠ {esc(m.unit_warning)}</span>" if m.unit_warning else ""
             rows.append(f"<tr><td><span style='display:inline-block;width:10px;height:10px;background:{hex_colour(m.color)};"
                         f"border-radius:2px'></span> {esc(pid)}</td><td>{esc(part.mesh.name)}</td><td>{esc(self.app.asm.units)}</td>"

@@ -229,18 +229,31 @@ def insertion_direction(asm: Assembly, index: int, centres: dict[str, np.ndarray
     return d
 
 
+def body_of(asm: Assembly, pid: str) -> str | None:
+    """The mesh file a region (a part with `roi`) is a region of: regions of one file are one body, laid out and
+    drawn once (seats of one engine head); None for a whole part."""
+    part = asm.parts[pid]
+    return str(part.mesh.resolve()) if part.roi is not None else None
+
+
 def preview_poses(asm: Assembly, upto: int, diameters: dict[str, float], explode: float = 0.0,
                   centres: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
     """T_world_part of every part shown after the first `upto` steps (0 = only the roots).
 
-    Roots stand side by side along x (a gap of their diameter); parts placed by steps <= upto sit on
-    them. `explode` (0..1) pulls each placed part out along its step's insertion direction, later steps
+    Roots stand side by side along x (a gap of their diameter), regions of one mesh (body_of) on one spot;
+    parts placed by steps <= upto sit on them. `explode` (0..1) pulls each placed part out along its step's insertion direction, later steps
     farther, and parts placed on it move with it, so the order reads at a glance. Parts not placed yet
     are left out.
     """
     roots = [r for r in asm.roots if any(asm.root_of(p) == r for p in asm.parts)]
-    T_world_root, x = {}, 0.0
+    T_world_root, x, bodies = {}, 0.0, {}
     for r in roots:
+        body = body_of(asm, r)
+        if body in bodies:  # a region of a part already laid out (another seat of one head): on that part
+            T_world_root[r] = T_world_root[bodies[body]]
+            continue
+        if body is not None:
+            bodies[body] = r
         d = diameters.get(r, 0.1)
         T_world_root[r] = se3.make_T(t=np.array([x, 0.0, 0.0]))
         x += 1.5 * d

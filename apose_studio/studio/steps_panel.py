@@ -437,9 +437,17 @@ class StepsPanel:
                     name = f"/assembly/step_label_{i}"
                     self.app.node(name, self.app.server.scene.add_label(name, f"{i + 1}. {st.part}", position=tuple(where),
                                                                  anchor="bottom-center", font_screen_scale=0.8))
+        shown_bodies: set = set()
         for pid in asm.parts:
             if pid not in diam:
                 continue
+            body = authoring.body_of(asm, pid)
+            if body is not None and self._preview.get(pid) is not None:
+                if body in shown_bodies:  # another region of a part drawn already (seats of one head): drawn once
+                    if pid in self.mesh_handles:
+                        self.mesh_handles.pop(pid).remove()
+                    continue
+                shown_bodies.add(body)
             h = self.mesh_handles.get(pid)
             if h is None:
                 m = self.app.model(pid, asm)
@@ -464,7 +472,8 @@ class StepsPanel:
 
     def draw_regions(self, asm) -> None:
         """Each shown part's region (its roi): the box's edges (a sphere's bounding box) and the faces in it, cyan
-        over the part: what registration matches when the part is a base."""
+        over the part: what registration matches when the part is a base (the seats of one head all on it:
+        authoring.preview_poses lays regions of one mesh on one spot)."""
         for name in [n for n in self.app.nodes if n.startswith("/assembly/roi")]:
             self.app.nodes.pop(name).remove()
         for pid, part in asm.parts.items():
@@ -480,6 +489,11 @@ class StepsPanel:
             name = f"/assembly/roi_faces_{pid}"
             self.app.node(name, self.app.server.scene.add_mesh_simple(
                 name, *shaded(region), color=inspection.CYAN, opacity=0.6, wxyz=wxyz(T), position=pos(T)))
+            top = part.roi.corners().max(axis=0)  # which seat is which: its name over its region
+            where = se3.transform_points(T, np.array([[part.roi.center[0], part.roi.center[1], top[2]]]))[0]
+            name = f"/assembly/roi_label_{pid}"
+            self.app.node(name, self.app.server.scene.add_label(name, pid, position=tuple(where), anchor="bottom-center",
+                                                                font_screen_scale=0.8))
 
     def preview_radius(self) -> float:
         ds = [self.app.model(p, self.app.valid_asm).diameter for p in self._preview if p in self.app.valid_asm.parts]

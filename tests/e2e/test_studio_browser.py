@@ -1151,16 +1151,17 @@ def test_the_engine_heads_seats_are_drawn_as_regions_and_a_region_is_set_from_th
     type_into(page, "Assembly file", str(path))
     page.get_by_role("button", name="Open").click()
     wait_until(lambda: len(studio.asm.steps) == 8, "the sample to open")
-    wait_until(lambda: "/assembly/roi_seat_1" in studio.nodes, "the seats' regions drawn")
+    wait_until(lambda: all(f"/assembly/roi_seat_{k}" in studio.nodes for k in range(1, 9)), "the eight seats' regions drawn")
     time.sleep(3.0)
     shot(page, "engine_regions.png")
     img = cv2.imread(str(ARTIFACTS / "engine_regions.png"))
     cam = client_of(studio, page).camera
     T = studio.steps._preview["seat_1"]
-    centre = se3.transform_points(T, np.asarray(studio.asm.parts["seat_1"].roi.center)[None])
-    u, v = to_screen(page, cam, centre)[0].astype(int)
-    patch = img[max(v - 6, 0):v + 7, max(u - 6, 0):u + 7].reshape(-1, 3).astype(int)  # BGR
-    assert np.any((patch[:, 0] > patch[:, 2] + 60) & (patch[:, 1] > patch[:, 2] + 30)), "no cyan at seat 1's region"
+    for k in (1, 8):  # the step's own seat and one at the head's other end, drawn on the head
+        centre = se3.transform_points(T, np.asarray(studio.asm.parts[f"seat_{k}"].roi.center)[None])
+        u, v = to_screen(page, cam, centre)[0].astype(int)
+        patch = img[max(v - 6, 0):v + 7, max(u - 6, 0):u + 7].reshape(-1, 3).astype(int)  # BGR
+        assert np.any((patch[:, 0] > patch[:, 2] + 60) & (patch[:, 1] > patch[:, 2] + 30)), f"no cyan at seat {k}'s region"
     # a sphere round the arm's bore, set from the page on arm_1
     field(page, "Part").first.click()
     page.get_by_role("option", name="arm_1", exact=True).click()
