@@ -96,6 +96,20 @@ def camera_from_K(K, width: int, height: int) -> CameraIntrinsics:
     return CameraIntrinsics.from_K(K, width, height)
 
 
+def pixel_numbers(value, n: int, name: str) -> tuple[int, ...] | None:
+    """`value` (a box: n=4, x0, y0, x1, y1; a point: n=2, u, v) as whole pixels, None for None; AposeError naming
+    `name` for anything else (text, NaN, the wrong count)."""
+    if value is None:
+        return None
+    try:
+        nums = [float(v) for v in value]
+    except (TypeError, ValueError):
+        raise AposeError(f"{name} must be {n} pixel numbers, got {str(value)[:60]!r}") from None
+    if len(nums) != n or not all(np.isfinite(nums)):
+        raise AposeError(f"{name} must be {n} finite pixel numbers, got {str(value)[:60]!r}")
+    return tuple(int(round(v)) for v in nums)
+
+
 def estimate_pose(rgb: np.ndarray, depth: np.ndarray, K, assembly, step: int, *, T_world_camera=None,
                   mask=None, box=None, point=None, preset: str = "default", orientation_prior: bool = False,
                   hand_eye=None, grasp: str | None = None, pick_box=None, pick_point=None, T_robot_flange=None,
@@ -110,6 +124,10 @@ def estimate_pose(rgb: np.ndarray, depth: np.ndarray, K, assembly, step: int, *,
     `align_depth` (with a box or point): the depth moved back onto the colour image when, around the prompt, it
     lies shifted against it (estimation.colour_registered; `depth_shift_px` says how far it lay)."""
     t0 = time.perf_counter()
+    if isinstance(step, bool) or not isinstance(step, (int, np.integer)):
+        raise AposeError(f"step must be a whole number (1 for the first step), got {step!r}"[:120])
+    box, point = pixel_numbers(box, 4, "box"), pixel_numbers(point, 2, "point")
+    pick_box, pick_point = pixel_numbers(pick_box, 4, "pick_box"), pixel_numbers(pick_point, 2, "pick_point")
     depth = np.asarray(depth, np.float32)
     if depth.ndim != 2:
         raise AposeError(f"depth must be an (H, W) image in metres, got shape {depth.shape}")

@@ -323,3 +323,26 @@ def test_a_box_reaching_off_the_image_is_taken_as_typed_and_an_inverted_one_is_e
     assert r.returncode == 2 and f"the box is {x0},{y0},{x1},{y1}" in r.stderr, r.stderr
     r = run("estimate", capture["ours"], "--assembly", capture["asm"], "--step", 2, "--box", f"-5,-5,{x1},{y1}", "--json")
     assert r.returncode in (0, 1) and "expected one argument" not in r.stderr, r.stderr
+
+
+@pytest.mark.parametrize("kw,said", [
+    (dict(box=(float("nan"), 0, 10, 10)), "box must be 4 finite pixel numbers"),
+    (dict(box="a,b"), "box must be 4 pixel numbers"),
+    (dict(box=(1, 2, 3)), "box must be 4 finite pixel numbers"),
+    (dict(point=("x", 1)), "point must be 2 pixel numbers"),
+    (dict(pick_box=(0, 0, float("inf"), 5)), "pick_box must be 4 finite"),
+    (dict(step="1"), "step must be a whole number"),
+    (dict(step=True), "step must be a whole number"),
+])
+def test_the_api_names_a_bad_prompt_or_step(kw, said):
+    """estimate_pose with a prompt or step a program got wrong: an AposeError naming it, not numpy's or int()'s."""
+    from apose_studio.api import estimate_pose
+    from apose_studio.errors import AposeError
+
+    from .conftest import SAMPLES
+
+    rgb, depth = np.zeros((48, 64, 3), np.uint8), np.full((48, 64), 0.5, np.float32)
+    args = {"step": 1, **kw}
+    with pytest.raises(AposeError, match=said):
+        estimate_pose(rgb, depth, [[50, 0, 32], [0, 50, 24], [0, 0, 1]], SAMPLES / "helical_gearbox" / "assembly.yaml",
+                      **args)
