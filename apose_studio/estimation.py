@@ -32,7 +32,7 @@ from apose_studio.geometry.sensor import SHIFT_MIN_PX, depth_colour_shift, shift
 from apose_studio.masks.prompt import box_depth, prompted_mask
 from apose_studio.masks.segment import depth_mask, load_model, table_objects
 from apose_studio.registration import BaseObject, Params, RegistrationResult, doubts, estimate, failed, prepare_base
-from apose_studio.registration.base import Region
+from apose_studio.registration.base import PLAIN_SHARE, Region, plainness
 from apose_studio.registration.fusion import estimate_views
 from apose_studio.registration.next_view import next_view
 from apose_studio.registration.table import table_plane
@@ -63,7 +63,9 @@ def base_region(models: dict[str, PartModel], view) -> Region | None:
         lo, hi = m.aabb
         roi = m.roi if m.roi is not None else Roi("box", tuple((lo + hi) / 2), size=tuple(hi - lo))
         boxes.append((roi, se3.inv(T_base_member)))
-    return Region(tuple(boxes), body=base_body_mesh(models, view), twins=region_twins(models, view))
+    regions = [models[pid].region for pid in members if models[pid].region is not None]
+    return Region(tuple(boxes), body=base_body_mesh(models, view), twins=region_twins(models, view),
+                  plain=len(members) == 1 and plainness(regions[0]) < PLAIN_SHARE)
 
 
 def same_mesh(a, b) -> bool:
@@ -73,32 +75,46 @@ def same_mesh(a, b) -> bool:
                       and np.allclose(a.vertices, b.vertices, atol=1e-9))
 
 
-TWIN_MATCH = 0.01  # region_twins: two regions are alike when one moved onto the other lies within this share of its
-# diameter of it (mean distance of surface samples)
+TWIN_MATCH = 0.03  # region_twins: a region moved onto another place of its part is alike there when its surface lies
+# within this share of its diameter of the part's (mean distance, after a shift-only fit)
+TWIN_FIT_ROUNDS = 12
+TWIN_SAMPLES = 200_000  # the part's surface sampled ~1 mm apart on an engine head: the mean distance of a region lying on it ~0.5 mm
 
 
 def region_twins(models: dict[str, PartModel], view) -> tuple:
-    """((name, S), ...) for a base that is one region (`roi`) of a part: the other parts that are regions of the
-    same mesh alike to it, S the shift (T_base_base) that lays this region onto that one. Regions whose roi centres
-    differ by a shift that lays one onto the other (seats in a row on an engine head) are found; turned ones are not
-    looked for."""
+    """((name, S), ...) for a base that is one region (`roi`) of a part: the places of the same part where the region
+    appears again (rocker-arm seats in a row on an engine head), each named by the other region (an roi of the same
+    mesh, of any shape or size) that marks it, S the shift (T_base_base) that lays this region there. Each other
+    roi's centre gives a first shift, which a shift-only fit of the region onto the part's surface settles; the place
+    is a twin where the region then lies on the surface (TWIN_MATCH). Look-alikes that no roi marks, and turned ones,
+    are not looked for."""
     if len(view.T_base_members) != 1:
         return ()
     (pid,) = view.T_base_members
     mine = models[pid]
     if mine.roi is None:
         return ()
+    from apose_studio.assembly.mesh import sample_surface
     from apose_studio.geometry.nn import NearestTree
 
+    region = np.asarray(mine.region.vertices)[:: max(1, len(mine.region.vertices) // 2000)]
+    size = float(np.linalg.norm(mine.region.extents))
+    surface, samples = None, None
     out = []
     for other, m in models.items():
-        if other == pid or m.roi is None or m.roi.kind != mine.roi.kind or not same_mesh(m.mesh, mine.mesh):
+        if other == pid or m.roi is None or not same_mesh(m.mesh, mine.mesh):
             continue
-        S = np.eye(4)
-        S[:3, 3] = np.subtract(m.roi.center, mine.roi.center)
-        moved = se3.transform_points(S, mine.region.vertices[:: max(1, len(mine.region.vertices) // 2000)])
-        d = NearestTree(np.asarray(m.region.vertices)).query(moved)[0]
-        if float(np.mean(d)) < TWIN_MATCH * float(np.linalg.norm(mine.region.extents)):
+        if surface is None:
+            samples = sample_surface(mine.mesh, TWIN_SAMPLES, 0)
+            surface = NearestTree(samples)
+        shift = np.subtract(m.roi.center, mine.roi.center)
+        for _ in range(TWIN_FIT_ROUNDS):  # a shift-only ICP of the region onto the part's surface
+            d, i = surface.query(region + shift)
+            shift = shift + np.mean(samples[i] - (region + shift), axis=0)
+        d, _ = surface.query(region + shift)
+        if float(np.mean(d)) < TWIN_MATCH * size and np.linalg.norm(shift) > 0.25 * size:
+            S = np.eye(4)
+            S[:3, 3] = shift
             out.append((other, S))
     return tuple(out)
 

@@ -128,6 +128,8 @@ class Region:
     # rest the depth must not see past at a region's pose (pipeline.judge: `body_past`)
     twins: tuple = ()  # ((name, S), ...): the other regions of the same part alike to this one (rocker-arm seats of
     # one head), S: T_base_base moving this region onto that one; only the rest of the part tells them apart
+    plain: bool = False  # the region's own surface cannot pin a pose (a flat patch, a cylinder's side: plainness);
+    # no view of it can, so its results are never confident
 
     def contains(self, points_base: np.ndarray, margin: float) -> np.ndarray:
         out = np.zeros(len(points_base), bool)
@@ -136,6 +138,22 @@ class Region:
                 else replace(roi, radius=roi.radius + margin)
             out |= grown.contains(se3.transform_points(T_member_base, points_base))
         return out
+
+
+PLAIN_SHARE = 0.005  # plainness: below this share per surface point in the least constrained motion, a region is plain.
+# The engine head: a seat 0.017, a seat's top above its deck 0.044, a sphere on a seat 0.022, a flat patch of the
+# deck 0.000, the deck with its rail 0.002, a post alone 0.0002
+
+
+def plainness(mesh, n: int = 5000) -> float:
+    """How well a surface's own points pin a rigid pose: the least eigenvalue of the point-to-plane information
+    matrix of n surface samples with their normals (turns taken at the surface's rim), per point. 0 for a plane
+    (it slides along itself) or a cylinder's side (it turns about its axis)."""
+    pts, face = sample_surface(mesh, n, 0, return_faces=True)
+    nrm = np.asarray(mesh.face_normals)[face]
+    r = max(float(np.linalg.norm(mesh.extents)) / 2, 1e-9)
+    J = np.hstack([np.cross(pts - pts.mean(axis=0), nrm) / r, nrm])
+    return max(float(np.linalg.eigvalsh(J.T @ J)[0]), 0.0) / len(pts)
 
 
 @dataclass(frozen=True)

@@ -553,6 +553,8 @@ def judge(result: RegistrationResult, view: View, base: BaseObject, plane=_FIT) 
     # object to the last millimetre), at least the tolerance's own scale (quantised or noise-free depth)
     sigma = max(result.depth_noise, result.inlier_rmse, 0.25 * tol)
     spread = pose_spread(result.target_cloud, result.T_world_base, base, sigma, tol)
+    if base.region is not None and base.region.plain:  # a plain region: nothing it shows can pin the pose
+        spread = float("inf")
     if plane is _FIT:  # the table the base stands on (Task.table, when the caller has it)
         plane = table_plane(depth, mask, cam, T_world_camera, base_size=base.diameter)
     whole = base.region is None  # a region of a larger part neither stands on the table nor has an outline of its

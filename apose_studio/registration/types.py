@@ -157,7 +157,10 @@ def doubts(result: RegistrationResult) -> str:
                    else "how much of the target the model explains is unknown")
     if result.contradiction > CONFIDENT_CONTRADICTION:
         why.append(f"the depth contradicts {result.contradiction:.0%} of what the model shows")
-    if result.spread > result.spread_allowed:
+    if result.spread == float("inf"):
+        why.append("nothing the camera sees pins the pose down (too few points near the model, or a plain region: a flat "
+                   "patch or a cylinder's side slides along itself; give the roi a distinctive feature)")
+    elif result.spread > result.spread_allowed:
         why.append(f"the view leaves the pose free to move by {result.spread * 1000:.1f} mm, more than the "
                    f"{result.spread_allowed * 1000:.1f} mm the placement allows (what is seen, such as a flat face or "
                    "a cylinder's side, pins it down poorly)")

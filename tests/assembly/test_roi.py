@@ -157,3 +157,33 @@ def test_a_small_roi_on_a_long_thin_mesh_is_cut_in_bounded_time_and_size():
     except MeshError as e:
         assert "make it at least" in str(e)
     assert time.perf_counter() - t < 20
+
+
+def test_a_plain_region_is_told_from_one_that_pins_a_pose():
+    """plainness: a flat patch of the head's deck slides along itself (0); a seat's pad with its post does not."""
+    from apose_studio.assembly.roi import Roi, region_mesh
+    from apose_studio.registration.base import PLAIN_SHARE, plainness
+
+    models = load_parts(load_assembly(SAMPLES / "engine_head" / "assembly.yaml"))
+    head = models["seat_1"].mesh
+    assert plainness(models["seat_1"].region) > 2 * PLAIN_SHARE
+    assert plainness(region_mesh(head, Roi("box", (0.0, 0.0, 0.084), size=(0.07, 0.03, 0.016)))) < PLAIN_SHARE
+
+
+def test_look_alike_places_are_found_where_other_rois_mark_them_whatever_their_shape():
+    """region_twins: seat 3's roi cut to its top (post and pad, no deck) and seat 2's a sphere: seat 2's place is still
+    found alike to seat 3's (a shift of -80 mm along x, settled onto the head's surface from the rois' centres, which
+    differ in height too)."""
+    from dataclasses import replace
+
+    from apose_studio.assembly.roi import Roi
+    from apose_studio.estimation import region_twins
+
+    asm = load_assembly(SAMPLES / "engine_head" / "assembly.yaml")
+    parts = dict(asm.parts)
+    parts["seat_3"] = replace(parts["seat_3"], roi=Roi("box", (0.04, 0.035, 0.106), size=(0.064, 0.05, 0.024)))
+    parts["seat_2"] = replace(parts["seat_2"], roi=Roi("sphere", (-0.04, 0.035, 0.098), radius=0.022))
+    asm = replace(asm, parts=parts)
+    twins = dict(region_twins(load_parts(asm), asm.step_view(3)))
+    assert "seat_2" in twins and np.allclose(twins["seat_2"][:3, 3], (-0.08, 0, 0), atol=0.001)
+    assert len(twins) == 7

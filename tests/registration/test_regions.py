@@ -186,3 +186,28 @@ def test_a_box_round_the_neighbouring_seat_gives_no_confident_pose(engine):
         r = estimate_frame(frame, ctx, params, mask=mask, box=box)
         err = metrics.mssd(r.T_world_part, frame.T_world_part, ctx.part.samples, ctx.part.symmetries) if r.ok else np.inf
         assert not (r.ok and r.confident and err > 0.1 * ctx.part.diameter), (im_id, err, r.body_past)
+
+
+def test_a_plain_region_is_never_confident(engine):
+    """Seat 1's roi moved to a flat patch of the deck between the rows: the patch slides along itself, so no box round
+    it gives a confident pose, and the doubt says why (a plain region)."""
+    from apose_studio.assembly.roi import Roi
+    from apose_studio.estimation import StepContext, estimate_frame
+    from apose_studio.masks.prompt import prompted_mask
+    from apose_studio.registration import resolve_params
+    from apose_studio.registration.types import doubts
+
+    asm = engine.assembly
+    parts = dict(asm.parts)
+    parts["seat_1"] = replace(parts["seat_1"], roi=Roi("box", (0.0, 0.0, 0.084), size=(0.07, 0.03, 0.016)))
+    flat = replace(asm, parts=parts)
+    ctx = StepContext(flat, load_parts(flat), 1)
+    assert ctx.base.region.plain
+    params = resolve_params("default")
+    for im_id in engine.image_ids(1):
+        frame = engine.frame(1, im_id)
+        box = region_box(frame, flat, margin=10)
+        mask = prompted_mask(frame.rgb, frame.depth, frame.camera, box=box, region=True).mask
+        r = estimate_frame(frame, ctx, params, mask=mask, box=box)
+        assert not (r.ok and r.confident)
+        assert not r.ok or "plain region" in doubts(r)
