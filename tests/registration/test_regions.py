@@ -150,7 +150,7 @@ def test_a_box_beside_the_head_gives_no_confident_seat(engine):
         w, h = x1 - x0, y1 - y0
         head = frame.base_mask()
         H, W = head.shape
-        for top, left in [(t, l) for t in range(0, H - h, h // 2) for l in range(0, W - w, w // 2)]:
+        for top, left in [(t, x) for t in range(0, H - h, h // 2) for x in range(0, W - w, w // 2)]:
             box = (left, top, left + w, top + h)
             if head[max(top - 20, 0):top + h + 20, max(left - 20, 0):left + w + 20].any():
                 continue  # the head (or near it): not beside it
