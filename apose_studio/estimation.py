@@ -397,10 +397,33 @@ def estimate_frame(frame: Frame, ctx: StepContext, params: Params, mask_source: 
                    orientation_prior: bool = False, trace_iterations: bool = False,
                    mask: np.ndarray | None = None, box: tuple[int, int, int, int] | None = None) -> RegistrationResult:
     """Step `ctx`'s assembly pose in one frame, its mask from `mask_source` unless `mask` is given (`box`: the
-    prompt's box that gave it, View.box)."""
+    prompt's box that gave it, View.box). A region's ground-truth sources (`gt`, `box`) give the box round what the
+    camera sees of the region (region_truth_box): the frame's truth masks its whole part."""
     if mask is None:
-        mask = frame_mask(frame, mask_source)
+        mask, box = region_truth_prompt(frame, ctx, mask_source) or (frame_mask(frame, mask_source), box)
     return estimate_view(replace(View.of(frame, mask), box=box), ctx, params, orientation_prior, trace_iterations)
+
+
+def region_truth_prompt(frame: Frame, ctx: StepContext, mask_source: str) -> tuple[np.ndarray, tuple] | None:
+    """(mask, box) for a base that is a region, asked for by a ground-truth source (`gt`, `box`) on a frame with
+    truth: the box round what the camera sees of the region (region_truth_box) and its pixels with depth, as a box
+    prompt gives them. None otherwise (or when the camera sees none of the region)."""
+    if ctx.base.region is None or mask_source not in TRUTH_MASK_SOURCES or not frame.masks or frame.T_world_base is None:
+        return None
+    box = region_truth_box(frame, ctx.base)
+    return (box_depth(frame.depth, box), box) if box is not None else None
+
+
+def region_truth_box(frame: Frame, base: BaseObject, margin: float = BOX_MARGIN) -> tuple[int, int, int, int] | None:
+    """The box a user or detector would draw round a region (the base's roi) in a rendered frame: where the region,
+    ray-cast at the true pose, is its part's first surface and the truth's mask of the part holds it, `margin` of its
+    size wider per side (truth_box); None when the camera sees none of it."""
+    from apose_studio.geometry.raycast import raycast_depth
+
+    z_region = raycast_depth(base.mesh, frame.T_world_base, frame.T_world_camera, frame.camera)
+    z_body = raycast_depth(base.region.body, frame.T_world_base, frame.T_world_camera, frame.camera)
+    seen = np.isfinite(z_region) & (z_region <= z_body + 1e-4) & frame.base_mask()
+    return truth_box(seen, margin)
 
 
 _PICK_BASES: dict = {}

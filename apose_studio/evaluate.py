@@ -17,7 +17,15 @@ from apose_studio.assembly.mesh import PartModel, load_parts
 from apose_studio.data.bop import BopResult, BopScene, best_per_image, scene_folders, step_truth
 from apose_studio.data.dataset import Dataset, DatasetError, Frame, pose_entry
 from apose_studio.errors import AposeError
-from apose_studio.estimation import StepContext, check_mask_source, estimate_frame, estimate_frames, frame_mask, step_context
+from apose_studio.estimation import (
+    StepContext,
+    check_mask_source,
+    estimate_frame,
+    estimate_frames,
+    frame_mask,
+    region_truth_prompt,
+    step_context,
+)
 from apose_studio.geometry import metrics, se3
 from apose_studio.masks.segment import iou
 from apose_studio.registration import TIE_MARGIN, Params, RegistrationResult
@@ -148,13 +156,17 @@ def estimate_and_score(frame: Frame, ctx: StepContext, params: Params, mask_sour
     """Estimate one frame and score it against its ground truth (None for a capture without one).
     The mask comes from `mask_source` unless given (`box`: the prompt's box that gave it); a mask that is
     not the ground truth is scored too."""
-    if mask is None:
+    region = region_truth_prompt(frame, ctx, mask_source) if mask is None or ctx.base.region is not None else None
+    if region is not None:  # a region's truth: the box round what is seen of it (its part's truth mask is the whole part)
+        mask, box = region
+    elif mask is None:
         mask = frame_mask(frame, mask_source)
     result = estimate_frame(frame, ctx, params, orientation_prior=orientation_prior,
                             trace_iterations=trace_iterations, mask=mask, box=box)
     if frame.T_world_part is None:
         return result, None
-    return result, score_frame(frame, result, ctx.part, None if mask_source == "gt" else mask, ctx.base.symmetries)
+    scored = None if mask_source == "gt" or ctx.base.region is not None else mask  # a region's mask against its part's
+    return result, score_frame(frame, result, ctx.part, scored, ctx.base.symmetries)
 
 
 _WORKER: dict = {}

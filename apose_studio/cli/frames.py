@@ -27,6 +27,7 @@ from apose_studio.estimation import (
     estimate_instances,
     estimate_pick,
     find_mask,
+    region_truth_prompt,
     step_context,
 )
 from apose_studio.evaluate import evaluate, evaluate_split, format_table, score_frame, score_results
@@ -127,6 +128,9 @@ def cmd_estimate(args) -> int:
     if getattr(args, "align_depth", False):  # the prompt is on the colour image: the depth moved onto it
         depth, shift = colour_registered(frame.rgb, frame.depth, request.box, request.point)
         frame = replace(frame, depth=depth)
+    truth = None if request.box or request.point else region_truth_prompt(frame, ctx, request.source or "gt")
+    if truth is not None:  # a region on a rendered frame: the box round what is seen of it, from the truth
+        request = replace(request, box=truth[1])
     mask, source = find_mask(frame, request, asm, args.input[0], region=ctx.base.region is not None)
     est = run_registration(replace(View.of(frame, mask), box=request.box), source, ctx, params, args.orientation_prior, t0,
                            time.perf_counter() - t1, trace_iterations=True, t_load=t1 - t0)
@@ -296,8 +300,9 @@ def cmd_eval(args) -> int:
                       progress=sys.stderr.isatty(), workers=args.workers, views=args.views)
         print(f"\nthe same frames with ground-truth masks (recall with {args.mask} masks -> with gt masks):")
         for st, sg in zip(doc["steps"], gt["steps"]):
+            iou = f", mask IoU {st['mask_iou']:.3f}" if st.get("mask_iou") is not None else ""  # none for a region
             print(f"  step {st['step']}: recall {st['recall_mssd']:.2f} -> {sg['recall_mssd']:.2f} "
-                  f"({100 * (st['recall_mssd'] - sg['recall_mssd']):+.0f} points), mask IoU {st['mask_iou']:.3f}")
+                  f"({100 * (st['recall_mssd'] - sg['recall_mssd']):+.0f} points){iou}")
         doc["gt_masks"] = [{"step": sg["step"], "recall_mssd": sg["recall_mssd"], "adi": sg["adi"], "mssd": sg["mssd"]}
                            for sg in gt["steps"]]
 

@@ -211,3 +211,17 @@ def test_a_plain_region_is_never_confident(engine):
         r = estimate_frame(frame, ctx, params, mask=mask, box=box)
         assert not (r.ok and r.confident)
         assert not r.ok or "plain region" in doubts(r)
+
+
+def test_estimate_and_eval_on_a_rendered_region_take_the_box_round_it_from_the_truth(engine, tmp_path):
+    """On a rendered frame the truth masks the whole head: for a seat, `apose estimate` without a prompt and `apose
+    eval --mask box|gt` take the box round what is seen of the seat (the region ray-cast at the true pose) as a user's
+    box, and find the seat (before, every frame was refused: 'give a box')."""
+    r = run("estimate", engine.root, "--step", 1, "--frame", 0, "--json")
+    assert r.returncode == 0, r.stderr
+    doc = json.loads(r.stdout)
+    assert doc["ok"] and doc["confident"] and doc["mask"]["source"].startswith("box"), doc.get("reason")
+    r = run("eval", engine.root, "--mask", "box", "--steps", "1", "--json", tmp_path / "eval.json")
+    assert r.returncode == 0, r.stderr
+    step = json.loads((tmp_path / "eval.json").read_text())["steps"][0]
+    assert step["recall_mssd"] == 1.0 and step.get("mask_iou") is None
