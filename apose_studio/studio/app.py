@@ -433,8 +433,19 @@ class Studio:
             self.models[key] = load_part(part, asm.units, key[4])
         return self.models[key]
 
+    def clear_errors(self, client) -> None:
+        """Close the errors kept open on `client`'s tab: an action that takes back what they were about (Undo)."""
+        if client is None:
+            return
+        for old in self._errors_shown.pop(client.client_id, []):
+            try:
+                old.remove()
+            except Exception:  # a tab that just closed
+                pass
+
     def undo_redo(self, which: str, client) -> None:
         asm = self.history.undo(self.asm) if which == "Undo" else self.history.redo(self.asm)
+        self.clear_errors(client)  # a refusal shown before is about a draft no longer on show
         self.events.emit(Event.MESHES_CHANGED, pid=None)  # a part may come back with another mesh
         self.mates.clear_picks()
         self.set_assembly(asm, client, record=False)  # the typed pose fields follow the draft

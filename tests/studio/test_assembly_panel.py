@@ -281,3 +281,31 @@ def test_a_region_set_on_a_part_is_drawn_saved_undone_and_a_stray_one_refused(st
     st.files.f_part.value = "casing"
     st.files.show_part_colour()
     assert st.files.f_roi.value == "box" and tuple(st.files.f_roi_size.value) == (40.0, 64.0, 20.0)
+
+
+def test_undo_closes_the_errors_kept_open_on_the_tab(studio, gearbox_copy):
+    """A refusal stays on the tab until its next message; Undo takes back the draft it was about, so it closes it
+    (the newcomer saw a refused region's error beside the region Undo had brought back)."""
+    st = studio(gearbox_copy)
+
+    class Handle:
+        removed = False
+
+        def remove(self):
+            self.removed = True
+
+    class Tab:
+        client_id = 7
+
+        def __init__(self):
+            self.shown = []
+
+        def add_notification(self, title, body, **kw):
+            self.shown.append(Handle())
+            return self.shown[-1]
+
+    tab = Tab()
+    type(st).notify(st, tab, "Set region", "its roi holds none of the mesh", error=True)
+    st.files.f_name.value = "renamed"  # a change to undo
+    st.undo_redo("Undo", tab)
+    assert tab.shown and tab.shown[0].removed and st.asm.name != "renamed"
