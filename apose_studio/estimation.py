@@ -17,6 +17,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -32,7 +33,7 @@ from apose_studio.geometry.sensor import SHIFT_MIN_PX, depth_colour_shift, shift
 from apose_studio.masks.prompt import box_depth, prompted_mask
 from apose_studio.masks.segment import depth_mask, load_model, table_objects
 from apose_studio.registration import BaseObject, Params, RegistrationResult, doubts, estimate, failed, prepare_base
-from apose_studio.registration.base import PLAIN_SHARE, Region, plainness
+from apose_studio.registration.base import PLAIN_SHARE, Region, plainness, raycast_source
 from apose_studio.registration.fusion import estimate_views
 from apose_studio.registration.next_view import next_view
 from apose_studio.registration.table import table_plane
@@ -478,6 +479,83 @@ class Instance:
     result: RegistrationResult
 
 
+REGION_PLACE_SLACK = 0.25  # estimate_region_instances: a region found farther than this share of its diameter from
+# the place its part's pose puts it is not at that place
+
+
+class _RegionAt:
+    """A step's context for estimating its region at one known place of its part (S: T_base_base from the region's own
+    place to that one): the same base, its look-alike places left out (the part's pose, not the region, says which
+    place this is), and its part moved by S's inverse, so that the region there has the part where it stands."""
+
+    def __init__(self, ctx: StepContext, name: str, S: np.ndarray):
+        self.view, self.part = ctx.view, ctx.part
+        cache = ctx.base._features.setdefault("bodies_at", {})
+        if name not in cache:  # one mesh per place (its ray-casting structure is kept per mesh)
+            cache[name] = ctx.base.region.body.copy().apply_transform(se3.inv(S))
+        self.base = replace(ctx.base, region=replace(ctx.base.region, twins=(), body=cache[name]))
+
+
+def refined_at(frame: Frame, place: "_RegionAt", params: Params, head: RegistrationResult,
+               T_world_base: np.ndarray) -> RegistrationResult:
+    """The region refined from where its part's pose puts it (T_world_base), as a tracker follows a base from the
+    frame before (registration.track: a short ICP on the depth near it, judged like any estimate)."""
+    base = place.base
+    seen, _ = raycast_source(base, T_world_base, frame.T_world_camera, frame.camera)
+    if len(seen) < 50:
+        return failed("the region is (almost) out of view at its place")
+    start = replace(head, T_world_base=T_world_base, T_world_part=T_world_base @ place.view.T_base_part,
+                    source_cloud=se3.transform_points(se3.inv(T_world_base), seen))
+    r = track(frame.depth, frame.camera, frame.T_world_camera, base, place.view.T_base_part, params, start)
+    return held_to_part(replace(r, tracked=False), place.part)
+
+
+def body_base(ctx: StepContext) -> BaseObject:
+    """The whole part a region belongs to, prepared as a base (kept on the step's base)."""
+    cache = ctx.base._features
+    if "body_base" not in cache:
+        cache["body_base"] = prepare_base(ctx.base.region.body)
+    return cache["body_base"]
+
+
+def estimate_region_instances(frame: Frame, ctx: StepContext, params: Params,
+                              orientation_prior: bool = False) -> list[Instance]:
+    """Every place of a region on its part in `frame` without a prompt (the eight seats of an engine head for step 1's
+    seat): the part found whole first (estimate_instances with its whole mesh as the base; the confident instance,
+    else the best fitting), then the region at its own place and at each look-alike (Region.twins), each estimated
+    from the box round where the part's pose puts it (what of it is the part's first surface). Each keeps its own
+    confidence, but none is confident where the part's pose is not, or where the region slid off its place
+    (REGION_PLACE_SLACK); places out of view are left out. Left to right in the image by the region's centre."""
+    from apose_studio.geometry.raycast import raycast_depth
+
+    body = body_base(ctx)
+    whole = SimpleNamespace(view=replace(ctx.view, T_base_part=np.eye(4)), base=body, part=ctx.part)
+    parts = [i.result for i in estimate_instances(frame, whole, params, orientation_prior) if i.result.ok]
+    if not parts:
+        return []
+    head = max(parts, key=lambda r: (r.confident, r.fitness))
+    region = ctx.base
+    out = []
+    for name, S in ((ctx.view.base[0], np.eye(4)), *region.region.twins):
+        T = head.T_world_base @ S
+        z_region = raycast_depth(region.mesh, T, frame.T_world_camera, frame.camera)
+        z_body = raycast_depth(region.region.body, head.T_world_base, frame.T_world_camera, frame.camera)
+        box = truth_box(np.isfinite(z_region) & (z_region <= z_body + 1e-4), BOX_MARGIN)
+        if box is None:
+            continue
+        view = replace(View.of(frame, box_depth(frame.depth, box)), box=box)
+        place = _RegionAt(ctx, name, S)
+        r = refined_at(frame, place, params, head, T)  # from where the part's pose puts it: a short ICP
+        if not r.ok:  # else searched for in the box
+            r = estimate_view(view, place, params, orientation_prior)
+        if r.ok and not head.confident:
+            r = replace(r, part_doubt=f"the part {name} is a region of is not found with confidence ({doubts(head)})")
+        elif r.ok and np.linalg.norm(r.T_world_base[:3, 3] - T[:3, 3]) > REGION_PLACE_SLACK * region.diameter:
+            r = replace(r, part_doubt=f"the region slid off {name}'s place on its part")
+        out.append((float(np.mean(box[0::2])), Instance(box, view.mask, replace(r, reading=f"at {name}"))))
+    return [i for _, i in sorted(out, key=lambda x: x[0])]
+
+
 def instance_boxes(frame: Frame, diameter: float) -> list[tuple[tuple[int, int, int, int], np.ndarray]]:
     """Prompt boxes (and the depth groups they hold) around what stands on the table and could be one
     instance of a base of `diameter` metres: groups of depth points above the table plane (masks.segment
@@ -502,11 +580,9 @@ def estimate_instances(frame: Frame, ctx: StepContext, params: Params, orientati
     several, what the found model does not explain searched again), poses of one instance merged (the
     confident one, else the better fitting), the rest in a stable order: left to right in the image by the
     base's centre. Each keeps its own confidence. `estimate(view)`: the estimator per candidate (default
-    estimate_view with these params). A base that is a region of a larger part (roi) is refused: its instances are
-    not groups of depth on the table."""
+    estimate_view with these params). A base that is a region of a larger part (roi): estimate_region_instances."""
     if ctx.base.region is not None:
-        raise AposeError(f"{ctx.view.base[0]} is a region of a larger part (its roi): --instances all finds instances of "
-                         "whole parts standing on the table; prompt each region with a box (--box) instead")
+        return estimate_region_instances(frame, ctx, params, orientation_prior)
     diameter = ctx.base.diameter
     run = estimate or (lambda view: estimate_view(view, ctx, params, orientation_prior))
     todo = [(box, group, True) for box, group in instance_boxes(frame, diameter)]

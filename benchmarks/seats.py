@@ -146,6 +146,48 @@ def wrong_boxes(ds: Dataset, margin_px: int) -> dict:
     return out
 
 
+def instances(ds: Dataset) -> dict:
+    """`--instances all` (estimation.estimate_region_instances) on every frame: each seat's true place is the head's
+    true pose moved by the seat's shift from the step's own seat (Region.twins), where the arm of the step would go;
+    a seat >= 50 % visible is found when an instance puts the arm there (MSSD under 10 % of its diameter). Counts the
+    seats found of those visible, the confident instances that match no seat, and the seconds per instance."""
+    from apose_studio.estimation import estimate_instances
+    from apose_studio.geometry import metrics
+
+    asm = ds.assembly
+    models = load_parts(asm)
+    params = resolve_params("default", asm.registration)
+    out = {"visible": 0, "found": 0, "found_confident": 0, "cw": 0, "instances": 0, "seconds": 0.0}
+    for step in ds.steps:
+        ctx = StepContext(asm, models, step)
+        ctx.base.warm_up(params)
+        places = [(ctx.view.base[0], np.eye(4)), *ctx.base.region.twins]
+        d = ctx.part.diameter
+        for im_id in ds.image_ids(step):
+            frame = ds.frame(step, im_id)
+            t = time.perf_counter()
+            found = estimate_instances(frame, ctx, params)
+            out["seconds"] += time.perf_counter() - t
+            out["instances"] += len(found)
+            truths = []
+            for name, S in places:
+                seen, unoccluded = region_pixels(frame, models, name)
+                truths.append((frame.T_world_base @ S @ ctx.view.T_base_part, seen.sum() >= MIN_VISIBLE * max(unoccluded, 1)
+                               and seen.sum() >= 50))
+
+            def at(r, T):
+                return r.ok and metrics.mssd(r.T_world_part, T, ctx.part.samples, ctx.part.symmetries) < 0.1 * d
+
+            for T, visible in truths:
+                if visible:
+                    out["visible"] += 1
+                    hits = [i.result for i in found if at(i.result, T)]
+                    out["found"] += bool(hits)
+                    out["found_confident"] += any(r.confident for r in hits)
+            out["cw"] += sum(i.result.confident and not any(at(i.result, T) for T, _ in truths) for i in found)
+    return out
+
+
 def table(rows: list[dict]) -> None:
     print("| seat / place | frames (>= 50 % visible, of rendered) | right | confident & right | confident & wrong "
           "| median s per seat |")
@@ -170,6 +212,8 @@ def main() -> int:
     ap.add_argument("--frames", type=int, default=6, help="views per seat (default 6)")
     ap.add_argument("--noise", default="realsense", choices=["none", "gaussian", "realsense", "kinect"])
     ap.add_argument("--data", default=str(REPO / "artifacts" / "seats"), help="where the renders are kept")
+    ap.add_argument("--instances", action="store_true", help="also run `--instances all` on every frame (every seat of "
+                    "the head without a prompt) and score the seats it finds")
     ap.add_argument("--margin-px", type=int, default=10, help="the prompt box: the region's visible box this much "
                     "wider per side (default 10)")
     args = ap.parse_args()
@@ -191,6 +235,12 @@ def main() -> int:
     wrong = wrong_boxes(Dataset(root), args.margin_px)
     print(f"\nboxes drawn by mistake: round the neighbouring seat, {wrong['neighbour'][0]} of {wrong['neighbour'][1]} "
           f"confident and wrong; on the bench beside the head, {wrong['beside'][0]} of {wrong['beside'][1]} (goal 0)")
+    if args.instances:
+        found = instances(Dataset(root))
+        n = max(found["visible"], 1)
+        print(f"--instances all: {found['found']} of the {found['visible']} seats >= 50 % visible found ({found['found'] / n:.3f}; "
+              f"{found['found_confident'] / n:.3f} confident), {found['cw']} confident instances at no seat (goal 0), "
+              f"{found['seconds'] / max(found['instances'], 1):.3f} s per instance ({found['instances']} instances)")
     print(f"goals: right {recall:.3f} of the {len(counted)} seat views >= 50 % visible (goal >= {GOALS['recall']}), "
           f"confident-and-wrong {cw} (goal 0), median {secs:.3f} s per seat (goal <= {GOALS['seconds']})")
     return 0

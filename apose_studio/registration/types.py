@@ -104,6 +104,8 @@ class RegistrationResult:
     # surface hides (scoring.hidden_share); NaN for a whole base, whose occluders are judged by the mask's readings
     body_past: float = float("nan")  # a region of a larger part: the share of the rest of that part, at the region's
     # pose, where the camera sees past it (pipeline.body_seen_past); NaN for a whole base
+    part_doubt: str = ""  # a region found at a place on its part (estimation.estimate_region_instances): a doubt about
+    # that place (the part's own pose not confident, the region off its place); never confident then
     region_twin: str = ""  # a region of the same part alike to the base's (another seat of the head) that the rest of
     # the part fits as well there, or better (pipeline.region_twin): the box may hold that one; never confident then
     tracked: bool = False  # the pose was tracked from the frame before's (registration.track), not searched for
@@ -144,7 +146,7 @@ class RegistrationResult:
         a wrong pose, whatever else it says), the depth contradicts almost nothing the model shows, no
         search was cut short, and no other placement fits as well (ambiguous). An unknown coverage (NaN)
         is never confident."""
-        return self.fits and not self.ambiguous and not self.region_twin
+        return self.fits and not self.ambiguous and not self.region_twin and not self.part_doubt
 
 
 def doubts(result: RegistrationResult) -> str:
@@ -184,6 +186,8 @@ def doubts(result: RegistrationResult) -> str:
                    f"{'above' if result.off_table > 0 else 'into'} the table it stands on")
     if result.out_of_time:
         why.append(f"the time budget cut short {result.out_of_time}")
+    if result.part_doubt:
+        why.append(result.part_doubt)
     if result.region_twin:
         why.append(f"the box may hold {result.region_twin} (a region alike on the same part): the rest of the part fits "
                    "as well or better were it that one (draw the box round the step's own region, or show more of the part)")
