@@ -426,9 +426,10 @@ def _add_estimate(sub) -> None:
     p.add_argument("--views", type=_count(1, 64), default=1, metavar="K",
                    help="a dataset: fuse up to K frames of --frame's placement (default 1); several capture folders are "
                    "fused whatever this says")
-    p.add_argument("--instances", choices=["all"], help="find every instance of the step's base (identical whole roots, "
-                   "e.g. four motors on a bench; not regions, `roi`, which a --box prompts) without a prompt: each "
-                   "estimated on its own, listed left to right ('instances' in --json)")
+    p.add_argument("--instances", choices=["all"], help="find every instance of the step's base (identical roots, e.g. "
+                   "four motors on a bench; or a region, `roi`, at each place of its part alike to it, e.g. the eight "
+                   "seats of an engine head) without a prompt: each estimated on its own, listed left to right "
+                   "('instances' in --json)")
     p.add_argument("--box", metavar="X0,Y0,X1,Y1", action="append",
                    help="a box around the base object in pixels: the mask from depth and colour (several views: once per view)")
     p.add_argument("--point", metavar="U,V", action="append",
