@@ -29,6 +29,7 @@ from apose_studio.data.dataset import Frame, read_image
 from apose_studio.errors import AposeError
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
+from apose_studio.geometry.raycast import raycast_depth
 from apose_studio.geometry.sensor import SHIFT_MIN_PX, depth_colour_shift, shift_evidence, shift_image
 from apose_studio.masks.prompt import box_depth, prompted_mask
 from apose_studio.masks.segment import depth_mask, load_model, table_objects
@@ -419,12 +420,15 @@ def region_truth_box(frame: Frame, base: BaseObject, margin: float = BOX_MARGIN)
     """The box a user or detector would draw round a region (the base's roi) in a rendered frame: where the region,
     ray-cast at the true pose, is its part's first surface and the truth's mask of the part holds it, `margin` of its
     size wider per side (truth_box); None when the camera sees none of it."""
-    from apose_studio.geometry.raycast import raycast_depth
-
-    z_region = raycast_depth(base.mesh, frame.T_world_base, frame.T_world_camera, frame.camera)
     z_body = raycast_depth(base.region.body, frame.T_world_base, frame.T_world_camera, frame.camera)
-    seen = np.isfinite(z_region) & (z_region <= z_body + 1e-4) & frame.base_mask()
-    return truth_box(seen, margin)
+    return truth_box(region_in_front(base, frame.T_world_base, z_body, frame) & frame.base_mask(), margin)
+
+
+def region_in_front(base: BaseObject, T_world_base: np.ndarray, z_body: np.ndarray, frame: Frame) -> np.ndarray:
+    """(H, W) bool: where the base's region, ray-cast at T_world_base, is the first surface of its part (whose depth,
+    ray-cast where the part stands, is `z_body`)."""
+    z_region = raycast_depth(base.mesh, T_world_base, frame.T_world_camera, frame.camera)
+    return np.isfinite(z_region) & (z_region <= z_body + 1e-4)
 
 
 _PICK_BASES: dict = {}
@@ -522,12 +526,11 @@ def estimate_region_instances(frame: Frame, ctx: StepContext, params: Params,
                               orientation_prior: bool = False) -> list[Instance]:
     """Every place of a region on its part in `frame` without a prompt (the eight seats of an engine head for step 1's
     seat): the part found whole first (estimate_instances with its whole mesh as the base; the confident instance,
-    else the best fitting), then the region at its own place and at each look-alike (Region.twins), each estimated
-    from the box round where the part's pose puts it (what of it is the part's first surface). Each keeps its own
+    else the best fitting), then the region at its own place and at each look-alike (Region.twins), each refined from
+    where the part's pose puts it (refined_at), or searched for in the box round what of it is the part's first
+    surface there where that fails. Each keeps its own
     confidence, but none is confident where the part's pose is not, or where the region slid off its place
     (REGION_PLACE_SLACK); places out of view are left out. Left to right in the image by the region's centre."""
-    from apose_studio.geometry.raycast import raycast_depth
-
     body = body_base(ctx)
     whole = SimpleNamespace(view=replace(ctx.view, T_base_part=np.eye(4)), base=body, part=ctx.part)
     parts = [i.result for i in estimate_instances(frame, whole, params, orientation_prior) if i.result.ok]
@@ -535,12 +538,11 @@ def estimate_region_instances(frame: Frame, ctx: StepContext, params: Params,
         return []
     head = max(parts, key=lambda r: (r.confident, r.fitness))
     region = ctx.base
+    z_body = raycast_depth(region.region.body, head.T_world_base, frame.T_world_camera, frame.camera)
     out = []
     for name, S in ((ctx.view.base[0], np.eye(4)), *region.region.twins):
         T = head.T_world_base @ S
-        z_region = raycast_depth(region.mesh, T, frame.T_world_camera, frame.camera)
-        z_body = raycast_depth(region.region.body, head.T_world_base, frame.T_world_camera, frame.camera)
-        box = truth_box(np.isfinite(z_region) & (z_region <= z_body + 1e-4), BOX_MARGIN)
+        box = truth_box(region_in_front(region, T, z_body, frame), BOX_MARGIN)
         if box is None:
             continue
         view = replace(View.of(frame, box_depth(frame.depth, box)), box=box)

@@ -430,39 +430,24 @@ def outline_continuation(seen: np.ndarray, view: View, tol: float, plane: tuple[
     return float(runs_on.sum()) / float(valid.sum())
 
 
-BODY_EDGE_PX = 3  # body_seen_past leaves out the body's silhouette this far in (mixed depth at its outline)
+BODY_EDGE_PX = 3  # body_evidence leaves out the body's silhouette this far in (mixed depth at its outline)
 BODY_FAR = 0.08  # ... and counts the camera seeing past the body by more than this share of the body's size (at least
 # BODY_TOLERANCES agreement tolerances): background where the part should be, not a small turn of the region's pose
 # carried to the part's far end (a right seat 5 mm off tilts an engine head's far end by ~20 mm)
 BODY_TOLERANCES = 3
-
-
-def body_seen_past(base: BaseObject, T_world_base: np.ndarray, view: View, tol: float) -> float:
-    """For a base that is a region of a larger part: the share of that part's surface the camera would see at the
-    region's pose (ray-cast whole, `Region.body`) where the depth lies farther than it by BODY_FAR of its size (the
-    camera sees past it: table or background where the part should be), its silhouette's rim (BODY_EDGE_PX) left
-    out (body_evidence). A region fitted right has the rest of its part where the depth sees it (a part hidden
-    behind something nearer is not seen past); a region laid onto another object (a seat's pad on a sphere) has the
-    part standing where the camera sees the bench. NaN without a body or when none of it is in view."""
-    body = base.region.body if base.region is not None else None
-    if body is None:
-        return float("nan")
-    _, past, read = body_evidence(body, T_world_base, view, tol)
-    return past / read if read else float("nan")
-
-
-BODY_MARGIN = 0.02  # region_twin: another region of the part is as likely as this one unless the rest of the part fits
-# better here by this share of the pixels it covers (at least BODY_MARGIN_PX)
-BODY_MARGIN_PX = 100
-
-
 BODY_STRIDE = 4  # body_evidence looks at every 4th pixel each way: the larger part fills the image, and nine casts of
 # it at full size (a seat and its seven twins) took longer than the seat's own estimate
+BODY_MARGIN = 0.02  # region_twin: another region of the part is as likely as this one unless the rest of the part fits
+# better here by this share of the pixels it covers (at least BODY_MARGIN_PX full-size pixels)
+BODY_MARGIN_PX = 100
 
 
 def body_evidence(body, T_world_base: np.ndarray, view: View, tol: float) -> tuple[int, int, int]:
     """(confirmed, seen past, pixels with a depth reading) of a larger part ray-cast whole at T_world_base, on every
-    BODY_STRIDE-th pixel each way, its rim (BODY_EDGE_PX) left out, at the tolerance body_seen_past uses."""
+    BODY_STRIDE-th pixel each way, its rim (BODY_EDGE_PX) left out: seen past where the depth lies farther than the
+    part by BODY_FAR of its size (table or background where the part should be). A region fitted right has the rest
+    of its part where the depth sees it (a part hidden behind something nearer is not seen past); a region laid onto
+    another object (a seat's pad on a sphere) has the part standing where the camera sees the bench."""
     k, cam = BODY_STRIDE, view.camera
     coarse = replace(cam, width=cam.width // k, height=cam.height // k, fx=cam.fx / k, fy=cam.fy / k,
                      cx=(cam.cx - k // 2) / k, cy=(cam.cy - k // 2) / k)  # pixel (u, v) here is (k u + k/2, k v + k/2)
@@ -478,21 +463,20 @@ def body_evidence(body, T_world_base: np.ndarray, view: View, tol: float) -> tup
     return int((read & (np.abs(d - z) <= far)).sum()), int((read & (d > z + far)).sum()), int(read.sum())
 
 
-def region_twin(base: BaseObject, T_world_base: np.ndarray, view: View, tol: float) -> str:
+def region_twin(base: BaseObject, T_world_base: np.ndarray, view: View, tol: float, here: tuple[int, int, int]) -> str:
     """For a base that is a region of a part with other regions alike to it (`Region.twins`: seats of one engine
     head): the name of one that the data fits as well as this one, or better, "" when none does. The box holds one
     seat; which seat it is only the rest of the part tells, placed as it would stand were the seat in the box that
-    other one: the part's pixels that the depth confirms less those it sees past, against this pose's, with a margin
-    (BODY_MARGIN). Where the part's ends are out of view, the seats are alike and the answer is that twin."""
-    if base.region is None or base.region.body is None or not base.region.twins:
+    other one: the part's pixels that the depth confirms less those it sees past (body_evidence; `here`: this pose's),
+    with a margin (BODY_MARGIN). Where the part's ends are out of view, the seats are alike and the answer is that
+    twin."""
+    if not base.region.twins:
         return ""
-    body = base.region.body
-    confirmed, past, read = body_evidence(body, T_world_base, view, tol)
-    mine = confirmed - past
+    confirmed, past, read = here
     margin = max(BODY_MARGIN_PX / BODY_STRIDE ** 2, BODY_MARGIN * read)  # full-size pixels, counted on every k-th
-    best, best_score = "", mine - margin
+    best, best_score = "", confirmed - past - margin
     for name, S in base.region.twins:
-        c, p_, _ = body_evidence(body, T_world_base @ se3.inv(S), view, tol)
+        c, p_, _ = body_evidence(base.region.body, T_world_base @ se3.inv(S), view, tol)
         if c - p_ >= best_score:
             best, best_score = name, c - p_
     return best
@@ -558,7 +542,8 @@ def judge(result: RegistrationResult, view: View, base: BaseObject, plane=_FIT) 
     if plane is _FIT:  # the table the base stands on (Task.table, when the caller has it)
         plane = table_plane(depth, mask, cam, T_world_camera, base_size=base.diameter)
     whole = base.region is None  # a region of a larger part neither stands on the table nor has an outline of its
-    # own: the part's surface runs on past the roi's cut by nature, so neither is judged (NaN)
+    # own: the part's surface runs on past the roi's cut by nature, so neither is judged (NaN); the rest of the part is
+    body = None if whole or base.region.body is None else body_evidence(base.region.body, result.T_world_base, view, tol)
     judged = replace(result, coverage=coverage, contradiction=contradiction, spread=spread,
                      spread_allowed=CONFIDENT_SPREAD * base.diameter,
                      off_table=off_table(result, view, base, tol, plane) if whole else float("nan"),
@@ -566,7 +551,7 @@ def judge(result: RegistrationResult, view: View, base: BaseObject, plane=_FIT) 
                      if whole and seen is not None and len(seen) else float("nan"),
                      sunk=hidden_share(seen, T_world_camera, cam, depth, tol) if not whole and seen is not None
                      else float("nan"),
-                     body_past=body_seen_past(base, result.T_world_base, view, tol) if not whole else float("nan"))
-    if not whole and reason is None and judged.fits:  # which seat the box holds matters only to a pose that fits
-        judged = replace(judged, region_twin=region_twin(base, result.T_world_base, view, tol))
+                     body_past=body[1] / body[2] if body is not None and body[2] else float("nan"))
+    if body is not None and reason is None and judged.fits:  # which seat the box holds matters only to a pose that fits
+        judged = replace(judged, region_twin=region_twin(base, result.T_world_base, view, tol, body))
     return judged if reason is None else replace(judged, ok=False, reason=reason + "; no pose is reported")

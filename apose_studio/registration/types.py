@@ -103,7 +103,7 @@ class RegistrationResult:
     sunk: float = float("nan")  # a region of a larger part (roi): the share of what the model shows that a nearer
     # surface hides (scoring.hidden_share); NaN for a whole base, whose occluders are judged by the mask's readings
     body_past: float = float("nan")  # a region of a larger part: the share of the rest of that part, at the region's
-    # pose, where the camera sees past it (pipeline.body_seen_past); NaN for a whole base
+    # pose, where the camera sees past it (pipeline.body_evidence); NaN for a whole base
     part_doubt: str = ""  # a region found at a place on its part (estimation.estimate_region_instances): a doubt about
     # that place (the part's own pose not confident, the region off its place); never confident then
     region_twin: str = ""  # a region of the same part alike to the base's (another seat of the head) that the rest of
