@@ -9,6 +9,7 @@ table follow DRAFT_CHANGED."""
 from __future__ import annotations
 
 import logging
+from contextlib import nullcontext
 from dataclasses import replace
 from pathlib import Path
 
@@ -19,11 +20,12 @@ from apose_studio.assembly.roi import ROI_KINDS, Roi, region_mesh
 from apose_studio.errors import AposeError
 from apose_studio.safeio import check_path_text, read_bytes
 from apose_studio.studio import authoring
+from apose_studio.studio.region_gizmo import WHOLE, RegionGizmo
 from apose_studio.studio.state import Event, shared
 from apose_studio.studio.widgets import MAX_UPLOAD_BYTES, UNITS, VECTOR_MM, esc, hex_colour, send_download
 from apose_studio.text import unsafe_char
 
-ROI_CHOICES = ("whole part", *ROI_KINDS)  # the Region dropdown: no roi, or its shape
+ROI_CHOICES = (WHOLE, *ROI_KINDS)  # the Region dropdown: no roi, or its shape
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +46,7 @@ class AssemblyPanel:
         self.app = app
         self._syncing = False
         self._pending_save: Path | None = None  # a file that Save would replace, waiting for "Replace"
+        self.region_gizmo = RegionGizmo(app, self)  # Drag region: the region's handles in the 3D view
         app.events.on(Event.DRAFT_CHANGED, self.refresh_files)
 
     def build(self) -> None:
@@ -57,7 +60,7 @@ class AssemblyPanel:
                                             hint="unit of mesh coordinates and translations in the file")
             self.f_name.on_update(self.app.guarded("Rename")(self.on_name))
             self.f_units.on_update(self.app.guarded("Units")(self.on_units))
-        with gui.add_folder("Parts"):
+        with gui.add_folder("Parts") as self.parts_folder:
             self.parts_html = gui.add_html("")
             self.f_mesh = gui.add_text("Mesh path or folder", "", hint=f"on the server: {', '.join(supported_extensions())}")
             b = gui.add_button("Add part(s)")
@@ -65,17 +68,17 @@ class AssemblyPanel:
             self.upload = gui.add_upload_button("Upload mesh", hint=f"up to {MAX_UPLOAD_BYTES // 2**20} MB; saved beside the assembly file")
             self.upload.on_upload(self.app.guarded("Upload")(self.on_upload))
             self.f_part = gui.add_dropdown("Part", ("—",))
-            self.f_part.on_update(self.app.guarded("Part")(lambda c: self.show_part_colour()))
+            self.f_part.on_update(self.app.guarded("Part")(lambda c: (self.show_part_colour(), self.region_gizmo.place())))
             self.f_color = gui.add_rgb("Colour", (230, 158, 0))
             self.f_color.on_update(self.app.guarded("Colour")(self.on_color))
             self.f_roi = gui.add_dropdown("Region (roi)", ROI_CHOICES, hint="as a base, only this region of the part is "
                                           "registered (a seat on an engine head); drawn cyan on the part")
-            self.f_roi_centre = gui.add_vector3("Region centre (mm)", (0.0, 0.0, 0.0), step=0.5, **VECTOR_MM,
-                                                hint="in the part's own frame")
-            self.f_roi_size = gui.add_vector3("Region size (mm)", (50.0, 50.0, 50.0), step=0.5, **VECTOR_MM,
-                                              hint="a box's full sides; a sphere's diameter is the first number")
+            self.f_roi.on_update(self.on_region_typed)
+            self.f_roi_centre = self.f_roi_size = None
+            self.make_region_fields((0.0, 0.0, 0.0), (50.0, 50.0, 50.0))
             b = gui.add_button("Set region")
             b.on_click(self.app.guarded("Set region")(self.on_roi))
+            self.region_gizmo.build(gui)
             b = gui.add_button("Remove part", color="red")
             b.on_click(self.app.guarded("Remove part")(self.on_remove_part))
 
@@ -299,11 +302,10 @@ class AssemblyPanel:
         if self.f_part.value not in self.app.asm.parts:
             return
         roi = self.app.asm.parts[self.f_part.value].roi
-        self.f_roi.value = ROI_CHOICES[0] if roi is None else roi.kind
-        if roi is not None:
-            self.f_roi_centre.value = tuple(round(v * 1000.0, 3) for v in roi.center)
-            self.f_roi_size.value = tuple(round(v * 1000.0, 3) for v in roi.size) if roi.kind == "box" else \
-                (round(2000.0 * roi.radius, 3),) * 3
+        if roi is None:
+            self.f_roi.value = ROI_CHOICES[0]
+        else:
+            self.show_region_fields(roi.kind, roi.center, roi.size if roi.kind == "box" else (2.0 * roi.radius,) * 3)
         rgb = tuple(int(round(255 * c)) for c in self.app.model(self.f_part.value).color)
         if tuple(self.f_color.value) != rgb:
             self._syncing = True
@@ -311,6 +313,38 @@ class AssemblyPanel:
                 self.f_color.value = rgb
             finally:
                 self._syncing = False
+
+    def make_region_fields(self, centre_mm, size_mm) -> None:
+        """(Re)create the Region centre and size inputs holding these values (mm), in their place in the Parts
+        folder: recreated, not written into, for the reason steps_panel.make_pose_fields gives."""
+        orders = None if self.f_roi_centre is None else (self.f_roi_centre.order, self.f_roi_size.order)
+        if orders is not None:
+            self.f_roi_centre.remove()
+            self.f_roi_size.remove()
+        gui = self.app.server.gui
+        with self.parts_folder if orders is not None else nullcontext():  # the first time: in build's `with`
+            self.f_roi_centre = gui.add_vector3("Region centre (mm)", tuple(centre_mm), step=0.5, **VECTOR_MM,
+                                                hint="in the part's own frame", order=orders and orders[0])
+            self.f_roi_size = gui.add_vector3("Region size (mm)", tuple(size_mm), step=0.5, **VECTOR_MM,
+                                              hint="a box's full sides; a sphere's diameter is the first number",
+                                              order=orders and orders[1])
+        for f in (self.f_roi_centre, self.f_roi_size):
+            f.on_update(self.on_region_typed)
+
+    def show_region_fields(self, kind: str, centre, size) -> None:
+        """The Region fields showing a region (kind, centre and size in metres; a sphere's size is its diameter
+        three times); not set on the part until Set region (or a drag's end)."""
+        self.f_roi.value = kind
+        c = tuple(round(float(v) * 1000.0, 3) for v in centre)
+        s = tuple(round(float(v) * 1000.0, 3) for v in size)
+        if tuple(self.f_roi_centre.value) != c or tuple(self.f_roi_size.value) != s:
+            self.make_region_fields(c, s)
+
+    def on_region_typed(self, event) -> None:
+        """A Region field changed in the page: Drag region's handles follow it (values the server writes do not
+        come here: their event has no client)."""
+        if event.client is not None:
+            self.app.guarded("Region")(lambda c: self.region_gizmo.place())(event)
 
     def on_color(self, client) -> None:
         if self._syncing or self.f_part.value not in self.app.asm.parts:

@@ -93,6 +93,23 @@ def set_part_roi(asm: Assembly, part_id: str, roi) -> Assembly:
     return replace(asm, parts=parts)
 
 
+def roi_handles(kind: str, centre: np.ndarray, size: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where the 3D view's two region handles stand (part frame): the centre, and a box's +x+y+z corner or a
+    sphere's point on its surface along the part's x (`size`: a box's full sides; a sphere's diameter first)."""
+    centre, size = np.asarray(centre, float), np.asarray(size, float)
+    reach = np.abs(size) / 2 if kind == "box" else np.array([abs(size[0]) / 2, 0.0, 0.0])
+    return centre, centre + reach
+
+
+def roi_from_handles(kind: str, centre: np.ndarray, corner: np.ndarray, least: float) -> np.ndarray:
+    """A region's size (a box's full sides; a sphere's diameter three times) from its handles (roi_handles), no
+    side under `least`: a corner dragged onto the centre leaves the smallest region, not an empty one."""
+    d = np.asarray(corner, float) - np.asarray(centre, float)
+    if kind == "box":
+        return np.maximum(2 * np.abs(d), least)
+    return np.full(3, max(2 * float(np.linalg.norm(d)), least))
+
+
 def unplaced_parts(asm: Assembly) -> list[str]:
     """Parts no step places yet, in file order (candidates for a new step's part)."""
     placed = {s.part for s in asm.steps}

@@ -40,6 +40,7 @@ class Event(str, Enum):
     DRAFT_OPENED = "draft opened"  # an assembly file was opened and adopted: the preview shows it assembled
     DRAFT_SAVED = "draft saved"  # the draft was written to `state.saved_path`
     PICKS_CHANGED = "picks changed"  # `state.picks` changed (a face picked, a pick dropped, picks cleared)
+    REGION_HANDLES = "region handles"  # Drag region's handles came or went (`state.region_handles`)
     FRAME_CHANGED = "frame changed"  # `state.inspect.frame` (and its cached result and score) changed
     RESULT_READY = "result ready"  # a new estimate is in `state.inspect.result` / `score` for `state.inspect.frame`
     MASK_SOURCE_CHOSEN = "mask source chosen"  # the user chose mask source `source` outside the Mask dropdown
@@ -57,6 +58,7 @@ PAYLOAD: dict[Event, tuple[str, ...]] = {
     Event.DRAFT_OPENED: (),
     Event.DRAFT_SAVED: (),
     Event.PICKS_CHANGED: (),
+    Event.REGION_HANDLES: (),
     Event.FRAME_CHANGED: (),
     Event.RESULT_READY: (),
     Event.MASK_SOURCE_CHOSEN: ("source",),
@@ -132,7 +134,7 @@ class StudioState:
     """The studio's shared data; see the module docstring. `asm`, `valid_asm`, `problems` are written
     by the app (`Studio.set_assembly`) and the Steps panel (a gizmo drag), `step_index` by the Steps
     panel and the app, `preview` and `meshes` by the Steps panel, `picks` by the Mates panel,
-    `saved_path` and `saved_draft` by the Assembly panel."""
+    `region_handles` by the Parts folder's Drag region, `saved_path` and `saved_draft` by the Assembly panel."""
 
     asm: Assembly  # the draft
     valid_asm: Assembly  # the last draft without problems: what the preview shows
@@ -141,6 +143,7 @@ class StudioState:
     preview: dict[str, np.ndarray] = field(default_factory=dict)  # part id -> T_world_part in the preview
     meshes: dict[str, object] = field(default_factory=dict)  # part id -> its mesh handle in the 3D view
     picks: dict[str, tuple] = field(default_factory=dict)  # "part" / "base" -> (part id, Feature in its frame)
+    region_handles: bool = False  # Drag region's handles are on a part: the step's gizmo steps aside meanwhile
     saved_path: Path | None = None  # the file the draft was opened from or last saved to
     saved_how: str = "saved"  # "opened" or "saved": what last made saved_path hold the draft (the status says it)
     saved_draft: Assembly | None = None  # the draft as it was opened or last saved (drafts are never changed in

@@ -38,6 +38,7 @@ class StepsPanel:
         app.events.on(Event.DRAFT_OPENED, self.on_draft_opened)
         app.events.on(Event.DRAFT_SAVED, self.refresh_status)
         app.events.on(Event.PICKS_CHANGED, self.place_gizmo)
+        app.events.on(Event.REGION_HANDLES, self.place_gizmo)
 
     @property
     def mesh_handles(self) -> dict[str, object]:
@@ -508,7 +509,8 @@ class StepsPanel:
         i = self.step_index
         editable = (i is not None and i < len(asm.steps) and asm.steps[i].part == self.app.asm.steps[i].part
                     and float(self.f_explode.value) == 0.0 and asm.steps[i].base[0] in self._preview
-                    and not self.app.state.picks)  # a picked face waits for its partner: the gizmo steps aside
+                    and not self.app.state.picks  # a picked face waits for its partner: the gizmo steps aside
+                    and not self.app.state.region_handles)  # ... and while a region's handles are on show
         if not editable:
             for name in ("/assembly/gizmo", "/assembly/base_frame"):
                 if name in self.app.nodes:

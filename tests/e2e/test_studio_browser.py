@@ -1180,3 +1180,53 @@ def test_the_engine_heads_seats_are_drawn_as_regions_and_a_region_is_set_from_th
     page.get_by_role("button", name="Save").click()
     wait_until(lambda: "sphere" in path.read_text(), "the file saved")
     assert yaml.safe_load(path.read_text())["parts"]["arm_1"]["roi"] == {"sphere": {"center": [0, 0, 4], "radius": 10}}
+
+
+def test_a_region_is_drawn_on_the_part_by_dragging_its_corner_with_the_mouse(browser, studio, tmp_path):
+    """#30 item 2's box drawn on the part: the engine head's seat_1 chosen in Parts, Drag region ticked: the region's
+    handles stand on the head at the seat; a mouse drag of the corner handle's x arrow widens the seat's region
+    (about its centre), set on the draft when the mouse is let go, with the Region fields showing it; the file saved
+    holds it."""
+    from apose_studio.geometry import se3
+
+    shutil.copytree(SAMPLES / "engine_head", tmp_path / "engine")
+    path = tmp_path / "engine" / "assembly.yaml"
+    page = open_page(browser, studio)
+    type_into(page, "Assembly file", str(path))
+    page.get_by_role("button", name="Open").click()
+    wait_until(lambda: len(studio.asm.steps) == 8, "the sample to open")
+    field(page, "Part").first.click()
+    page.get_by_role("option", name="seat_1", exact=True).click()
+    wait_until(lambda: studio.files.f_part.value == "seat_1" and studio.files.f_roi.value == "box", "seat_1 chosen")
+    before = studio.asm.parts["seat_1"].roi
+    page.get_by_text("Drag region", exact=True).click()
+    wait_until(lambda: "/assembly/region_edit/corner" in studio.nodes, "the region's handles")
+    T_world_part = _drawn(studio.nodes["/assembly/region_edit"])
+    g = studio.nodes["/assembly/region_edit/corner"]
+    o, R, scale = se3.transform_points(T_world_part, np.asarray(g.position)[None])[0], T_world_part[:3, :3], g._impl.props.scale
+    cam = client_of(studio, page).camera
+    d = np.array([0.3, -1.0, 0.8]) / np.linalg.norm([0.3, -1.0, 0.8])
+    turn_view(cam, o + 10 * scale * d, o)
+    time.sleep(1.5)
+    a, b = to_screen(page, cam, np.array([o + R[:, 0] * 0.75 * scale, o + R[:, 0] * 1.25 * scale]))
+    page.mouse.move(*a)
+    page.mouse.down()
+    for k in range(1, 11):
+        page.mouse.move(*(a + (b - a) * k / 10))
+        time.sleep(0.05)
+    page.mouse.up()
+    wait_until(lambda: studio.asm.parts["seat_1"].roi != before,
+               lambda: f"the dragged region to be set (fields {studio.files.f_roi_size.value})")
+    after = studio.asm.parts["seat_1"].roi
+    assert after.size[0] > before.size[0] + 0.002 and np.allclose(after.size[1:], before.size[1:])  # wider along x only
+    assert np.allclose(after.center, before.center)  # about its centre
+    expect(field(page, "Region size (mm)").nth(0)).to_have_value(f"{after.size[0] * 1000:g}", timeout=10000)
+    shot(page, "region_drag.png")
+    page.get_by_role("button", name="Save").click()
+    wait_until(lambda: yaml.safe_load(path.read_text())["parts"]["seat_1"]["roi"]["box"]["size"][0]
+               == pytest.approx(after.size[0] * 1000 / _mm_per_unit(studio)), "the file saved")
+    page.close()
+
+
+def _mm_per_unit(st) -> float:
+    return {"m": 1000.0, "mm": 1.0, "cm": 10.0, "in": 25.4}[st.asm.units]

@@ -11,6 +11,7 @@ from apose_studio.assembly.model import load_assembly
 from apose_studio.errors import AposeError
 from apose_studio.geometry import se3
 from apose_studio.studio import MAX_UPLOAD_BYTES
+from apose_studio.studio.state import Event
 
 from ..conftest import SAMPLES
 from .conftest import act, errors
@@ -281,6 +282,63 @@ def test_a_region_set_on_a_part_is_drawn_saved_undone_and_a_stray_one_refused(st
     st.files.f_part.value = "casing"
     st.files.show_part_colour()
     assert st.files.f_roi.value == "box" and tuple(st.files.f_roi_size.value) == (40.0, 64.0, 20.0)
+
+
+class _Drag:
+    """A drag of a Drag region handle as viser reports it: the handle (its position now), the phase, the tab."""
+
+    def __init__(self, handle, phase):
+        self.target, self.phase, self.client = handle, phase, None
+
+
+def drag_handle(st, which: str, by_mm) -> None:
+    """Drag handle `which` of Drag region by `by_mm` (part frame) in five moves, as the page reports a drag."""
+    h = st.nodes[f"/assembly/region_edit/{which}"]
+    start = np.array(h.position, float)  # a copy: the handle's own array changes as it moves
+    for k, phase in enumerate(("start", "update", "update", "update", "end")):
+        h.position = tuple(start + np.asarray(by_mm, float) / 1000.0 * (k + 1) / 5)
+        act(st, lambda c: st.files.region_gizmo.on_handle(_Drag(h, phase), which))  # guarded, as the page's drag
+
+
+def test_a_region_dragged_by_its_handles_is_set_when_let_go_and_undone(studio, gearbox_copy):
+    """Drag region (#30: the box drawn on the part, resizable): ticked on the casing without a region it offers a box
+    round the part's middle; dragging the corner handle resizes the box about its centre, the centre handle moves it
+    (the corner comes along); the outline follows each move, the draft changes once, when the handle is let go, and
+    Undo takes the drag back. A drag that leaves the box off the part is refused and the draft keeps its region."""
+    st = studio(gearbox_copy)
+    assert "/assembly/gizmo" in st.nodes  # step 1's part gizmo
+    st.files.f_part.value = "casing"
+    lo, hi = np.asarray(st.model("casing").mesh.bounds)
+    st.files.region_gizmo.f_drag.value = True
+    assert st.files.f_roi.value == "box" and "/assembly/region_edit/corner" in st.nodes
+    assert "/assembly/gizmo" not in st.nodes  # steps aside: one set of arrows on show
+    assert np.allclose(np.asarray(st.files.f_roi_size.value) / 1000, (hi - lo) / 4, atol=6e-4)
+    assert st.asm.parts["casing"].roi is None  # offered, not set
+    corner0 = np.asarray(st.nodes["/assembly/region_edit/corner"].position)
+    assert np.allclose(corner0, np.asarray(st.files.f_roi_centre.value) / 1000 + np.asarray(st.files.f_roi_size.value) / 2000)
+    size0 = np.asarray(st.files.f_roi_size.value, float)
+    drafts = []
+    st.events.on(Event.DRAFT_CHANGED, lambda: drafts.append(st.asm))
+    drag_handle(st, "corner", (6.0, 0.0, -2.0))
+    assert len(drafts) == 1 and errors(st) == []
+    roi = st.asm.parts["casing"].roi
+    assert roi.kind == "box" and np.allclose(np.asarray(roi.size) * 1000, size0 + (12.0, 0.0, -4.0), atol=1e-6)
+    assert np.allclose(np.asarray(st.files.f_roi_size.value), size0 + (12.0, 0.0, -4.0))
+    outline = np.asarray(st.nodes["/assembly/region_edit/outline"].points).reshape(-1, 3)
+    assert np.allclose(outline.max(axis=0) - outline.min(axis=0), np.asarray(roi.size))
+    centre1 = np.asarray(roi.center)
+    drag_handle(st, "centre", (0.0, 5.0, 0.0))
+    roi2 = st.asm.parts["casing"].roi
+    assert np.allclose(roi2.center, centre1 + (0, 0.005, 0)) and np.allclose(roi2.size, roi.size)
+    assert np.allclose(st.nodes["/assembly/region_edit/corner"].position, np.asarray(roi2.center) + np.asarray(roi2.size) / 2)
+    act(st, lambda c: st.undo_redo("Undo", c))
+    assert st.asm.parts["casing"].roi == roi
+    assert np.allclose(np.asarray(st.nodes["/assembly/region_edit/centre"].position), roi.center)  # the handles follow Undo
+    drag_handle(st, "centre", (1000.0, 0.0, 0.0))  # a metre off the part
+    assert any("roi holds none of the mesh" in n[1] and "drag again, or Undo" in n[1] for n in errors(st))
+    assert st.asm.parts["casing"].roi == roi
+    st.files.region_gizmo.f_drag.value = False
+    assert not [n for n in st.nodes if n.startswith("/assembly/region_edit")] and "/assembly/gizmo" in st.nodes
 
 
 def test_undo_closes_the_errors_kept_open_on_the_tab(studio, gearbox_copy):

@@ -94,3 +94,15 @@ def test_preview_places_parts_up_to_a_step(tiny_dir):
     cap_move = exploded["cap"][:3, 3] - full["cap"][:3, 3]  # cap at (0, 10, 0) in the peg's frame, turned 90° about z
     np.testing.assert_allclose(cap_move - peg_up, asm.T_root_part("peg")[:3, :3] @ [0, 0.07 * 2 / 2, 0], atol=1e-12)
     np.testing.assert_allclose(authoring.insertion_direction(asm, 0), [1, 0, 0])
+
+
+def test_region_handles_stand_at_the_centre_and_a_corner_and_give_the_size_back():
+    """Drag region's handles: a box's +x+y+z corner, a sphere's point along x; the size read back from where they
+    are dragged (a box's sides about its centre, a sphere's diameter), never under the least size."""
+    c, corner = authoring.roi_handles("box", (0.01, 0.0, 0.02), (0.04, 0.02, 0.006))
+    assert np.allclose(corner, (0.03, 0.01, 0.023))
+    assert np.allclose(authoring.roi_from_handles("box", c, corner + (0.005, 0, -0.002), 0.001), (0.05, 0.02, 0.002))
+    assert np.allclose(authoring.roi_from_handles("box", c, c, 0.001), (0.001,) * 3)  # dragged onto the centre
+    c, corner = authoring.roi_handles("sphere", (0.0, 0.0, 0.0), (0.02, 0.02, 0.02))
+    assert np.allclose(corner, (0.01, 0.0, 0.0))
+    assert np.allclose(authoring.roi_from_handles("sphere", c, corner + (0, 0.01, 0), 0.001), (2 * np.sqrt(2e-4),) * 3)

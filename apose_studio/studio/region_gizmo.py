@@ -1,0 +1,145 @@
+"""Drawing a part's region (its roi) in the 3D view with the mouse: *Drag region* puts two handles on the part
+chosen in the Parts folder, the region's centre and a box's corner (a sphere's point on its surface along the
+part's x). Dragging the centre moves the region, dragging the corner resizes it (a box about its centre); the
+region's outline (orange) and the Region fields follow the drag, and letting go sets the region as *Set region*
+does: one undoable edit, refused where the region holds none of the part's surface (the fields keep what was
+dragged). Typed Region fields move the handles. The handles live under `/assembly/region_edit`, in the part's
+frame, at the part's place in the preview (`state.preview`)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from apose_studio.errors import AposeError
+from apose_studio.studio import authoring, inspection
+from apose_studio.studio.state import Event
+from apose_studio.studio.widgets import pos, wxyz
+
+ROOT = "/assembly/region_edit"
+SNAP_M = 0.0005  # a handle moves by whole 0.5 mm, as the part gizmo by its default translation snap
+WHOLE = "whole part"  # the Region (roi) dropdown's choice of no region
+EDGE_COLOUR = inspection.AMBER  # the region as dragged, beside the cyan of the region set
+
+
+class RegionGizmo:
+    """The *Drag region* checkbox of the Parts folder and the handles it shows. `files` is the Parts folder's
+    panel (assembly_panel.AssemblyPanel): its Part, Region (roi) and Region fields and its *Set region*."""
+
+    def __init__(self, app, files):
+        self.app, self.files = app, files
+        self._syncing = False
+        self._centre = self._corner = None  # the handles' places (part frame, metres) while shown
+        self._from = None  # where the dragged handle stood when its drag started
+
+    def build(self, gui) -> None:
+        self.f_drag = gui.add_checkbox("Drag region", False, hint="handles on the chosen part: its region's centre "
+                                       "(moves it) and a corner (resizes it); letting go sets the region")
+        self.f_drag.on_update(self.app.guarded("Drag region")(self.on_toggle))
+        self.app.events.on(Event.DRAFT_CHANGED, self.place)  # Undo, a moved part, another part chosen
+        self.app.events.on(Event.MESHES_CHANGED, lambda pid: self.place())
+
+    def on_toggle(self, client) -> None:
+        """Ticked on a part without a region: a box round the middle of the part to start from (not set yet)."""
+        if self.f_drag.value and self.files.f_part.value in self.app.asm.parts and self.files.f_roi.value == WHOLE:
+            m = self.app.model(self.files.f_part.value)
+            lo, hi = np.asarray(m.mesh.bounds, float)
+            self.files.show_region_fields("box", (lo + hi) / 2, np.maximum((hi - lo) / 4, 2 * SNAP_M))
+            self.app.notify(client, "Drag region", "a box round the middle of the part: drag its handles (centre, "
+                            "corner); letting go sets it as the part's region")
+        self.place()
+
+    def wanted(self) -> tuple[str, np.ndarray] | None:
+        """(the part, its T_world_part in the preview) when the handles are to be shown, else None."""
+        pid = self.files.f_part.value
+        if not self.f_drag.value or pid not in self.app.asm.parts or self.files.f_roi.value == WHOLE:
+            return None
+        T = self.app.state.preview.get(pid)
+        return None if T is None else (pid, T)
+
+    def place(self) -> None:
+        """Show the handles where the Region fields say (or take them away)."""
+        want = self.wanted()
+        if want is None:
+            self.remove()
+            return
+        pid, T = want
+        kind = self.files.f_roi.value
+        centre = np.asarray(self.files.f_roi_centre.value, float) / 1000.0
+        size = np.asarray(self.files.f_roi_size.value, float) / 1000.0
+        self._centre, self._corner = authoring.roi_handles(kind, centre, size)
+        scene = self.app.server.scene
+        frame = self.app.nodes.get(ROOT)
+        if frame is None:
+            frame = self.app.node(ROOT, scene.add_frame(ROOT, show_axes=False))
+        frame.position, frame.wxyz = pos(T), wxyz(T)
+        scale = max(0.8 * float(np.max(np.abs(size))), 0.05 * self.app.model(pid).diameter)
+        self._syncing = True
+        try:
+            for which, where in (("centre", self._centre), ("corner", self._corner)):
+                name = f"{ROOT}/{which}"
+                g = self.app.nodes.get(name)
+                if g is None or abs(g._impl.props.scale - scale) > 1e-9:
+                    if g is not None:
+                        self.app.nodes.pop(name).remove()
+                    g = self.app.node(name, scene.add_transform_controls(
+                        name, scale=scale, disable_rotations=True, depth_test=False))
+                    g.on_update(lambda e, which=which: self.app.guarded("Drag region")(
+                        lambda c: self.on_handle(e, which))(e))
+                g.position = tuple(where)
+        finally:
+            self._syncing = False
+        self.draw_outline(kind)
+        self.handles_shown(True)
+
+    def remove(self) -> None:
+        for name in sorted((n for n in self.app.nodes if n == ROOT or n.startswith(ROOT + "/")), reverse=True):
+            self.app.nodes.pop(name).remove()  # the handles and outline before their frame
+        self._centre = self._corner = None
+        self.handles_shown(False)
+
+    def handles_shown(self, shown: bool) -> None:
+        if self.app.state.region_handles != shown:
+            self.app.state.region_handles = shown
+            self.app.events.emit(Event.REGION_HANDLES)  # the step's gizmo steps aside, or comes back
+
+    def draw_outline(self, kind: str) -> None:
+        from apose_studio.assembly.roi import Roi
+
+        size = authoring.roi_from_handles(kind, self._centre, self._corner, 2 * SNAP_M)
+        roi = Roi("box", tuple(self._centre), size=tuple(size)) if kind == "box" else \
+            Roi("sphere", tuple(self._centre), radius=size[0] / 2)
+        seg = inspection.box_segments(roi.corners(), np.eye(4)).astype(np.float32)
+        name = f"{ROOT}/outline"
+        old = self.app.nodes.pop(name, None)
+        if old is not None:
+            old.remove()
+        self.app.node(name, self.app.server.scene.add_line_segments(name, seg, EDGE_COLOUR, thickness=3.0,
+                                                                    thickness_units="screen"))
+
+    def on_handle(self, event, which: str) -> None:
+        """A drag of a handle (phase start / update / end): the outline follows every update; at the end the
+        Region fields are written and the region set (files.on_roi), one undoable edit."""
+        if self._syncing or self.wanted() is None or self._centre is None:
+            return
+        if event.phase == "start" or self._from is None:
+            self._from = self._centre if which == "centre" else self._corner
+        raw = np.asarray(event.target.position, float)
+        p = self._from + np.round((raw - self._from) / SNAP_M) * SNAP_M  # moved by whole snaps, as the part gizmo
+        kind = self.files.f_roi.value
+        if which == "centre":
+            self._corner, self._centre = self._corner + (p - self._centre), p
+            other = self.app.nodes.get(f"{ROOT}/corner")
+            if other is not None:
+                other.position = tuple(self._corner)
+        else:
+            self._corner = p
+        self.draw_outline(kind)
+        if event.phase != "end":
+            return
+        self._from = None
+        size = authoring.roi_from_handles(kind, self._centre, self._corner, 2 * SNAP_M)
+        self.files.show_region_fields(kind, self._centre, size)
+        try:
+            self.files.on_roi(event.client)
+        except AposeError as e:
+            raise AposeError(f"{e} (the Region fields keep what was dragged: drag again, or Undo)") from None
