@@ -635,9 +635,7 @@ def _main(argv=None) -> int:
         _check_argument_text(args)
         return args.func(args)
     except AposeError as e:  # bad input: the message names the thing and the fix
-        for line in str(e).splitlines():
-            print(f"error: {shorten_values(line)}", file=sys.stderr)
-        return 2
+        return refused(args, "\n".join(shorten_values(line) for line in str(e).splitlines()), 2)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
@@ -645,18 +643,26 @@ def _main(argv=None) -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
     except OSError as e:  # the system refused: a full disk, a read-only folder, a name too long
-        print(f"error: {os_error_text(e)}", file=sys.stderr)
-        return 2
+        return refused(args, os_error_text(e), 2)
     except MemoryError:
-        print("error: out of memory; use smaller inputs (fewer frames, a decimated mesh, a smaller image)", file=sys.stderr)
-        return 2
+        return refused(args, "out of memory; use smaller inputs (fewer frames, a decimated mesh, a smaller image)", 2)
     except Exception as e:  # a bug: one line, plus the traceback with --verbose
         if args.verbose:
             raise
-        print(f"error: unexpected {type(e).__name__}: {shorten_values(str(e))} (run with -v for the traceback, and please "
-              "report it)",
-              file=sys.stderr)
-        return 1
+        return refused(args, f"unexpected {type(e).__name__}: {shorten_values(str(e))} (run with -v for the traceback, "
+                       "and please report it)", 1)
+
+
+def refused(args, message: str, code: int) -> int:
+    """Say why a command did nothing (`error: ...` on stderr, a line each) and return its exit code. Where the
+    command was asked for JSON on stdout (`--json` as a flag: show, estimate), the refusal is JSON there too
+    ({"ok": false, "refused": true, "reason": ..., "exit_code": ...}), so that a script reading it needs no second
+    way of failing."""
+    for line in message.splitlines():
+        print(f"error: {line}", file=sys.stderr)
+    if getattr(args, "json", None) is True:
+        print(json.dumps({"ok": False, "refused": True, "reason": message, "exit_code": code}))
+    return code
 
 
 if __name__ == "__main__":

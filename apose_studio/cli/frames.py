@@ -144,7 +144,8 @@ def cmd_estimate(args) -> int:
     sc = (score_frame(frame, r, ctx.part, None if source == "gt" else mask, ctx.base.symmetries)
           if frame.T_world_part is not None else None)
     if args.json:
-        doc = est.to_json()
+        doc = est.to_json()  # its "mask": the result's (cut to the model's view); the prompt's beside it
+        doc["mask"].update(prompt_source=source, prompt_pixels=int(mask.sum()))
         doc.update(step=args.step, frame=args.frame, preset=params.preset, part=ctx.part.id, base=list(ctx.view.base),
                    stages=[{"name": st.name, "T_world_base": st.T_world_base.tolist(), "fitness": st.fitness,
                             "inlier_rmse": st.inlier_rmse} for st in r.stages],
@@ -158,7 +159,7 @@ def cmd_estimate(args) -> int:
             print(f"wrote {args.mcap}", file=sys.stderr)
         return 0 if r.ok else 1
     print(f"step {args.step}, frame {args.frame}: place {ctx.part.id} on [{', '.join(ctx.view.base)}]  (preset {params.preset})")
-    print(f"mask: {source}, {int(mask.sum())} pixels ({est.timings['mask'] * 1000:.0f} ms)")
+    print(f"mask: {source}, {int(mask.sum())} pixels ({est.timings['mask'] * 1000:.0f} ms; --json: mask.prompt_pixels)")
     if shift != (0, 0):
         print(f"depth: lay {shift[0]:+d}, {shift[1]:+d} px (right, down) off the colour image around the prompt; moved back "
               "before the mask and the registration")
@@ -178,8 +179,8 @@ def cmd_estimate(args) -> int:
     if sc is not None and sc.mask_iou is not None and ctx.base.region is None:  # a region's truth mask is its whole part's
         print(f"mask ({source}): IoU {sc.mask_iou:.3f} against the ground-truth base mask")
     if r.reading:  # the pose came from another reading of the mask (registration/hypotheses.py)
-        print(f"the pose came from another reading of the mask: {r.reading}; the result's mask ({est.mask_source}) "
-              f"has {int(est.mask.sum())} pixels")
+        print(f"the pose came from another reading of the mask: {r.reading}")
+    print(f"the result's mask: {est.mask_source}, {int(est.mask.sum())} pixels (--json: mask.pixels)")
     print("confident: the data supports this one placement" if r.confident else f"not confident: {est.doubts}")
     if r.ambiguous:
         _print_alternatives(r, ctx.part.id)

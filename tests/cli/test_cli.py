@@ -62,6 +62,19 @@ def test_show_bad_mesh_is_one_line(tiny_dir):
     assert r.stderr.startswith("error: part 'peg': ") and "peg.stl" in r.stderr
 
 
+def test_a_refusal_asked_for_json_is_json_too(tiny_dir, tmp_path):
+    """`--json` (show, estimate): a refused input still prints one JSON object on stdout, ok false with the reason
+    the stderr line gives, and the exit code; without --json stdout stays empty."""
+    (tiny_dir / "peg.stl").write_bytes(b"\x00" * 10)
+    for args in (("show", tiny_dir / "assembly.yaml", "--json"), ("estimate", tmp_path / "nothing", "--step", "1", "--json")):
+        r = run(*args)
+        assert r.returncode == 2 and "Traceback" not in r.stderr
+        doc = json.loads(r.stdout)
+        assert doc["ok"] is False and doc["refused"] is True and doc["exit_code"] == 2
+        assert r.stderr.startswith("error: ") and doc["reason"].splitlines()[0] == r.stderr.splitlines()[0][len("error: "):]
+    assert run("show", tiny_dir / "assembly.yaml").stdout == ""
+
+
 def test_demo_runs_on_the_sample(tmp_path):
     r = run("demo", "--out", tmp_path / "demo", "--frames", "1", "--no-studio")
     assert r.returncode == 0, r.stderr
@@ -121,6 +134,11 @@ def test_estimate_says_which_reading_of_the_mask_the_pose_came_from(tmp_path):
     assert "the pose came from another reading of the mask: what lies wholly in the box" in r.stdout, r.stdout
     assert "not confident" not in r.stdout
     assert float(r.stdout.split("MSSD ")[1].split(" mm")[0]) < 5.0, r.stdout
+    # the text names both masks with the counts --json gives (the prompt's and the result's, cut to the model's view)
+    doc = json.loads(run("estimate", out, "--step", "2", "--box", "260,171,384,251", "--json").stdout)["mask"]
+    assert f"mask: box, {doc['prompt_pixels']} pixels" in r.stdout and doc["prompt_source"] == "box"
+    assert f"the result's mask: {doc['source']}, {doc['pixels']} pixels" in r.stdout, r.stdout
+    assert doc["pixels"] != doc["prompt_pixels"]
 
 
 def test_render_cli(tmp_path):
