@@ -131,6 +131,27 @@ def open_page(browser, st, url: str | None = None):
     return page
 
 
+def open_sample_copy(browser, st, tmp_path, sample: str, steps: int):
+    """(the sample's copy's assembly.yaml, a page) with the copy opened in the page and its `steps` steps read."""
+    shutil.copytree(SAMPLES / sample, tmp_path / sample)
+    path = tmp_path / sample / "assembly.yaml"
+    page = open_page(browser, st)
+    type_into(page, "Assembly file", str(path))
+    page.get_by_role("button", name="Open").click()
+    wait_until(lambda: len(st.asm.steps) == steps, "the sample to open")
+    return path, page
+
+
+def mouse_drag(page, a, b, moves: int = 10) -> None:
+    """Press at page pixel `a`, move to `b` in `moves` steps (a pause each, as a hand drags), let go."""
+    page.mouse.move(*a)
+    page.mouse.down()
+    for k in range(1, moves + 1):
+        page.mouse.move(*(np.asarray(a) + (np.asarray(b) - np.asarray(a)) * k / moves))
+        time.sleep(0.05)
+    page.mouse.up()
+
+
 def open_data(page, st, data: Path) -> None:
     """The Inspect tab, the dataset's path typed and Open data pressed, until its frame is shown."""
     page.get_by_role("tab", name="Inspect").click()
@@ -871,13 +892,7 @@ def drag_gizmo_x(page, st, cam, turn: bool = True) -> None:
         turn_view(cam, o + 8 * scale * d, o)
         time.sleep(0.8)
         shot(page, "mates_gizmo_drag.png")
-    a, b = to_screen(page, cam, np.array([o + R[:, 0] * 0.75 * scale, o + R[:, 0] * 1.5 * scale]))
-    page.mouse.move(*a)
-    page.mouse.down()
-    for k in range(1, 11):
-        page.mouse.move(*(a + (b - a) * k / 10))
-        time.sleep(0.05)
-    page.mouse.up()
+    mouse_drag(page, *to_screen(page, cam, np.array([o + R[:, 0] * 0.75 * scale, o + R[:, 0] * 1.5 * scale])))
 
 
 def test_upload_a_mesh_from_the_browser(browser, tmp_path_factory):
@@ -1005,12 +1020,7 @@ def test_author_a_grasp_by_clicking_the_part(browser, studio, tmp_path):
     gripper drawn there (and at the pre-place), and Save writes it into the file."""
     from apose_studio.assembly.model import load_assembly
 
-    shutil.copytree(SAMPLES / "planetary_reducer", tmp_path / "pr")
-    path = tmp_path / "pr" / "assembly.yaml"
-    page = open_page(browser, studio)
-    type_into(page, "Assembly file", str(path))
-    page.get_by_role("button", name="Open").click()
-    wait_until(lambda: len(studio.asm.steps) == 4, "the sample to open")
+    path, page = open_sample_copy(browser, studio, tmp_path, "planetary_reducer", 4)
     field(page, "Step").first.click()
     page.get_by_role("option", name="3. carrier", exact=True).click()
     wait_until(lambda: "/assembly/gripper/place" in studio.nodes, "the sample's grasp to be drawn")
@@ -1145,12 +1155,7 @@ def test_the_engine_heads_seats_are_drawn_as_regions_and_a_region_is_set_from_th
 
     from apose_studio.geometry import se3
 
-    shutil.copytree(SAMPLES / "engine_head", tmp_path / "engine")
-    path = tmp_path / "engine" / "assembly.yaml"
-    page = open_page(browser, studio)
-    type_into(page, "Assembly file", str(path))
-    page.get_by_role("button", name="Open").click()
-    wait_until(lambda: len(studio.asm.steps) == 8, "the sample to open")
+    path, page = open_sample_copy(browser, studio, tmp_path, "engine_head", 8)
     wait_until(lambda: all(f"/assembly/roi_seat_{k}" in studio.nodes for k in range(1, 9)), "the eight seats' regions drawn")
     time.sleep(3.0)
     shot(page, "engine_regions.png")
@@ -1189,12 +1194,7 @@ def test_a_region_is_drawn_on_the_part_by_dragging_its_corner_with_the_mouse(bro
     holds it."""
     from apose_studio.geometry import se3
 
-    shutil.copytree(SAMPLES / "engine_head", tmp_path / "engine")
-    path = tmp_path / "engine" / "assembly.yaml"
-    page = open_page(browser, studio)
-    type_into(page, "Assembly file", str(path))
-    page.get_by_role("button", name="Open").click()
-    wait_until(lambda: len(studio.asm.steps) == 8, "the sample to open")
+    path, page = open_sample_copy(browser, studio, tmp_path, "engine_head", 8)
     field(page, "Part").first.click()
     page.get_by_role("option", name="seat_1", exact=True).click()
     wait_until(lambda: studio.files.f_part.value == "seat_1" and studio.files.f_roi.value == "box", "seat_1 chosen")
@@ -1208,13 +1208,7 @@ def test_a_region_is_drawn_on_the_part_by_dragging_its_corner_with_the_mouse(bro
     d = np.array([0.3, -1.0, 0.8]) / np.linalg.norm([0.3, -1.0, 0.8])
     turn_view(cam, o + 10 * scale * d, o)
     time.sleep(1.5)
-    a, b = to_screen(page, cam, np.array([o + R[:, 0] * 0.75 * scale, o + R[:, 0] * 1.25 * scale]))
-    page.mouse.move(*a)
-    page.mouse.down()
-    for k in range(1, 11):
-        page.mouse.move(*(a + (b - a) * k / 10))
-        time.sleep(0.05)
-    page.mouse.up()
+    mouse_drag(page, *to_screen(page, cam, np.array([o + R[:, 0] * 0.75 * scale, o + R[:, 0] * 1.25 * scale])))
     wait_until(lambda: studio.asm.parts["seat_1"].roi != before,
                lambda: f"the dragged region to be set (fields {studio.files.f_roi_size.value})")
     after = studio.asm.parts["seat_1"].roi
