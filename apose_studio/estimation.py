@@ -525,17 +525,19 @@ def body_base(ctx: StepContext) -> BaseObject:
 def estimate_region_instances(frame: Frame, ctx: StepContext, params: Params,
                               orientation_prior: bool = False) -> list[Instance]:
     """Every place of a region on its part in `frame` without a prompt (the eight seats of an engine head for step 1's
-    seat): the part found whole first (estimate_instances with its whole mesh as the base; the confident instance,
-    else the best fitting), then the region at its own place and at each look-alike (Region.twins), each refined from
+    seat): the part found whole first (estimate_instances with its whole mesh as the base, the largest depth groups
+    first; the first confident instance, else the best fitting), then the region at its own place and at each look-alike (Region.twins), each refined from
     where the part's pose puts it (refined_at), or searched for in the box round what of it is the part's first
     surface there where that fails. Each keeps its own
     confidence, but none is confident where the part's pose is not, or where the region slid off its place
     (REGION_PLACE_SLACK); places out of view are left out. Left to right in the image by the region's centre."""
     body = body_base(ctx)
     whole = SimpleNamespace(view=replace(ctx.view, T_base_part=np.eye(4)), base=body, part=ctx.part)
-    # the part's pose only starts each region's own refinement (refined_at): no polish of it (a quarter of the time)
-    head_params = replace(params, polish_voxel_factor=0.0)
-    parts = [i.result for i in estimate_instances(frame, whole, head_params, orientation_prior) if i.result.ok]
+    # the part's pose only starts each region's own refinement (refined_at): no polish of it (a quarter of the time);
+    # what stands on or against the part keeps its first estimate unconfident, and the second look refits from it
+    head_params = replace(params, polish_voxel_factor=0.0, second_look_from_pose=True)
+    parts = [i.result for i in estimate_instances(frame, whole, head_params, orientation_prior, first_confident=True)
+             if i.result.ok]
     if not parts:
         return []
     head = max(parts, key=lambda r: (r.confident, r.fitness))
@@ -578,13 +580,14 @@ def instance_boxes(frame: Frame, diameter: float) -> list[tuple[tuple[int, int, 
 
 
 def estimate_instances(frame: Frame, ctx: StepContext, params: Params, orientation_prior: bool = False,
-                       estimate: Callable | None = None) -> list[Instance]:
+                       estimate: Callable | None = None, first_confident: bool = False) -> list[Instance]:
     """Every instance of step `ctx`'s base in `frame` without a prompt per instance: each candidate group of
     depth on the table (`instance_boxes`) estimated with a box prompt around it (a group that may hold
     several, what the found model does not explain searched again), poses of one instance merged (the
     confident one, else the better fitting), the rest in a stable order: left to right in the image by the
     base's centre. Each keeps its own confidence. `estimate(view)`: the estimator per candidate (default
-    estimate_view with these params). A base that is a region of a larger part (roi): estimate_region_instances."""
+    estimate_view with these params). `first_confident`: stop at the first confident instance (the largest
+    groups are tried first). A base that is a region of a larger part (roi): estimate_region_instances."""
     if ctx.base.region is not None:
         return estimate_region_instances(frame, ctx, params, orientation_prior)
     diameter = ctx.base.diameter
@@ -599,6 +602,8 @@ def estimate_instances(frame: Frame, ctx: StepContext, params: Params, orientati
             continue
         r = run(replace(View.of(frame, mask), box=box))
         found.append(Instance(box, mask, r))
+        if first_confident and r.confident:
+            break
         if split and r.ok and r.model_mask is not None and _extent(frame, group) > INSTANCE_SPLIT_SIZE * diameter:
             rest = group & ~cv2.dilate(r.model_mask.astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)
             if rest.sum() >= 60 and _extent(frame, rest) >= INSTANCE_MIN_SIZE * diameter:  # searched once more

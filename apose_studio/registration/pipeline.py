@@ -257,12 +257,41 @@ def second_look(result: RegistrationResult, view: View, base: BaseObject, T_base
     cut = model_cut_mask(result, view, base)
     if cut.sum() < MIN_POINTS or cut.sum() >= view.mask.sum():
         return result
+    if params.second_look_from_pose and not result.ambiguous:  # ICP from the pose first: a search only where it fails
+        quick = refit(replace(view, mask=cut), base, T_base_part, params, result.T_world_base, part_symmetries)
+        if quick is not None and quick.confident:
+            return replace(quick, second_look=cut, timings={**result.timings, "second look": time.perf_counter() - t})
     again = estimate_mask(replace(view, mask=cut), base, T_base_part, replace(params, second_look=False), prior,
                           trace_iterations, part_symmetries)
     timings = {**result.timings, "second look": result.timings.get("second look", 0.0) + time.perf_counter() - t}
     if not again.confident:
         return replace(result, timings=timings)
     return replace(again, second_look=cut, timings=timings)
+
+
+def refit(view: View, base: BaseObject, T_base_part: np.ndarray, params: Params, T_world_base: np.ndarray,
+          part_symmetries: np.ndarray | None = None) -> RegistrationResult | None:
+    """The base refitted to the view's mask from a pose it is near (searches.try_prior from the pose: ICP at 2 voxels,
+    then at the final threshold or the polish), judged as any estimate; None where the camera sees too little of the
+    base or the mask too little depth. No search: nothing here looks for rival placements, so a caller uses it only
+    on a pose whose rivals were sought already (second_look_from_pose)."""
+    camera_pts = project_to_cloud(view.depth, view.mask, view.camera, np.eye(4))
+    if len(camera_pts) < MIN_POINTS:
+        return None
+    observation = observe(view.depth, view.mask)
+    try:
+        pb = prepare_task(se3.transform_points(view.T_world_camera, camera_pts), view.camera, view.T_world_camera, base,
+                          T_base_part, params, params.voxel(base.diameter), observation,
+                          part_symmetries=part_symmetries, camera_pts=camera_pts)
+        r = try_prior(pb, T_world_base, False, {}, from_pose=True, preset=params.preset)
+    except Degenerate:
+        return None
+    if r is None:
+        return None
+    r = judge(replace(r, depth_noise=observation.noise, problem=pb), view, base, plane=pb.table)
+    if r.ok and params.use_symmetries:
+        r = replace(r, equivalent=twin_placements(r.T_world_base, r.T_world_part, base.symmetries))
+    return r
 
 
 def observe(depth: np.ndarray, mask: np.ndarray) -> Observation:

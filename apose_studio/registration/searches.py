@@ -43,25 +43,29 @@ SCREEN_POINTS = 500  # target points the screening looks up per starting pose
 SCREEN_MODEL_POINTS = 200  # model points it projects per slid start (ModelSearch.seen_past)
 
 
-def try_prior(pb, prior: np.ndarray, trace_iterations: bool, timings: dict, **kw) -> RegistrationResult | None:
+def try_prior(pb, prior: np.ndarray, trace_iterations: bool, timings: dict, from_pose: bool = False,
+              **kw) -> RegistrationResult | None:
     """Early exit when the caller knows the base's orientation: put the CAD in that orientation where
     what the camera would see of it lands on the target's centre, refine with ICP from coarse to fine,
     and accept when the model explains the target and the depth confirms the model (both >= 95 %).
-    Otherwise None, and the full search runs (the prior still breaks its ties)."""
+    Otherwise None, and the full search runs (the prior still breaks its ties). `from_pose`: `prior` is a
+    pose the base is near already (pipeline.refit): ICP from it at 2 voxels, then as above, and no
+    acceptance test (the judge that follows decides)."""
     base, cam, T_world_camera, p, voxel = pb.base, pb.cam, pb.T_world_camera, pb.params, pb.voxel
     fine, fine_pts, observation, tp = pb.fine, pb.fine_pts, pb.observation, pb.tp
     t = time.perf_counter()
     thr = pb.thr
-    T_world_source = place_source(base, tp.mean(axis=0), prior[:3, :3])
+    T_world_source = prior.copy() if from_pose else place_source(base, tp.mean(axis=0), prior[:3, :3])
     src_w, _ = raycast_source(base, T_world_source, T_world_camera, cam)
     if len(src_w) < MIN_POINTS:
         return None
     T0 = T_world_source.copy()
-    T0[:3, 3] += tp.mean(axis=0) - src_w.mean(axis=0)  # the visible part's centre on the target's centre
+    if not from_pose:
+        T0[:3, 3] += tp.mean(axis=0) - src_w.mean(axis=0)  # the visible part's centre on the target's centre
     src = cloud(se3.transform_points(se3.inv(T_world_source), src_w)).voxel_down_sample(voxel)
     trace: list | None = [] if trace_iterations else None
     T = T0
-    for factor in (8.0, 4.0, 2.0):
+    for factor in (2.0,) if from_pose else (8.0, 4.0, 2.0):
         T = icp(src, fine, T, factor * voxel, 10, trace, p.deterministic, pb.fine_tree)
     if p.polish_voxel_factor > 0:
         T, src_w = polish(pb, T, trace)
@@ -76,7 +80,7 @@ def try_prior(pb, prior: np.ndarray, trace_iterations: bool, timings: dict, **kw
     confirmed = visible_agreement(src_w, T_world_camera, cam, observation.depth, observation.mask,
                                   agreement_tolerance(voxel, observation.noise), observation.edge)
     timings["prior"] = time.perf_counter() - t
-    if cand.coverage < PRIOR_ACCEPT or confirmed < PRIOR_ACCEPT:
+    if not from_pose and (cand.coverage < PRIOR_ACCEPT or confirmed < PRIOR_ACCEPT):
         return None
     src_b = se3.transform_points(se3.inv(T), src_w)
     stages = trace_stages(T_world_source, "prior", T0, trace, cand, src_b, fine_pts, thr)

@@ -94,3 +94,25 @@ def test_apose_estimate_instances_all_json(three_casings):
     fr = ds.frame(1, 5)
     cams = [np.asarray(i["T_world_camera"]) for i in doc["instances"]]
     assert all(np.allclose(T, fr.T_world_camera) for T in cams)
+
+
+def test_first_confident_stops_at_the_first_confident_instance_largest_group_first(three_casings):
+    """`first_confident` (a region's part found whole: only one is used): the estimator runs on the groups largest
+    first and stops once one is confident; without it every group is estimated."""
+    from apose_studio.registration.types import RegistrationResult
+
+    _, ds = three_casings
+    asm, ctx = step_context(ds.assembly, 1)
+    fr = ds.frame(1, 0)
+    seen = []
+
+    def fake(view):  # every group "confident" at the identity
+        seen.append(int(view.mask.sum()))
+        return RegistrationResult(ok=True, T_world_base=np.eye(4), T_world_part=np.eye(4), coverage=1.0)
+
+    everything = estimate_instances(fr, ctx, resolve_params("default"), estimate=fake)
+    groups = list(seen)
+    assert len(groups) >= 3  # the three casings at least
+    seen.clear()
+    first = estimate_instances(fr, ctx, resolve_params("default"), estimate=fake, first_confident=True)
+    assert seen == groups[:1] and len(first) == 1 and len(everything) >= 1

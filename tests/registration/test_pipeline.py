@@ -411,6 +411,37 @@ def test_second_look_cuts_clutter_from_the_mask(gearbox_dataset):
     assert mssd(r.T_world_part, fr.T_world_part, ctx.part.samples) < 0.1 * d and "second look" in r.timings
 
 
+def test_second_look_from_pose_refits_without_a_search_and_agrees(gearbox_dataset, monkeypatch):
+    """`second_look_from_pose` (a region's part found whole): the second look on the slab-widened mask refits from the
+    first pose (no search: search_poses is not called again), confident and right, within a millimetre of the full
+    second look's pose; an ambiguous first result is never refitted (its rivals matter), and a refit that is not
+    confident leaves the full second look to run."""
+    from dataclasses import replace
+
+    from apose_studio.registration import pipeline
+
+    ctx, fr, view = _slab_beside_the_base(gearbox_dataset)
+    p = resolve_params("default", mask_hypotheses=False)
+    full = estimate(view, ctx.base, ctx.view.T_base_part, p)
+    searches = []
+    search = pipeline.search_poses
+    monkeypatch.setattr(pipeline, "search_poses", lambda *a, **k: searches.append(1) or search(*a, **k))
+    quick = estimate(view, ctx.base, ctx.view.T_base_part, replace(p, second_look_from_pose=True))
+    assert searches == [1]  # the first estimate's search only
+    assert quick.confident and quick.second_look is not None
+    assert mssd(quick.T_world_part, fr.T_world_part, ctx.part.samples) < 0.1 * ctx.part.diameter
+    assert np.linalg.norm(quick.T_world_base[:3, 3] - full.T_world_base[:3, 3]) < 0.001
+    first = estimate(view, ctx.base, ctx.view.T_base_part, replace(p, second_look=False))
+    refits = []
+    monkeypatch.setattr(pipeline, "refit", lambda *a, **k: refits.append(1))
+    from_pose = replace(p, second_look_from_pose=True)
+    assert pipeline.second_look(replace(first, ambiguous=True), view, ctx.base, ctx.view.T_base_part, from_pose,
+                                None, False) is not None and not refits  # ambiguous: the full second look
+    searches.clear()
+    r = pipeline.second_look(first, view, ctx.base, ctx.view.T_base_part, from_pose, None, False)
+    assert refits == [1] and searches and r.confident  # the refit gave nothing: searched anew
+
+
 def test_the_second_look_comes_before_the_free_search(gearbox_dataset, monkeypatch):
     """The upright pose of a mask with a slab of table beside the base does not fit, so the free search is
     due; the second look on the upright pose settles it first (confident and right), and the free search,
