@@ -49,6 +49,19 @@ TABLE_HOLD = 0.3  # the table is still where it was when this share of the depth
 TABLE_TOLERANCES = 2.0  # ... within this many final ICP distances
 
 
+FULL_RES_PX = 12_000  # a base predicted over more pixels than this is judged on every other pixel and row
+# (half_resolution; its pose is registered on the full image all the same): the ray cast, the scoring and the judge
+# grow with the pixels the base covers, and a base filling the view at the end of an approach took 15-17 ms a frame
+# at full resolution (benchmarks/track.py)
+
+
+def half_resolution(depth: np.ndarray, cam: CameraIntrinsics) -> tuple[np.ndarray, CameraIntrinsics]:
+    """Every other pixel and row of a depth image, and the camera of those pixels (pixel (i, j) is the full image's
+    (2i, 2j): the same rays, the focal lengths and principal point halved)."""
+    h = depth[::2, ::2]
+    return h, CameraIntrinsics(h.shape[1], h.shape[0], cam.fx / 2, cam.fy / 2, cam.cx / 2, cam.cy / 2)
+
+
 @dataclass(frozen=True)
 class Prediction:
     """Where the base should be in the new frame: T_world_base, the depth its surface would show in the
@@ -174,7 +187,8 @@ def track(depth: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray, 
     """The base in a new frame, from `last` (a confident result of the frame before): judged like any
     estimate, `tracked` set. ok=False with the reason when the base left the view or too little of it is
     near where it was. `plane`: the table the base stands on (world; `table_now`'s for this frame). `pred`: the
-    prediction for this frame, when the caller has made it."""
+    prediction for this frame, when the caller has made it. Where the base is predicted over more than
+    FULL_RES_PX pixels, the pose found is judged at half resolution (its mask brought back to full size)."""
     t0 = time.perf_counter()
     p = params
     voxel = p.voxel(base.diameter)
@@ -210,6 +224,9 @@ def track(depth: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray, 
     if moved > TRUST_SHARE * motion:
         return failed(f"tracking lost: the base moved {moved * 1000:.0f} mm since the last frame, near the tracker's "
                       f"reach ({motion * 1000:.0f} mm; track_motion): searched for anew", target_cloud=target, **lost)
+    shape = depth.shape
+    if np.isfinite(pred.zbuf).sum() > FULL_RES_PX:  # a base filling the view: every other pixel is plenty to judge by
+        depth, cam = half_resolution(depth, cam)
     seen, _ = raycast_source(base, T_world_base, T_world_camera, cam)
     t_cast = time.perf_counter()
     if len(seen) < MIN_POINTS:
@@ -226,6 +243,8 @@ def track(depth: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray, 
     mask_w = observed_mask(seen, depth_w, T_world_camera, cam_w, agreement_tolerance(voxel, noise))
     mask = np.zeros(depth.shape, bool)
     mask[v0:v1, u0:u1] = mask_w
+    if mask.shape != shape:  # judged at half resolution: each pixel's mask over its 2x2 of the frame
+        mask = mask.repeat(2, axis=0).repeat(2, axis=1)[:shape[0], :shape[1]]
     result = RegistrationResult(
         ok=True, T_world_base=T_world_base, T_world_part=T_world_base @ T_base_part,
         T_world_source=last.T_world_base, target_cloud=target,

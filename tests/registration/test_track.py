@@ -203,3 +203,25 @@ def test_an_ambiguous_frame_is_fused_with_the_next_one_seen_from_where_it_advise
     assert s2.mode == "fused" and s2.result.confident and s2.result.views == 2, (s2.mode, s2.result.reason)
     assert mssd_to_truth(s2.result.T_world_part, there.T_world_part, path, view.part) < 0.1 * ctx.part.diameter
     assert tracker.step(replace(there, im_id=3)).mode == "tracked"  # and tracked from the fused pose
+
+
+def test_a_base_filling_the_view_is_judged_at_half_resolution_with_the_same_pose(trajectory, monkeypatch):
+    """Where the base covers more than FULL_RES_PX pixels, the tracked pose (registered on the full image) is
+    judged on every other pixel: the same pose to the bit, the same verdict, the mask at the frame's size and
+    mostly the full-resolution judge's."""
+    from apose_studio.registration import track as track_module
+
+    tracker, ctx, params = _tracker(trajectory)
+    first = tracker.step(trajectory.frame(2, FRAMES - 2))
+    frame = trajectory.frame(2, FRAMES - 1)
+    pred = track_module.predict(first.result, frame.T_world_camera, frame.camera)
+    assert np.isfinite(pred.zbuf).sum() > track_module.FULL_RES_PX  # the closest frame: the base fills the view
+    half = track(frame.depth, frame.camera, frame.T_world_camera, ctx.base, ctx.view.T_base_part, params, first.result)
+    monkeypatch.setattr(track_module, "FULL_RES_PX", 10 ** 9)
+    full = track(frame.depth, frame.camera, frame.T_world_camera, ctx.base, ctx.view.T_base_part, params, first.result)
+    assert np.array_equal(half.T_world_base, full.T_world_base)
+    assert half.confident and full.confident and half.coverage == full.coverage  # the coverage reads the depth points
+    assert half.model_mask.shape == full.model_mask.shape == frame.depth.shape
+    iou = (half.model_mask & full.model_mask).sum() / (half.model_mask | full.model_mask).sum()
+    assert iou > 0.75, iou  # the casing's thin walls: pixels of Kinect-like depth agree or not one by one
+    assert len(half.source_cloud) < 0.4 * len(full.source_cloud)  # judged on a quarter of the pixels
