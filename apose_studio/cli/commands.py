@@ -346,8 +346,22 @@ def _server_args(p: argparse.ArgumentParser) -> None:
                    "characters of A-Z a-z 0-9 - _); default: a new random one each start, printed with the address")
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser, whose usage errors (a missing or malformed option) end as a refusal does: with `--json`
+    among the arguments (show, estimate), the JSON object on stdout too (`refused`)."""
+
+    def error(self, message: str):
+        self.print_usage(sys.stderr)
+        argv = sys.argv[1:] if _ARGV[0] is None else _ARGV[0]
+        wants_json = argv is not None and "--json" in argv and argv[0] in ("show", "estimate")
+        raise SystemExit(refused(argparse.Namespace(json=wants_json), f"{self.prog}: {message}", 2))
+
+
+_ARGV: list = [None]  # the arguments main() was given (None: sys.argv's)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="apose", description="6D assembly pose estimation by point-cloud "
+    ap = _Parser(prog="apose", description="6D assembly pose estimation by point-cloud "
                                  "registration, with a browser studio.")
     ap.add_argument("--version", action="version", version=f"apose_studio {__version__}")
     ap.add_argument("-v", "--verbose", action="store_true", help="show debug logging and tracebacks")
@@ -625,6 +639,7 @@ def joined_pixel_values(argv: list[str]) -> list[str]:
 
 def _main(argv=None) -> int:
     parser = build_parser()
+    _ARGV[0] = None if argv is None else list(argv)
     args = parser.parse_args(joined_pixel_values(list(sys.argv[1:] if argv is None else argv)))
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
                         format="%(levelname)s: %(message)s")

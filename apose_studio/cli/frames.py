@@ -130,8 +130,10 @@ def cmd_estimate(args) -> int:
         frame = replace(frame, depth=depth)
     truth = None if request.box or request.point else region_truth_prompt(frame, ctx, request.source or "gt")
     if truth is not None:  # a region on a rendered frame: the box round what is seen of it, from the truth
-        request = replace(request, box=truth[1])
+        request = replace(request, box=truth[1], source=None)  # the truth's box is the prompt (not --mask's too)
     mask, source = find_mask(frame, request, asm, args.input[0], region=ctx.base.region is not None)
+    if truth is not None:
+        source = "box round the region from the ground truth"
     est = run_registration(replace(View.of(frame, mask), box=request.box), source, ctx, params, args.orientation_prior, t0,
                            time.perf_counter() - t1, trace_iterations=True, t_load=t1 - t0)
     est.depth_shift_px = shift
@@ -157,6 +159,8 @@ def cmd_estimate(args) -> int:
         print(json.dumps(doc, indent=1))
         if args.mcap:
             print(f"wrote {args.mcap}", file=sys.stderr)
+        if not r.ok:  # the reason is in the JSON; said in words too, for whoever reads the terminal
+            print(f"estimation failed: {r.reason}", file=sys.stderr)
         return 0 if r.ok else 1
     print(f"step {args.step}, frame {args.frame}: place {ctx.part.id} on [{', '.join(ctx.view.base)}]  (preset {params.preset})")
     print(f"mask: {source}, {int(mask.sum())} pixels ({est.timings['mask'] * 1000:.0f} ms; --json: mask.prompt_pixels)")

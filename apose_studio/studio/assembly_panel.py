@@ -68,7 +68,7 @@ class AssemblyPanel:
             self.upload = gui.add_upload_button("Upload mesh", hint=f"up to {MAX_UPLOAD_BYTES // 2**20} MB; saved beside the assembly file")
             self.upload.on_upload(self.app.guarded("Upload")(self.on_upload))
             self.f_part = gui.add_dropdown("Part", ("—",))
-            self.f_part.on_update(self.app.guarded("Part")(lambda c: (self.show_part_colour(), self.region_gizmo.place())))
+            self.f_part.on_update(self.app.guarded("Part")(self.on_part_chosen))
             self.f_color = gui.add_rgb("Colour", (230, 158, 0))
             self.f_color.on_update(self.app.guarded("Colour")(self.on_color))
             self.f_roi = gui.add_dropdown("Region (roi)", ROI_CHOICES, hint="as a base, only this region of the part is "
@@ -297,12 +297,20 @@ class AssemblyPanel:
             raise
         self.app.notify(client, "Part uploaded", f"{pid} ← {name} (saved as {target})")
 
+    def on_part_chosen(self, client) -> None:
+        """Part chosen: its colour and region in the fields; with Drag region ticked, its handles (a part without a
+        region is offered a box to start from)."""
+        self.show_part_colour()
+        self.region_gizmo.offer(client)
+        self.region_gizmo.place()
+
     def show_part_colour(self) -> None:
         """The Colour and Region fields show the selected part's."""
         if self.f_part.value not in self.app.asm.parts:
             return
         roi = self.app.asm.parts[self.f_part.value].roi
-        if roi is None:
+        if roi is None:  # no region: the fields hold the box Drag region would start from, not another part's
+            self.show_region_fields("box", *self.region_gizmo.offered_box(self.f_part.value))
             self.f_roi.value = ROI_CHOICES[0]
         else:
             self.show_region_fields(roi.kind, roi.center, roi.size if roi.kind == "box" else (2.0 * roi.radius,) * 3)
@@ -331,13 +339,14 @@ class AssemblyPanel:
         for f in (self.f_roi_centre, self.f_roi_size):
             f.on_update(self.on_region_typed)
 
-    def show_region_fields(self, kind: str, centre, size) -> None:
+    def show_region_fields(self, kind: str, centre, size, fresh: bool = False) -> None:
         """The Region fields showing a region (kind, centre and size in metres; a sphere's size is its diameter
-        three times); not set on the part until Set region (or a drag's end)."""
+        three times); not set on the part until Set region (or a drag's end). `fresh`: recreated even when they
+        show these values (a drag wrote into them as it went)."""
         self.f_roi.value = kind
         c = tuple(round(float(v) * 1000.0, 3) for v in centre)
         s = tuple(round(float(v) * 1000.0, 3) for v in size)
-        if tuple(self.f_roi_centre.value) != c or tuple(self.f_roi_size.value) != s:
+        if fresh or tuple(self.f_roi_centre.value) != c or tuple(self.f_roi_size.value) != s:
             self.make_region_fields(c, s)
 
     def on_region_typed(self, event) -> None:

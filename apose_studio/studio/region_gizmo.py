@@ -21,6 +21,16 @@ WHOLE = "whole part"  # the Region (roi) dropdown's choice of no region
 EDGE_COLOUR = inspection.AMBER  # the region as dragged, beside the cyan of the region set
 
 
+def sphere_segments(centre: np.ndarray, radius: float, n: int = 48) -> np.ndarray:
+    """(3n, 2, 3) line segments of a sphere's three great circles (about x, y and z) round `centre`."""
+    t = np.linspace(0.0, 2 * np.pi, n + 1)
+    c, s = np.cos(t), np.sin(t)
+    z = np.zeros_like(t)
+    rings = [np.stack(a, axis=1) for a in ((c, s, z), (z, c, s), (s, z, c))]
+    pts = [np.asarray(centre, float) + radius * r for r in rings]
+    return np.concatenate([np.stack([p[:-1], p[1:]], axis=1) for p in pts])
+
+
 class RegionGizmo:
     """The *Drag region* checkbox of the Parts folder and the handles it shows. `files` is the Parts folder's
     panel (assembly_panel.AssemblyPanel): its Part, Region (roi) and Region fields and its *Set region*."""
@@ -39,14 +49,29 @@ class RegionGizmo:
         self.app.events.on(Event.MESHES_CHANGED, lambda pid: self.place())
 
     def on_toggle(self, client) -> None:
-        """Ticked on a part without a region: a box round the middle of the part to start from (not set yet)."""
-        if self.f_drag.value and self.files.f_part.value in self.app.asm.parts and self.files.f_roi.value == WHOLE:
-            m = self.app.model(self.files.f_part.value)
-            lo, hi = np.asarray(m.mesh.bounds, float)
-            self.files.show_region_fields("box", (lo + hi) / 2, np.maximum((hi - lo) / 4, 2 * SNAP_M))
-            self.app.notify(client, "Drag region", "a box round the middle of the part: drag its handles (centre, "
-                            "corner); letting go sets it as the part's region")
+        self.offer(client)
         self.place()
+
+    def offer(self, client) -> None:
+        """Drag region ticked on a part without a region: its fields show a box to start from (offered_box, not
+        set yet), said so."""
+        pid = self.files.f_part.value
+        if not (self.f_drag.value and pid in self.app.asm.parts and self.app.asm.parts[pid].roi is None):
+            return
+        self.files.show_region_fields("box", *self.offered_box(pid))
+        self.app.notify(client, "Drag region", f"{pid}: a box round the part's top half to start from; drag its "
+                        "handles (centre: moves it, corner: resizes it), letting go sets it as the part's region")
+
+    def offered_box(self, pid: str) -> tuple[np.ndarray, np.ndarray]:
+        """(centre, size), metres, part frame: a box round the part's top half, its full width and depth and the
+        upper half of its height, a snap past its faces: it holds the part's top faces whatever its shape (a box
+        round the middle alone can lie wholly inside the solid, and be refused as it stands)."""
+        lo, hi = np.asarray(self.app.model(pid).mesh.bounds, float)
+        size = hi - lo + 2 * SNAP_M
+        size[2] = (hi[2] - lo[2]) / 2 + 2 * SNAP_M
+        centre = (lo + hi) / 2
+        centre[2] = hi[2] - (hi[2] - lo[2]) / 4
+        return np.round(centre / SNAP_M) * SNAP_M, np.maximum(np.round(size / SNAP_M) * SNAP_M, 2 * SNAP_M)
 
     def wanted(self) -> tuple[str, np.ndarray] | None:
         """(the part, its T_world_part in the preview) when the handles are to be shown, else None."""
@@ -72,7 +97,8 @@ class RegionGizmo:
         if frame is None:
             frame = self.app.node(ROOT, scene.add_frame(ROOT, show_axes=False))
         frame.position, frame.wxyz = pos(T), wxyz(T)
-        scale = max(0.8 * float(np.max(np.abs(size))), 0.05 * self.app.model(pid).diameter)
+        d = self.app.model(pid).diameter  # the arrows: about the region's size, never lost on the part or filling the view
+        scale = float(np.clip(0.6 * np.max(np.abs(size)), 0.06 * d, 0.2 * d))
         self._syncing = True
         try:
             for which, where in (("centre", self._centre), ("corner", self._corner)):
@@ -86,6 +112,10 @@ class RegionGizmo:
                     g.on_update(lambda e, which=which: self.app.guarded("Drag region")(
                         lambda c: self.on_handle(e, which))(e))
                 g.position = tuple(where)
+                name = f"{ROOT}/{which}/label"  # which handle is which
+                if name not in self.app.nodes:
+                    self.app.node(name, scene.add_label(name, f"region {which}", position=(0.0, 0.0, 0.0),
+                                                        anchor="top-left", font_screen_scale=0.8))
         finally:
             self._syncing = False
         self.draw_outline(kind)
@@ -106,9 +136,11 @@ class RegionGizmo:
         from apose_studio.assembly.roi import Roi
 
         size = authoring.roi_from_handles(kind, self._centre, self._corner, 2 * SNAP_M)
-        roi = Roi("box", tuple(self._centre), size=tuple(size)) if kind == "box" else \
-            Roi("sphere", tuple(self._centre), radius=size[0] / 2)
-        seg = inspection.box_segments(roi.corners(), np.eye(4)).astype(np.float32)
+        if kind == "box":
+            seg = inspection.box_segments(Roi("box", tuple(self._centre), size=tuple(size)).corners(), np.eye(4))
+        else:
+            seg = sphere_segments(self._centre, size[0] / 2)
+        seg = seg.astype(np.float32)
         name = f"{ROOT}/outline"
         old = self.app.nodes.pop(name, None)
         if old is not None:
@@ -134,12 +166,20 @@ class RegionGizmo:
         else:
             self._corner = p
         self.draw_outline(kind)
-        if event.phase != "end":
+        size = authoring.roi_from_handles(kind, self._centre, self._corner, 2 * SNAP_M)
+        if event.phase != "end":  # the fields follow the drag (written into; recreated once it ends)
+            self._syncing = True
+            try:
+                self.files.f_roi_centre.value = tuple(round(float(v) * 1000.0, 3) for v in self._centre)
+                self.files.f_roi_size.value = tuple(round(float(v) * 1000.0, 3) for v in size)
+            finally:
+                self._syncing = False
             return
         self._from = None
-        size = authoring.roi_from_handles(kind, self._centre, self._corner, 2 * SNAP_M)
-        self.files.show_region_fields(kind, self._centre, size)
+        self.files.show_region_fields(kind, self._centre, size, fresh=True)
         try:
             self.files.on_roi(event.client)
-        except AposeError as e:
-            raise AposeError(f"{e} (the Region fields keep what was dragged: drag again, or Undo)") from None
+        except AposeError as e:  # the region stays as it was: its fields and handles back there
+            self.files.show_part_colour()
+            self.place()
+            raise AposeError(f"not set: {e}; the region is as it was") from None

@@ -73,6 +73,22 @@ def test_a_refusal_asked_for_json_is_json_too(tiny_dir, tmp_path):
         assert doc["ok"] is False and doc["refused"] is True and doc["exit_code"] == 2
         assert r.stderr.startswith("error: ") and doc["reason"].splitlines()[0] == r.stderr.splitlines()[0][len("error: "):]
     assert run("show", tiny_dir / "assembly.yaml").stdout == ""
+    for args, says in ((("estimate", tmp_path, "--json"), "the following arguments are required: --step"),  # usage errors
+                       (("estimate", tmp_path, "--step", "abc", "--json"), "invalid int value: 'abc'"),
+                       (("show", tiny_dir / "assembly.yaml", "--json", "--bogus"), "unrecognized arguments: --bogus")):
+        r = run(*args)
+        doc = json.loads(r.stdout)
+        assert r.returncode == 2 and doc["refused"] and says in doc["reason"] and says in r.stderr, (r.stdout, r.stderr)
+    assert run("estimate", tmp_path, "--step", "abc").stdout == ""
+
+
+def test_a_failed_estimate_in_json_says_why_on_stderr_too(engine_dataset):
+    """Exit 1 (the estimate failed: here a seat, a region of the head, given the depth mask of everything) with
+    --json: the reason in the JSON and, in words, on stderr (it had been silent there: a script's log showed
+    nothing)."""
+    r = run("estimate", engine_dataset, "--step", "1", "--frame", "0", "--mask", "depth", "--json")
+    doc = json.loads(r.stdout)
+    assert r.returncode == 1 and not doc["ok"] and r.stderr == f"estimation failed: {doc['reason']}\n", r.stderr
 
 
 def test_demo_runs_on_the_sample(tmp_path):

@@ -242,6 +242,10 @@ def test_estimate_and_eval_on_a_rendered_region_take_the_box_round_it_from_the_t
     assert r.returncode == 0, r.stderr
     doc = json.loads(r.stdout)
     assert doc["ok"] and doc["confident"] and doc["mask"]["source"].startswith("box"), doc.get("reason")
+    assert doc["mask"]["prompt_source"] == "box round the region from the ground truth"
+    for mask in ("gt", "box"):  # asked for by name (a newcomer's --mask gt had been refused: 'and --box/--point')
+        r = run("estimate", engine.root, "--step", 1, "--frame", 0, "--mask", mask)
+        assert r.returncode == 0 and "mask: box round the region from the ground truth" in r.stdout, r.stdout + r.stderr
     r = run("eval", engine.root, "--mask", "box", "--steps", "1", "--json", tmp_path / "eval.json")
     assert r.returncode == 0, r.stderr
     step = json.loads((tmp_path / "eval.json").read_text())["steps"][0]

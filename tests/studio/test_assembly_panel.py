@@ -291,12 +291,14 @@ class _Drag:
         self.target, self.phase, self.client = handle, phase, None
 
 
-def drag_handle(st, which: str, by_mm) -> None:
-    """Drag handle `which` of Drag region by `by_mm` (part frame) in five moves, as the page reports a drag."""
+def drag_handle(st, which: str, by_mm, stop_before_end: bool = False, phases=("start", "update", "update", "update", "end")):
+    """Drag handle `which` of Drag region by `by_mm` (part frame) in len(phases) moves, as the page reports a drag
+    (`stop_before_end`: the mouse still held after the fourth)."""
     h = st.nodes[f"/assembly/region_edit/{which}"]
     start = np.array(h.position, float)  # a copy: the handle's own array changes as it moves
-    for k, phase in enumerate(("start", "update", "update", "update", "end")):
-        h.position = tuple(start + np.asarray(by_mm, float) / 1000.0 * (k + 1) / 5)
+    phases = phases[:-1] if stop_before_end else phases
+    for k, phase in enumerate(phases):
+        h.position = tuple(start + np.asarray(by_mm, float) / 1000.0 * (k + 1) / len(phases))
         act(st, lambda c: st.files.region_gizmo.on_handle(_Drag(h, phase), which))  # guarded, as the page's drag
 
 
@@ -312,14 +314,18 @@ def test_a_region_dragged_by_its_handles_is_set_when_let_go_and_undone(studio, g
     st.files.region_gizmo.f_drag.value = True
     assert st.files.f_roi.value == "box" and "/assembly/region_edit/corner" in st.nodes
     assert "/assembly/gizmo" not in st.nodes  # steps aside: one set of arrows on show
-    assert np.allclose(np.asarray(st.files.f_roi_size.value) / 1000, (hi - lo) / 4, atol=6e-4)
+    size = np.asarray(st.files.f_roi_size.value) / 1000  # offered: the part's top half, a snap past its faces
+    assert np.allclose(size[:2], (hi - lo)[:2] + 0.001, atol=6e-4) and np.isclose(size[2], (hi - lo)[2] / 2 + 0.001, atol=6e-4)
     assert st.asm.parts["casing"].roi is None  # offered, not set
+    assert any("top half" in n[1] for n in st.notes)
     corner0 = np.asarray(st.nodes["/assembly/region_edit/corner"].position)
     assert np.allclose(corner0, np.asarray(st.files.f_roi_centre.value) / 1000 + np.asarray(st.files.f_roi_size.value) / 2000)
     size0 = np.asarray(st.files.f_roi_size.value, float)
     drafts = []
     st.events.on(Event.DRAFT_CHANGED, lambda: drafts.append(st.asm))
-    drag_handle(st, "corner", (6.0, 0.0, -2.0))
+    drag_handle(st, "corner", (6.0, 0.0, -2.0), stop_before_end=True)
+    assert drafts == [] and np.allclose(st.files.f_roi_size.value, size0 + (12.0, 0.0, -4.0))  # the fields follow
+    drag_handle(st, "corner", (0.0, 0.0, 0.0), phases=("end",))  # let go where it is
     assert len(drafts) == 1 and errors(st) == []
     roi = st.asm.parts["casing"].roi
     assert roi.kind == "box" and np.allclose(np.asarray(roi.size) * 1000, size0 + (12.0, 0.0, -4.0), atol=1e-6)
@@ -335,8 +341,15 @@ def test_a_region_dragged_by_its_handles_is_set_when_let_go_and_undone(studio, g
     assert st.asm.parts["casing"].roi == roi
     assert np.allclose(np.asarray(st.nodes["/assembly/region_edit/centre"].position), roi.center)  # the handles follow Undo
     drag_handle(st, "centre", (1000.0, 0.0, 0.0))  # a metre off the part
-    assert any("roi holds none of the mesh" in n[1] and "drag again, or Undo" in n[1] for n in errors(st))
-    assert st.asm.parts["casing"].roi == roi
+    assert any(n[1].startswith("not set: ") and "roi holds none of the mesh" in n[1] and "as it was" in n[1]
+               for n in errors(st))
+    assert st.asm.parts["casing"].roi == roi  # and the fields and handles are back on it
+    assert np.allclose(np.asarray(st.files.f_roi_centre.value) / 1000, roi.center)
+    assert np.allclose(np.asarray(st.nodes["/assembly/region_edit/centre"].position), roi.center)
+    st.files.f_part.value = "pinion"  # another part, no region: offered its own box, not the casing's values
+    lo_p, hi_p = np.asarray(st.model("pinion").mesh.bounds)
+    assert np.allclose(np.asarray(st.files.f_roi_centre.value)[:2] / 1000, ((lo_p + hi_p) / 2)[:2], atol=6e-4)
+    assert "/assembly/region_edit/corner" in st.nodes
     st.files.region_gizmo.f_drag.value = False
     assert not [n for n in st.nodes if n.startswith("/assembly/region_edit")] and "/assembly/gizmo" in st.nodes
 
