@@ -303,6 +303,7 @@ class AssemblyPanel:
         self.show_part_colour()
         self.region_gizmo.offer(client)
         self.region_gizmo.place()
+        self.region_gizmo.frame_cameras()
 
     def show_part_colour(self) -> None:
         """The Colour and Region fields show the selected part's."""

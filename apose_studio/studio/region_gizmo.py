@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from apose_studio.errors import AposeError
+from apose_studio.geometry import se3
 from apose_studio.studio import authoring, inspection
 from apose_studio.studio.state import Event
 from apose_studio.studio.widgets import pos, wxyz
@@ -51,6 +52,18 @@ class RegionGizmo:
     def on_toggle(self, client) -> None:
         self.offer(client)
         self.place()
+        self.frame_cameras()
+
+    def frame_cameras(self) -> None:
+        """The cameras on the region being dragged, its handles within reach (on a 324 mm head a seat's arrows had
+        been a few pixels long)."""
+        want = self.wanted()
+        if want is None or self._centre is None or self.app.current_view != "Assembly":
+            return
+        pid, T = want
+        size = np.asarray(self.files.f_roi_size.value, float) / 1000.0
+        radius = max(float(np.linalg.norm(size)) / 2, 0.15 * self.app.model(pid).diameter)
+        self.app.look_at(se3.transform_points(T, self._centre[None])[0], 2.0 * radius, np.array([1.0, -1.0, 0.75]))
 
     def offer(self, client) -> None:
         """Drag region ticked on a part without a region: its fields show a box to start from (offered_box, not

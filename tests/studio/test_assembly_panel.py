@@ -318,6 +318,8 @@ def test_a_region_dragged_by_its_handles_is_set_when_let_go_and_undone(studio, g
     assert np.allclose(size[:2], (hi - lo)[:2] + 0.001, atol=6e-4) and np.isclose(size[2], (hi - lo)[2] / 2 + 0.001, atol=6e-4)
     assert st.asm.parts["casing"].roi is None  # offered, not set
     assert any("top half" in n[1] for n in st.notes)
+    centre_world = se3.transform_points(st.state.preview["casing"], np.asarray(st.files.f_roi_centre.value)[None] / 1000)[0]
+    assert np.allclose(st.server.initial_camera.look_at, centre_world, atol=1e-6)  # the view on the region to drag
     corner0 = np.asarray(st.nodes["/assembly/region_edit/corner"].position)
     assert np.allclose(corner0, np.asarray(st.files.f_roi_centre.value) / 1000 + np.asarray(st.files.f_roi_size.value) / 2000)
     size0 = np.asarray(st.files.f_roi_size.value, float)
