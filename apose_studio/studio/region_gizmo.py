@@ -125,10 +125,6 @@ class RegionGizmo:
                     g.on_update(lambda e, which=which: self.app.guarded("Drag region")(
                         lambda c: self.on_handle(e, which))(e))
                 g.position = tuple(where)
-                name = f"{ROOT}/{which}/label"  # which handle is which
-                if name not in self.app.nodes:
-                    self.app.node(name, scene.add_label(name, f"region {which}", position=(0.0, 0.0, 0.0),
-                                                        anchor="top-left", font_screen_scale=0.8))
         finally:
             self._syncing = False
         self.draw_outline(kind)
@@ -154,6 +150,13 @@ class RegionGizmo:
         else:
             seg = sphere_segments(self._centre, size[0] / 2)
         seg = seg.astype(np.float32)
+        for which, where in (("centre", self._centre), ("corner", self._corner)):  # which handle is which
+            name = f"{ROOT}/label_{which}"
+            label = self.app.nodes.get(name)
+            if label is None:
+                label = self.app.node(name, self.app.server.scene.add_label(
+                    name, f"region {which}", position=(0.0, 0.0, 0.0), anchor="top-left", font_screen_scale=0.8))
+            label.position = tuple(where)
         name = f"{ROOT}/outline"
         old = self.app.nodes.pop(name, None)
         if old is not None:
