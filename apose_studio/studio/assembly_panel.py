@@ -414,9 +414,10 @@ class AssemblyPanel:
                 continue
             size = " × ".join(f"{v * 1000:.1f}" for v in m.size)
             if m.region is not None:  # what registers when the part is a base: its region, drawn cyan
-                size += "<br><span style='color:#08a'>region: " + " × ".join(f"{v * 1000:.1f}" for v in m.region.extents) + "</span>"
+                size += ("<br><span style='color:#08a;white-space:nowrap' title='the span of the surface in the region'>"
+                         "region: " + " × ".join(f"{v * 1000:.1f}" for v in m.region.extents) + "</span>")
             warn = f"<br><span style='color:#c60'>⚠ {esc(m.unit_warning)}</span>" if m.unit_warning else ""
-            rows.append(f"<tr><td><span style='display:inline-block;width:10px;height:10px;background:{hex_colour(m.color)};"
+            rows.append(f"<tr><td style='white-space:nowrap'><span style='display:inline-block;width:10px;height:10px;background:{hex_colour(m.color)};"
                         f"border-radius:2px'></span> {esc(pid)}</td><td>{esc(part.mesh.name)}</td><td>{esc(self.app.asm.units)}</td>"
                         f"<td>{size}{warn}</td></tr>")
         body = "".join(rows) or "<tr><td colspan=4><i>no parts yet: add a mesh path, a folder, or upload</i></td></tr>"
