@@ -301,6 +301,7 @@ class AssemblyPanel:
         """Part chosen: its colour and region in the fields; with Drag region ticked, its handles (a part without a
         region is offered a box to start from)."""
         self.show_part_colour()
+        self.region_gizmo.chosen()
         self.region_gizmo.offer(client)
         self.region_gizmo.place()
         self.region_gizmo.frame_cameras()

@@ -93,12 +93,15 @@ def set_part_roi(asm: Assembly, part_id: str, roi) -> Assembly:
     return replace(asm, parts=parts)
 
 
-def roi_handles(kind: str, centre: np.ndarray, size: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Where the 3D view's two region handles stand (part frame): the centre, and a box's +x+y+z corner or a
-    sphere's point on its surface along the part's x (`size`: a box's full sides; a sphere's diameter first)."""
+def roi_handles(kind: str, centre: np.ndarray, size: np.ndarray,
+                side: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Where the 3D view's two region handles stand (part frame): the centre, and a box's corner (the +x+y+z one,
+    or the one `side`'s signs pick: where the last drag left it) or a sphere's point on its surface along the
+    part's x (or -x) (`size`: a box's full sides; a sphere's diameter first)."""
     centre, size = np.asarray(centre, float), np.asarray(size, float)
+    signs = np.ones(3) if side is None else np.where(np.asarray(side, float) < 0, -1.0, 1.0)
     reach = np.abs(size) / 2 if kind == "box" else np.array([abs(size[0]) / 2, 0.0, 0.0])
-    return centre, centre + reach
+    return centre, centre + signs * reach
 
 
 def roi_from_handles(kind: str, centre: np.ndarray, corner: np.ndarray, least: float) -> np.ndarray:

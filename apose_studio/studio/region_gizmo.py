@@ -41,6 +41,7 @@ class RegionGizmo:
         self._syncing = False
         self._centre = self._corner = None  # the handles' places (part frame, metres) while shown
         self._from = None  # where the dragged handle stood when its drag started
+        self._side = None  # which corner the last drag left the corner handle at (signs from the centre)
 
     def build(self, gui) -> None:
         self.f_drag = gui.add_checkbox("Drag region", False, hint="handles on the chosen part: its region's centre "
@@ -64,6 +65,10 @@ class RegionGizmo:
         size = np.asarray(self.files.f_roi_size.value, float) / 1000.0
         radius = max(float(np.linalg.norm(size)) / 2, 0.15 * self.app.model(pid).diameter)
         self.app.look_at(se3.transform_points(T, self._centre[None])[0], 2.0 * radius, np.array([1.0, -1.0, 0.75]))
+
+    def chosen(self) -> None:
+        """Another part chosen: its corner handle starts on the +x+y+z corner."""
+        self._side = None
 
     def offer(self, client) -> None:
         """Drag region ticked on a part without a region: its fields show a box to start from (offered_box, not
@@ -104,7 +109,7 @@ class RegionGizmo:
         kind = self.files.f_roi.value
         centre = np.asarray(self.files.f_roi_centre.value, float) / 1000.0
         size = np.asarray(self.files.f_roi_size.value, float) / 1000.0
-        self._centre, self._corner = authoring.roi_handles(kind, centre, size)
+        self._centre, self._corner = authoring.roi_handles(kind, centre, size, self._side)
         scene = self.app.server.scene
         frame = self.app.nodes.get(ROOT)
         if frame is None:
@@ -192,6 +197,7 @@ class RegionGizmo:
                 self._syncing = False
             return
         self._from = None
+        self._side = self._corner - self._centre  # the corner stays where it was let go (dragged past the centre too)
         self.files.show_region_fields(kind, self._centre, size, fresh=True)
         try:
             self.files.on_roi(event.client)

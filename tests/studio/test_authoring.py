@@ -106,3 +106,11 @@ def test_region_handles_stand_at_the_centre_and_a_corner_and_give_the_size_back(
     c, corner = authoring.roi_handles("sphere", (0.0, 0.0, 0.0), (0.02, 0.02, 0.02))
     assert np.allclose(corner, (0.01, 0.0, 0.0))
     assert np.allclose(authoring.roi_from_handles("sphere", c, corner + (0, 0.01, 0), 0.001), (2 * np.sqrt(2e-4),) * 3)
+
+
+def test_the_corner_handle_stays_on_the_side_it_was_dragged_to():
+    """A corner dragged past the centre (the box mirrored): the handle is placed back on that side, not on +x+y+z."""
+    c, corner = authoring.roi_handles("box", (0.0, 0.0, 0.0), (0.04, 0.02, 0.006), side=(-0.01, 0.003, -0.001))
+    assert np.allclose(corner, (-0.02, 0.01, -0.003))
+    _, point = authoring.roi_handles("sphere", (0.0, 0.0, 0.0), (0.02, 0.02, 0.02), side=(-1.0, 0.0, 0.0))
+    assert np.allclose(point, (-0.01, 0.0, 0.0))
