@@ -75,17 +75,20 @@ class Limits:
 LIMITS = Limits()
 
 
-def check_path_text(path: str | os.PathLike, what: str = "path") -> Path:
+def check_path_text(path: str | os.PathLike, what: str = "path", value: bool = False) -> Path:
     """`path` as a Path, or an AposeError for a NUL byte, a control or invisible character (a newline,
-    ESC, a bidi override: a name that would forge or disguise output), or an over-long name."""
+    ESC, a bidi override: a name that would forge or disguise output), or an over-long name. `value`: the text
+    is a value, not a path (a box, a parameter): the same checks, said of a value."""
     text = os.fspath(path)
     if "\x00" in text:
-        raise AposeError(f"{what} {text[:60]!r}...: contains a NUL byte; type the path again")
+        raise AposeError(f"{what} {text[:60]!r}...: contains a NUL byte; type the {'value' if value else 'path'} again")
     bad = unsafe_char(text)
     if bad is not None:
-        raise AposeError(f"{what} {escaped(text[:120])}: holds the control or "
-                         f"invisible character {bad}; rename the file (or folder) without it")
+        fix = "type it again without it" if value else "rename the file (or folder) without it"
+        raise AposeError(f"{what} {escaped(text[:120])}: holds the control or invisible character {bad}; {fix}")
     if len(text) > LIMITS.path_chars:
+        if value:
+            raise AposeError(f"{what} of {len(text)} characters: longer than the {LIMITS.path_chars} a value may have")
         raise AposeError(f"{what} of {len(text)} characters: longer than the {LIMITS.path_chars} a path may have; "
                          "use a shorter path")
     return Path(text)

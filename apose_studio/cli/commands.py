@@ -246,13 +246,32 @@ def _positive_int(text: str) -> int:
     return n
 
 
-def _check_argument_text(args) -> None:
-    """Every text argument without NUL bytes and within the system's path length (a path named on the
-    command line reaches open() only after this)."""
+VALUE_ARGUMENTS = {"box", "point", "pick_box", "pick_point", "param", "obj_map", "grasp", "tf_prefix", "preset",
+                   "instances", "upright", "host", "token", "serial", "size", "device", "noise", "base_pose", "clutter",
+                   "trajectory", "command"}  # text arguments that are values, not paths (said so in their refusals)
+
+
+def _argument_labels(parser: argparse.ArgumentParser, args) -> dict[str, str]:
+    """dest -> how the command line spells it (`--box`; a positional one by its name, `INPUT`) for the command run."""
+    labels = {}
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            sub = action.choices.get(getattr(args, "command", None))
+            for a in (sub._actions if sub is not None else []):
+                labels[a.dest] = a.option_strings[-1] if a.option_strings else a.dest.upper()
+        elif action.option_strings:
+            labels.setdefault(action.dest, action.option_strings[-1])
+    return labels
+
+
+def _check_argument_text(args, labels: dict[str, str] | None = None) -> None:
+    """Every text argument without NUL bytes and control characters and within the system's path length (a path
+    named on the command line reaches open() only after this); each named as the command line spells it."""
+    labels = labels or {}
     for name, value in vars(args).items():
         for v in value if isinstance(value, list) else [value]:
             if isinstance(v, str):
-                check_path_text(v, f"--{name.replace('_', '-')}")
+                check_path_text(v, labels.get(name, f"--{name.replace('_', '-')}"), value=name in VALUE_ARGUMENTS)
 
 
 def _count(lo: int, hi: int):
@@ -353,7 +372,8 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message: str):
         self.print_usage(sys.stderr)
         argv = sys.argv[1:] if _ARGV[0] is None else _ARGV[0]
-        wants_json = argv is not None and "--json" in argv and argv[0] in ("show", "estimate")
+        wants_json = (any(a == "--json" or a.startswith("--json=") for a in argv)  # anywhere: before the command too
+                      and any(a in ("show", "estimate") for a in argv))
         raise SystemExit(refused(argparse.Namespace(json=wants_json), f"{self.prog}: {message}", 2))
 
 
@@ -647,7 +667,7 @@ def _main(argv=None) -> int:
         parser.print_help()
         return 2
     try:
-        _check_argument_text(args)
+        _check_argument_text(args, _argument_labels(parser, args))
         return args.func(args)
     except AposeError as e:  # bad input: the message names the thing and the fix
         return refused(args, "\n".join(shorten_values(line) for line in str(e).splitlines()), 2)

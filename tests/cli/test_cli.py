@@ -80,6 +80,22 @@ def test_a_refusal_asked_for_json_is_json_too(tiny_dir, tmp_path):
         doc = json.loads(r.stdout)
         assert r.returncode == 2 and doc["refused"] and says in doc["reason"] and says in r.stderr, (r.stdout, r.stderr)
     assert run("estimate", tmp_path, "--step", "abc").stdout == ""
+    # --json before the command, or spelt --json=1 (an outsider's probes), still a JSON refusal
+    for args in (("--json", "show", tiny_dir / "assembly.yaml"), ("show", "--json=1", tiny_dir / "assembly.yaml")):
+        r = run(*args)
+        assert r.returncode == 2 and json.loads(r.stdout)["refused"], (r.stdout, r.stderr)
+
+
+def test_a_refused_argument_is_named_as_typed_and_said_as_a_value_or_a_path(tiny_dir, tmp_path):
+    """A 5,000-digit --box is 'longer than the 4096 a value may have' (it had been told to use a shorter path); a
+    positional path with ESC in it is named INPUT / ASSEMBLY, as the usage names it (it had been '--input')."""
+    r = run("estimate", tmp_path, "--step", "1", "--box", "1" * 5000, "--json")
+    assert r.returncode == 2 and "--box of 5000 characters: longer than the 4096 a value may have" in r.stderr, r.stderr
+    r = run("estimate", str(tmp_path / "a\x1bb"), "--step", "1")
+    assert r.returncode == 2 and r.stderr.startswith("error: INPUT ") and "rename the file" in r.stderr, r.stderr
+    r = run("estimate", tmp_path, "--step", "1", "--param", "seed=\x1b1")
+    assert r.returncode == 2 and "--param" in r.stderr and "type it again without it" in r.stderr, r.stderr
+    assert "\x1b" not in r.stdout + r.stderr  # shown escaped, never raw
 
 
 def test_a_failed_estimate_in_json_says_why_on_stderr_too(engine_dataset):
