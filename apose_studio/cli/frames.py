@@ -131,6 +131,10 @@ def cmd_estimate(args) -> int:
     truth = None if request.box or request.point else region_truth_prompt(frame, ctx, request.source or "gt")
     if truth is not None:  # a region on a rendered frame: the box round what is seen of it, from the truth
         request = replace(request, box=truth[1], source=None)  # the truth's box is the prompt (not --mask's too)
+    elif ctx.base.region is not None and request.box is None and request.point is None:  # bad input (exit 2); a
+        # click is refused by the prompt itself
+        raise AposeError(f"{ctx.view.base[0]} is a region of a larger part (its roi): its target is what a box drawn "
+                         "round it holds; give --box X0,Y0,X1,Y1 round it, not a mask of the whole part or a click")
     mask, source = find_mask(frame, request, asm, args.input[0], region=ctx.base.region is not None)
     if truth is not None:
         source = "box round the region from the ground truth"

@@ -98,13 +98,21 @@ def test_a_refused_argument_is_named_as_typed_and_said_as_a_value_or_a_path(tiny
     assert "\x1b" not in r.stdout + r.stderr  # shown escaped, never raw
 
 
-def test_a_failed_estimate_in_json_says_why_on_stderr_too(engine_dataset):
-    """Exit 1 (the estimate failed: here a seat, a region of the head, given the depth mask of everything) with
-    --json: the reason in the JSON and, in words, on stderr (it had been silent there: a script's log showed
-    nothing)."""
-    r = run("estimate", engine_dataset, "--step", "1", "--frame", "0", "--mask", "depth", "--json")
+def test_a_failed_estimate_in_json_says_why_on_stderr_too(gearbox_dataset, engine_dataset, tmp_path):
+    """Exit 1 (the estimate failed: here a mask of a dozen pixels) with --json: the reason in the JSON and, in
+    words, on stderr (it had been silent there: a script's log showed nothing). A seat (a region of the head) given
+    a mask or a click instead of a box is bad input, refused before any work (exit 2; it had run and failed)."""
+    import cv2
+
+    mask = np.zeros((480, 640), np.uint8)
+    mask[240:243, 320:324] = 255
+    cv2.imwrite(str(tmp_path / "tiny.png"), mask)
+    r = run("estimate", gearbox_dataset, "--step", "1", "--frame", "0", "--mask", tmp_path / "tiny.png", "--json")
     doc = json.loads(r.stdout)
-    assert r.returncode == 1 and not doc["ok"] and r.stderr == f"estimation failed: {doc['reason']}\n", r.stderr
+    assert r.returncode == 1 and not doc["ok"] and r.stderr == f"estimation failed: {doc['reason']}\n", (r.stdout, r.stderr)
+    for how in (("--mask", "depth"), ("--point", "320,240")):
+        r = run("estimate", engine_dataset, "--step", "1", "--frame", "0", *how, "--json")
+        assert r.returncode == 2 and json.loads(r.stdout)["refused"] and "region of a larger part" in r.stderr, (how, r.stderr)
 
 
 def test_demo_runs_on_the_sample(tmp_path):
