@@ -526,11 +526,11 @@ def estimate_region_instances(frame: Frame, ctx: StepContext, params: Params,
                               orientation_prior: bool = False) -> list[Instance]:
     """Every place of a region on its part in `frame` without a prompt (the eight seats of an engine head for step 1's
     seat): the part found whole first (estimate_instances with its whole mesh as the base, the largest depth groups
-    first; the first confident instance, else the best fitting), then the region at its own place and at each look-alike (Region.twins), each refined from
-    where the part's pose puts it (refined_at), or searched for in the box round what of it is the part's first
-    surface there where that fails. Each keeps its own
-    confidence, but none is confident where the part's pose is not, or where the region slid off its place
-    (REGION_PLACE_SLACK); places out of view are left out. Left to right in the image by the region's centre."""
+    first; the first confident instance, else the best fitting), then the region at its own place and at each
+    look-alike (Region.twins), each refined from where the part's pose puts it (refined_at), or searched for in the
+    box round what of it is the part's first surface there where that fails. Each keeps its own confidence, but none
+    is confident where the part's pose is not, or where the region slid off its place (REGION_PLACE_SLACK); places
+    out of view are left out. Left to right in the image by the region's centre."""
     body = body_base(ctx)
     whole = SimpleNamespace(view=replace(ctx.view, T_base_part=np.eye(4)), base=body, part=ctx.part)
     # the part's pose only starts each region's own refinement (refined_at): no polish of it (a quarter of the time);

@@ -181,9 +181,7 @@ def estimate_mask(view: View, base: BaseObject, T_base_part: np.ndarray, params:
     def supported(r: RegistrationResult) -> RegistrationResult:
         """ok only when the data supports the pose (the table fitted once per frame, where the search fitted
         it), with the base's exact twins; then, not confident, the second look."""
-        r = judge(replace(r, depth_noise=noise), view, base, plane=pb.table if pb is not None else _FIT)
-        if r.ok and params.use_symmetries:
-            r = replace(r, equivalent=twin_placements(r.T_world_base, r.T_world_part, base.symmetries))
+        r = judged(replace(r, depth_noise=noise), view, base, params, pb.table if pb is not None else _FIT)
         if params.second_look and r.ok and not r.confident:
             r = second_look(r, view, base, T_base_part, params, prior_T_world_base, trace_iterations, part_symmetries)
         return r
@@ -288,7 +286,12 @@ def refit(view: View, base: BaseObject, T_base_part: np.ndarray, params: Params,
         return None
     if r is None:
         return None
-    r = judge(replace(r, depth_noise=observation.noise, problem=pb), view, base, plane=pb.table)
+    return judged(replace(r, depth_noise=observation.noise, problem=pb), view, base, params, pb.table)
+
+
+def judged(r: RegistrationResult, view: View, base: BaseObject, params: Params, plane) -> RegistrationResult:
+    """`judge`'s verdict on a pose, with the base's exact twins of it (`equivalent`) where symmetries are used."""
+    r = judge(r, view, base, plane=plane)
     if r.ok and params.use_symmetries:
         r = replace(r, equivalent=twin_placements(r.T_world_base, r.T_world_part, base.symmetries))
     return r

@@ -77,10 +77,11 @@ def try_prior(pb, prior: np.ndarray, trace_iterations: bool, timings: dict, from
     cand, src_w = score_seen(pb, T, src_w)
     # the depth's word on the model, leaving out what it cannot judge: the mask's outline (mixed
     # pixels) and dropouts; with RealSense-like noise those alone cost 5-7 % of the agreement
-    confirmed = visible_agreement(src_w, T_world_camera, cam, observation.depth, observation.mask,
-                                  agreement_tolerance(voxel, observation.noise), observation.edge)
+    accept = from_pose or (cand.coverage >= PRIOR_ACCEPT and visible_agreement(
+        src_w, T_world_camera, cam, observation.depth, observation.mask, agreement_tolerance(voxel, observation.noise),
+        observation.edge) >= PRIOR_ACCEPT)
     timings["prior"] = time.perf_counter() - t
-    if not from_pose and (cand.coverage < PRIOR_ACCEPT or confirmed < PRIOR_ACCEPT):
+    if not accept:
         return None
     src_b = se3.transform_points(se3.inv(T), src_w)
     stages = trace_stages(T_world_source, "prior", T0, trace, cand, src_b, fine_pts, thr)

@@ -20,7 +20,7 @@ from apose_studio.assembly.roi import ROI_KINDS, Roi, region_mesh
 from apose_studio.errors import AposeError
 from apose_studio.safeio import check_path_text, read_bytes
 from apose_studio.studio import authoring
-from apose_studio.studio.region_gizmo import WHOLE, RegionGizmo
+from apose_studio.studio.region_gizmo import WHOLE, RegionGizmo, mm
 from apose_studio.studio.state import Event, shared
 from apose_studio.studio.widgets import MAX_UPLOAD_BYTES, UNITS, VECTOR_MM, esc, hex_colour, send_download
 from apose_studio.text import unsafe_char
@@ -346,8 +346,7 @@ class AssemblyPanel:
         three times); not set on the part until Set region (or a drag's end). `fresh`: recreated even when they
         show these values (a drag wrote into them as it went)."""
         self.f_roi.value = kind
-        c = tuple(round(float(v) * 1000.0, 3) for v in centre)
-        s = tuple(round(float(v) * 1000.0, 3) for v in size)
+        c, s = mm(centre), mm(size)
         if fresh or tuple(self.f_roi_centre.value) != c or tuple(self.f_roi_size.value) != s:
             self.make_region_fields(c, s)
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from apose_studio.assembly.roi import Roi
 from apose_studio.errors import AposeError
 from apose_studio.geometry import se3
 from apose_studio.studio import authoring, inspection
@@ -20,6 +21,11 @@ ROOT = "/assembly/region_edit"
 SNAP_M = 0.0005  # a handle moves by whole 0.5 mm, as the part gizmo by its default translation snap
 WHOLE = "whole part"  # the Region (roi) dropdown's choice of no region
 EDGE_COLOUR = inspection.AMBER  # the region as dragged, beside the cyan of the region set
+
+
+def mm(values) -> tuple[float, ...]:
+    """Metres as the Region fields show them: millimetres, to the micrometre."""
+    return tuple(round(float(v) * 1000.0, 3) for v in values)
 
 
 def sphere_segments(centre: np.ndarray, radius: float, n: int = 48) -> np.ndarray:
@@ -38,7 +44,6 @@ class RegionGizmo:
 
     def __init__(self, app, files):
         self.app, self.files = app, files
-        self._syncing = False
         self._centre = self._corner = None  # the handles' places (part frame, metres) while shown
         self._from = None  # where the dragged handle stood when its drag started
         self._side = None  # which corner the last drag left the corner handle at (signs from the centre)
@@ -117,21 +122,16 @@ class RegionGizmo:
         frame.position, frame.wxyz = pos(T), wxyz(T)
         d = self.app.model(pid).diameter  # the arrows: about the region's size, never lost on the part or filling the view
         scale = float(np.clip(0.6 * np.max(np.abs(size)), 0.06 * d, 0.2 * d))
-        self._syncing = True
-        try:
-            for which, where in (("centre", self._centre), ("corner", self._corner)):
-                name = f"{ROOT}/{which}"
-                g = self.app.nodes.get(name)
-                if g is None or abs(g._impl.props.scale - scale) > 1e-9:
-                    if g is not None:
-                        self.app.nodes.pop(name).remove()
-                    g = self.app.node(name, scene.add_transform_controls(
-                        name, scale=scale, disable_rotations=True, depth_test=False))
-                    g.on_update(lambda e, which=which: self.app.guarded("Drag region")(
-                        lambda c: self.on_handle(e, which))(e))
-                g.position = tuple(where)
-        finally:
-            self._syncing = False
+        for which, where in (("centre", self._centre), ("corner", self._corner)):  # (set here, no update callback runs)
+            name = f"{ROOT}/{which}"
+            g = self.app.nodes.get(name)
+            if g is None or abs(g._impl.props.scale - scale) > 1e-9:
+                if g is not None:
+                    self.app.nodes.pop(name).remove()
+                g = self.app.node(name, scene.add_transform_controls(
+                    name, scale=scale, disable_rotations=True, depth_test=False))
+                g.on_update(lambda e, which=which: self.app.guarded("Drag region")(lambda c: self.on_handle(e, which))(e))
+            g.position = tuple(where)
         self.draw_outline(kind)
         self.handles_shown(True)
 
@@ -147,8 +147,6 @@ class RegionGizmo:
             self.app.events.emit(Event.REGION_HANDLES)  # the step's gizmo steps aside, or comes back
 
     def draw_outline(self, kind: str) -> None:
-        from apose_studio.assembly.roi import Roi
-
         size = authoring.roi_from_handles(kind, self._centre, self._corner, 2 * SNAP_M)
         if kind == "box":
             seg = inspection.box_segments(Roi("box", tuple(self._centre), size=tuple(size)).corners(), np.eye(4))
@@ -172,7 +170,7 @@ class RegionGizmo:
     def on_handle(self, event, which: str) -> None:
         """A drag of a handle (phase start / update / end): the outline follows every update; at the end the
         Region fields are written and the region set (files.on_roi), one undoable edit."""
-        if self._syncing or self.wanted() is None or self._centre is None:
+        if self.wanted() is None or self._centre is None:
             return
         if event.phase == "start" or self._from is None:
             self._from = self._centre if which == "centre" else self._corner
@@ -189,12 +187,7 @@ class RegionGizmo:
         self.draw_outline(kind)
         size = authoring.roi_from_handles(kind, self._centre, self._corner, 2 * SNAP_M)
         if event.phase != "end":  # the fields follow the drag (written into; recreated once it ends)
-            self._syncing = True
-            try:
-                self.files.f_roi_centre.value = tuple(round(float(v) * 1000.0, 3) for v in self._centre)
-                self.files.f_roi_size.value = tuple(round(float(v) * 1000.0, 3) for v in size)
-            finally:
-                self._syncing = False
+            self.files.f_roi_centre.value, self.files.f_roi_size.value = mm(self._centre), mm(size)
             return
         self._from = None
         self._side = self._corner - self._centre  # the corner stays where it was let go (dragged past the centre too)
