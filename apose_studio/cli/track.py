@@ -18,7 +18,16 @@ from apose_studio.data.realsense import live_serial
 from apose_studio.data.recording import MAX_SIDE, is_recording, open_recording, write_recording
 from apose_studio.data.sources import open_frames
 from apose_studio.errors import AposeError
-from apose_studio.estimation import TRACK_MODES, MaskRequest, Tracker, array_mask, estimate_view, find_mask, step_context
+from apose_studio.estimation import (
+    TRACK_MODES,
+    MaskRequest,
+    Tracker,
+    array_mask,
+    estimate_view,
+    find_mask,
+    region_truth_prompt,
+    step_context,
+)
 from apose_studio.evaluate import score_frame
 from apose_studio.registration.types import View
 
@@ -87,7 +96,13 @@ def cmd_track(args) -> int:
     first: list[int] = []  # the first frame's im_id, once it is read
 
     def detect(frame: Frame, box):
-        """The first frame's mask as asked; after a loss, a box prompt where the base was last seen."""
+        """The first frame's mask as asked; after a loss, a box prompt where the base was last seen. A region on a
+        rendered frame with no prompt of the user's: the box round it from the truth (as `apose estimate`; the
+        truth masks its whole part, and every frame had been 'not found: give a box')."""
+        if box is None and not (frame.im_id == first[0] and (request.box or request.point)):
+            truth = region_truth_prompt(frame, ctx, request.source or "gt")
+            if truth is not None:
+                return estimate_view(replace(View.of(frame, truth[0]), box=truth[1]), ctx, params, args.orientation_prior)
         if box is not None:
             mask, _ = array_mask(frame.rgb, frame.depth, frame.camera, box=box, region=ctx.base.region is not None)
         elif frame.im_id == first[0]:

@@ -131,6 +131,12 @@ def test_a_seat_is_tracked_as_the_camera_closes_in(tmp_path):
         assert right or not (r.ok and r.confident), (im_id, s.mode)
         tracked_right += s.mode == "tracked" and right and r.confident
     assert tracked_right >= 5, tracked_right
+    # `apose track` as the issue spells it, no prompt: the box round the seat from the truth (every frame had been
+    # 'not found: give a box')
+    r = run("track", out, "--step", 1, "--json", tmp_path / "track.json")
+    assert r.returncode == 0 and "0 confident and wrong" in r.stdout, r.stdout + r.stderr
+    doc = json.loads((tmp_path / "track.json").read_text())
+    assert sum(f["mode"] == "tracked" for f in doc["frames"]) >= 5, [f["mode"] for f in doc["frames"]]
 
 
 def test_a_box_beside_the_head_gives_no_confident_seat(engine):
