@@ -22,10 +22,12 @@ from apose_studio.safeio import check_path_text, read_bytes
 from apose_studio.studio import authoring
 from apose_studio.studio.region_gizmo import WHOLE, RegionGizmo, mm
 from apose_studio.studio.state import Event, shared
-from apose_studio.studio.widgets import MAX_UPLOAD_BYTES, UNITS, VECTOR_MM, esc, hex_colour, send_download
+from apose_studio.studio.widgets import MAX_UPLOAD_BYTES, MM_RANGE, UNITS, VECTOR_MM, esc, hex_colour, send_download
 from apose_studio.text import unsafe_char
 
-ROI_CHOICES = (WHOLE, *ROI_KINDS)  # the Region dropdown: no roi, or its shape
+ROI_CHOICES = (WHOLE, *ROI_KINDS)
+REGION_SIZE_MM = {k: (2.0 * v,) * 3 for k, v in MM_RANGE.items()}  # a region's sides, or a sphere's diameter: twice
+# the coordinate limit a file's radius may reach (a 9 km sphere in a file had failed the Open as an internal error)  # the Region dropdown: no roi, or its shape
 
 log = logging.getLogger(__name__)
 
@@ -327,17 +329,23 @@ class AssemblyPanel:
     def make_region_fields(self, centre_mm, size_mm) -> None:
         """(Re)create the Region centre and size inputs holding these values (mm), in their place in the Parts
         folder: recreated, not written into, for the reason steps_panel.make_pose_fields gives."""
-        orders = None if self.f_roi_centre is None else (self.f_roi_centre.order, self.f_roi_size.order)
-        if orders is not None:
-            self.f_roi_centre.remove()
-            self.f_roi_size.remove()
+        old = (self.f_roi_centre, self.f_roi_size)
+        orders = None if old[0] is None else (old[0].order, old[1].order)
         gui = self.app.server.gui
         with self.parts_folder if orders is not None else nullcontext():  # the first time: in build's `with`
-            self.f_roi_centre = gui.add_vector3("Region centre (mm)", tuple(centre_mm), step=0.5, **VECTOR_MM,
-                                                hint="in the part's own frame", order=orders and orders[0])
-            self.f_roi_size = gui.add_vector3("Region size (mm)", tuple(size_mm), step=0.5, **VECTOR_MM,
-                                              hint="a box's full sides; a sphere's diameter is the first number",
-                                              order=orders and orders[1])
+            centre = gui.add_vector3("Region centre (mm)", tuple(centre_mm), step=0.5, **VECTOR_MM,
+                                     hint="in the part's own frame", order=orders and orders[0])
+            try:
+                size = gui.add_vector3("Region size (mm)", tuple(size_mm), step=0.5, **REGION_SIZE_MM,
+                                       hint="a box's full sides; a sphere's diameter is the first number",
+                                       order=orders and orders[1])
+            except ValueError:
+                centre.remove()
+                raise
+        if orders is not None:  # the old ones go once the new ones stand: a value they refuse leaves the old in place
+            old[0].remove()
+            old[1].remove()
+        self.f_roi_centre, self.f_roi_size = centre, size
         for f in (self.f_roi_centre, self.f_roi_size):
             f.on_update(self.on_region_typed)
 

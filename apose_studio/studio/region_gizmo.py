@@ -96,6 +96,13 @@ class RegionGizmo:
         centre[2] = hi[2] - (hi[2] - lo[2]) / 4
         return np.round(centre / SNAP_M) * SNAP_M, np.maximum(np.round(size / SNAP_M) * SNAP_M, 2 * SNAP_M)
 
+    def reach(self) -> tuple[np.ndarray, np.ndarray]:
+        """(lo, hi), part frame: the handles stay within the part's box grown by its diameter each way (a region
+        farther out holds none of it; a page's drag of 9 km had made the Region fields refuse their values)."""
+        m = self.app.model(self.files.f_part.value)
+        lo, hi = np.asarray(m.mesh.bounds, float)
+        return lo - m.diameter, hi + m.diameter
+
     def wanted(self) -> tuple[str, np.ndarray] | None:
         """(the part, its T_world_part in the preview) when the handles are to be shown, else None."""
         pid = self.files.f_part.value
@@ -176,9 +183,11 @@ class RegionGizmo:
             self._from = self._centre if which == "centre" else self._corner
         raw = np.asarray(event.target.position, float)
         p = self._from + np.round((raw - self._from) / SNAP_M) * SNAP_M  # moved by whole snaps, as the part gizmo
+        lo, hi = self.reach()
+        p = np.clip(p, lo, hi)
         kind = self.files.f_roi.value
         if which == "centre":
-            self._corner, self._centre = self._corner + (p - self._centre), p
+            self._corner, self._centre = np.clip(self._corner + (p - self._centre), lo, hi), p
             other = self.app.nodes.get(f"{ROOT}/corner")
             if other is not None:
                 other.position = tuple(self._corner)

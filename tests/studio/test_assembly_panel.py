@@ -382,3 +382,30 @@ def test_undo_closes_the_errors_kept_open_on_the_tab(studio, gearbox_copy):
     st.files.f_name.value = "renamed"  # a change to undo
     st.undo_redo("Undo", tab)
     assert tab.shown and tab.shown[0].removed and st.asm.name != "renamed"
+
+
+def test_a_drag_kilometres_off_and_a_file_region_kilometres_wide_leave_the_fields_working(studio, tmp_path):
+    """Neighbours of Drag region's input: a page's drag of 9 km (finite, so the page's screen lets it through) is held
+    to the part's box grown by its diameter, set as a region, and the fields go on working (the Region size field had
+    refused 18,000 km, the fields were left removed and every later drag failed); a file whose region is a 9 km
+    sphere opens, its diameter shown."""
+    import shutil
+
+    shutil.copytree(SAMPLES / "engine_head", tmp_path / "e")
+    path = tmp_path / "e" / "assembly.yaml"
+    st = studio(path)
+    st.files.f_part.value = "seat_1"
+    st.files.region_gizmo.f_drag.value = True
+    m = st.model("seat_1")
+    drag_handle(st, "corner", (9e6, 9e6, 9e6))
+    assert errors(st) == []
+    lo, hi = np.asarray(m.mesh.bounds)
+    corner = np.asarray(st.nodes["/assembly/region_edit/corner"].position)
+    assert np.all(corner <= hi + m.diameter + 1e-5)  # (the fields keep micrometres)
+    drag_handle(st, "corner", (-5.0, 0.0, 0.0))  # the fields still stand and follow
+    assert errors(st) == [] and np.isclose(st.files.f_roi_size.value[0] / 1000, st.asm.parts["seat_1"].roi.size[0])
+    path.write_text(path.read_text().replace("roi: {box: {center: [-120, 35, 98], size: [64, 50, 40]}}",
+                                             "roi: {sphere: {center: [-120, 35, 98], radius: 9000000}}", 1))
+    st2 = studio(path)
+    st2.files.f_part.value = "seat_1"
+    assert errors(st2) == [] and st2.files.f_roi.value == "sphere" and st2.files.f_roi_size.value[0] == 18e6
