@@ -103,7 +103,8 @@ class Params:
     # --- tracking (registration.track: a frame's pose from the frame before's)
     track_motion: float = _p(0.15, "float", "tracking follows the base this far between frames, x its diameter (the "
                              "depth searched around its last pose)", 0.01, 1.0)
-    track_points: int = _p(800, "int", "depth points a tracked frame registers", 50, 100_000)
+    track_points: int = _p(2000, "int", "depth points a tracked frame registers (its polish: all of them; its rough fit: "
+                           "a few hundred)", 50, 100_000)
     track_iterations: int = _p(12, "int", "ICP iterations a tracked frame may take in all", 1, 200)
 
     def voxel(self, diameter: float) -> float:

@@ -71,6 +71,19 @@ class BaseObject:
             self._features[key] = NearGrid.around(np.asarray(self.model_features(voxel, p)[0].points), 2 * voxel)
         return self._features[key]
 
+    def extremes(self) -> np.ndarray:
+        """The vertices of the surface samples' convex hull (built once): a rigid motion moves no sample farther
+        than it moves the farthest of these (a point's displacement is convex in the point), at a
+        hundredth of the cost of moving every sample."""
+        if "extremes" not in self._features:
+            from scipy.spatial import ConvexHull, QhullError
+
+            try:
+                self._features["extremes"] = self.samples[ConvexHull(self.samples).vertices]
+            except (QhullError, ValueError):  # flat or too few samples: all of them
+                self._features["extremes"] = self.samples
+        return self._features["extremes"]
+
     def samples_tree(self):
         """k-d tree of the surface samples (base frame): a model point's normal is its nearest sample's."""
         if "samples_tree" not in self._features:
@@ -82,6 +95,7 @@ class BaseObject:
         if p.global_source == "model":
             self.near_grid(p.voxel(self.diameter) * p.global_voxel_factor, p)
             self.flips()
+        self.extremes()  # the tracker's
 
     def flips(self) -> np.ndarray:
         """(4, 4, 4) T_base_base: identity and the half turns about the principal axes through the centre.

@@ -4,12 +4,14 @@ A camera moving over a placement (an eye-in-hand approach, `apose render --traje
 where it was a moment ago. `track` starts there instead of searching: the base's surface samples at the
 last pose (moved into the new camera, whose pose the robot knows; without one the base is assumed to
 stay put in the camera's frame) say which depth pixels may be the base; those near the model at that
-pose (within `track_motion` of the base's diameter, on a side the camera can see) are registered onto
-the model by a short point-to-plane ICP whose correspondence distance shrinks from that motion to the
-polish's, then the pose is judged by the estimator's own rules (`pipeline.judge`: coverage,
-contradiction, the spread the data allows, the table, the outline). A tracked pose that does not fit is
-*lost*; the caller (estimation.Tracker) detects the base anew, and says so. No search, no mask: the
-model at the last pose is the mask.
+pose (within `track_motion` of the base's diameter) are registered onto what the camera sees of the
+model there (ray cast, with the model's exact normals), by a short point-to-plane ICP whose correspondence
+distance shrinks from that motion to the depth's noise on a few hundred of them, then, on all of them
+(`track_points`), at the estimator's polish distance; then the pose is judged by the estimator's own rules
+(`pipeline.judge`: coverage, contradiction, the spread the data allows, the table, the outline), on the
+depth down-sampled as the estimator's (one point per voxel), so that the spread reads alike. A tracked
+pose that does not fit is *lost*; the caller (estimation.Tracker) detects the base anew, and says so. No
+search, no mask: the model at the last pose is the mask.
 
 Deterministic like the rest: the ICP is numpy's (solvers.icp_point_to_plane), the pixels taken are a
 fixed grid. Frames: T_<to>_<from>, metres.
@@ -31,13 +33,13 @@ from apose_studio.registration.base import BaseObject, raycast_source
 from apose_studio.registration.pipeline import judge
 from apose_studio.registration.scoring import NOISE_SIGMAS, agreement_tolerance, pixels, twin_placements
 from apose_studio.registration.solvers import icp_point_to_plane
+from apose_studio.registration.stages import down_sample
 from apose_studio.registration.table import table_plane
 from apose_studio.registration.types import MIN_POINTS, RegistrationResult, Stage, View, failed
 
 COARSE_POINTS = 300  # the rounds before the last one (wide reach, a rough fit) register this many of the points
-OVERSAMPLE = 1.5  # pixels of the grid per point kept (some fall on the table round the base's foot)
+OVERSAMPLE = 1.5  # readings of the grid per point kept (then n_points of them, evenly spread)
 STEP_FRACTION = 0.02  # an ICP iteration that moves the base by less than this share of a voxel ends its round
-TABLE_GAP = 1.0  # depth within this many final ICP distances of the table is the table (left out)
 JUDGE_MARGIN_PX = 16  # the judge's window: the model's pixels and this many around (its outline ring reaches 5)
 START_SPREAD = 3.0  # the ICP starts at this many times the median distance of the depth to the predicted model
 SHRINK_PX = 3  # the depth registered lies this far inside the base's predicted outline: clutter touching it stays out
@@ -49,6 +51,8 @@ TABLE_HOLD = 0.3  # the table is still where it was when this share of the depth
 TABLE_TOLERANCES = 2.0  # ... within this many final ICP distances
 
 
+RECAST_VOXELS = 0.5  # a tracked pose this many voxels from where the model was cast is cast again for the judge
+POLISH_ROUND = 4  # ICP iterations kept for the polish (the last round), of track_iterations
 FULL_RES_PX = 12_000  # a base predicted over more pixels than this is judged on every other pixel and row
 # (half_resolution; its pose is registered on the full image all the same): the ray cast, the scoring and the judge
 # grow with the pixels the base covers, and a base filling the view at the end of an approach took 15-17 ms a frame
@@ -113,13 +117,13 @@ def predict(last: RegistrationResult, T_world_camera: np.ndarray, cam: CameraInt
 
 
 def region_points(depth: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray, pred: Prediction,
-                  motion: float, n_points: int, plane: tuple[np.ndarray, float] | None = None,
-                  table_gap: float = 0.0) -> np.ndarray:
+                  motion: float, n_points: int) -> np.ndarray:
     """World points of the depth the base may show now: pixels SHRINK_PX inside its predicted outline whose
     depth lies within `motion` of the predicted surface (not an object in front, not the table seen past
-    it), and (with the table's `plane`) more than `table_gap` above the table (the table round the base's
-    foot would pull its sides onto it). A pixel grid fine enough for OVERSAMPLE x n_points readings; at
-    most n_points kept, evenly spread."""
+    it). A pixel grid fine enough for OVERSAMPLE x n_points readings; at most n_points kept, evenly spread.
+    The table round the base's foot is not cut away: the ICP registers onto what the camera sees of the model
+    at the polish's distance, which the table lies beyond, and a cut a few millimetres above the table kept
+    the points that noise lifted and dropped those it lowered (a far casing was lifted 2.4 mm)."""
     v0, v1, u0, u1 = pred.window
     z = pred.zbuf
     inside = cv2.erode(np.isfinite(z).astype(np.uint8), np.ones((2 * SHRINK_PX + 1,) * 2, np.uint8)) > 0
@@ -133,8 +137,6 @@ def region_points(depth: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.n
     vs, us = np.nonzero(ok & grid)
     pts_c = cam.backproject((us + u0).astype(float), (vs + v0).astype(float), d[vs, us].astype(float))
     pts_w = se3.transform_points(T_world_camera, pts_c)
-    if plane is not None:
-        pts_w = pts_w[pts_w @ plane[0] + plane[1] > table_gap]
     if len(pts_w) > n_points:
         pts_w = pts_w[np.linspace(0, len(pts_w) - 1, n_points).astype(int)]
     return pts_w
@@ -143,12 +145,13 @@ def region_points(depth: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.n
 def moved_by(base: BaseObject, T_world_from: np.ndarray, T_world_to: np.ndarray) -> float:
     """How far the base's farthest model sample moves between two poses (metres)."""
     D = se3.inv(T_world_from) @ T_world_to
-    pts = base.samples
+    pts = base.extremes()
     return float(np.linalg.norm(se3.transform_points(D, pts) - pts, axis=1).max())
 
 
 def final_distance(params: Params, base: BaseObject, last: RegistrationResult) -> float:
-    """The last ICP round's reach: the estimator's polish distance, or NOISE_SIGMAS of the depth noise."""
+    """The rough fit's last reach (and the table's tolerance): the estimator's polish distance, or NOISE_SIGMAS of
+    the depth noise where larger."""
     return max(params.polish_threshold_factor * params.voxel(base.diameter), NOISE_SIGMAS * last.depth_noise)
 
 
@@ -200,40 +203,56 @@ def track(depth: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray, 
     if pred.window is None:
         return failed("tracking lost: at its last pose the base is out of this view", **lost)
     final = final_distance(p, base, last)
-    target = region_points(depth, cam, T_world_camera, pred, motion, p.track_points, plane, TABLE_GAP * final)
+    dense = region_points(depth, cam, T_world_camera, pred, motion, p.track_points)
     t_region = time.perf_counter()
-    if len(target) < MIN_POINTS:
-        return failed(f"tracking lost: only {len(target)} depth points near where the base was (need {MIN_POINTS}); "
-                      "it moved further than the tracker follows, or something hides it", target_cloud=target, **lost)
-    T = se3.inv(last.T_world_base)  # T_base_world: the depth registered onto the model (scene to model)
-    tree, eye = base.samples_tree(), T_world_camera[:3, 3]
-    coarse = target[::max(1, -(-len(target) // COARSE_POINTS))]
+    if len(dense) < MIN_POINTS:
+        return failed(f"tracking lost: only {len(dense)} depth points near where the base was (need {MIN_POINTS}); "
+                      "it moved further than the tracker follows, or something hides it", target_cloud=dense, **lost)
+    shape = depth.shape
+    if np.isfinite(pred.zbuf).sum() > FULL_RES_PX:  # a base filling the view: every other pixel is plenty to judge by
+        depth, cam = half_resolution(depth, cam)
+    # the depth is registered onto what the camera sees of the model where the base should be, with the model's
+    # exact normals: the whole model's samples had matched faces hidden behind the visible ones (a casing's
+    # flanges and ribs, a few millimetres deeper), which drew a far casing 1-2 mm towards the camera
+    seen_w, seen_n = raycast_source(base, pred.T_world_base, T_world_camera, cam)
+    if len(seen_w) < MIN_POINTS:
+        return failed("tracking lost: the camera sees (almost) nothing of the base where it should be", **lost)
+    T = se3.inv(pred.T_world_base)  # T_base_world: the depth registered onto the model (scene to model)
+    seen_b, normals_b = se3.transform_points(T, seen_w), seen_n @ T[:3, :3].T
+    tree = NearestTree(seen_b)
+    t_cast = time.perf_counter()
+    coarse = dense[::max(1, -(-len(dense) // COARSE_POINTS))]
     thr, left = start_threshold(coarse, T, tree, motion, final), p.track_iterations
-    while left > 0:
-        last_round = thr <= final * 1.0001
-        n = left if last_round else min(3, left)
-        T = icp_point_to_plane(target if last_round else coarse, base.samples, base.sample_normals, T, thr, n,
-                               tgt_tree=tree, viewpoint=eye, min_step=STEP_FRACTION * voxel)
+    while left > POLISH_ROUND:  # the rough fit: a few of the points, the reach shrinking to the depth's noise
+        n = min(3, left - POLISH_ROUND)
+        T = icp_point_to_plane(coarse, seen_b, normals_b, T, thr, n, tgt_tree=tree, min_step=STEP_FRACTION * voxel)
         left -= n
-        if last_round:
+        if thr <= final * 1.0001:
             break
         thr = max(final, thr / 3)
+    # the polish, as the estimator's (refine.polish): every point, at the polish's distance (three sigmas of
+    # Kinect-like noise let in what pulled a far casing towards the camera)
+    T = icp_point_to_plane(dense, seen_b, normals_b, T, p.polish_threshold_factor * voxel, max(left, 1), tgt_tree=tree,
+                           min_step=STEP_FRACTION * voxel)
     T_world_base = se3.inv(T)
     t_icp = time.perf_counter()
     moved = moved_by(base, last.T_world_base, T_world_base)
     if moved > TRUST_SHARE * motion:
         return failed(f"tracking lost: the base moved {moved * 1000:.0f} mm since the last frame, near the tracker's "
-                      f"reach ({motion * 1000:.0f} mm; track_motion): searched for anew", target_cloud=target, **lost)
-    shape = depth.shape
-    if np.isfinite(pred.zbuf).sum() > FULL_RES_PX:  # a base filling the view: every other pixel is plenty to judge by
-        depth, cam = half_resolution(depth, cam)
-    seen, _ = raycast_source(base, T_world_base, T_world_camera, cam)
-    t_cast = time.perf_counter()
+                      f"reach ({motion * 1000:.0f} mm; track_motion): searched for anew", target_cloud=dense, **lost)
+    if moved_by(base, pred.T_world_base, T_world_base) > RECAST_VOXELS * voxel:  # what the camera sees has changed
+        seen, _ = raycast_source(base, T_world_base, T_world_camera, cam)
+        seen_b, tree = se3.transform_points(T, seen), None
+    else:  # moved by a fraction of a voxel from where it was cast: the same faces seen
+        seen = se3.transform_points(T_world_base, seen_b)
     if len(seen) < MIN_POINTS:
         return failed("tracking lost: the camera sees (almost) nothing of the base at the tracked pose", **lost)
+    t_polish = time.perf_counter()
+    target = np.asarray(down_sample(dense, voxel, T_world_camera).points)  # the estimator's density (its fine
+    # cloud): the pose's spread the judge reads grows as 1/sqrt(points), and 800 had read 2.5x the estimator's
     fit_thr = p.icp_threshold_factor * voxel
     loose = max(fit_thr, 2 * voxel, NOISE_SIGMAS * noise)
-    d = NearestTree(seen).query(target, distance_upper_bound=loose)[0]
+    d = (tree if tree is not None else NearestTree(seen_b)).query(se3.transform_points(T, target), distance_upper_bound=loose)[0]
     inl = d < fit_thr
     fitness = float(inl.mean())
     rmse = float(np.sqrt(np.mean(d[inl] ** 2))) if inl.any() else 0.0
@@ -248,7 +267,7 @@ def track(depth: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray, 
     result = RegistrationResult(
         ok=True, T_world_base=T_world_base, T_world_part=T_world_base @ T_base_part,
         T_world_source=last.T_world_base, target_cloud=target,
-        source_cloud=se3.transform_points(T, seen), fitness=fitness, inlier_rmse=rmse,
+        source_cloud=seen_b, fitness=fitness, inlier_rmse=rmse,
         stages=[Stage("last frame's pose", last.T_world_base, float("nan"), float("nan")),
                 Stage("final", T_world_base, fitness, rmse)],
         voxel=voxel, coverage=float(np.mean(d < loose)), depth_noise=noise, preset=p.preset, tracked=True,
@@ -258,7 +277,8 @@ def track(depth: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray, 
     if judged.ok and p.use_symmetries:
         judged = replace(judged, equivalent=twin_placements(T_world_base, judged.T_world_part, base.symmetries))
     return replace(judged, timings={"track predict": t_pred - t0, "track region": t_region - t_pred,
-                                    "track icp": t_icp - t_region, "track cast": t_cast - t_icp, "track score": t - t_cast,
+                                    "track cast": t_cast - t_region, "track icp": t_icp - t_cast,
+                                    "track recast": t_polish - t_icp, "track score": t - t_polish,
                                     "track judge": time.perf_counter() - t})
 
 

@@ -18,7 +18,7 @@ from apose_studio.errors import RenderError
 from apose_studio.estimation import Tracker, estimate_frame, step_context
 from apose_studio.geometry import se3
 from apose_studio.params import resolve_params
-from apose_studio.registration.track import track
+from apose_studio.registration.track import moved_by, track
 from apose_studio.synth.frame import RenderSettings
 from apose_studio.synth.render import render_dataset
 from tests.conftest import SAMPLES, mssd_to_truth
@@ -74,6 +74,24 @@ def test_every_frame_after_the_first_is_tracked_and_right(trajectory):
         assert s.result.confident and s.result.tracked == (s.mode == "tracked")
         err = mssd_to_truth(s.result.T_world_part, frame.T_world_part, GEARBOX, ctx.view.part)
         assert err < 0.1 * diameter, (s.im_id, err)  # right, as the paper counts it
+
+
+def test_a_tracked_frame_is_as_accurate_as_its_own_estimate(trajectory):
+    """Issue #30: the error no worse than per-frame estimation. Each tracked frame's pose against the truth
+    (mssd_to_truth: the renderer's pose, not the tracker's judge) is within 0.15 mm of what the frame's own
+    estimate with a box prompt gets. The far frames of this approach had been 1.2-2.5 mm off against
+    0.15-0.55 mm: the table cut kept the points that the Kinect-like noise lifted, and the whole model's
+    hidden faces drew the casing towards the camera."""
+    tracker, ctx, params = _tracker(trajectory)
+    for i in range(FRAMES):
+        frame = trajectory.frame(2, i)
+        s = tracker.step(frame)
+        if s.mode != "tracked":
+            continue
+        own = estimate_frame(frame, ctx, params, "box")
+        tracked = mssd_to_truth(s.result.T_world_part, frame.T_world_part, GEARBOX, ctx.view.part)
+        alone = mssd_to_truth(own.T_world_part, frame.T_world_part, GEARBOX, ctx.view.part)
+        assert tracked < alone + 1.5e-4, (i, tracked, alone)
 
 
 def test_tracking_repeats_to_the_bit(trajectory):
@@ -206,9 +224,9 @@ def test_an_ambiguous_frame_is_fused_with_the_next_one_seen_from_where_it_advise
 
 
 def test_a_base_filling_the_view_is_judged_at_half_resolution_with_the_same_pose(trajectory, monkeypatch):
-    """Where the base covers more than FULL_RES_PX pixels, the tracked pose (registered on the full image) is
-    judged on every other pixel: the same pose to the bit, the same verdict, the mask at the frame's size and
-    mostly the full-resolution judge's."""
+    """Where the base covers more than FULL_RES_PX pixels, the model is cast and the pose judged on every other
+    pixel (the depth registered is the full image's): the same pose within a tenth of a millimetre, the same
+    verdict, the mask at the frame's size and mostly the full-resolution judge's."""
     from apose_studio.registration import track as track_module
 
     tracker, ctx, params = _tracker(trajectory)
@@ -219,8 +237,8 @@ def test_a_base_filling_the_view_is_judged_at_half_resolution_with_the_same_pose
     half = track(frame.depth, frame.camera, frame.T_world_camera, ctx.base, ctx.view.T_base_part, params, first.result)
     monkeypatch.setattr(track_module, "FULL_RES_PX", 10 ** 9)
     full = track(frame.depth, frame.camera, frame.T_world_camera, ctx.base, ctx.view.T_base_part, params, first.result)
-    assert np.array_equal(half.T_world_base, full.T_world_base)
-    assert half.confident and full.confident and half.coverage == full.coverage  # the coverage reads the depth points
+    assert moved_by(ctx.base, half.T_world_base, full.T_world_base) < 1e-4
+    assert half.confident and full.confident and abs(half.coverage - full.coverage) < 0.02
     assert half.model_mask.shape == full.model_mask.shape == frame.depth.shape
     iou = (half.model_mask & full.model_mask).sum() / (half.model_mask | full.model_mask).sum()
     assert iou > 0.75, iou  # the casing's thin walls: pixels of Kinect-like depth agree or not one by one
