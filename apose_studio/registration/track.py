@@ -30,8 +30,8 @@ from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.geometry.nn import NearestTree
 from apose_studio.params import Params
 from apose_studio.registration.base import BaseObject, raycast_source
-from apose_studio.registration.pipeline import judge
-from apose_studio.registration.scoring import NOISE_SIGMAS, agreement_tolerance, pixels, twin_placements
+from apose_studio.registration.pipeline import judged
+from apose_studio.registration.scoring import NOISE_SIGMAS, agreement_tolerance, pixels
 from apose_studio.registration.solvers import icp_point_to_plane
 from apose_studio.registration.stages import down_sample
 from apose_studio.registration.table import table_plane
@@ -56,8 +56,8 @@ POLISH_SHRINK_PX = 1  # the polish's points lie this far inside the predicted ou
 # bracket's p90 error 0.37 -> 0.10 mm under RealSense-like noise)
 RECAST_VOXELS = 0.5  # a tracked pose this many voxels from where the model was cast is cast again for the judge
 POLISH_ROUND = 4  # ICP iterations kept for the polish (the last round), of track_iterations
-FULL_RES_PX = 12_000  # a base predicted over more pixels than this is judged on every other pixel and row
-# (half_resolution; its pose is registered on the full image all the same): the ray cast, the scoring and the judge
+FULL_RES_PX = 12_000  # a base predicted over more pixels than this is cast and judged on every other pixel and row
+# (half_resolution; the depth registered is still the full image's): the ray cast, the scoring and the judge
 # grow with the pixels the base covers, and a base filling the view at the end of an approach took 15-17 ms a frame
 # at full resolution (benchmarks/track.py)
 
@@ -194,7 +194,8 @@ def track(depth: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray, 
     estimate, `tracked` set. ok=False with the reason when the base left the view or too little of it is
     near where it was. `plane`: the table the base stands on (world; `table_now`'s for this frame). `pred`: the
     prediction for this frame, when the caller has made it. Where the base is predicted over more than
-    FULL_RES_PX pixels, the pose found is judged at half resolution (its mask brought back to full size)."""
+    FULL_RES_PX pixels, the model is cast and the pose judged at half resolution (its mask brought back to full
+    size)."""
     t0 = time.perf_counter()
     p = params
     voxel = p.voxel(base.diameter)
@@ -247,7 +248,8 @@ def track(depth: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray, 
                       f"reach ({motion * 1000:.0f} mm; track_motion): searched for anew", target_cloud=dense, **lost)
     if moved_by(base, pred.T_world_base, T_world_base) > RECAST_VOXELS * voxel:  # what the camera sees has changed
         seen, _ = raycast_source(base, T_world_base, T_world_camera, cam)
-        seen_b, tree = se3.transform_points(T, seen), None
+        seen_b = se3.transform_points(T, seen)
+        tree = NearestTree(seen_b)
     else:  # moved by a fraction of a voxel from where it was cast: the same faces seen
         seen = se3.transform_points(T_world_base, seen_b)
     if len(seen) < MIN_POINTS:
@@ -257,7 +259,7 @@ def track(depth: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray, 
     # cloud): the pose's spread the judge reads grows as 1/sqrt(points), and 800 had read 2.5x the estimator's
     fit_thr = p.icp_threshold_factor * voxel
     loose = max(fit_thr, 2 * voxel, NOISE_SIGMAS * noise)
-    d = (tree if tree is not None else NearestTree(seen_b)).query(se3.transform_points(T, target), distance_upper_bound=loose)[0]
+    d = tree.query(se3.transform_points(T, target), distance_upper_bound=loose)[0]
     inl = d < fit_thr
     fitness = float(inl.mean())
     rmse = float(np.sqrt(np.mean(d[inl] ** 2))) if inl.any() else 0.0
@@ -278,13 +280,11 @@ def track(depth: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray, 
         voxel=voxel, coverage=float(np.mean(d < loose)), depth_noise=noise, preset=p.preset, tracked=True,
         model_mask=mask)
     t = time.perf_counter()
-    judged = judge(result, View(depth_w, mask_w, cam_w, T_world_camera), base, plane=plane)
-    if judged.ok and p.use_symmetries:
-        judged = replace(judged, equivalent=twin_placements(T_world_base, judged.T_world_part, base.symmetries))
-    return replace(judged, timings={"track predict": t_pred - t0, "track region": t_region - t_pred,
-                                    "track cast": t_cast - t_region, "track icp": t_icp - t_cast,
-                                    "track recast": t_polish - t_icp, "track score": t - t_polish,
-                                    "track judge": time.perf_counter() - t})
+    verdict = judged(result, View(depth_w, mask_w, cam_w, T_world_camera), base, p, plane)
+    return replace(verdict, timings={"track predict": t_pred - t0, "track region": t_region - t_pred,
+                                     "track cast": t_cast - t_region, "track icp": t_icp - t_cast,
+                                     "track recast": t_polish - t_icp, "track score": t - t_polish,
+                                     "track judge": time.perf_counter() - t})
 
 
 def window_view(points_world: np.ndarray, depth: np.ndarray, T_world_camera: np.ndarray, cam: CameraIntrinsics,
