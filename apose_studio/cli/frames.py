@@ -238,10 +238,13 @@ def _estimate_instances(args, frame: Frame, asm: Assembly, ctx: StepContext, t0:
     print(f"step {args.step}, frame {args.frame}: every instance of [{', '.join(ctx.view.base)}] to place {ctx.part.id} "
           f"on (preset {params.preset}): {len(ests)} found, {len(confident)} confident, {seconds:.2f} s")
     for k, est in enumerate(ests):
+        box = ",".join(map(str, found[k].box))
+        if est.T_camera_part is None:  # a group of depth that no pose fits: said, not a traceback
+            print(f"  {k + 1}. box {box}: no pose: {est.reason}")
+            continue
         t = est.T_camera_part[:3, 3] * 1000
         state = "confident" if est.confident else f"not confident: {est.doubts}"
-        print(f"  {k + 1}. box {','.join(map(str, found[k].box))}: T_camera_part t = ({t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f}) mm, "
-              f"{state}")
+        print(f"  {k + 1}. box {box}: T_camera_part t = ({t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f}) mm, {state}")
     return 0 if confident else 1
 
 

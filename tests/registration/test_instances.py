@@ -116,3 +116,25 @@ def test_first_confident_stops_at_the_first_confident_instance_largest_group_fir
     seen.clear()
     first = estimate_instances(fr, ctx, resolve_params("default"), estimate=fake, first_confident=True)
     assert seen == groups[:1] and len(first) == 1 and len(everything) >= 1
+
+
+def test_apose_estimate_instances_all_text_names_an_instance_without_a_pose(three_casings, monkeypatch, capsys):
+    """A group of depth that no pose fits is an instance with ok=False: the text output says so with its reason
+    (it had ended in "unexpected TypeError" for the whole command, the fitted instances unprinted)."""
+    from apose_studio.cli import commands, frames
+    from apose_studio.estimation import Instance
+    from apose_studio.registration.types import failed
+
+    _, ds = three_casings
+    real = frames.estimate_instances
+
+    def with_a_failed_one(frame, ctx, params, orientation_prior=False):
+        found = real(frame, ctx, params, orientation_prior)
+        return [*found, Instance((1, 2, 30, 40), np.zeros(frame.depth.shape, bool), failed("nothing fits this group"))]
+
+    monkeypatch.setattr(frames, "estimate_instances", with_a_failed_one)
+    code = commands.main(["estimate", str(ds.root), "--step", "1", "--frame", "5", "--instances", "all"])
+    out = capsys.readouterr()
+    assert code in (0, 1) and "unexpected" not in out.err, out.err
+    assert "box 1,2,30,40: no pose: nothing fits this group" in out.out
+    assert "T_camera_part t = (" in out.out  # the others are printed as before
