@@ -141,7 +141,7 @@ def studio_play(frames, args) -> str:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
         port = sock.getsockname()[1]
-    server, st = serve(GEARBOX, None, host="127.0.0.1", port=port, root=Path(args.data))
+    server, st = serve(GEARBOX, None, host="127.0.0.1", port=port, root=Path(args.data), tabs=False)
     click = type("Click", (), {"client": None})()  # as the page's button would call (no page here)
     try:
         st.notify = lambda *a, **k: None

@@ -131,7 +131,7 @@ def main() -> int:
     render_dataset(load_assembly(sample), ds, RenderSettings(frames=args.frames, noise="realsense", base_pose="fixed", seed=2),
                    steps=[2], progress=False)
 
-    server, st = serve(sample, ds, port=8765, root=tmp)  # the workspace: the part to load is in tmp
+    server, st = serve(sample, ds, port=8765, root=tmp, tabs=False)  # the workspace: the part to load is in tmp
     pw = browser = None
     if args.browser:
         from playwright.sync_api import sync_playwright

@@ -118,13 +118,14 @@ def main() -> int:
     with socket.socket() as sk:
         sk.bind(("127.0.0.1", 0))
         port = sk.getsockname()[1]
-    server, st = serve(None, None, host="127.0.0.1", port=port, root=tmp)
+    server, desk = serve(None, None, host="127.0.0.1", port=port, root=tmp)
     opens, walls, computes, plays, painted_walls, painted_plays = [], [], [], [], [], []
     with sync_playwright() as pw:
         browser = pw.chromium.launch(executable_path="/usr/bin/chromium", args=ARGS)
         page = browser.new_page(viewport={"width": 1400, "height": 900})
-        page.goto(st.url)
+        page.goto(desk.url)
         page.get_by_role("button", name="Add part(s)").wait_for(timeout=90000)
+        st = list(desk.views.values())[-1]  # the page's own studio (each tab has one, over the shared draft)
         try:
             for k in range(args.repeats):
                 f = field(page, "Assembly file")  # an empty draft first: each Open loads and draws every part

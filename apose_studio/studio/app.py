@@ -1,14 +1,14 @@
-"""The studio app: one viser server, the shared state (the draft, the selection, the inspected frame)
-and the event hub the panels talk through, the lock, the guarded door every callback goes through,
-notifications, the 3D view's two scenes, and `serve()`.
+"""The studio app: one tab's studio on a viser server (its selection, inspected frame and 3D view, over the
+draft every tab shares: desk.py) and the event hub its panels talk through, the guarded door every
+callback goes through, notifications, the 3D view's two scenes, and `serve()`.
 
 Design: the GUI is an edge. Each folder of controls belongs to a panel class in its own module
 (assembly_panel, steps_panel, mates_panel, inspect_panel, prompt_panel, views_panel, results_view)
 that owns its widgets with their callbacks beside them; editing goes through `authoring` (pure,
 returns new Assemblies), drawing through `inspection` (pure). Every callback runs through
 `Studio.guarded`, so bad input becomes a notification to the browser that caused it and the server
-keeps serving. The state is shared by all browser tabs (one studio, one draft); notifications go to
-the tab that acted.
+keeps serving. `serve()` gives each browser tab a studio of its own on the tab's GUI and scene, over one
+`Desk` (the draft, its history, the models, the cache, the lock); notifications go to the tab that acted.
 
 Panels talk through the app, never to each other: what one panel writes and others read is in
 `Studio.state` (`state.StudioState`), and what others must react to is an `Event` on `Studio.events`
@@ -29,13 +29,14 @@ from pathlib import Path
 
 import numpy as np
 
-from apose_studio.assembly.mesh import PartModel, load_part
+from apose_studio.assembly.mesh import PartModel
 from apose_studio.assembly.model import Assembly
 from apose_studio.errors import AposeError, AssemblyError, os_error_text
 from apose_studio.geometry import se3
 from apose_studio.safeio import reads_within
 from apose_studio.studio import authoring, inspection
 from apose_studio.studio.assembly_panel import AssemblyPanel
+from apose_studio.studio.desk import Desk
 from apose_studio.studio.grasps_panel import GraspsPanel
 from apose_studio.studio.inspect_panel import EstimateJob, InspectPanel
 from apose_studio.studio.mates_panel import MatesPanel
@@ -77,22 +78,19 @@ class Studio:
 
     def __init__(self, server, assembly: str | Path | None = None, dataset: str | Path | None = None,
                  cache: inspection.ResultCache | None = None, workspace: Workspace | None = None,
-                 obj_map: list[str] | None = None):
+                 obj_map: list[str] | None = None, *, desk: Desk | None = None, tab=None):
         import viser  # noqa: F401  (imported here so the core never needs it)
 
         self.server = server
-        self.workspace = workspace if workspace is not None else default_workspace(assembly, dataset)
-        self.lock = threading.RLock()  # one edit at a time, whichever tab it comes from
-        self.busy = threading.Lock()  # one estimation at a time
-        self.state = StudioState.empty()  # the empty draft is not saveable either (it has no steps)
-        self.events = Events()
-        self.models: dict[tuple, PartModel] = {}  # (mesh path, units, colour, index) -> PartModel
+        self.tab = tab  # the tab this studio is drawn in (its own GUI and scene), or None: the server's, shared
+        self.ui = tab if tab is not None else server  # where the widgets and the 3D scene go
+        self.desk = desk if desk is not None else Desk(
+            server, workspace if workspace is not None else default_workspace(assembly, dataset), cache)
+        self.state = StudioState.empty(self.desk.draft)
+        self.seen_asm = self.state.asm  # the draft as this tab last drew it (Desk.spread)
+        self.events = Events(tap=lambda event, payload: self.desk.record(self, event, payload))
         self.nodes: dict[str, object] = {}  # scene nodes by name (tests look here)
         self._errors_shown: dict[int, list] = {}  # client id -> its error notifications still on screen
-        self._pending: dict[int, int] = {}  # client id -> its page actions waiting for or holding the lock
-        self._pending_lock = threading.Lock()
-        self._dropped_told: dict[int, float] = {}  # client id -> when it was last told of dropped presses
-        self.cache = cache if cache is not None else inspection.ResultCache()
         self.current_view = "Assembly"
         self._notice_timer: threading.Timer | None = None
         self._last_notice = ""
@@ -100,7 +98,6 @@ class Studio:
         self.steps = StepsPanel(self)
         self.mates = MatesPanel(self)
         self.grasps = GraspsPanel(self)
-        self.history = authoring.History()
         self.inspect = InspectPanel(self)
         self.sequence = SequencePanel(self)
         self.prompt = PromptPanel(self)
@@ -108,11 +105,16 @@ class Studio:
         self.results = ResultsView(self)
         self.robot = RobotPanel(self)  # after results: its targets are listed once the view is drawn
         with self.lock:  # a page that connects while the start-up files load waits for them
-            screen_messages(server, lambda *a, **k: self.notify(*a, **k))  # before any page's message is handled
+            if tab is None:  # one studio on the server's GUI: it guards the server itself
+                screen_messages(server, lambda *a, **k: self.notify(*a, **k))  # before any page's message is handled
             self.build_gui(inspect_first=dataset is not None)
-            server.on_client_connect(self.on_connect)
-            limit_uploads(server, MAX_UPLOAD_BYTES, lambda *a, **k: self.notify(*a, **k))
-            if assembly is not None:  # named on the command line: the user's own files, not the page's
+            if tab is None:
+                server.on_client_connect(self.on_connect)
+            limit_uploads(self.ui.gui, self.desk.upload_states, MAX_UPLOAD_BYTES,
+                          lambda cid, *a, **k: self.notify(self._client(cid), *a, **k))
+            if tab is not None:
+                self.show_draft()
+            elif assembly is not None:  # named on the command line: the user's own files, not the page's
                 self.files.open_assembly(Path(assembly), confine=False)
                 self.workspace = self.workspace.trusting(*(p.mesh.parent for p in self.asm.parts.values()))
             if obj_map:  # a BOP scene's obj_ids (`apose studio --obj-map`), read when it opens
@@ -122,6 +124,14 @@ class Studio:
                 frames = self.inspect.frames
                 if getattr(frames, "assembly", None) is not None:
                     self.workspace = self.workspace.trusting(*(p.mesh.parent for p in frames.assembly.parts.values()))
+
+    lock = property(lambda self: self.desk.lock, doc="one edit at a time, whichever tab it comes from (the desk's)")
+    busy = property(lambda self: self.desk.busy, doc="one estimation at a time (the desk's)")
+    history = property(lambda self: self.desk.history, doc="the draft's undo history (the desk's)")
+    models = property(lambda self: self.desk.models, doc="loaded PartModels (the desk's)")
+    cache = property(lambda self: self.desk.cache, doc="estimates by frame and settings (the desk's)")
+    workspace = property(lambda self: self.desk.workspace, lambda self, w: setattr(self.desk, "workspace", w),
+                         doc="the folders the page may name (the desk's)")
 
     asm = shared("asm", "the draft (`state.asm`)")
     valid_asm = shared("valid_asm", "the last draft without problems, what the preview shows (`state.valid_asm`)")
@@ -134,16 +144,30 @@ class Studio:
         as an error is. `keep`: a success kept the same way (a result to read, such as a step's summary)."""
         (log.warning if error else log.info)("%s: %s", title, body)
         if others_of is not None:
-            clients = [c for c in self.server.get_clients().values() if c.client_id != others_of.client_id]
+            if self.tab is not None:  # the other tabs have studios of their own
+                for other in list(self.desk.views.values()):
+                    if other is not self:
+                        other.show_notice(other.pages(), title, body, error, True, "yellow")
+                return
+            clients = [c for c in self.pages() if c.client_id != others_of.client_id]
         else:
-            clients = [client] if client is not None else list(self.server.get_clients().values())
-        lasting = error or keep or others_of is not None
+            clients = [client] if client is not None else self.pages()
+        self.show_notice(clients, title, body, error, error or keep or others_of is not None,
+                         "red" if error else "yellow" if others_of is not None else "green")
+
+    def pages(self) -> list:
+        """The tabs this studio is drawn in: its own, or (on the server's GUI) every connected one."""
+        return [self.tab] if self.tab is not None else list(self.server.get_clients().values())
+
+    def _client(self, client_id):
+        return self.server.get_clients().get(client_id)
+
+    def show_notice(self, clients, title: str, body: str, error: bool, lasting: bool, colour: str) -> None:
         for c in clients:
             try:
                 for old in self._errors_shown.pop(c.client_id, []):
                     old.remove()
-                handle = c.add_notification(title, body, auto_close_seconds=None if lasting else 4.0,
-                                            color="red" if error else "yellow" if others_of is not None else "green")
+                handle = c.add_notification(title, body, auto_close_seconds=None if lasting else 4.0, color=colour)
                 if lasting:
                     self._errors_shown.setdefault(c.client_id, []).append(handle)
             except Exception:  # a tab that just closed
@@ -162,7 +186,10 @@ class Studio:
                     with self.lock, reads_within(self.workspace.readable):  # no page action reads outside it
                         if cid is not None and cid not in self.server.get_clients():
                             return  # the tab closed while this waited: nobody is asking any more
-                        fn(client)
+                        try:
+                            fn(client)
+                        finally:
+                            self.desk.spread(self)  # the other tabs draw the draft as this action left it
                 except AssemblyError as e:
                     lines = [str(p) for p in e.problems[:6]]
                     more = f"\n(+{len(e.problems) - 6} more)" if len(e.problems) > 6 else ""
@@ -178,8 +205,9 @@ class Studio:
                                 error=True)
                 finally:
                     if cid is not None:
-                        with self._pending_lock:
-                            self._pending[cid] -= 1
+                        with self.desk.pending_lock:
+                            if cid in self.desk.pending:
+                                self.desk.pending[cid] -= 1
             return run
         return wrap
 
@@ -187,15 +215,16 @@ class Studio:
         """One tab may have MAX_PENDING_PER_TAB actions waiting for (or holding) the studio at once; a press
         beyond that is dropped and the tab told (at most once a second). 300 presses of *Add part(s)* on a
         folder in 0.3 s once kept every other tab waiting for two minutes."""
-        with self._pending_lock:
-            n, everyone = self._pending.get(cid, 0), sum(self._pending.values())
+        desk = self.desk
+        with desk.pending_lock:
+            n, everyone = desk.pending.get(cid, 0), sum(desk.pending.values())
             if n < MAX_PENDING_PER_TAB and everyone < MAX_PENDING_ALL:  # many tabs of one flooder count too
-                self._pending[cid] = n + 1
+                desk.pending[cid] = n + 1
                 return True
-            now, told = time.monotonic(), self._dropped_told.get(cid, 0.0)
+            now, told = time.monotonic(), desk.dropped_told.get(cid, 0.0)
             if now - told < 1.0:
                 return False
-            self._dropped_told[cid] = now
+            desk.dropped_told[cid] = now
         log.info("tab %s: %s dropped, %d actions of it still waiting", cid, title, n)
         waiting = f"{n} of your earlier actions are" if n >= MAX_PENDING_PER_TAB else f"{everyone} actions of all tabs are"
         self.notify(client, title, f"not done: {waiting} still waiting; press again once they have finished", error=True)
@@ -209,17 +238,17 @@ class Studio:
         self.mates.listen(client)
 
     def build_gui(self, inspect_first: bool = False) -> None:
-        gui = self.server.gui
+        gui = self.ui.gui
         gui.configure_theme(control_layout="fixed", control_width="large", show_share_button=False,
                             brand_color=(40, 90, 230))
-        self.server.scene.set_up_direction("+z")
+        self.ui.scene.set_up_direction("+z")
         # plain lights: no shadows and no environment map. Drawn without a GPU (software WebGL, as in VMs and remote
         # desktops) a frame of the inspect view took ~1 s with viser's defaults, ~0.7 s without the environment map,
         # ~0.25 s without shadows too; and while the browser draws, the page answers no click (benchmarks/
         # studio_browser.py). A sky/ground light stands in for the map, so that the sides of a part are not black.
-        self.server.scene.configure_default_lights(True, cast_shadow=False)
-        self.server.scene.configure_environment_map(hdri=None)
-        self.server.scene.add_light_hemisphere("/lights/sky", sky_color=(255, 255, 255), ground_color=(110, 110, 120),
+        self.ui.scene.configure_default_lights(True, cast_shadow=False)
+        self.ui.scene.configure_environment_map(hdri=None)
+        self.ui.scene.add_light_hemisphere("/lights/sky", sky_color=(255, 255, 255), ground_color=(110, 110, 120),
                                                intensity=1.2, position=(0.0, 0.0, 1.0))
         self.view = gui.add_button_group("3D view", VIEWS)
         self.view.on_click(lambda e: self.guarded("3D view")(lambda c: self.on_view_button(e.target.value))(e))
@@ -252,7 +281,7 @@ class Studio:
         # inspect (`--dataset`), the Inspect tab comes first, beside the Inspect view it opens on
         for build in ((inspect_tab, assembly_tab) if inspect_first else (assembly_tab, inspect_tab)):
             build()
-        self.server.scene.add_grid("/grid", width=1.0, height=1.0, cell_size=0.01, section_size=0.1,
+        self.ui.scene.add_grid("/grid", width=1.0, height=1.0, cell_size=0.01, section_size=0.1,
                                    plane="xy", position=(0.0, 0.0, -0.0005))
         self.show_view("Assembly")
 
@@ -326,6 +355,8 @@ class Studio:
 
     def _cameras(self) -> list:
         """Every tab's camera, and the one a new tab starts with."""
+        if self.tab is not None:
+            return [self.tab.camera]
         return [c.camera for c in self.server.get_clients().values()] + [self.server.initial_camera]
 
     def _place(self, cam, up, position, look_at, fov: float | None = None) -> None:
@@ -406,6 +437,49 @@ class Studio:
         thread.start()
         return thread
 
+    def show_draft(self) -> None:
+        """A new tab's studio shows the shared draft as it is now: its first step selected (none without
+        steps), assembled, the Assembly file field on its file, the camera framing it."""
+        asm = self.asm
+        self.state.step_index = 0 if asm.steps else None
+        self.refresh_assembly_widgets()
+        if self.state.saved_path is not None:
+            self.events.emit(Event.DRAFT_OPENED)
+        self.frame_camera_on_assembly()
+        self.seen_asm = asm
+
+    def catch_up(self, journal: list) -> None:
+        """Another tab's action changed the draft (Desk.spread, under the lock): replay the draft events it
+        emitted here, with this tab's own selection kept (moved to the first step for another file, to the
+        last one when its step is gone), and draw the draft anew if no event did."""
+        if any(e is Event.DRAFT_OPENED for e, _ in journal):
+            self.state.step_index = 0 if self.asm.steps else None
+        i, n = self.state.step_index, len(self.asm.steps)
+        if i is not None and i >= n:
+            self.state.step_index = n - 1 if n else None
+        elif i is None and n and self.seen_asm is not self.asm and not self.seen_asm.steps:
+            self.state.step_index = 0  # the first step of a draft that had none
+        drawn = False
+        for event, payload in journal:
+            if event is Event.MESHES_CHANGED:
+                self.mates.clear_picks()  # a picked face may belong to a part gone or changed
+            self.events.emit(event, **payload)
+            drawn |= event is Event.DRAFT_CHANGED
+        if not drawn and self.seen_asm is not self.asm:
+            self.refresh_assembly_widgets()
+        self.seen_asm = self.asm
+
+    def close(self) -> None:
+        """This tab closed (tabs of their own): its player stopped, its background work finished, its
+        unfinished uploads dropped."""
+        try:
+            self.shutdown()
+        finally:
+            try:
+                self.ui.gui._current_file_upload_states.clear()
+            except Exception:
+                log.warning("viser's upload internals changed: a closed tab's unfinished uploads may stay buffered")
+
     def shutdown(self) -> None:
         """Before the server stops (Ctrl-C): the player stopped, a live camera closed, the background
         preparation finished (a process that exits inside Open3D is aborted by the C++ runtime)."""
@@ -426,12 +500,7 @@ class Studio:
 
     def model(self, pid: str, asm: Assembly | None = None) -> PartModel:
         """A part's loaded mesh and derived geometry, cached by file, unit, colour and index."""
-        asm = asm if asm is not None else self.asm
-        part = asm.parts[pid]
-        key = (str(part.mesh), part.solid, asm.units, part.color, list(asm.parts).index(pid), part.roi)
-        if key not in self.models:
-            self.models[key] = load_part(part, asm.units, key[4])
-        return self.models[key]
+        return self.desk.model(pid, asm if asm is not None else self.asm)
 
     def clear_errors(self, client) -> None:
         """Close the errors kept open on `client`'s tab: an action that takes back what they were about (Undo)."""
@@ -510,8 +579,12 @@ def default_workspace(assembly=None, dataset=None, root=None) -> Workspace:
 
 
 def serve(assembly=None, dataset=None, host: str = "127.0.0.1", port: int = 8080, cache=None, root=None,
-          token: str | None = None, obj_map: list[str] | None = None):
+          token: str | None = None, obj_map: list[str] | None = None, tabs: bool = True):
     """Start the studio in the background; returns (server, studio). `server.stop()` ends it.
+
+    `tabs` (the default): each browser tab gets a studio of its own (its selection, fields and 3D view)
+    over the one shared draft, and `studio` is the `Desk` (its `views` are the tabs' studios). `tabs=False`:
+    one `Studio` on the server's GUI, shared by every tab, driven without a page (tests, export-html).
 
     Only the studio's own page may connect (Origin check), and the page and its websocket need
     `token` (a new random one when None, on loopback too); `studio.url` is the address to open. `obj_map`:
@@ -522,10 +595,37 @@ def serve(assembly=None, dataset=None, host: str = "127.0.0.1", port: int = 8080
     ready = threading.Event()  # pages may connect once the studio (and its screen of their messages) is built
     server = start_viser(host, port, token, ready=ready)
     try:
-        studio = Studio(server, assembly, dataset, cache, default_workspace(assembly, dataset, root), obj_map)
+        workspace = default_workspace(assembly, dataset, root)
+        studio = open_desk(server, assembly, dataset, cache, workspace, obj_map) if tabs else \
+            Studio(server, assembly, dataset, cache, workspace, obj_map)
     except BaseException:
         server.stop()
         raise
     studio.url = studio_url(host, server.get_port(), token)
     ready.set()
     return server, studio
+
+
+def open_desk(server, assembly, dataset, cache, workspace: Workspace, obj_map) -> Desk:
+    """The shared half of a studio whose tabs each get their own (`serve(tabs=True)`): the server guarded,
+    the start-up assembly read (its errors end the start, as a bad file named on the command line should),
+    and a tab's studio built when it connects."""
+    desk = Desk(server, workspace, cache)
+
+    def notify(client, *a, **k):  # a refusal for a tab: through its studio (none yet: straight to the tab)
+        view = desk.views.get(getattr(client, "client_id", None))
+        if view is not None:
+            view.notify(client, *a, **k)
+        elif client is not None:
+            client.add_notification(a[0], a[1], color="red", auto_close_seconds=None)
+
+    screen_messages(server, notify)  # before any page's message is handled
+    limit_uploads(server.gui, desk.upload_states, MAX_UPLOAD_BYTES,
+                  lambda cid, *a, **k: notify(server.get_clients().get(cid), *a, **k))
+    if assembly is not None:  # named on the command line: the user's own files, not the page's
+        asm = desk.open(Path(assembly), confine=False)
+        desk.workspace = desk.workspace.trusting(*(p.mesh.parent for p in asm.parts.values()))
+    desk.make_view = lambda client: Studio(server, None, dataset, desk=desk, tab=client, obj_map=obj_map)
+    server.on_client_connect(desk.on_connect)
+    server.on_client_disconnect(desk.on_disconnect)
+    return desk

@@ -50,9 +50,16 @@ class AssemblyPanel:
         self._pending_save: Path | None = None  # a file that Save would replace, waiting for "Replace"
         self.region_gizmo = RegionGizmo(app, self)  # Drag region: the region's handles in the 3D view
         app.events.on(Event.DRAFT_CHANGED, self.refresh_files)
+        app.events.on(Event.DRAFT_OPENED, self.show_file)  # another tab's Open or Save names the file here too
+        app.events.on(Event.DRAFT_SAVED, self.show_file)
+
+    def show_file(self) -> None:
+        """The Assembly file field names the file the draft was opened from or saved to."""
+        if self.saved_path is not None and self.f_path.value != str(self.saved_path):
+            self.f_path.value = str(self.saved_path)
 
     def build(self) -> None:
-        gui = self.app.server.gui
+        gui = self.app.ui.gui
         with gui.add_folder("File"):
             self.f_path = gui.add_text("Assembly file", "", hint="path on the server; relative mesh paths resolve against its folder")
             row = gui.add_button_group("File actions", ("Open", "New", "Save", "Download"))
@@ -87,17 +94,10 @@ class AssemblyPanel:
     def open_assembly(self, path: Path, client=None, confine: bool = True) -> None:
         """Open an assembly file. `confine`: its meshes must lie in the workspace, as typed paths must (the
         page's Open); a file named on the command line at start is the user's own choice and is not confined."""
-        asm = load_assembly(path)
-        if confine:
-            self.app.workspace.check_assembly(asm)  # the meshes a file names obey the workspace as typed paths do
-        for pid in asm.parts:  # load every mesh now: a bad one is reported before anything changes
-            self.app.model(pid, asm)
+        asm = self.app.desk.open(path, confine)  # the draft, its meshes loaded first, the undo history cleared
         self.app.events.emit(Event.MESHES_CHANGED, pid=None)
         self.app.state.step_index = 0 if asm.steps else None
-        self.saved_path, self.app.state.saved_how = asm.path, "opened"
         self.f_path.value = str(asm.path)
-        self.app.history.clear()  # another file: Undo never brings the previous file's draft back over this one
-        self.saved_draft = asm
         self.app.set_assembly(asm, client, record=False)
         self.app.events.emit(Event.DRAFT_OPENED)
         self.app.frame_camera_on_assembly()
@@ -331,7 +331,7 @@ class AssemblyPanel:
         folder: recreated, not written into, for the reason steps_panel.make_pose_fields gives."""
         old = (self.f_roi_centre, self.f_roi_size)
         orders = None if old[0] is None else (old[0].order, old[1].order)
-        gui = self.app.server.gui
+        gui = self.app.ui.gui
         with self.parts_folder if orders is not None else nullcontext():  # the first time: in build's `with`
             centre = gui.add_vector3("Region centre (mm)", tuple(centre_mm), step=0.5, **VECTOR_MM,
                                      hint="in the part's own frame", order=orders and orders[0])

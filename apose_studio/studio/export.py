@@ -41,7 +41,8 @@ def export_replay(input_path: str | Path, step: int, frame: int, assembly: str |
     level = quiet.level
     quiet.setLevel(logging.ERROR)
     with contextlib.redirect_stdout(io.StringIO()):  # viser says "Server stopped" on stdout if the start fails
-        server, st = serve(assembly, input_path, host="127.0.0.1", port=_free_port(), obj_map=obj_map)
+        server, st = serve(assembly, input_path, host="127.0.0.1", port=_free_port(), obj_map=obj_map,
+                           tabs=False)
     try:
         with st.lock:
             ins = st.inspect

@@ -30,7 +30,7 @@ class GraspsPanel:
         app.events.on(Event.PLAYED, lambda pid, T_world_part: self.drop() if pid is None else self.carry(pid, T_world_part))
 
     def build(self) -> None:
-        gui = self.app.server.gui
+        gui = self.app.ui.gui
         with gui.add_folder("Grasps", expand_by_default=False) as self.folder:
             gui.add_markdown("Pick a face of the step's **part** (Mates folder), choose where the gripper comes "
                              "from, then *Grasp at picked face*: the jaws close on a flat face and the one "
@@ -117,7 +117,7 @@ class GraspsPanel:
             poses["preplace"] = s.approach.start(T_world_part, T_world_base) @ g.T_part_gripper
         for what, T in poses.items():
             name = f"/assembly/gripper/{what}"
-            h = self.app.server.scene.add_mesh_simple(
+            h = self.app.ui.scene.add_mesh_simple(
                 name, np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.uint32), color=GRIPPER_COLOUR,
                 opacity=1.0 if what == "place" else 0.35, flat_shading=True,
                 wxyz=wxyz(T), position=pos(T))
@@ -136,7 +136,7 @@ class GraspsPanel:
         if h is None or getattr(h, "_apose_for", None) != (pid, g.name):
             self.drop()
             mesh = gripper_mesh(g.width, self.app.valid_asm.gripper)
-            h = self.app.server.scene.add_mesh_simple(CARRY, np.asarray(mesh.vertices, np.float32),
+            h = self.app.ui.scene.add_mesh_simple(CARRY, np.asarray(mesh.vertices, np.float32),
                                                       np.asarray(mesh.faces, np.uint32), color=GRIPPER_COLOUR,
                                                       flat_shading=True, wxyz=wxyz(T), position=pos(T))
             h._apose_for = (pid, g.name)

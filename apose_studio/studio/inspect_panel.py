@@ -96,7 +96,7 @@ class InspectPanel:
         app.events.on(Event.PROMPT_CHANGED, self.on_prompt_changed)
 
     def build(self) -> None:
-        gui = self.app.server.gui
+        gui = self.app.ui.gui
         with gui.add_folder("Data"):
             self.i_path = gui.add_text("Dataset or capture", "", hint="a folder from `apose render`, rgb.png + depth.png + "
                                        "camera.json, a BOP scene (scene_camera.json, rgb/, depth/), or a ROS 2 "
@@ -584,13 +584,13 @@ class InspectPanel:
             win = fr.depth[h // 2 - 20:h // 2 + 20, w // 2 - 20:w // 2 + 20]
             z = float(np.median(win[np.isfinite(win) & (win > 0)])) if (np.isfinite(win) & (win > 0)).any() else 0.5
             centre = se3.transform_points(fr.T_world_camera, np.array([[0.0, 0.0, z]]))[0]
-            g = self.app.node("/inspect/crop", self.app.server.scene.add_transform_controls(
+            g = self.app.node("/inspect/crop", self.app.ui.scene.add_transform_controls(
                 "/inspect/crop", scale=float(size.max()), position=tuple(centre)))
             g.on_update(lambda e: self.app.guarded("Crop box")(lambda c: self.on_crop_drag(e))(e))
             self.show_crop_centre()
 
         box = trimesh.creation.box(size)
-        self.app.node("/inspect/crop/box", self.app.server.scene.add_mesh_simple(
+        self.app.node("/inspect/crop/box", self.app.ui.scene.add_mesh_simple(
             "/inspect/crop/box", box.vertices.astype(np.float32), box.faces.astype(np.uint32), color=(255, 170, 0),
             wireframe=True))
 
@@ -605,7 +605,7 @@ class InspectPanel:
         order = self.i_crop_centre.order
         self.i_crop_centre.remove()
         with self.estimate_folder:
-            self.i_crop_centre = self.app.server.gui.add_vector3(
+            self.i_crop_centre = self.app.ui.gui.add_vector3(
                 "Crop centre (mm)", value, step=1.0, order=order, **VECTOR_MM, hint="world frame; typed, dragged with the box's gizmo, or clicked")
         self.i_crop_centre.on_update(self.app.guarded("Crop box")(lambda c: self.on_crop_centre()))
 

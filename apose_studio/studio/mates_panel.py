@@ -54,7 +54,7 @@ class MatesPanel:
             self.warm_up([p for p in (s.part, *s.base) if p in asm.parts])
 
     def build(self) -> None:
-        gui = self.app.server.gui
+        gui = self.app.ui.gui
         with gui.add_folder("Mates") as self.folder:
             gui.add_markdown(HELP)
             self.picked_md = gui.add_markdown("*nothing picked*")
@@ -219,13 +219,13 @@ class MatesPanel:
             n = m.mesh.face_normals[shown]
             v = (m.mesh.vertices[tris] + 0.002 * m.diameter * n[:, None, :]).reshape(-1, 3)  # just above the face
             name = f"/assembly/pick_{side}"
-            h = self.app.server.scene.add_mesh_simple(name, v.astype(np.float32), np.arange(len(v)).reshape(-1, 3).astype(np.uint32),
+            h = self.app.ui.scene.add_mesh_simple(name, v.astype(np.float32), np.arange(len(v)).reshape(-1, 3).astype(np.uint32),
                                                       color=PICK_COLOURS[side], position=pos(T), wxyz=wxyz(T))
             self.app.node(name, h)
             if f.is_axis:
                 seg = np.array([[f.point - 0.6 * m.diameter * f.direction, f.point + 0.6 * m.diameter * f.direction]])
                 name = f"/assembly/axis_{side}"
-                self.app.node(name, self.app.server.scene.add_line_segments(
+                self.app.node(name, self.app.ui.scene.add_line_segments(
                     name, seg.astype(np.float32), PICK_COLOURS[side], thickness=0.004 * m.diameter,
                     position=pos(T), wxyz=wxyz(T)))
         self.picked_md.content = "\n".join(lines) if lines else "*nothing picked*"
@@ -337,5 +337,5 @@ class MatesPanel:
         side /= np.linalg.norm(side)
         head = 0.2 * s.approach.distance
         segs = np.array([[start, end], [end, end - head * d + 0.5 * head * side], [end, end - head * d - 0.5 * head * side]])
-        self.app.node(name, self.app.server.scene.add_line_segments(
+        self.app.node(name, self.app.ui.scene.add_line_segments(
             name, segs.astype(np.float32), APPROACH_COLOUR, thickness=0.01 * m.diameter))

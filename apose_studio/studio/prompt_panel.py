@@ -101,7 +101,7 @@ class PromptPanel:
         self.app = app
 
     def build(self) -> None:
-        gui = self.app.server.gui
+        gui = self.app.ui.gui
         with gui.add_folder("Prompt (cluttered scenes)"):
             self.i_prompt = gui.add_text("Prompt (px)", "", hint="a box x0,y0,x1,y1 or a point u,v on the base object, in "
                                          "image pixels; then Mask: prompt")

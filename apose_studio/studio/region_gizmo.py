@@ -122,7 +122,7 @@ class RegionGizmo:
         centre = np.asarray(self.files.f_roi_centre.value, float) / 1000.0
         size = np.asarray(self.files.f_roi_size.value, float) / 1000.0
         self._centre, self._corner = authoring.roi_handles(kind, centre, size, self._side)
-        scene = self.app.server.scene
+        scene = self.app.ui.scene
         frame = self.app.nodes.get(ROOT)
         if frame is None:
             frame = self.app.node(ROOT, scene.add_frame(ROOT, show_axes=False))
@@ -164,14 +164,14 @@ class RegionGizmo:
             name = f"{ROOT}/label_{which}"
             label = self.app.nodes.get(name)
             if label is None:
-                label = self.app.node(name, self.app.server.scene.add_label(
+                label = self.app.node(name, self.app.ui.scene.add_label(
                     name, f"region {which}", position=(0.0, 0.0, 0.0), anchor="top-left", font_screen_scale=0.8))
             label.position = tuple(where)
         name = f"{ROOT}/outline"
         old = self.app.nodes.pop(name, None)
         if old is not None:
             old.remove()
-        self.app.node(name, self.app.server.scene.add_line_segments(name, seg, EDGE_COLOUR, thickness=3.0,
+        self.app.node(name, self.app.ui.scene.add_line_segments(name, seg, EDGE_COLOUR, thickness=3.0,
                                                                     thickness_units="screen"))
 
     def on_handle(self, event, which: str) -> None:

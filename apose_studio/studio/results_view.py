@@ -21,6 +21,7 @@ from apose_studio.robot.grasping import gripper_mesh
 from apose_studio.studio import inspection
 from apose_studio.studio.prompt_panel import overlay_mask, typed_prompt, uses_prompt
 from apose_studio.studio.state import Event
+from apose_studio.studio.viser_adapter import scene_serializer
 from apose_studio.studio.widgets import LAYERS, SHARP_EDGE_DEG, esc, legend_html, pos, send_download, shaded, wxyz
 
 log = logging.getLogger(__name__)
@@ -57,7 +58,7 @@ class ResultsView:
         app.events.on(Event.OVERLAY_CHANGED, self.draw_overlay)
 
     def build(self) -> None:
-        gui = self.app.server.gui
+        gui = self.app.ui.gui
         with gui.add_folder("Result"):  # first: what the user looks for after Estimate
             self.i_legend = gui.add_html(legend_html())
             self.i_metrics = gui.add_markdown("")
@@ -86,7 +87,7 @@ class ResultsView:
         RGB overlay in the panel."""
         fr = self.app.state.inspect.frame
         self.app.state.inspect.mask_asked = False  # a new frame, prompt or estimate: the RGB shows the estimate's mask
-        scene = self.app.server.scene
+        scene = self.app.ui.scene
         part_model = self.app.state.part_model()
         Tc = fr.T_world_camera
         drawn = (fr.source, int(fr.im_id), Tc.tobytes(), fr.depth.shape, float(np.sum(fr.depth[::7, ::7], dtype=np.float64)))
@@ -123,10 +124,10 @@ class ResultsView:
             base = self.base_mesh()  # the base object's model where the estimate puts it: does it fit the cloud?
             if self._ghost[0] is not part_model.mesh:  # shaded once per part, not on every frame drawn
                 self._ghost = (part_model.mesh, shaded(part_model.mesh))
-            self.posed_mesh("/inspect/base_est", base, r.T_world_base, lambda: self.app.server.scene.add_line_segments(
+            self.posed_mesh("/inspect/base_est", base, r.T_world_base, lambda: self.app.ui.scene.add_line_segments(
                 "/inspect/base_est", inspection.feature_edges(base, SHARP_EDGE_DEG).astype(np.float32), inspection.GREEN, thickness=1.5,
                 thickness_units="screen"))
-            self.posed_mesh("/inspect/ghost", self._ghost[1], r.T_world_part, lambda: self.app.server.scene.add_mesh_simple(
+            self.posed_mesh("/inspect/ghost", self._ghost[1], r.T_world_part, lambda: self.app.ui.scene.add_mesh_simple(
                 "/inspect/ghost", *self._ghost[1], color=inspection.GREEN, opacity=0.45))
             grasp = self.draw_gripper(r.T_world_part)
             if grasp is not None:
@@ -172,7 +173,7 @@ class ResultsView:
 
     def draw_scene(self, fr) -> None:
         """The frame's camera (its frustum, with the RGB image) and its scene cloud, coloured by the image."""
-        scene, cam, Tc = self.app.server.scene, fr.camera, fr.T_world_camera
+        scene, cam, Tc = self.app.ui.scene, fr.camera, fr.T_world_camera
         small = fr.rgb[::2, ::2] if fr.rgb.shape[1] > 400 else fr.rgb
         fov = 2.0 * np.arctan2(cam.height / 2.0, cam.fy)
         self.app.node("/inspect/camera", scene.add_camera_frustum("/inspect/camera", fov=float(fov), aspect=cam.width / cam.height,
@@ -212,14 +213,14 @@ class ResultsView:
             m = gripper_mesh(grasp.width, gripper)
             self._gripper = ((grasp.width, gripper), (np.asarray(m.vertices, np.float32), np.asarray(m.faces, np.uint32)))
         mesh = self._gripper[1]
-        self.posed_mesh(name, mesh, T_world_gripper, lambda: self.app.server.scene.add_mesh_simple(
+        self.posed_mesh(name, mesh, T_world_gripper, lambda: self.app.ui.scene.add_mesh_simple(
             name, *mesh, color=inspection.GRIPPER, flat_shading=True, opacity=opacity))
 
     def draw_robot(self, fr) -> list[tuple]:
         """What the robot does about the step's part, in the world: the gripper (by the part's first grasp) at the
         pre-place where the step has an approach, and at the pick where the Robot folder found the loose part;
         the robot base's axes where it has a hand-eye calibration. Returns their labels."""
-        ins, scene = self.app.state.inspect, self.app.server.scene
+        ins, scene = self.app.state.inspect, self.app.ui.scene
         asm = self.app.state.inspect_assembly()
         step = asm.steps[ins.step - 1]
         part = asm.parts.get(step.part)
@@ -358,9 +359,9 @@ class ResultsView:
         if self.app.current_view != "Inspect":
             self.app.show_view("Inspect")
         self.set_stage(0)  # the page starts where the registration did
-        label = self.app.server.scene.add_label("/inspect/stage_label", self.stage_text(0), position=self.label_at(),
+        label = self.app.ui.scene.add_label("/inspect/stage_label", self.stage_text(0), position=self.label_at(),
                                                anchor="bottom-left", font_screen_scale=1.2)
-        serializer = self.app.server.get_scene_serializer()  # from the scene as drawn now
+        serializer = scene_serializer(self.app.ui)  # from the scene as drawn now (this tab's)
         try:
             self.app.events.emit(Event.FRAMING_ASKED)  # the page opens looking at the object
             for k in range(1, len(self.stages)):
@@ -423,7 +424,7 @@ class ResultsView:
             if h is not None:
                 self.app.nodes.pop("/inspect/source").remove()
             d = self.app.state.part_model().diameter
-            h = self.app.node("/inspect/source", self.app.server.scene.add_point_cloud(
+            h = self.app.node("/inspect/source", self.app.ui.scene.add_point_cloud(
                 "/inspect/source", s.source_base, inspection.BLUE, point_size=d / 120, point_shape="circle",
                 precision="float32"),
                 visible=bool(self.layers["source cloud"].value))

@@ -72,7 +72,7 @@ class RobotPanel:
         app.events.on(Event.RESULT_READY, self.show_targets)
 
     def build(self) -> None:
-        gui = self.app.server.gui
+        gui = self.app.ui.gui
         with gui.add_folder("Robot", expand_by_default=False):
             self.i_hand_eye = gui.add_text("Hand-eye file", "", hint="the camera in the robot's frame: JSON/YAML with "
                                            "T_robot_camera or T_flange_camera, a bare 4x4, or easy_handeye2's calibration")

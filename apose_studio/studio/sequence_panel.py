@@ -43,7 +43,7 @@ class SequencePanel:
         self.last_summary = ""  # the status line of the last play (tests read it)
 
     def build(self) -> None:
-        gui = self.app.server.gui
+        gui = self.app.ui.gui
         with gui.add_folder("Sequence"):
             self.s_play = gui.add_button("Play", hint="play the opened frames in time from the frame on show, the base "
                                          "tracked from frame to frame; press again to pause")

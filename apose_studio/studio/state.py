@@ -1,12 +1,13 @@
 """What the studio's panels share, and how they tell each other that it changed.
 
-`StudioState` holds the data more than one panel reads: the draft assembly, the selected step, the
-preview poses and part meshes in the 3D view, the faces picked for a mate, and (in `InspectState`)
-the inspected data, frame, estimate, mask source and prompt. The app owns it; each field names the
-panel that writes it, the others only read it.
+`StudioState` holds the data more than one panel reads: the draft assembly (a `Draft`, shared by every
+browser tab), and the tab's own selected step, preview poses and part meshes in the 3D view, the faces
+picked for a mate, and (in `InspectState`) the inspected data, frame, estimate, mask source and prompt.
+The app owns it; each field names the panel that writes it, the others only read it.
 
 `Events` is a small synchronous hub: `on(event, fn)` subscribes, `emit(event, **payload)` calls the
-subscribers in the order they subscribed, in the emitting thread. Every studio callback already
+subscribers in the order they subscribed, in the emitting thread (and first its `tap`, through which the
+desk keeps the draft's events for the other tabs: desk.py). Every studio callback already
 runs under the studio lock (`Studio.guarded`), so subscribers do too. The events are the fixed set
 in `Event`, each with the payload keys in `PAYLOAD`; a panel that must react to another panel's
 action subscribes to its event instead of being called by it.
@@ -74,8 +75,9 @@ class Events:
     """Subscribers by event; `emit` calls them in subscription order, synchronously. An event outside
     `Event`, or a payload without exactly the keys `PAYLOAD` lists, is a programming error (TypeError)."""
 
-    def __init__(self) -> None:
+    def __init__(self, tap: Callable[[Event, dict], None] | None = None) -> None:
         self._subscribers: dict[Event, list[Callable[..., None]]] = {e: [] for e in Event}
+        self._tap = tap  # told of every event before its subscribers (the desk keeps the draft's for other tabs)
 
     def on(self, event: Event, fn: Callable[..., None]) -> None:
         if not isinstance(event, Event):
@@ -90,6 +92,8 @@ class Events:
             raise TypeError(f"{event!r} is not a studio Event")
         if set(payload) != set(PAYLOAD[event]):
             raise TypeError(f"{event.name} carries {PAYLOAD[event]}, not {tuple(payload)}")
+        if self._tap is not None:
+            self._tap(event, payload)
         for fn in list(self._subscribers[event]):
             fn(**payload)
 
@@ -130,30 +134,56 @@ class InspectState:
         return self.pick_estimates.get(self.pick_key(), (None, None))
 
 @dataclass
-class StudioState:
-    """The studio's shared data; see the module docstring. `asm`, `valid_asm`, `problems` are written
-    by the app (`Studio.set_assembly`) and the Steps panel (a gizmo drag), `step_index` by the Steps
-    panel and the app, `preview` and `meshes` by the Steps panel, `picks` by the Mates panel,
-    `region_handles` by the Parts folder's Drag region, `saved_path` and `saved_draft` by the Assembly panel."""
+class Draft:
+    """The assembly being authored, shared by every tab of a studio: the draft, the last valid one, its
+    problems, and the file it was opened from or saved to. Written by the app (`Studio.set_assembly`),
+    the Steps panel (a gizmo drag) and the Assembly panel (open, new, save)."""
 
     asm: Assembly  # the draft
     valid_asm: Assembly  # the last draft without problems: what the preview shows
     problems: list  # the draft's problems (an empty draft has one: no steps)
+    saved_path: Path | None = None  # the file the draft was opened from or last saved to
+    saved_how: str = "saved"  # "opened" or "saved": what last made saved_path hold the draft (the status says it)
+    saved_draft: Assembly | None = None  # the draft as it was opened or last saved (drafts are never changed in
+    # place: `asm is saved_draft` means nothing is unsaved, Undo back to it included)
+
+    @classmethod
+    def empty(cls) -> "Draft":
+        asm = authoring.new_assembly()
+        return cls(asm=asm, valid_asm=asm, problems=authoring.problems(asm))
+
+
+def _in_draft(name: str) -> property:
+    return property(lambda st: getattr(st.draft, name), lambda st, v: setattr(st.draft, name, v),
+                    doc=f"`draft.{name}` (shared by every tab)")
+
+
+@dataclass
+class StudioState:
+    """One tab's data beside the draft it shares with the others (see the module docstring). `draft` is
+    the studio's one `Draft` (its fields read as this state's own: `asm`, `valid_asm`, `problems`,
+    `saved_path`, `saved_how`, `saved_draft`); the rest is this tab's: `step_index` written by the Steps
+    panel and the app, `preview` and `meshes` by the Steps panel, `picks` by the Mates panel,
+    `region_handles` by the Parts folder's Drag region, `inspect` by the Inspect tab's panels."""
+
+    draft: Draft
     step_index: int | None = None  # the selected step, 0-based
     preview: dict[str, np.ndarray] = field(default_factory=dict)  # part id -> T_world_part in the preview
     meshes: dict[str, object] = field(default_factory=dict)  # part id -> its mesh handle in the 3D view
     picks: dict[str, tuple] = field(default_factory=dict)  # "part" / "base" -> (part id, Feature in its frame)
     region_handles: bool = False  # Drag region's handles are on a part: the step's gizmo steps aside meanwhile
-    saved_path: Path | None = None  # the file the draft was opened from or last saved to
-    saved_how: str = "saved"  # "opened" or "saved": what last made saved_path hold the draft (the status says it)
-    saved_draft: Assembly | None = None  # the draft as it was opened or last saved (drafts are never changed in
-    # place: `asm is saved_draft` means nothing is unsaved, Undo back to it included)
     inspect: InspectState = field(default_factory=InspectState)
 
+    asm = _in_draft("asm")
+    valid_asm = _in_draft("valid_asm")
+    problems = _in_draft("problems")
+    saved_path = _in_draft("saved_path")
+    saved_how = _in_draft("saved_how")
+    saved_draft = _in_draft("saved_draft")
+
     @classmethod
-    def empty(cls) -> "StudioState":
-        asm = authoring.new_assembly()
-        return cls(asm=asm, valid_asm=asm, problems=authoring.problems(asm))
+    def empty(cls, draft: Draft | None = None) -> "StudioState":
+        return cls(draft=draft if draft is not None else Draft.empty())
 
     def T_world_shown(self, pid: str) -> np.ndarray | None:
         """Where a part is drawn now: the selected step's part at the draft's pose, the others at the preview's."""

@@ -64,7 +64,7 @@ class StepsPanel:
                 self.mesh_handles.pop(p).remove()
 
     def build(self) -> None:
-        gui = self.app.server.gui
+        gui = self.app.ui.gui
         with gui.add_folder("Steps") as self.steps_folder:
             self.steps_html = gui.add_html("")
             self.f_step = gui.add_dropdown("Step", ("—",))
@@ -140,9 +140,10 @@ class StepsPanel:
         self.refresh_steps()
         self.app.events.emit(Event.STEP_SELECTED, index=self.step_index)
         self.f_upto.value = self.step_index + 1
-        if client is not None and before != self.step_index:
-            # the studio's fields are one set shared by every tab (viser's server GUI): the other tabs' fields now
-            # edit this step too; say so there, before a value typed into them moves a part their user did not pick
+        if client is not None and before != self.step_index and self.app.tab is None:
+            # a studio on the server's GUI (not a tab's own) has one set of fields for every tab: the other tabs'
+            # fields now edit this step too; say so there, before a value typed into them moves a part their user
+            # did not pick
             s = self.app.asm.steps[self.step_index]
             self.app.notify(None, "Step changed in another tab",
                             f"another tab selected step {self.step_index + 1} ({s.part}): the Step fields here show it "
@@ -191,7 +192,7 @@ class StepsPanel:
             for box in self.base_boxes.values():
                 box.remove()
             with self.base_folder:
-                self.base_boxes = {p: self.app.server.gui.add_checkbox(p, False) for p in candidates}
+                self.base_boxes = {p: self.app.ui.gui.add_checkbox(p, False) for p in candidates}
             for box in self.base_boxes.values():
                 box.on_update(self.app.guarded("Base parts")(self.on_base_box))
         base = self.app.asm.steps[i].base if i is not None else ()
@@ -253,7 +254,7 @@ class StepsPanel:
         i = self.step_index
         if i is None or not authoring.broken_mates(self.app.asm, i, self.app.asm.steps[i].T_base_part):
             return
-        clients = [client] if client is not None else list(self.app.server.get_clients().values())
+        clients = [client] if client is not None else self.app.pages()
         for c in clients:
             with c.gui.add_modal("This move breaks the step's mates") as modal:
                 c.gui.add_markdown(f"Step {i + 1} is placed by {len(self.app.asm.steps[i].mates)} mate(s); the new pose "
@@ -321,7 +322,7 @@ class StepsPanel:
         e = tuple(round(float(v), 4) for v in e)
         if tuple(self.f_t.value) == t and tuple(self.f_r.value) == e:
             return
-        gui = self.app.server.gui
+        gui = self.app.ui.gui
         orders = (self.f_t.order, self.f_r.order)
         self.f_t.remove()
         self.f_r.remove()
@@ -436,7 +437,7 @@ class StepsPanel:
                 if st.part in self._preview:
                     where = se3.transform_points(self._preview[st.part], centres[st.part][None])[0]
                     name = f"/assembly/step_label_{i}"
-                    self.app.node(name, self.app.server.scene.add_label(name, f"{i + 1}. {st.part}", position=tuple(where),
+                    self.app.node(name, self.app.ui.scene.add_label(name, f"{i + 1}. {st.part}", position=tuple(where),
                                                                  anchor="bottom-center", font_screen_scale=0.8))
         shown_bodies: set = set()
         for pid in asm.parts:
@@ -453,7 +454,7 @@ class StepsPanel:
             if h is None:
                 m = self.app.model(pid, asm)
                 color = tuple(int(255 * c) for c in m.color)
-                h = self.app.server.scene.add_mesh_simple(f"/parts/{pid}", *shaded(m.mesh), color=color, flat_shading=False)
+                h = self.app.ui.scene.add_mesh_simple(f"/parts/{pid}", *shaded(m.mesh), color=color, flat_shading=False)
                 self.mesh_handles[pid] = h
             T = self._preview.get(pid)
             h._apose_visible = T is not None
@@ -485,15 +486,15 @@ class StepsPanel:
             region.vertices = region.vertices + REGION_LIFT_M * region.vertex_normals  # drawn over the part, not in it
             seg = inspection.box_segments(part.roi.corners(), np.eye(4)).astype(np.float32)
             name = f"/assembly/roi_{pid}"
-            self.app.node(name, self.app.server.scene.add_line_segments(
+            self.app.node(name, self.app.ui.scene.add_line_segments(
                 name, seg, inspection.CYAN, thickness=3.0, thickness_units="screen", wxyz=wxyz(T), position=pos(T)))
             name = f"/assembly/roi_faces_{pid}"
-            self.app.node(name, self.app.server.scene.add_mesh_simple(
+            self.app.node(name, self.app.ui.scene.add_mesh_simple(
                 name, *shaded(region), color=inspection.CYAN, opacity=0.6, wxyz=wxyz(T), position=pos(T)))
             top = part.roi.corners().max(axis=0)  # which seat is which: its name over its region
             where = se3.transform_points(T, np.array([[part.roi.center[0], part.roi.center[1], top[2]]]))[0]
             name = f"/assembly/roi_label_{pid}"
-            self.app.node(name, self.app.server.scene.add_label(name, pid, position=tuple(where), anchor="bottom-center",
+            self.app.node(name, self.app.ui.scene.add_label(name, pid, position=tuple(where), anchor="bottom-center",
                                                                 font_screen_scale=0.8))
 
     def preview_radius(self) -> float:
@@ -522,12 +523,12 @@ class StepsPanel:
         d = self.app.model(step.part, asm).diameter
         frame = self.app.nodes.get("/assembly/base_frame")
         if frame is None:
-            frame = self.app.node("/assembly/base_frame", self.app.server.scene.add_frame(
+            frame = self.app.node("/assembly/base_frame", self.app.ui.scene.add_frame(
                 "/assembly/base_frame", axes_length=0.3 * d, axes_radius=0.01 * d))
         frame.position, frame.wxyz = pos(T_world_base), wxyz(T_world_base)
         g = self.app.nodes.get("/assembly/gizmo")
         if g is None:
-            g = self.app.node("/assembly/gizmo", self.app.server.scene.add_transform_controls(
+            g = self.app.node("/assembly/gizmo", self.app.ui.scene.add_transform_controls(
                 "/assembly/gizmo", scale=max(0.6 * d, 0.25 * self.preview_radius()), depth_test=False))  # on top of the parts
             g.on_update(lambda e: self.app.guarded("Move part")(lambda c: self.on_gizmo(e))(e))
         self._syncing = True

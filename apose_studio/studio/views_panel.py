@@ -34,7 +34,7 @@ class ViewsPanel:
         app.events.on(Event.FRAME_PLAYED, lambda im_id: self.draw_advice())  # ... and a played frame (Sequence)
 
     def build(self) -> None:
-        gui = self.app.server.gui
+        gui = self.app.ui.gui
         with gui.add_folder("Views (one placement)", expand_by_default=False) as self.folder:
             self.i_info = gui.add_markdown("Open a dataset rendered with `--views-per-scene`: the frames of the shown "
                                            "frame's placement appear here to tick.")
@@ -58,7 +58,7 @@ class ViewsPanel:
         lo, hi = self.i_info.order, self.b_estimate.order  # the checkboxes go between the two
         with self.folder:
             for k, im_id in enumerate(group):
-                self.ticks[im_id] = self.app.server.gui.add_checkbox(f"frame {im_id}", True,
+                self.ticks[im_id] = self.app.ui.gui.add_checkbox(f"frame {im_id}", True,
                                                                      order=lo + (k + 1) * (hi - lo) / (len(group) + 1))
         self.i_info.content = (f"placement of frame {ins.frame.im_id}: {len(group)} frame(s)" if len(group) > 1 else
                                "this frame's placement has no other view in the dataset")
@@ -103,7 +103,7 @@ class ViewsPanel:
         if advice is None or self.app.state.inspect.frame is None:
             return
         T_world_camera, cam = advice.T_world_camera, self.app.state.inspect.frame.camera
-        scene = self.app.server.scene
+        scene = self.app.ui.scene
         wxyz = tuple(float(v) for v in se3.matrix_to_quat_wxyz(T_world_camera[:3, :3]))
         pos = tuple(float(v) for v in T_world_camera[:3, 3])
         fov = 2 * np.arctan(cam.height / (2 * cam.fy))

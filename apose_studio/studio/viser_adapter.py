@@ -54,13 +54,32 @@ MAX_POSE_M = MAX_COORDINATE_M  # a gizmo's position: 10 km, the core's coordinat
 NOTICE_EVERY_S = 1.0  # a tab is told about refused input at most this often
 
 
-def limit_uploads(server, max_bytes: int, notify) -> bool:
-    """Install the limits; False (logged) when viser's internals changed and only the after-upload check
-    in the upload callback remains."""
+def scene_serializer(ui):
+    """viser's scene serializer (a `.viser` recording, `as_html()` a standalone page) of the scene as `ui` draws
+    it now and as it goes on: the server's (`server.get_scene_serializer()`), or one tab's own scene, which
+    viser 1.1 has no public call for (the same steps on the tab's connection: register and snapshot under its
+    record lock, so that no message lands twice or not at all)."""
+    if hasattr(ui, "get_scene_serializer"):
+        return ui.get_scene_serializer()
+    conn = ui._websock_connection
+    buffer = conn.get_message_buffer()
+    with conn._record_lock:
+        serializer = conn.get_message_serializer(filter=lambda message: message.include_in_scene_serialization)
+        with buffer.buffer_lock:
+            messages = list(buffer.message_from_id.values())
+        for message in messages:
+            serializer._insert_message(message)
+    return serializer
+
+
+def limit_uploads(gui, all_states, max_bytes: int, notify) -> bool:
+    """Install the limits on `gui` (the server's GUI, or a tab's own); `all_states()` lists the upload buffers
+    of every GUI of the studio, counted together. `notify(client_id, title, body, error=True)` tells the
+    tab. False (logged) when viser's internals changed and only the after-upload check in the upload
+    callback remains."""
     try:
         from viser import _messages  # viser's private message types: may move between viser versions
 
-        gui = server.gui
         states = gui._current_file_upload_states
         handlers = gui._websock_interface._incoming_handlers
     except Exception:
@@ -72,8 +91,7 @@ def limit_uploads(server, max_bytes: int, notify) -> bool:
         if state is None:
             return
         state["parts"].clear()
-        client = server.get_clients().get(client_id)
-        notify(client, "Upload refused", f"{state['filename']}: {why}. Put the file on the server and type its "
+        notify(client_id, "Upload refused", f"{state['filename']}: {why}. Put the file on the server and type its "
                "path instead.", error=True)
 
     def on_start(client_id, message) -> None:
@@ -94,7 +112,7 @@ def limit_uploads(server, max_bytes: int, notify) -> bool:
         if state is None or message.part_index in state["parts"]:
             return
         received = state["transferred_bytes"] + len(message.content)
-        everyone = sum(s["transferred_bytes"] for s in states.values()) + len(message.content)
+        everyone = sum(s["transferred_bytes"] for st in all_states() for s in list(st.values())) + len(message.content)
         if received > state["total_bytes"] or received > max_bytes:
             refuse(client_id, message.transfer_uuid, f"sent {received} bytes but declared {state['total_bytes']}")
         elif everyone > 2 * max_bytes:

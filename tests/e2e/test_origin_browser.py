@@ -56,7 +56,7 @@ def test_page_from_a_127_prefixed_name_cannot_connect(tmp_path, name):
     from apose_studio.studio import serve
 
     token = "known-to-the-attacker-0123"  # the Origin check must hold on its own
-    server, st = serve(host="127.0.0.1", port=free_port(), root=tmp_path, token=token)
+    server, st = serve(host="127.0.0.1", port=free_port(), root=tmp_path, token=token)  # st: the desk (tabs of their own)
     port = server.get_port()
     ws_url = f"ws://127.0.0.1:{port}/t/{token}/"
     # the attacker's page: same port, another loopback address, reached by a DNS name mapped onto it

@@ -20,7 +20,7 @@ def studio(monkeypatch, tmp_path):
     made = []
 
     def start(assembly=None, dataset=None, root=tmp_path):
-        server, st = serve(assembly, dataset, host="127.0.0.1", port=free_port(), root=root)
+        server, st = serve(assembly, dataset, host="127.0.0.1", port=free_port(), root=root, tabs=False)
         st.notes = []
         monkeypatch.setattr(st, "notify", lambda client, title, body, error=False, others_of=None, keep=False:
                             st.notes.append((title, body, error)))

@@ -233,7 +233,7 @@ def test_demo_estimates_are_found_in_the_cache(gearbox_dataset):
     """`apose demo` caches its estimates under the key the studio builds for its default settings."""
     from apose_studio.studio.inspection import ResultCache
 
-    server, st = serve(SAMPLES / "helical_gearbox" / "assembly.yaml", gearbox_dataset, port=free_port())
+    server, st = serve(SAMPLES / "helical_gearbox" / "assembly.yaml", gearbox_dataset, port=free_port(), tabs=False)
     try:
         assert st.inspect.i_upright.value is True
         assert st.inspect.cache_key(1, 0) == ResultCache.key(gearbox_dataset.resolve(), 1, 0, "default", "gt", False)

@@ -48,6 +48,18 @@ class Tab:
     def client(self):
         return self.st.server.get_clients()[self.client_id]
 
+    @property
+    def view(self):
+        """The studio this tab drives: its own (a studio serving tabs of their own: `serve(tabs=True)`), else the
+        one studio on the server's GUI."""
+        from apose_studio.studio.desk import Desk
+
+        if not isinstance(self.st, Desk):
+            return self.st
+        views = self.st.views
+        assert wait(lambda: self.client_id in views), "the tab never got a studio of its own"
+        return views[self.client_id]
+
     def send(self, **message):
         self.ws.send(msgspec.msgpack.encode(message))
 
@@ -56,7 +68,7 @@ class Tab:
 
     def settle(self):
         """Wait until every message sent before has been dispatched: a valid update sent last is applied."""
-        probe = self.st.results.i_full  # a checkbox always shown (a Layers one is hidden while its layer is empty)
+        probe = self.view.results.i_full  # a checkbox always shown (a Layers one is hidden while its layer is empty)
         want = not probe.value
         self.set(probe, value=want)
         assert wait(lambda: probe.value == want)

@@ -1,0 +1,168 @@
+"""Tabs of their own (`serve()` as the CLI runs it: each browser tab gets a studio on its own GUI and scene over
+one shared draft). What each tab selects is its own; an edit reaches every tab; and what a page sends is
+screened as on the server's GUI: a tab's widgets take only what they allow, only from that tab, and uploads
+are limited per tab and for all tabs together.
+
+Raw websockets speak viser's protocol as a hostile page would (tests/studio/test_page_input.py's `Tab`)."""
+
+import uuid
+
+import numpy as np
+import pytest
+
+from apose_studio.studio import serve
+
+from ..conftest import SAMPLES, free_port
+from .test_page_input import Tab, hostile_values, same, wait
+
+GEARBOX = SAMPLES / "helical_gearbox" / "assembly.yaml"
+
+
+@pytest.fixture
+def desk(tmp_path):
+    made = []
+
+    def start(assembly=GEARBOX, dataset=None, root=tmp_path):
+        server, d = serve(assembly, dataset, host="127.0.0.1", port=free_port(), root=root)
+        made.append(server)
+        return d
+
+    yield start
+    for s in made:
+        s.stop()
+
+
+def inputs(view):
+    return list(view.ui.gui._gui_input_handle_from_uuid.values())
+
+
+def test_each_tab_selects_its_own_step_and_every_tab_follows_the_draft(desk):
+    d = desk()
+    a, b = Tab(d), Tab(d)
+    va, vb = a.view, b.view
+    assert va is not vb and va.state.draft is vb.state.draft is d.draft
+    assert va.state.step_index == vb.state.step_index == 0
+    options = tuple(vb.steps.f_step.options)
+    b.set(vb.steps.f_step, value=options[1])  # B selects step 2
+    assert wait(lambda: vb.state.step_index == 1)
+    b.settle()
+    assert va.state.step_index == 0 and va.steps.f_step.value == options[0]  # A keeps its own
+    wheel = d.draft.asm.steps[1].T_base_part.copy()
+    a.set(va.steps.f_t, value=(30.0, 0.0, 14.5))  # A types a pose: A's step (1) moves
+    assert wait(lambda: abs(d.draft.asm.steps[0].T_base_part[0, 3] - 0.030) < 1e-9)
+    assert np.array_equal(d.draft.asm.steps[1].T_base_part, wheel)
+    T = vb.steps._preview[d.draft.asm.steps[0].base[0]] @ d.draft.asm.steps[0].T_base_part
+    assert wait(lambda: np.allclose(vb.steps.mesh_handles["pinion"].position, T[:3, 3], atol=1e-9))  # B drew it
+    assert vb.state.step_index == 1 and vb.steps.f_step.value == options[1]
+    b.set(vb.edit_row, value="Undo")  # B's Undo takes A's edit back, in A's fields too
+    assert wait(lambda: abs(d.draft.asm.steps[0].T_base_part[0, 3] + 0.020) < 1e-9)
+    assert wait(lambda: abs(va.steps.f_t.value[0] + 20.0) < 1e-9)
+    a.close()
+    b.close()
+
+
+def test_a_tab_s_widgets_take_only_what_they_allow_and_only_from_that_tab(desk, gearbox_dataset, capfd):
+    """Every input of a tab's own studio keeps its value against values it does not allow (sent by its tab),
+    and against allowed values sent by another tab that names it; nothing raises."""
+    d = desk(GEARBOX, gearbox_dataset)
+    a, b = Tab(d), Tab(d)
+    va = a.view
+    handles = [h for h in inputs(va) if h is not va.results.i_full]
+    before = {h._impl.uuid: h.value for h in handles}
+    for h in handles:
+        for v in hostile_values(h):
+            a.set(h, value=v)
+    a.settle()
+    # allowed values, from the wrong tab: another step, other units, another part, Delete a step, Undo
+    b.set(va.steps.f_step, value=va.steps.f_step.options[1])
+    b.set(va.files.f_units, value="cm")
+    b.set(next(h for h in inputs(va) if getattr(h, "label", "") == "Step actions"), value="Delete")
+    b.set(next(h for h in inputs(va) if getattr(h, "label", "") == "File actions"), value="Save")
+    b.set(va.edit_row, value="Undo")
+    b.settle()
+    a.settle()
+    changed = [(getattr(h, "label", type(h).__name__), before[h._impl.uuid], h.value) for h in handles
+               if not same(before[h._impl.uuid], h.value)]
+    assert not changed
+    assert d.draft.asm.units == "mm" and len(d.draft.asm.steps) == 3 and va.state.step_index == 0
+    err = capfd.readouterr().err
+    assert "Traceback" not in err and "cannot convert float NaN" not in err
+    a.close()
+    b.close()
+
+
+def _start(tab, button, tid, size, parts=2, filename="x.stl"):
+    tab.send(type="FileTransferStartUpload", source_component_uuid=button, transfer_uuid=tid, filename=filename,
+             mime_type="model/stl", part_count=parts, size_bytes=size)
+
+
+def _part(tab, button, tid, index, n):
+    tab.send(type="FileTransferPart", source_component_uuid=button, transfer_uuid=tid, part_index=index,
+             content=b"\0" * n)
+
+
+def test_uploads_into_a_tab_s_own_button_are_limited_per_tab_and_for_all_tabs_together(desk, monkeypatch):
+    """The upload limits of the server's GUI hold on each tab's own: a size over the limit is refused at the
+    start, a part beyond the declared size is dropped, another tab cannot feed a tab's upload, and all tabs'
+    uploads under way together stay under twice the limit (here 1 MiB a file)."""
+    from apose_studio.studio import app
+
+    monkeypatch.setattr(app, "MAX_UPLOAD_BYTES", 2 ** 20)
+    d = desk()
+    a, b = Tab(d), Tab(d)
+    va, vb = a.view, b.view
+    sa, sb = va.ui.gui._current_file_upload_states, vb.ui.gui._current_file_upload_states
+    ua, ub = va.files.upload._impl.uuid, vb.files.upload._impl.uuid
+    _start(a, ua, "big", 2 ** 21, parts=4)  # 2 MiB declared: over the limit
+    _start(a, ua, "liar", 1024)
+    assert wait(lambda: "liar" in sa)
+    _part(a, ua, "liar", 0, 2 ** 19)  # 512 KiB into a 1 KiB upload
+    assert wait(lambda: "liar" not in sa) and "big" not in sa
+    _start(a, ua, "a1", 2 ** 20)
+    _start(a, ua, "a2", 2 ** 20)
+    _start(b, ub, "b1", 2 ** 20)
+    _start(b, ub, "b2", 2 ** 20)
+    assert wait(lambda: {"a1", "a2"} <= set(sa) and {"b1", "b2"} <= set(sb))
+    _part(b, ua, "a1", 0, 2 ** 19)  # B feeding A's upload: dropped
+    b.settle()
+    assert sa["a1"]["transferred_bytes"] == 0
+    for tab, button, tid in ((a, ua, "a1"), (a, ua, "a2"), (b, ub, "b1"), (b, ub, "b2")):
+        _part(tab, button, tid, 0, 2 ** 19)  # 2 MiB under way in all: at the limit, not over it
+    assert wait(lambda: sum(s["transferred_bytes"] for s in (*sa.values(), *sb.values())) == 2 ** 21)
+    _part(a, ua, "a1", 1, 2 ** 19)  # 2.5 MiB together: over twice the limit
+    assert wait(lambda: "a1" not in sa)
+    assert {"a2"} <= set(sa) and {"b1", "b2"} <= set(sb)
+    a.close()
+    assert wait(lambda: a.client_id not in d.views)
+    assert not sa  # a closed tab's unfinished uploads go with it
+    b.close()
+
+
+def test_a_new_tab_shows_the_draft_as_it_is_and_a_closed_tab_leaves_the_others_working(desk, tmp_path):
+    d = desk()
+    a = Tab(d)
+    va = a.view
+    a.set(va.files.f_name, value="renamed")
+    assert wait(lambda: d.draft.asm.name == "renamed")
+    b = Tab(d)
+    vb = b.view
+    assert vb.files.f_path.value == str(d.draft.saved_path) and vb.files.f_name.value == "renamed"
+    assert vb.state.step_index == 0 and set(vb.steps.mesh_handles) == set(d.draft.asm.parts)
+    a.close()
+    assert wait(lambda: a.client_id not in d.views)
+    options = tuple(vb.steps.f_step.options)
+    b.set(vb.steps.f_step, value=options[2])
+    assert wait(lambda: vb.state.step_index == 2)
+    b.close()
+
+
+def test_an_upload_id_is_unique_per_tab(desk):
+    """Two tabs naming the same transfer id each keep their own transfer (ids are the page's choice)."""
+    d = desk()
+    a, b = Tab(d), Tab(d)
+    tid = str(uuid.uuid4())
+    _start(a, a.view.files.upload._impl.uuid, tid, 4096)
+    _start(b, b.view.files.upload._impl.uuid, tid, 4096)
+    assert wait(lambda: tid in a.view.ui.gui._current_file_upload_states and tid in b.view.ui.gui._current_file_upload_states)
+    a.close()
+    b.close()
