@@ -79,7 +79,14 @@ class Desk:
         """A new tab: its own studio, built on its GUI and scene, showing the draft as it is now."""
         with self.lock:
             view = self.make_view(client)
-            self.views[client.client_id] = view
+            if client.client_id not in self.server.get_clients():  # it closed while its studio was built
+                gone = True
+            else:
+                gone = False
+                self.views[client.client_id] = view
+        if gone:
+            view.close()
+            return
         view.on_connect(client)
 
     def on_disconnect(self, client) -> None:
