@@ -452,6 +452,8 @@ class Studio:
         """Another tab's action changed the draft (Desk.spread, under the lock): replay the draft events it
         emitted here, with this tab's own selection kept (moved to the first step for another file, to the
         last one when its step is gone), and draw the draft anew if no event did."""
+        self.clear_errors(self.tab)  # errors kept here are about a draft no longer on show
+        selected = self.state.step_index
         if any(e is Event.DRAFT_OPENED for e, _ in journal):
             self.state.step_index = 0 if self.asm.steps else None
         i, n = self.state.step_index, len(self.asm.steps)
@@ -467,6 +469,8 @@ class Studio:
             drawn |= event is Event.DRAFT_CHANGED
         if not drawn and self.seen_asm is not self.asm:
             self.refresh_assembly_widgets()
+        if self.state.step_index != selected and not any(e is Event.DRAFT_OPENED for e, _ in journal):
+            self.steps.preview_up_to_selected()  # (another file is shown assembled, as Open shows it)
         self.seen_asm = self.asm
 
     def close(self) -> None:

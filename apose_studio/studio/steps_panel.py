@@ -54,6 +54,11 @@ class StepsPanel:
         self.refresh_steps()
         self.refresh_assembly_scene()
 
+    def preview_up_to_selected(self) -> None:
+        """The preview assembled up to the selected step, as selecting it does (another tab's edit moved it)."""
+        if self.step_index is not None:
+            self.f_upto.value = self.step_index + 1
+
     def on_draft_opened(self) -> None:
         self.f_upto.value = len(self.app.asm.steps)  # an opened file shows assembled
 
@@ -255,6 +260,14 @@ class StepsPanel:
         if i is None or not authoring.broken_mates(self.app.asm, i, self.app.asm.steps[i].T_base_part):
             return
         clients = [client] if client is not None else self.app.pages()
+        asked_on = self.app.asm  # the answer applies to this draft only: another tab may edit it meanwhile
+
+        def still_asked(modal) -> None:
+            modal.close()
+            if self.app.asm is not asked_on:
+                raise AposeError(f"the draft changed while this question was open (another edit, maybe in another "
+                                 f"tab); nothing was done. Select step {i + 1} again and check its pose and mates")
+
         for c in clients:
             with c.gui.add_modal("This move breaks the step's mates") as modal:
                 c.gui.add_markdown(f"Step {i + 1} is placed by {len(self.app.asm.steps[i].mates)} mate(s); the new pose "
@@ -264,13 +277,13 @@ class StepsPanel:
 
             def on_drop(e, modal=modal):
                 def act(cl):
-                    modal.close()
+                    still_asked(modal)
                     self.app.set_assembly(authoring.set_mates(self.app.asm, i, []), cl, record=False)
                 self.app.guarded("Drop mates")(act)(e)
 
             def on_back(e, modal=modal):
                 def act(cl):
-                    modal.close()
+                    still_asked(modal)
                     self.app.set_assembly(before, cl, record=False)
                     self.sync_typed_pose()
                 self.app.guarded("Snap back")(act)(e)
@@ -382,6 +395,8 @@ class StepsPanel:
                 self.f_step_part.value = s.part
                 self.make_pose_fields(*authoring.typed_pose(s.T_base_part))
             self.f_upto.max = max(len(asm.steps), 1)
+            if self.f_upto.value > self.f_upto.max:  # viser keeps a value beyond a lowered max (steps deleted)
+                self.f_upto.value = self.f_upto.max
             self.refresh_base_boxes(self.step_index)
         finally:
             self._syncing = False

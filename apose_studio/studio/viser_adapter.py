@@ -5,11 +5,13 @@ screen every message from a page passes before viser acts on it. (The websocket 
 **Uploads.** viser buffers an upload's parts in memory until the last one arrives, and trusts the size
 and the part count the page declares. `limit_uploads` puts two handlers around viser's own:
 
-- at the start (after viser's): refuse a declared size over the limit, a part count that does not fit
-  the declared size, and more than `MAX_IN_FLIGHT` uploads at once from one tab;
-- before each part (ahead of viser's): count the bytes actually received; a transfer that grows past
-  its declared size or the limit, or all transfers together past twice the limit, is dropped with its
-  buffered parts before the part is stored.
+- at the start (after viser's): refuse a declared size over the limit, a part count other than the
+  page's own (ceil(size / 512 KiB)), and more than `MAX_IN_FLIGHT` uploads at once from one tab;
+- before each part (ahead of viser's): a part of another size than the page cuts (512 KiB, the last one
+  the rest; an empty part was once free to send by the hundred thousand, each held by viser) is refused;
+  count the bytes actually received; a transfer that grows past its declared size or the limit, or all
+  transfers together (every tab's) past twice the limit, is dropped with its buffered parts before the
+  part is stored.
 
 **What a page sends** (`screen_messages`). viser 1.1 takes a page's word for everything: it sets any
 property a `GuiUpdateMessage` names (`disabled`, `options`, even its own `update_cb`), casts values
@@ -47,6 +49,8 @@ from apose_studio.safeio import unsafe_char
 log = logging.getLogger(__name__)
 
 MAX_IN_FLIGHT = 2  # uploads one tab may have under way at once
+PAGE_PART_BYTES = 512 * 1024  # the page cuts an upload into parts of this size, the last one the rest (viser 1.1's
+# UploadButton.tsx): a start that declares another count, or a part of another size, is not the page's
 MAX_TEXT_CHARS = 65_536  # a text field's value (paths are at most 4096)
 MAX_MAGNITUDE = 1e12  # a number field without a range of its own
 MAX_SCENE_M = 1e6  # coordinates a page may report (camera, rays), metres
@@ -101,7 +105,7 @@ def limit_uploads(gui, all_states, max_bytes: int, notify) -> bool:
         mine = [t for t, s in states.items() if s["client_id"] == client_id]
         if size > max_bytes:
             refuse(client_id, message.transfer_uuid, f"{size / 2**20:.0f} MB; the limit is {max_bytes / 2**20:.0f} MB")
-        elif size < 0 or parts < 0 or parts > size // 1024 + 1:  # the page sends parts of 512 KiB
+        elif size < 0 or parts != -(-size // PAGE_PART_BYTES):  # the page's own count: ceil(size / 512 KiB)
             refuse(client_id, message.transfer_uuid, f"declares {parts} parts for {size} bytes; not a file upload")
         elif len(mine) > MAX_IN_FLIGHT:
             refuse(client_id, message.transfer_uuid, f"{len(mine) - 1} uploads are still under way in this tab; "
@@ -111,7 +115,12 @@ def limit_uploads(gui, all_states, max_bytes: int, notify) -> bool:
         state = states.get(message.transfer_uuid)
         if state is None or message.part_index in state["parts"]:
             return
-        received = state["transferred_bytes"] + len(message.content)
+        n, last = len(message.content), state["part_count"] - 1
+        want = state["total_bytes"] - last * PAGE_PART_BYTES if message.part_index == last else PAGE_PART_BYTES
+        if message.part_index <= last and n != want:  # each part as the page cuts it: empty ones too are refused
+            refuse(client_id, message.transfer_uuid, f"part {message.part_index} holds {n} bytes; the page sends {want}")
+            return
+        received = state["transferred_bytes"] + n
         everyone = sum(s["transferred_bytes"] for st in all_states() for s in list(st.values())) + len(message.content)
         if received > state["total_bytes"] or received > max_bytes:
             refuse(client_id, message.transfer_uuid, f"sent {received} bytes but declared {state['total_bytes']}")

@@ -298,11 +298,11 @@ def test_messages_the_studio_never_asks_for_are_dropped(studio, monkeypatch):
            mime_type="model/stl", part_count=1, size_bytes=5)
     button = st.files.upload._impl.uuid
     a.send(type="FileTransferStartUpload", source_component_uuid=button, transfer_uuid="t-a", filename="x.stl",
-           mime_type="model/stl", part_count=2, size_bytes=2000)
+           mime_type="model/stl", part_count=1, size_bytes=2000)
     a.settle()
     states = st.server.gui._current_file_upload_states
     assert "t-text" not in states and "t-a" in states
-    b.send(type="FileTransferPart", source_component_uuid=button, transfer_uuid="t-a", part_index=0, content=b"\0" * 1000)
+    b.send(type="FileTransferPart", source_component_uuid=button, transfer_uuid="t-a", part_index=0, content=b"\0" * 2000)
     b.send(type="FileTransferStartUpload", source_component_uuid=button, transfer_uuid="t-b", filename="y.stl",
            mime_type="model/stl", part_count=1, size_bytes=-5)
     b.send(type="RemoveNotificationMessage", uuid="x")  # a type viser only ever sends to pages

@@ -46,12 +46,28 @@ def test_an_upload_that_sends_more_than_it_declared_is_dropped(studio, tmp_path)
         assert _wait(lambda: st.server.get_clients())
         tid = str(uuid.uuid4())
         _send(ws, type="FileTransferStartUpload", source_component_uuid=button, transfer_uuid=tid, filename="x.stl",
-              mime_type="model/stl", part_count=2, size_bytes=1024)  # declares 1 KB in two parts
+              mime_type="model/stl", part_count=1, size_bytes=1024)  # declares 1 KB (one part)
         assert _wait(lambda: tid in _states(st))
         _send(ws, type="FileTransferPart", source_component_uuid=button, transfer_uuid=tid, part_index=0,
               content=b"\0" * 2 ** 19)  # then sends a 512 KiB part (a bigger message ends the connection)
         assert _wait(lambda: tid not in _states(st)), "the transfer (and its 512 KiB) is still buffered"
-        assert any("sent 524288 bytes but declared 1024" in body for _, body, _ in st.notes)
+        assert any("part 0 holds 524288 bytes; the page sends 1024" in body for _, body, _ in st.notes)
+        # a part of another size than the page cuts, an empty one included (once free to send by the hundred
+        # thousand, each held by viser), and a start whose part count is not the page's own
+        for content in (b"", b"\0" * (2 ** 19 - 1)):
+            t1 = str(uuid.uuid4())
+            _send(ws, type="FileTransferStartUpload", source_component_uuid=button, transfer_uuid=t1, filename="e.stl",
+                  mime_type="model/stl", part_count=2, size_bytes=2 ** 20)
+            assert _wait(lambda: t1 in _states(st))
+            _send(ws, type="FileTransferPart", source_component_uuid=button, transfer_uuid=t1, part_index=0,
+                  content=content)
+            assert _wait(lambda: t1 not in _states(st))
+            assert any(f"part 0 holds {len(content)} bytes; the page sends 524288" in b for _, b, _ in st.notes)
+        t1 = str(uuid.uuid4())
+        _send(ws, type="FileTransferStartUpload", source_component_uuid=button, transfer_uuid=t1, filename="f.stl",
+              mime_type="model/stl", part_count=3, size_bytes=2 ** 20)
+        assert _wait(lambda: any("declares 3 parts for 1048576 bytes" in b for _, b, _ in st.notes))
+        assert t1 not in _states(st)
         # a declared size over the limit, and a part count that does not fit the size, are refused at the start
         for size, parts in ((10 * 2 ** 30, 20480), (1024, 100000)):
             t2 = str(uuid.uuid4())
