@@ -189,6 +189,7 @@ def test_a_mates_question_answered_after_another_tab_s_edit_does_nothing(desk, t
     va, vb = a.view, b.view
     a.set(va.steps.f_step, value=va.steps.f_step.options[1])
     assert wait(lambda: va.state.step_index == 1)
+    a.settle()  # the step's pose fields are made anew once it is selected: type into the new ones
     a.set(va.steps.f_t, value=(5.0, 5.0, 30.0))  # breaks step 2's mates: A is asked
     assert wait(lambda: any(getattr(h, "label", "") == answer for h in va.ui.gui._gui_input_handle_from_uuid.values()))
     b.set(vb.steps.f_step, value=vb.steps.f_step.options[1])
