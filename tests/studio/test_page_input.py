@@ -119,19 +119,31 @@ def same(a, b):
     return a == b or (isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b))
 
 
+def send_hostile_values(tab, handles) -> tuple[list, dict]:
+    """Every value each widget does not allow, sent by `tab` (the probe `Tab.settle` sets left out); returns the
+    widgets and their values before."""
+    handles = [h for h in handles if h is not tab.view.results.i_full]
+    before = {h._impl.uuid: h.value for h in handles}
+    for h in handles:
+        for v in hostile_values(h):
+            tab.set(h, value=v)
+    return handles, before
+
+
+def changed(handles, before) -> list:
+    """(label, before, now) of each widget whose value is not what it was."""
+    return [(getattr(h, "label", type(h).__name__), before[h._impl.uuid], h.value) for h in handles
+            if not same(before[h._impl.uuid], h.value)]
+
+
 def test_every_widget_takes_only_what_it_allows(studio, gearbox_dataset, capfd):
     """Every input of the studio (dropdowns, text, numbers, sliders, colours, checkboxes, vectors, buttons)
     keeps its value against values it does not allow, nothing raises, and the tab is told."""
     st = studio(GEARBOX, gearbox_dataset)
     tab = Tab(st)
-    handles = [h for h in inputs(st) if h is not st.results.i_full]
-    before = {h._impl.uuid: h.value for h in handles}
-    for h in handles:
-        for v in hostile_values(h):
-            tab.set(h, value=v)
+    handles, before = send_hostile_values(tab, inputs(st))
     tab.settle()
-    changed = [(getattr(h, "label", type(h).__name__), before[h._impl.uuid], h.value) for h in handles if not same(before[h._impl.uuid], h.value)]
-    assert not changed
+    assert not changed(handles, before)
     assert not [n for n in st.notes if "internal error" in n[1]]
     assert any(n[1].startswith("ignored: ") for n in errors(st))  # told (at most once a second)
     err = capfd.readouterr().err
