@@ -450,27 +450,36 @@ class Studio:
 
     def catch_up(self, journal: list) -> None:
         """Another tab's action changed the draft (Desk.spread, under the lock): replay the draft events it
-        emitted here, with this tab's own selection kept (moved to the first step for another file, to the
-        last one when its step is gone), and draw the draft anew if no event did."""
+        emitted here, with this tab's own selection kept on its step (the same step wherever it moved; in its
+        place when edited; the last one when it is gone; the first for another file), and draw the draft anew
+        if no event did. Faces picked here are dropped once the selected step places another part."""
         self.clear_errors(self.tab)  # errors kept here are about a draft no longer on show
-        selected = self.state.step_index
-        if any(e is Event.DRAFT_OPENED for e, _ in journal):
-            self.state.step_index = 0 if self.asm.steps else None
-        i, n = self.state.step_index, len(self.asm.steps)
-        if i is not None and i >= n:
-            self.state.step_index = n - 1 if n else None
-        elif i is None and n and self.seen_asm is not self.asm and not self.seen_asm.steps:
-            self.state.step_index = 0  # the first step of a draft that had none
+        before, i = self.seen_asm, self.state.step_index
+        was = before.steps[i] if i is not None and i < len(before.steps) else None
+        n = len(self.asm.steps)
+        opened = before is not self.asm and any(e is Event.DRAFT_OPENED for e, _ in journal)  # another file
+        if opened:
+            i = 0 if n else None
+        elif was is not None:
+            same = [j for j, s in enumerate(self.asm.steps) if s is was]  # (steps are never changed in place)
+            i = same[0] if same else (min(i, n - 1) if n else None)
+        elif i is None and n and not before.steps:
+            i = 0  # the first step of a draft that had none
+        moved = i != self.state.step_index
+        self.state.step_index = i
+        now = self.asm.steps[i] if i is not None else None
+        if self.state.picks and (now is None or was is None or now.part != was.part or tuple(now.base) != tuple(was.base)):
+            self.mates.clear_picks()  # faces picked for the step this tab had selected
         drawn = False
         for event, payload in journal:
             if event is Event.MESHES_CHANGED:
                 self.mates.clear_picks()  # a picked face may belong to a part gone or changed
             self.events.emit(event, **payload)
             drawn |= event is Event.DRAFT_CHANGED
-        if not drawn and self.seen_asm is not self.asm:
-            self.refresh_assembly_widgets()
-        if self.state.step_index != selected and not any(e is Event.DRAFT_OPENED for e, _ in journal):
-            self.steps.preview_up_to_selected()  # (another file is shown assembled, as Open shows it)
+        if not drawn and (before is not self.asm or moved):
+            self.refresh_assembly_widgets()  # the fields always show the step selected here
+        if moved and not opened:  # (another file is shown assembled, as Open shows it)
+            self.steps.preview_up_to_selected()
         self.seen_asm = self.asm
 
     def close(self) -> None:
@@ -487,6 +496,7 @@ class Studio:
     def shutdown(self) -> None:
         """Before the server stops (Ctrl-C): the player stopped, a live camera closed, the background
         preparation finished (a process that exits inside Open3D is aborted by the C++ runtime)."""
+        self.steps.stop_play()
         self.sequence.stop()
         frames = self.state.inspect.frames
         if hasattr(frames, "close"):  # a live camera

@@ -100,8 +100,13 @@ class Desk:
 
     def record(self, view, event: Event, payload: dict) -> None:
         """An event `view` emitted: a draft event is kept for the other tabs (`spread`)."""
-        if event in SHARED_EVENTS and not self._spreading and len(self.views) > 1:
+        if event in SHARED_EVENTS and not self._spreading and self._is_tab(view) and len(self.views) > 1:
             self._journal.append((event, payload))
+
+    def _is_tab(self, view) -> bool:
+        """`view` is a connected tab's studio (not one still being built, whose first drawing of the draft is
+        no change to it)."""
+        return any(v is view for v in self.views.values())
 
     def spread(self, view) -> None:
         """After an action of `view` (under the lock): the other tabs draw the draft as it is now, through
@@ -109,7 +114,7 @@ class Desk:
         gizmo drag writes the draft directly)."""
         journal, self._journal = self._journal, []
         view.seen_asm = self.draft.asm
-        if self._spreading:
+        if self._spreading or not self._is_tab(view):
             return
         self._spreading = True
         try:

@@ -38,12 +38,18 @@ class MatesPanel:
         self.pickers: dict[int, tuple] = {}  # id(mesh) -> (mesh, FacePicker)
         self._warming: set = set()
         app.events.on(Event.DRAFT_CHANGED, self.show_step)
-        app.events.on(Event.STEP_SELECTED, lambda index: self.show_step())
+        app.events.on(Event.STEP_SELECTED, lambda index: self.on_step_selected())
 
     @property
     def picks(self) -> dict[str, tuple[str, Feature]]:
         """"part" / "base" -> (part id, feature in its frame) (`state.picks`)."""
         return self.app.state.picks
+
+    def on_step_selected(self) -> None:
+        """Faces picked for another step's mate are dropped: a mate is made of the selected step's faces only."""
+        if self.picks:
+            self.clear_picks()
+        self.show_step()
 
     def show_step(self) -> None:
         """The selected step's mates listed; its parts' pickers built ahead of the first click."""
@@ -192,7 +198,13 @@ class MatesPanel:
 
     def make_mate(self, kind: str, client) -> None:
         i = self.app.state.step_index
-        (_, fp), (bp, fb) = self.picks["part"], self.picks["base"]
+        (pp, fp), (bp, fb) = self.picks["part"], self.picks["base"]
+        step = self.app.asm.steps[i] if i is not None and i < len(self.app.asm.steps) else None
+        if step is None or pp != step.part or bp not in step.base:  # the step changed since (here or in another tab)
+            self.clear_picks()
+            raise AposeError(f"the faces were picked on {pp} and {bp}, " + (
+                f"not on step {i + 1}'s {step.part} and its base" if step is not None else "and no step is selected")
+                + "; pick the faces again")
         mate = authoring.mate_from_picks(self.app.asm, i, kind, bp, fb, fp, float(self.f_gap.value or 0.0) / 1000.0)
         asm = authoring.set_mates(self.app.asm, i, [*self.app.asm.steps[i].mates, mate])
         self.clear_picks()

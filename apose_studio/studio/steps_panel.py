@@ -10,7 +10,7 @@ DRAFT_SAVED and moves the gizmo aside on PICKS_CHANGED; a selection it makes is 
 from __future__ import annotations
 
 import logging
-import time
+import threading
 from dataclasses import replace
 
 import numpy as np
@@ -33,6 +33,8 @@ class StepsPanel:
         self.app = app
         self._syncing = False
         self._drag_before = None  # the draft when a gizmo drag started
+        self._player: threading.Thread | None = None  # Play sequence: one at a time per tab
+        self._stop_play = threading.Event()
         app.events.on(Event.DRAFT_CHANGED, self.on_draft_changed)
         app.events.on(Event.MESHES_CHANGED, lambda pid: self.drop_meshes(pid))
         app.events.on(Event.DRAFT_OPENED, self.on_draft_opened)
@@ -353,16 +355,26 @@ class StepsPanel:
     def on_play_sequence(self, client) -> None:
         """Play the assembly for a demo: each step's part comes in along its approach (when it has one), held by
         the gripper where the part has a grasp."""
+        if self._player is not None and self._player.is_alive():  # a press while it plays stops it
+            self.stop_play()
+            self.app.notify(client, "Play", "stopped")
+            return
         asm = self.app.valid_asm
         n = len(asm.steps)
         if n == 0:
             raise AposeError("nothing to play: add steps first")
+        stop = self._stop_play = threading.Event()
+
+        def upto(k: int) -> None:  # under the lock: another tab's edit may change the steps meanwhile
+            with self.app.lock:
+                self.f_upto.value = min(k, int(self.f_upto.max))
 
         def play():
-            self.f_upto.value = 0
-            time.sleep(0.6)
+            upto(0)
+            if stop.wait(0.6):
+                return
             for k, s in enumerate(asm.steps, start=1):
-                self.f_upto.value = k
+                upto(k)
                 h = self.mesh_handles.get(s.part)
                 with self.app.lock:
                     T_end, T_base = self._preview.get(s.part), self._preview.get(s.base[0])
@@ -372,15 +384,23 @@ class StepsPanel:
                         h.position = pos(T_now)
                         with self.app.lock:  # the Grasps folder draws the gripper bringing it in
                             self.app.events.emit(Event.PLAYED, pid=s.part, T_world_part=T_now)
-                        time.sleep(0.04)
+                        if stop.wait(0.04):
+                            break
                 elif T_end is not None:
                     with self.app.lock:
                         self.app.events.emit(Event.PLAYED, pid=s.part, T_world_part=T_end)
-                time.sleep(0.5)
+                if stop.wait(0.5):
+                    break
             with self.app.lock:
                 self.app.events.emit(Event.PLAYED, pid=None, T_world_part=None)
+                if stop.is_set():  # stopped: the preview as the selection has it
+                    self.preview_up_to_selected()
 
-        self.app.start_thread(play, name="play sequence")
+        self._player = self.app.start_thread(play, name="play sequence")
+
+    def stop_play(self) -> None:
+        """Stop Play sequence (a press while it plays, the tab closing); it ends within 0.04 s of its next frame."""
+        self._stop_play.set()
 
     def refresh_steps(self) -> None:
         asm = self.app.asm

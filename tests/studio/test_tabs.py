@@ -13,7 +13,7 @@ import pytest
 from apose_studio.studio import serve
 
 from ..conftest import SAMPLES, free_port
-from .test_page_input import Tab, changed, send_hostile_values, wait
+from .test_page_input import CAMERA, Tab, changed, send_hostile_values, wait
 
 GEARBOX = SAMPLES / "helical_gearbox" / "assembly.yaml"
 
@@ -220,3 +220,100 @@ def test_a_step_deleted_in_another_tab_moves_this_tab_s_selection_and_preview(de
     assert vb.steps.f_step.value == vb.steps.f_step.options[1]
     a.close()
     b.close()
+
+
+def test_a_tab_that_connects_leaves_the_others_selection_alone(desk):
+    """Found attacking the tabs (round 2): a third tab connecting reset the others' selection to step 1 behind
+    fields still showing step 3, so a pose typed there moved step 1's part. Its first drawing of the draft is
+    no edit and reaches no other tab."""
+    d = desk(SAMPLES / "planetary_reducer" / "assembly.yaml")
+    a, b = Tab(d), Tab(d)
+    va = a.view
+    a.set(va.steps.f_step, value=va.steps.f_step.options[2])
+    assert wait(lambda: va.state.step_index == 2)
+    a.settle()
+    first, third = d.draft.asm.steps[0].T_base_part.copy(), d.draft.asm.steps[2].T_base_part.copy()
+    c = Tab(d)
+    assert c.view.state.step_index == 0
+    c.settle()
+    assert va.state.step_index == 2 and va.steps.f_step.value == va.steps.f_step.options[2]
+    a.set(va.steps.f_t, value=(1.0, 2.0, 3.0))
+    assert wait(lambda: not np.array_equal(d.draft.asm.steps[2].T_base_part, third))
+    assert np.allclose(d.draft.asm.steps[2].T_base_part[:3, 3], [0.001, 0.002, 0.003])
+    assert np.array_equal(d.draft.asm.steps[0].T_base_part, first)
+    for t in (a, b, c):
+        t.close()
+
+
+def _click_face(tab, pid, normal=(0.0, 0.0, 1.0)):
+    """A click in tab's 3D view, from above, on the face of `pid` facing `normal` that lies highest."""
+    from apose_studio.geometry import se3
+
+    view = tab.view
+    T = view.state.T_world_shown(pid)
+    mesh = view.model(pid).mesh
+    up = np.asarray(normal, float)
+    centres = se3.transform_points(T, mesh.triangles_center)
+    facing = np.nonzero((mesh.face_normals @ T[:3, :3].T) @ up > 0.99)[0]
+    top = facing[np.argmax(centres[facing] @ up)]
+    tab.send(type="ScenePointerMessage", event_type="click", ray_origin=[float(x) for x in centres[top] + 0.5 * up],
+             ray_direction=[float(x) for x in -up], screen_pos=[[0.5, 0.5]], modifier=None)
+
+
+def test_faces_picked_on_a_step_make_its_mate_wherever_another_tab_moves_it(desk):
+    """Found attacking the tabs (round 2): faces picked on step 2 (wheel on casing) stayed picked when another
+    tab deleted step 1, this tab's selection stayed at index 2, now the lid's step, and Contact gave the lid a
+    mate made of the wheel's face (the lid flipped). Now the selection follows its step; faces picked for a
+    step are dropped when another step is selected; a mate is made only of the selected step's faces."""
+    d = desk()
+    a, b = Tab(d), Tab(d)
+    va, vb = a.view, b.view
+    a.settle()
+    a.send(**{**CAMERA, "position": [0.5, -0.5, 0.41]})  # a camera report: the studio listens for clicks from then on (mates_panel.listen)
+    a.set(va.steps.f_step, value=va.steps.f_step.options[1])
+    assert wait(lambda: va.state.step_index == 1)
+    a.settle()
+    _click_face(a, "wheel")
+    a.settle()
+    _click_face(a, "casing")
+    assert wait(lambda: set(va.state.picks) == {"part", "base"})
+    lid = d.draft.asm.steps[2]
+    b.set(_button(vb, "Step actions"), value="Delete")  # B deletes step 1: A's wheel step is now step 1
+    assert wait(lambda: len(d.draft.asm.steps) == 2)
+    b.settle()
+    assert va.state.step_index == 0 and va.steps.f_step.value == va.steps.f_step.options[0]
+    assert set(va.state.picks) == {"part", "base"}  # the same step: its picks stand
+    a.set(_button(va, "Mate flat faces"), value="Contact")
+    assert wait(lambda: d.draft.asm.steps[0].mates)
+    assert d.draft.asm.steps[1] is lid  # the lid untouched
+    # picks on one step, then another step selected: dropped
+    _click_face(a, "wheel")
+    a.settle()
+    assert va.state.picks
+    a.set(va.steps.f_step, value=va.steps.f_step.options[1])
+    assert wait(lambda: va.state.step_index == 1)
+    a.settle()
+    assert not va.state.picks
+    a.close()
+    b.close()
+
+
+def test_play_sequence_runs_once_per_tab_and_stops_with_it(desk):
+    """Found attacking the tabs (round 2): each press of Play sequence started a thread of its own (400 presses:
+    356 at once), and they outlived their tab. Now a press while it plays stops it, and a closed tab's player
+    stops."""
+    import threading
+
+    d = desk(SAMPLES / "planetary_reducer" / "assembly.yaml")
+    a = Tab(d)
+    play = _button(a.view, "Play sequence")
+    players = lambda: sum(t.name == "play sequence" and t.is_alive() for t in threading.enumerate())  # noqa: E731
+    for _ in range(50):
+        a.set(play, value=True)
+    a.settle()
+    assert players() <= 1
+    if not players():
+        a.set(play, value=True)
+    assert wait(lambda: players() == 1)
+    a.close()
+    assert wait(lambda: players() == 0, 5.0)
