@@ -454,6 +454,9 @@ class Studio:
         place when edited; the last one when it is gone; the first for another file), and draw the draft anew
         if no event did. Faces picked here are dropped once the selected step places another part."""
         self.clear_errors(self.tab)  # errors kept here are about a draft no longer on show
+        if self.steps.drop_drag() | self.files.drop_region_drag():
+            self.notify(self.tab, "Drag stopped", "another tab changed the assembly during this drag; what it had "
+                        "moved stays. Let go, check the step, and drag again", error=True)
         before, i = self.seen_asm, self.state.step_index
         was = before.steps[i] if i is not None and i < len(before.steps) else None
         n = len(self.asm.steps)
@@ -548,6 +551,8 @@ class Studio:
             self.notice_problems_later(client)
         if self.state.step_index is not None and self.state.step_index >= len(asm.steps):
             self.state.step_index = len(asm.steps) - 1 if asm.steps else None
+        elif self.state.step_index is None and asm.steps and not self.seen_asm.steps:
+            self.state.step_index = 0  # steps again (an Undo of deleting them all): the first one selected
         self.refresh_assembly_widgets()
 
     def notice_problems_later(self, client, delay: float = 0.8) -> None:

@@ -48,15 +48,23 @@ class AssemblyPanel:
         self.app = app
         self._syncing = False
         self._pending_save: Path | None = None  # a file that Save would replace, waiting for "Replace"
+        self._shown_path = ""  # what the Assembly file field was last set to here (not typed)
         self.region_gizmo = RegionGizmo(app, self)  # Drag region: the region's handles in the 3D view
         app.events.on(Event.DRAFT_CHANGED, self.refresh_files)
         app.events.on(Event.DRAFT_OPENED, self.show_file)  # another tab's Open or Save names the file here too
         app.events.on(Event.DRAFT_SAVED, self.show_file)
 
     def show_file(self) -> None:
-        """The Assembly file field names the file the draft was opened from or saved to."""
-        if self.saved_path is not None and self.f_path.value != str(self.saved_path):
-            self.f_path.value = str(self.saved_path)
+        """The Assembly file field names the file the draft was opened from or saved to, unless this tab's user
+        typed another path there since (their next Open, New or Save acts on what they typed)."""
+        if self.saved_path is None or self.f_path.value == str(self.saved_path):
+            return
+        if self.f_path.value.strip() in ("", self._shown_path):
+            self.f_path.value = self._shown_path = str(self.saved_path)
+
+    def drop_region_drag(self) -> bool:
+        """Drag region's drag stopped by another tab's edit (RegionGizmo.drop_drag)."""
+        return self.region_gizmo.drop_drag()
 
     def build(self) -> None:
         gui = self.app.ui.gui
@@ -97,7 +105,7 @@ class AssemblyPanel:
         asm = self.app.desk.open(path, confine)  # the draft, its meshes loaded first, the undo history cleared
         self.app.events.emit(Event.MESHES_CHANGED, pid=None)
         self.app.state.step_index = 0 if asm.steps else None
-        self.f_path.value = str(asm.path)
+        self.f_path.value = self._shown_path = str(asm.path)
         self.app.set_assembly(asm, client, record=False)
         self.app.events.emit(Event.DRAFT_OPENED)
         self.app.frame_camera_on_assembly()
@@ -142,7 +150,7 @@ class AssemblyPanel:
         self.saved_path = self.saved_draft = None
         self.app.set_assembly(authoring.new_assembly(name, self.f_units.value, target.parent), client, quiet=True,
                               record=False)
-        self.f_path.value = str(target)
+        self.f_path.value = self._shown_path = str(target)
         self.app.notify(client, "New assembly", f"{name}: add parts, then steps; Save writes {target}")
 
     def save_target(self) -> Path:

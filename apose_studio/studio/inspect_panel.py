@@ -91,6 +91,7 @@ class InspectPanel:
         self._warm_thread: threading.Thread | None = None
         self._told_step: int | None = None  # a BOP scene's step whose missing truth was last told
         app.events.on(Event.MASK_SOURCE_CHOSEN, self.on_mask_source_chosen)
+        app.events.on(Event.DRAFT_CHANGED, self.follow_draft_steps)
         app.events.on(Event.FRAMING_ASKED, self.frame_camera_on_frame)
         app.events.on(Event.FRAME_PLAYED, self.on_frame_played)
         app.events.on(Event.PROMPT_CHANGED, self.on_prompt_changed)
@@ -225,6 +226,27 @@ class InspectPanel:
         steps = [f"{i + 1}. {s.part}" for i, s in enumerate(self.app.valid_asm.steps)]
         self.show_frames(cam, f"{cam.name} (opened {time.strftime('%Y-%m-%d %H:%M:%S')}, #{next(OPENED)})", steps,
                          "realsense" + (f":{serial}" if serial else ""))
+
+    def follow_draft_steps(self) -> None:
+        """Data inspected against the draft (a capture, a BOP scene, a camera, a recording: not a dataset, which
+        has its own assembly): its Step list follows the draft's steps, edited here or in another tab; a step
+        that is gone leaves the one now in its place (the last) on show."""
+        if self.frames is None or isinstance(self.frames, Dataset) or not self.app.valid_asm.steps:
+            return
+        steps = [f"{i + 1}. {s.part}" for i, s in enumerate(self.app.valid_asm.steps)]
+        if list(self.i_step.options) == steps:
+            return
+        before = self.i_step.value
+        k = min(self.current_step(), len(steps)) - 1
+        self._syncing = True
+        try:
+            self.i_step.options = steps
+            self.i_step.value = before if before in steps else steps[k]
+        finally:
+            self._syncing = False
+        if self.i_step.value != before:
+            self.result = self.score = None
+            self.on_frame_changed()
 
     def show_frames(self, frames, frames_path: str, steps: list[str], typed: str | None = None) -> None:
         """`frames` become the opened data (a live camera shown before is closed); its first step on show."""

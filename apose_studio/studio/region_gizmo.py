@@ -46,6 +46,7 @@ class RegionGizmo:
         self.app, self.files = app, files
         self._centre = self._corner = None  # the handles' places (part frame, metres) while shown
         self._from = None  # where the dragged handle stood when its drag started
+        self._dropped = False  # another tab changed the draft during this drag: its rest is ignored
         self._side = None  # which corner the last drag left the corner handle at (signs from the centre)
 
     def build(self, gui) -> None:
@@ -142,6 +143,15 @@ class RegionGizmo:
         self.draw_outline(kind)
         self.handles_shown(True)
 
+    def drop_drag(self) -> bool:
+        """Another tab changed the draft during a drag of a handle: the drag stops (nothing is set; the updates
+        until the mouse is let go are ignored), so that it never sets a region on a part that changed or went
+        meanwhile. True when a drag was stopped."""
+        if self._from is None:
+            return False
+        self._from, self._dropped = None, True
+        return True
+
     def remove(self) -> None:
         for name in sorted((n for n in self.app.nodes if n == ROOT or n.startswith(ROOT + "/")), reverse=True):
             self.app.nodes.pop(name).remove()  # the handles and outline before their frame
@@ -177,6 +187,13 @@ class RegionGizmo:
     def on_handle(self, event, which: str) -> None:
         """A drag of a handle (phase start / update / end): the outline follows every update; at the end the
         Region fields are written and the region set (files.on_roi), one undoable edit."""
+        if event.phase == "start":
+            self._dropped = False
+        if self._dropped:  # the rest of a drag that another tab's edit stopped
+            if event.phase == "end":
+                self._dropped = False
+                self.place()  # the handles back on the region as it is
+            return
         if self.wanted() is None or self._centre is None:
             return
         if event.phase == "start" or self._from is None:

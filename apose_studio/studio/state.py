@@ -214,7 +214,10 @@ class StudioState:
         frames = self.inspect.frames if frames is None else frames
         if isinstance(frames, Dataset):
             return frames.frame(step, im_id)
-        view = (asm or self.valid_asm).steps[step - 1]
+        steps = (asm or self.valid_asm).steps
+        if not 1 <= step <= len(steps):
+            raise AposeError(f"step {step} is not in the assembly any more (it has {len(steps)}); choose a step")
+        view = steps[step - 1]
         if isinstance(frames, BopScene):  # read from its files, with the truth of the typed obj_ids
             return frames.frame(im_id, view)
         if isinstance(frames, LiveCamera):  # a live camera keeps only its newest frame

@@ -33,6 +33,7 @@ class StepsPanel:
         self.app = app
         self._syncing = False
         self._drag_before = None  # the draft when a gizmo drag started
+        self._drag_dropped = False  # another tab changed the draft during this drag: its rest is ignored
         self._player: threading.Thread | None = None  # Play sequence: one at a time per tab
         self._stop_play = threading.Event()
         app.events.on(Event.DRAFT_CHANGED, self.on_draft_changed)
@@ -215,7 +216,7 @@ class StepsPanel:
             return
         T = authoring.pose_from_typed(self.f_t.value, self.f_r.value)
         before = self.app.asm
-        self.app.history.record(before, typing=("pose", self.step_index))  # a number's keystrokes: one undo step
+        self.app.history.record(before, typing=("pose", self.step_index, id(self.app)))  # a number's keystrokes: one undo step
         self.set_pose(T, client, sync_fields=False, gizmo=True)  # the fields are the user's; the gizmo follows them
         self.warn_if_far(T, client) or self.warn_if_through(client)
         self.settle_mates(before, client)
@@ -309,6 +310,13 @@ class StepsPanel:
     def on_gizmo(self, event) -> None:
         """A drag of the gizmo (viser's TransformControlsEvent: phase start / update / end, the pose in
         event.target). The part follows every update; the typed fields are rewritten at the end."""
+        if event.phase == "start":
+            self._drag_dropped = False
+        if self._drag_dropped:  # the rest of a drag that another tab's edit stopped
+            if event.phase == "end":
+                self._drag_dropped = False
+                self.refresh_assembly_scene(gizmo=True)  # the gizmo back on the part
+            return
         if self._syncing or self.step_index is None or not self.app.asm.steps:
             return
         g = event.target
@@ -324,6 +332,15 @@ class StepsPanel:
         if event.phase == "end":
             before, self._drag_before = self._drag_before, None
             self.settle_mates(before, event.client)
+
+    def drop_drag(self) -> bool:
+        """Another tab changed the draft during a drag of this tab's gizmo: the drag stops where it is (the part
+        stays where it was put; its updates until the mouse is let go are ignored), so that it never goes on
+        over a step that moved or was deleted meanwhile. True when a drag was stopped."""
+        if self._drag_before is None:
+            return False
+        self._drag_before, self._drag_dropped = None, True
+        return True
 
     def make_pose_fields(self, t, e) -> None:
         """(Re)create the typed pose inputs holding `t` (mm) and `e` (°).

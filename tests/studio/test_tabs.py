@@ -317,3 +317,117 @@ def test_play_sequence_runs_once_per_tab_and_stops_with_it(desk):
     assert wait(lambda: players() == 1)
     a.close()
     assert wait(lambda: players() == 0, 5.0)
+
+
+def _gizmo(tab, phase, position=None, wxyz=(1.0, 0.0, 0.0, 0.0)):
+    """A drag of the tab's own part gizmo, as its page reports one (start, update with a pose, end)."""
+    kind = {"start": "TransformControlsDragStartMessage", "end": "TransformControlsDragEndMessage"}
+    if phase in kind:
+        tab.send(type=kind[phase], name="/assembly/gizmo", owner=str(tab.client_id))
+    else:
+        tab.send(type="TransformControlsUpdateMessage", name="/assembly/gizmo", owner=str(tab.client_id),
+                 wxyz=[float(v) for v in wxyz], position=[float(v) for v in position])
+
+
+def test_a_drag_stops_when_another_tab_changes_the_draft_under_it(desk):
+    """Found attacking the tabs (round 3): A dragged step 1's part; B deleted step 1; the rest of A's drag moved
+    the wheel (the step now first) to the pinion's dragged pose, and a drag over a step moved past the old step
+    count ended in IndexError. Now another tab's edit stops the drag: its rest is ignored, and A is told."""
+    d = desk()
+    a, b = Tab(d), Tab(d)
+    va, vb = a.view, b.view
+    a.settle()
+    g = va.nodes["/assembly/gizmo"]
+    p0 = np.array(g.position)
+    _gizmo(a, "start")
+    _gizmo(a, "update", p0 + [0.0, 0.03, 0.0], g.wxyz)
+    a.settle()
+    assert abs(d.draft.asm.steps[0].T_base_part[1, 3] - 0.03) < 1e-6  # the pinion follows A's drag
+    notes = []
+    va.notify = lambda c, title, body, error=False, **k: notes.append((title, body, error))
+    b.set(_button(vb, "Step actions"), value="Delete")  # B deletes step 1 (the pinion's)
+    assert wait(lambda: len(d.draft.asm.steps) == 2)
+    b.settle()
+    after = d.draft.asm
+    _gizmo(a, "update", p0 + [0.0, 0.05, 0.0], g.wxyz)
+    _gizmo(a, "end")
+    a.settle()
+    assert d.draft.asm is after  # the wheel, now step 1, untouched
+    assert [n for n in notes if n[0] == "Drag stopped" and n[2]], notes  # A is told
+    a.close()
+    b.close()
+
+
+def test_the_inspected_step_list_follows_the_draft(desk, capture, tmp_path):
+    """Found attacking the tabs (round 3): A inspected a capture against the draft's step 3; B deleted step 3;
+    any change of A's Inspect settings then ended in IndexError. A capture's Step list now follows the draft."""
+    import shutil
+
+    root = capture.parent
+    shutil.copytree(SAMPLES / "helical_gearbox", root / "gearbox")
+    d = desk(root / "gearbox" / "assembly.yaml", root=root)
+    a, b = Tab(d), Tab(d)
+    va, vb = a.view, b.view
+    a.set(va.inspect.i_path, value=str(capture))
+    a.set(_button(va, "Open data"), value=True)
+    assert wait(lambda: va.inspect.frames is not None)
+    a.set(va.inspect.i_step, value=va.inspect.i_step.options[2])
+    assert wait(lambda: va.inspect.current_step() == 3)
+    a.settle()
+    b.set(vb.steps.f_step, value=vb.steps.f_step.options[2])
+    assert wait(lambda: vb.state.step_index == 2)
+    b.set(_button(vb, "Step actions"), value="Delete")
+    assert wait(lambda: len(d.draft.asm.steps) == 2)
+    b.settle()
+    assert tuple(va.inspect.i_step.options) == ("1. pinion", "2. wheel") and va.inspect.current_step() == 2
+    notes = []
+    va.notify = lambda c, title, body, error=False, **k: notes.append((title, body, error))
+    a.set(va.inspect.i_preset, value=next(p for p in va.inspect.i_preset.options if p != va.inspect.i_preset.value))
+    a.settle()
+    assert not [n for n in notes if n[2]], notes
+    assert va.state.inspect.frame.part == "wheel"
+    a.close()
+    b.close()
+
+
+def test_each_tab_saves_where_its_user_typed(desk, tmp_path):
+    """Found attacking the tabs (round 3): A's Save wrote the path A typed into B's field too (the file field
+    followed every save), so B's Save, pressed next, wrote A's file. A path a user typed is now left alone."""
+    import shutil
+
+    shutil.copytree(SAMPLES / "helical_gearbox", tmp_path / "gearbox")
+    d = desk(tmp_path / "gearbox" / "assembly.yaml")
+    a, b = Tab(d), Tab(d)
+    va, vb = a.view, b.view
+    x, y = tmp_path / "gearbox" / "X.yaml", tmp_path / "gearbox" / "Y.yaml"
+    a.set(va.files.f_path, value=str(x))
+    b.set(vb.files.f_path, value=str(y))
+    a.settle()
+    b.settle()
+    a.set(_button(va, "File actions"), value="Save")
+    assert wait(lambda: x.is_file())
+    a.settle()
+    assert vb.files.f_path.value == str(y)
+    b.set(_button(vb, "File actions"), value="Save")
+    assert wait(lambda: y.is_file())
+    assert not (tmp_path / "gearbox" / "X.yaml.bak").exists()
+    a.close()
+    b.close()
+
+
+def test_undo_of_deleting_every_step_selects_the_first_again(desk):
+    """Found attacking the tabs (round 3): after deleting every step, Undo brought them back with no step selected
+    in the tab that pressed it (its fields showing step 1, its typed poses ignored)."""
+    d = desk()
+    a = Tab(d)
+    va = a.view
+    delete = _button(va, "Step actions")
+    for _ in range(3):
+        a.set(delete, value="Delete")
+    assert wait(lambda: not d.draft.asm.steps)
+    a.settle()
+    a.set(va.edit_row, value="Undo")
+    assert wait(lambda: len(d.draft.asm.steps) == 1)
+    a.settle()
+    assert va.state.step_index == 0
+    a.close()
