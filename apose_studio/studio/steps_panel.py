@@ -34,6 +34,7 @@ class StepsPanel:
         self._syncing = False
         self._drag_before = None  # the draft when a gizmo drag started
         self._drag_dropped = False  # another tab changed the draft during this drag: its rest is ignored
+        self._step_written: tuple = (None, None)  # (step index, Step label) the server last wrote into the Step field
         self._player: threading.Thread | None = None  # Play sequence: one at a time per tab
         self._stop_play = threading.Event()
         app.events.on(Event.DRAFT_CHANGED, self.on_draft_changed)
@@ -425,10 +426,17 @@ class StepsPanel:
         try:
             self.f_step_part.options = list(asm.parts) or ["—"]
             steps = [f"{i + 1}. {s.part}" for i, s in enumerate(asm.steps)] or ["—"]
+            same_list = tuple(self.f_step.options) == tuple(steps)
             self.f_step.options = steps
             if self.step_index is not None:
                 s = asm.steps[self.step_index]
-                self.f_step.value = steps[self.step_index]
+                # a step the user chose in the page whose callback still waits for the lock (this drawing is for
+                # another tab's edit, or an earlier action of this tab's) is not written over: the callback reads it
+                chosen_meanwhile = (same_list and self._step_written[0] == self.step_index
+                                    and self.f_step.value != self._step_written[1] and self.f_step.value in steps)
+                if not chosen_meanwhile:
+                    self.f_step.value = steps[self.step_index]
+                    self._step_written = (self.step_index, steps[self.step_index])
                 self.f_step_part.value = s.part
                 self.make_pose_fields(*authoring.typed_pose(s.T_base_part))
             self.f_upto.max = max(len(asm.steps), 1)

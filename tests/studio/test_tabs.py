@@ -431,3 +431,22 @@ def test_undo_of_deleting_every_step_selects_the_first_again(desk):
     a.settle()
     assert va.state.step_index == 0
     a.close()
+
+
+def test_a_step_chosen_while_another_action_holds_the_studio_is_not_written_over(desk):
+    """Seen once in the full suite: tab B chose step 2 while an action of tab A held the studio; A's edit drew the
+    draft anew in B, writing B's Step field back to step 1 before B's own callback read it, so B's choice was lost.
+    A field the user changed meanwhile is now left for its callback."""
+    d = desk()
+    a, b = Tab(d), Tab(d)
+    vb = b.view
+    b.settle()
+    options = tuple(vb.steps.f_step.options)
+    with d.lock:  # as another action would: B's callback waits for it
+        b.set(vb.steps.f_step, value=options[1])
+        assert wait(lambda: vb.steps.f_step.value == options[1])  # viser has taken the page's value
+        vb.refresh_assembly_widgets()  # what another tab's edit draws in B meanwhile (Studio.catch_up)
+    assert wait(lambda: vb.state.step_index == 1)
+    assert vb.steps.f_step.value == options[1]
+    a.close()
+    b.close()
