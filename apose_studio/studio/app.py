@@ -485,17 +485,6 @@ class Studio:
             self.steps.preview_up_to_selected()
         self.seen_asm = self.asm
 
-    def close(self) -> None:
-        """This tab closed (tabs of their own): its player stopped, its background work finished, its
-        unfinished uploads dropped."""
-        try:
-            self.shutdown()
-        finally:
-            try:
-                self.ui.gui._current_file_upload_states.clear()
-            except Exception:
-                log.warning("viser's upload internals changed: a closed tab's unfinished uploads may stay buffered")
-
     def shutdown(self) -> None:
         """Before the server stops (Ctrl-C): the player stopped, a live camera closed, the background
         preparation finished (a process that exits inside Open3D is aborted by the C++ runtime)."""

@@ -79,15 +79,13 @@ class Desk:
         """A new tab: its own studio, built on its GUI and scene, showing the draft as it is now."""
         with self.lock:
             view = self.make_view(client)
-            if client.client_id not in self.server.get_clients():  # it closed while its studio was built
-                gone = True
-            else:
-                gone = False
+            gone = client.client_id not in self.server.get_clients()  # it closed while its studio was built
+            if not gone:
                 self.views[client.client_id] = view
         if gone:
-            view.close()
-            return
-        view.on_connect(client)
+            view.shutdown()
+        else:
+            view.on_connect(client)
 
     def on_disconnect(self, client) -> None:
         with self.lock:
@@ -95,8 +93,8 @@ class Desk:
             with self.pending_lock:
                 self.pending.pop(client.client_id, None)
                 self.dropped_told.pop(client.client_id, None)
-        if view is not None:
-            view.close()
+        if view is not None:  # (viser drops the tab's unfinished uploads itself)
+            view.shutdown()
 
     def record(self, view, event: Event, payload: dict) -> None:
         """An event `view` emitted: a draft event is kept for the other tabs (`spread`)."""
