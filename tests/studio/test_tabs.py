@@ -370,7 +370,8 @@ def test_the_inspected_step_list_follows_the_draft(desk, capture, tmp_path):
     va, vb = a.view, b.view
     a.set(va.inspect.i_path, value=str(capture))
     a.set(_button(va, "Open data"), value=True)
-    assert wait(lambda: va.inspect.frames is not None)
+    assert wait(lambda: va.state.inspect.frame is not None)  # opened and shown (its Step list written)
+    a.settle()
     a.set(va.inspect.i_step, value=va.inspect.i_step.options[2])
     assert wait(lambda: va.inspect.current_step() == 3)
     a.settle()
