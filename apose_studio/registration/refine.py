@@ -346,8 +346,10 @@ def base_twins_alike(pb, T_world_base: np.ndarray) -> list[np.ndarray]:
     against the truth's 0.912, the gear 0.1 mm off either way, the motor 38 mm by ADD). Only reports: the pose
     and `confident` stay as chosen."""
     base = pb.base
-    turns = [S for S in list(base.close_twins) + list(base.near_symmetries)
-             if not any(poses_within(S, E, pb.voxel, 2.0) for E in base.symmetries)]
+    turns: list[np.ndarray] = []
+    for S in list(base.close_twins) + list(base.near_symmetries):  # (a close twin is a near-symmetry too: once)
+        if not any(poses_within(S, E, pb.voxel, 2.0) for E in list(base.symmetries) + turns):
+            turns.append(S)
     T_part = T_world_base @ pb.T_base_part
     alike = [T_world_base @ S for S in turns
              if same_placement(T_part, T_world_base @ S @ pb.T_base_part, pb.part_symmetries, 3 * pb.voxel, 5.0)]

@@ -38,6 +38,22 @@ def _solve_constrained(A: np.ndarray, b: np.ndarray, rcond: float = 1e-7) -> np.
     return V[:, keep] @ ((V[:, keep].T @ b) / w[keep])
 
 
+def _jacobian(a: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """(N, 6) rows [a x n, n]: the point-to-plane Jacobian. The cross product written out as np.cross
+    computes it (the same products and differences, so the same bits), without its checks and copies:
+    ICP builds one per iteration, tens of thousands a second."""
+    J = np.empty((len(a), 6))
+    a0, a1, a2, b0, b1, b2 = a[:, 0], a[:, 1], a[:, 2], n[:, 0], n[:, 1], n[:, 2]
+    np.multiply(a1, b2, out=J[:, 0])
+    J[:, 0] -= a2 * b1
+    np.multiply(a2, b0, out=J[:, 1])
+    J[:, 1] -= a0 * b2
+    np.multiply(a0, b1, out=J[:, 2])
+    J[:, 2] -= a1 * b0
+    J[:, 3:] = n
+    return J
+
+
 def icp_point_to_plane(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.ndarray, T_init: np.ndarray, threshold: float,
                        iterations: int, trace: list | None = None, tgt_tree: NearestTree | None = None,
                        viewpoint: np.ndarray | None = None, min_step: float = 0.0) -> np.ndarray:
@@ -66,9 +82,11 @@ def icp_point_to_plane(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.ndarray
         if viewpoint is not None:
             eye = T[:3, :3] @ viewpoint + T[:3, 3]
             ok[ok] = np.einsum("ij,ij->i", tgt_normals[i[ok]], tgt[i[ok]] - eye) < 0
-        fit = float(ok.mean())
-        rmse = float(np.sqrt(np.mean(d[ok] ** 2))) if ok.any() else 0.0
-        return p[ok], i[ok], fit, rmse
+        n_ok = int(np.count_nonzero(ok))
+        if n_ok == len(ok):  # every point matched: no copies
+            return p, i, 1.0, float(np.sqrt(np.mean(d ** 2)))
+        rmse = float(np.sqrt(np.mean(d[ok] ** 2))) if n_ok else 0.0
+        return p[ok], i[ok], n_ok / len(ok), rmse
 
     p, idx, fit, rmse = match(T)
     extent = 2.0 * float(np.linalg.norm(src - src.mean(axis=0), axis=1).max()) if min_step > 0 else 0.0  # any frame
@@ -77,7 +95,7 @@ def icp_point_to_plane(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.ndarray
             break
         q, n = tgt[idx], tgt_normals[idx]
         c = p.mean(axis=0)  # linearised about the matched points' centre, not the frame's origin (below)
-        J = np.hstack([np.cross(p - c, n), n])
+        J = _jacobian(p - c, n)
         r = np.einsum("ij,ij->i", p - q, n)
         JtJ, Jtr = J.T @ J, J.T @ r
         try:
