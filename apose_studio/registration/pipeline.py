@@ -230,8 +230,8 @@ def model_cut_mask(result: RegistrationResult, view: View, base: BaseObject,
         in_front = (depth > 0) & (depth < zbuf - tol)
         cut = mask & np.isfinite(zbuf) & ~in_front
         if reach is not None:
-            on_surface = np.abs(depth - z) < tol
-            cut |= reach & (on_surface | (np.isfinite(z) & like_nearest_depth(depth, on_surface, reach & np.isfinite(z))))
+            on_surface = np.abs(depth - z) < tol  # (false off the silhouette, where z is inf)
+            cut |= (reach & on_surface) | like_nearest_depth(depth, on_surface, reach & np.isfinite(z))
     return cut
 
 

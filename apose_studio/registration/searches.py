@@ -326,7 +326,8 @@ def search_upright(pb, ms: ModelSearch, up: np.ndarray) -> Found | None:
     picked = spread_yaws(share, UPRIGHT_STARTS, UPRIGHT_APART)
     coarse = ms.coarse([starts[i] for i in picked], UPRIGHT_STARTS, share[picked])
     slid = False
-    if (not coarse or ms.view_explained(coarse[0].T_coarse) < RESTING_BELOW) and pb.table is not None:
+    fit = ms.view_explained(coarse[0].T_coarse) if coarse else 0.0  # the best start's share of its view explained
+    if fit < RESTING_BELOW and pb.table is not None:
         rest = resting_starts(starts, pb.table, ms.model_pts, base.diameter, pb.T_world_camera)
         slid = True
         # screened less what the camera sees past: a small patch of a mostly hidden base is explained as
@@ -335,10 +336,10 @@ def search_upright(pb, ms: ModelSearch, up: np.ndarray) -> Found | None:
         rest_share = ms.explained([T for _, T in rest]) - ms.seen_past([T for _, T in rest])
         resting = ms.coarse(rest, UPRIGHT_STARTS, rest_share)
         coarse = sorted(coarse + resting, key=lambda x: -x.explained)
+        fit = ms.view_explained(coarse[0].T_coarse) if coarse else 0.0
     if not coarse or coarse[0].explained < UPRIGHT_FALLBACK:
         return None if not coarse else Found(coarse)
-    if ms.view_explained(coarse[0].T_coarse) < RESTING_BELOW:  # (a base the first yaws explain well is told apart
-        # by them)
+    if fit < RESTING_BELOW:  # (a base the first yaws explain well is told apart by them)
         turned, turned_share = turned_round(pb, ms, coarse[0].T_coarse, up)
         coarse = sorted(coarse + ms.coarse(turned, UPRIGHT_STARTS, turned_share), key=lambda x: -x.explained)
     twins: list[Start] = []
