@@ -190,3 +190,29 @@ def test_a_base_that_hides_part_of_itself_is_not_searched_as_a_hidden_one(fidget
         assert err < 0.05 * ctx.part.diameter, (im_id, err)
     assert low >= 2  # the frames this test is about: the first score alone would have called the base hidden
     assert calls["resting"] == 0
+
+
+def test_the_prior_fast_path_leaves_the_coarse_normals_unbuilt(gearbox_step2, monkeypatch):
+    """The coarse target's normals serve only the searches (coarse ICP, RANSAC): a right prior, taken at once, never
+    builds them; a wrong one, which falls back to the search, does. Either way the coarse cloud is the same points."""
+    import apose_studio.registration.pipeline as pipeline
+
+    view, base, _ = gearbox_step2
+    T_world_base = se3.make_T(np.eye(3), [0.05, 0.02, 0.0])
+    T_world_camera = se3.look_at([0.35, -0.25, 0.3], [0.05, 0.02, 0.01])
+    depth, mask = synthetic_view(base, T_world_base, T_world_camera)
+    tasks = []
+    prepare = pipeline.prepare_task
+    monkeypatch.setattr(pipeline, "prepare_task", lambda *a, **k: tasks.append(prepare(*a, **k)) or tasks[-1])
+    params = resolve_params("default", max_seconds=0.0)
+    wrong = se3.make_T(se3.axis_angle_matrix([0, 0, 1], np.radians(90)))
+    for prior, searched in ((np.eye(4), False), (wrong, True)):
+        tasks.clear()
+        r = estimate(View(depth, mask, CAM, T_world_camera), base, view.T_base_part, params, prior_T_world_base=prior)
+        assert r.ok and ("global" in r.timings) == searched, r.timings
+        pb = tasks[0]
+        assert ("target" in vars(pb)) == searched  # functools.cached_property keeps a built value in the instance
+        coarse = pb.target
+        assert np.array_equal(np.asarray(coarse.points), pb.coarse_pts) and coarse.has_normals()
+        towards = T_world_camera[:3, 3] - pb.coarse_pts
+        assert (np.einsum("ij,ij->i", np.asarray(coarse.normals), towards) > 0).mean() > 0.99
