@@ -372,7 +372,7 @@ def search_and_choose(pb: Task, prior: np.ndarray | None, trace_iterations: bool
     timings["features"] = timings.get("features", 0.0) + time.perf_counter() - t
     t = time.perf_counter()
     R_prior = prior[:3, :3] if prior is not None else None
-    T_world_source = place_source(base, pb.tp.mean(axis=0), R_prior)  # TFORM, kept as the replay's start
+    T_world_source = place_source(base, pb.coarse_pts.mean(axis=0), R_prior)  # TFORM, kept as the replay's start
     found = search_poses(pb, ms, prior, T_world_source)  # upright yaw search, or free RANSAC: coarse poses
     timings["global"] = time.perf_counter() - t
     t = time.perf_counter()

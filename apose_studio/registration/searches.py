@@ -52,7 +52,7 @@ def try_prior(pb, prior: np.ndarray, trace_iterations: bool, timings: dict, from
     pose the base is near already (pipeline.refit): ICP from it at 2 voxels, then as above, and no
     acceptance test (the judge that follows decides)."""
     base, cam, T_world_camera, p, voxel = pb.base, pb.cam, pb.T_world_camera, pb.params, pb.voxel
-    fine, fine_pts, observation, tp = pb.fine, pb.fine_pts, pb.observation, pb.tp
+    fine, fine_pts, observation, tp = pb.fine, pb.fine_pts, pb.observation, pb.coarse_pts
     t = time.perf_counter()
     thr = pb.thr
     T_world_source = prior.copy() if from_pose else place_source(base, tp.mean(axis=0), prior[:3, :3])
@@ -165,7 +165,7 @@ class ModelSearch:
         self._f_target = None
         self.grid = pb.base.near_grid(pb.vg, p)
         self.model_pts, self.model_nrm = np.asarray(self.model.points), np.asarray(self.model.normals)
-        tp = pb.tp
+        tp = pb.coarse_pts
         self.tp_few = tp[np.random.default_rng(p.seed).choice(len(tp), min(len(tp), SCREEN_POINTS), replace=False)]
         m = len(self.model_pts)
         self.model_few = np.random.default_rng(p.seed).choice(m, min(m, SCREEN_MODEL_POINTS), replace=False)
@@ -234,10 +234,7 @@ class ModelSearch:
         starts and the neighbours' polishes: 150-200 ms more a frame). What something else stands in front of
         still counts against it: a mostly hidden base still reads low."""
         pb = self.pb
-        seen, _ = raycast_source(pb.base, T_world_base, pb.T_world_camera, pb.cam)
-        if len(seen) == 0:
-            return 0.0
-        return float(np.mean(pb.fine_tree.query(seen, distance_upper_bound=pb.vg)[0] < np.inf))
+        return near_target_share(pb, raycast_source(pb.base, T_world_base, pb.T_world_camera, pb.cam)[0])
 
     def around(self, T_g: np.ndarray) -> list:
         """(symmetry, pose) starts from a global result: it, its half turns (partial views often match
@@ -266,9 +263,15 @@ class ModelSearch:
                 continue
             T = icp(src, pb.target, T0, 2.0 * vg, 8, None, pb.params.deterministic, pb.target_tree)
             seen = se3.transform_points(T, facing(self.model_pts, self.model_nrm, T, cam_pos))
-            f_quick = float(np.mean(pb.fine_tree.query(seen, distance_upper_bound=vg)[0] < np.inf)) if len(seen) else 0.0
-            out.append(Start(f_quick, k, T0, T))
+            out.append(Start(near_target_share(pb, seen), k, T0, T))
         return sorted(out, key=lambda x: -x.explained)
+
+
+def near_target_share(pb, points_world: np.ndarray) -> float:
+    """The share of the model points (world) that lie within a coarse voxel of the (fine) target; 0 for none."""
+    if len(points_world) == 0:
+        return 0.0
+    return float(np.mean(pb.fine_tree.query(points_world, distance_upper_bound=pb.vg)[0] < np.inf))
 
 
 def prior_starts(pb, ms: ModelSearch, T_world_source: np.ndarray) -> list:
@@ -321,7 +324,7 @@ def search_upright(pb, ms: ModelSearch, up: np.ndarray) -> Found | None:
     """Every yaw about the table's normal `up`, no RANSAC; None when nothing fits upright. When no yaw
     fits with what is seen centred, the yaws again standing on the table, slid over it (`resting_starts`)."""
     p, base = pb.params, pb.base
-    starts = upright_starts(base, up, pb.tp, pb.T_world_camera, ms.model_pts, ms.model_nrm)
+    starts = upright_starts(base, up, pb.coarse_pts, pb.T_world_camera, ms.model_pts, ms.model_nrm)
     share = ms.explained([T for _, T in starts])
     picked = spread_yaws(share, UPRIGHT_STARTS, UPRIGHT_APART)
     coarse = ms.coarse([starts[i] for i in picked], UPRIGHT_STARTS, share[picked])

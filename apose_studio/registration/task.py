@@ -69,7 +69,7 @@ class Task:
     @cached_property
     def target_tree(self):
         """k-d tree of the coarse target's points (built once, for the coarse ICPs)."""
-        return NearestTree(self.tp)
+        return NearestTree(self.coarse_pts)
 
     @cached_property
     def table(self) -> tuple[np.ndarray, float] | None:
@@ -78,11 +78,6 @@ class Task:
         obs = self.observation
         return table_plane(obs.depth, obs.mask, self.cam, self.T_world_camera, seed=self.params.seed,
                            base_size=self.base.diameter)
-
-    @property
-    def tp(self) -> np.ndarray:
-        """The coarse target's points (world)."""
-        return self.coarse_pts
 
     @property
     def fine_pts(self) -> np.ndarray:
