@@ -65,8 +65,9 @@ class PoseEstimate:
     # was given (robot_targets)
     base_alternatives: list[np.ndarray] = field(default_factory=list)  # T_world_base of the base turned another way
     # that places the part alike and fits as well: the part's place is sure, the base's own turn is not
-    depth_shift_px: tuple[int, int] = (0, 0)  # how far the depth lay shifted (right, down) against the colour image
-    # around the prompt, moved back before the mask and the registration (estimation.colour_registered)
+    depth_shift_px: tuple[int, int] = (0, 0)  # how far the depth lay shifted (right, down) against the colour image,
+    # moved back: around the prompt before the mask (align_depth, estimation.colour_registered), or after a first
+    # estimate whose colour check found it off (estimation.estimate_view, `move_depth_to_colour`)
 
     def to_json(self) -> dict:
         def m(T):
@@ -122,7 +123,9 @@ def estimate_pose(rgb: np.ndarray, depth: np.ndarray, K, assembly, step: int, *,
     `pick_box` / `pick_point` around the loose part in the same frame, where to pick it (robot_targets).
 
     `align_depth` (with a box or point): the depth moved back onto the colour image when, around the prompt, it
-    lies shifted against it (estimation.colour_registered; `depth_shift_px` says how far it lay)."""
+    lies shifted against it (estimation.colour_registered; `depth_shift_px` says how far it lay). Without it, the
+    colour check after the estimate does the same when it finds the depth's edges clearly off the colour's, less
+    the object's own (parameters `colour_check`, `move_depth_to_colour`: estimation.estimate_view)."""
     t0 = time.perf_counter()
     if isinstance(step, bool) or not isinstance(step, (int, np.integer)):
         raise AposeError(f"step must be a whole number (1 for the first step), got {step!r}"[:120])
@@ -149,7 +152,7 @@ def estimate_pose(rgb: np.ndarray, depth: np.ndarray, K, assembly, step: int, *,
     m, source = array_mask(rgb, depth, cam, mask, box, point, region=ctx.base.region is not None)
     view = View(depth, m, cam, np.asarray(T_world_camera, float), rgb=rgb, box=box)
     est = run_registration(view, source, ctx, p, orientation_prior, t0, time.perf_counter() - t1, t_load=t_load)
-    est.depth_shift_px = shift
+    est.depth_shift_px = shift if shift != (0, 0) else getattr(est.result, "depth_moved_px", (0, 0))  # asked, or found
     if hand_eye is None:
         return est
     pick = None

@@ -29,7 +29,7 @@ from apose_studio.data.dataset import Frame, read_image
 from apose_studio.errors import AposeError
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
-from apose_studio.geometry.raycast import raycast_depth
+from apose_studio.geometry.raycast import own_edges, raycast_depth
 from apose_studio.geometry.sensor import SHIFT_MIN_PX, depth_colour_shift, shift_evidence, shift_image
 from apose_studio.masks.prompt import box_depth, prompted_mask
 from apose_studio.masks.segment import depth_mask, load_model, table_objects
@@ -286,7 +286,9 @@ def estimate_view(view: View, ctx: StepContext, params: Params, orientation_prio
     """Step `ctx`'s assembly pose in one view. With orientation_prior the CAD's orientation is taken as
     the base's orientation in the world (what `--base-pose fixed` renders, and the paper assumes). With
     `params.colour_check`, a clear shift of the depth against the colour image costs confidence
-    (colour_checked). A base that is a region of a larger part, prompted by a box, is registered to the box's
+    (colour_checked); with `params.move_depth_to_colour` too, the depth is then moved back by that shift and the
+    estimate made again, and that estimate is the result (its `depth_moved_px` says how far) when the check finds
+    no shift left after it. A base that is a region of a larger part, prompted by a box, is registered to the box's
     pixels with depth near its centre (region_target)."""
     ctx.base.warm_up(params)
     if ctx.base.region is not None and view.box is None:
@@ -294,10 +296,50 @@ def estimate_view(view: View, ctx: StepContext, params: Params, orientation_prio
                       "it holds; give one (--box, or a box prompt), not a mask of the whole part or a click",
                       preset=params.preset)
     view = region_target(view, ctx.base)
-    result = estimate(view, ctx.base, ctx.view.T_base_part, params,
-                      prior_T_world_base=np.eye(4) if orientation_prior else None,
-                      trace_iterations=trace_iterations, part_symmetries=ctx.part.symmetries)
-    return held_to_part(colour_checked(result, view, params), ctx.part)
+    looked = time.perf_counter()
+    first_look = edges_suggest_shift(view) if params.colour_check else None
+    looked = time.perf_counter() - looked
+
+    def checked(v: View, p: Params = params, look=NOT_LOOKED) -> tuple[RegistrationResult, RegistrationResult]:
+        """(the registration's result, that result held to the part and colour-checked)."""
+        raw = estimate(v, ctx.base, ctx.view.T_base_part, p, prior_T_world_base=np.eye(4) if orientation_prior else None,
+                       trace_iterations=trace_iterations, part_symmetries=ctx.part.symmetries)
+        return raw, held_to_part(colour_checked(raw, v, p, ctx.base.mesh, look), ctx.part)
+
+    def moved_back(first: RegistrationResult, before: float) -> RegistrationResult | None:
+        """The estimate on the depth moved back by the shift `first`'s check found, when its own check finds no
+        shift left; None otherwise. `before`: the seconds spent before it (the first estimate's)."""
+        du, dv = first.colour_offset_px
+        again = checked(replace(view, depth=shift_image(view.depth, -du, -dv)))[1]
+        if not again.ok or again.colour_offset > 0:
+            return None
+        return replace(again, depth_moved_px=(int(du), int(dv)),
+                       timings={**again.timings, "estimate on the depth as it lay": before})
+
+    def with_look(r: RegistrationResult, spent: float = 0.0) -> RegistrationResult:  # the first look's time counted
+        if not params.colour_check:
+            return r
+        extra = {"colour check": r.timings.get("colour check", 0.0) + looked, **({"quick estimate": spent} if spent else {})}
+        return replace(r, timings={**r.timings, **extra})
+
+    moving = params.colour_check and params.move_depth_to_colour
+    tried, spent = None, 0.0
+    if moving and first_look is not None and params.mask_hypotheses:  # the edges suggest a shift: the estimate on
+        # the mask as given (not its other readings, the costly part) tells whether the shift holds at the pose
+        raw, quick = checked(view, replace(params, mask_hypotheses=False), first_look)
+        if quick.ok and quick.colour_offset > 0:
+            moved = moved_back(quick, quick.seconds + looked)
+            if moved is not None:
+                return moved
+            tried = quick.colour_offset_px
+        elif raw.fits:  # the other readings run only on a result that does not fit: this is the whole estimate
+            return with_look(quick)
+        spent = quick.seconds
+    raw, result = checked(view, params, first_look)
+    result = with_look(result, spent)
+    if moving and result.ok and result.colour_offset > 0 and result.colour_offset_px != tried:
+        return moved_back(result, result.seconds) or result
+    return result
 
 
 def region_target(view: View, base: BaseObject) -> View:
@@ -341,13 +383,38 @@ def near_box_centre(mask: np.ndarray, depth: np.ndarray, cam, box, reach: float)
 CLEAR_SHIFT_MAX_PX = 4  # colour_checked: a shift of the depth against the colour held against the confidence is at
 # most this long (a Kinect's registration is a few pixels off; the 5-6 px the search also tries were found only on
 # frames registered exactly, where shading along an outline fooled the edges) ...
-CLEAR_SHIFT_GAIN = 0.65  # ... and lays the depth's edges at most this share of their unshifted distance from the
-# colour's. benchmarks/captures.py: the `real` row's shifts (3 px) 0.30-0.72, 21 of its 24 frames below; frames
-# registered exactly 0.57-0.79, 1 of their 504 below at <= 4 px; the studio tests' RealSense-like gearbox renders
-# 0.61 at 6 px and 0.70
+CLEAR_SHIFT_GAIN = 0.75  # ... and lays the depth's edges at most this share of their unshifted distance from the
+# colour's (the base's own creases and inner outlines left out). With the renderer's poses (a scratch script over
+# benchmarks/captures.py's and tune.py's renders): the `real` row's shifts (3 px) 0.35-0.80, 22 of its 24 frames
+# below; none of the 720 frames registered exactly below at <= 4 px (with the own edges in: 36)
 
 
-def colour_checked(result: RegistrationResult, view: View, params: Params) -> RegistrationResult:
+def clear_shift(du: int, dv: int, ratio: float) -> bool:
+    """A shift of the depth against the colour image clear enough to count (CLEAR_SHIFT_MAX_PX, CLEAR_SHIFT_GAIN)."""
+    return SHIFT_MIN_PX <= max(abs(du), abs(dv)) <= CLEAR_SHIFT_MAX_PX and ratio < CLEAR_SHIFT_GAIN
+
+
+def edges_suggest_shift(view: View) -> tuple[tuple[int, int], float] | None:
+    """The depth's edges against all the colour image's in the prompt's box (or the mask's), before any pose
+    (geometry.sensor.shift_evidence): ((du, dv), ratio) when they suggest a clear shift, else None. Leaving an
+    object's own edges out (colour_checked) only takes evidence away: over the 744 renders of
+    benchmarks/captures.py and tune.py (a scratch script, the renderer's poses), no clear shift was found with
+    them left out where none was found with them in; so a frame where this finds none is done (1.9 ms, against
+    3.5 ms more for the object's own edges, on a gearbox frame of tune.py)."""
+    if view.rgb is None:
+        return None
+    window = view.box if view.box is not None else truth_box(view.mask, 0.0)  # the prompt's box, or the mask's
+    if window is None:
+        return None
+    (du, dv), ratio = shift_evidence(np.asarray(view.rgb), view.depth, window)
+    return ((du, dv), ratio) if clear_shift(du, dv, ratio) else None
+
+
+NOT_LOOKED = object()  # colour_checked's `look` when edges_suggest_shift has not looked at the view yet
+
+
+def colour_checked(result: RegistrationResult, view: View, params: Params, mesh=None,
+                   look=NOT_LOOKED) -> RegistrationResult:
     """`result` with what a depth lying off the colour image may cost it. The intrinsics are the colour
     camera's and the prompt is drawn on the colour image; where the depth lies a few pixels off it (a
     Kinect's registration), the pose fitted to the depth lies off the base by as much (a pixel at depth z is
@@ -357,15 +424,15 @@ def colour_checked(result: RegistrationResult, view: View, params: Params) -> Re
     as `colour_offset`: with the spread it must stay within the placement's allowance (half the line a right
     pose keeps to; the other half is left for what no frame shows, such as a constant depth bias).
 
-    The pose is not moved, and the check is off by default (`params.colour_check`): on frames registered
-    exactly, where an object's own shading runs along its outline, the edges find a clear shift too (the
-    gearbox casing's rim on 9 of 18 noise-free benchmarks/tune.py frames, 22 of the 280 there in all, and 2 of
-    4 frames of a rendered camera path, against 1 of the 504 frames of benchmarks/captures.py's rows registered
-    exactly and 21 of the 24 of its `real` row), and the model's outline against the colour's edges, tried as
-    a second opinion, was fooled by the same shading. Only the user can say that the depth is off
-    (`--align-depth`, *Align depth to colour*, which move it back before the mask and the registration). Worth
-    turning on for a Kinect v1 or Xtion, whose depth is often registered a few pixels off, with objects without
-    such rims; only with a colour image and an ok result."""
+    The colour edges the base shows at its pose by its own shape (`mesh`, the base's: its creases and inner
+    outlines, geometry.raycast.own_edges) are left out of the comparison. Shading runs along them in any image:
+    a casing's top face ends a wall's thickness inside its outline, a box's top face a side's height above its
+    lower outline, and with them in, the edges found a clear shift on 36 of 720 renders registered exactly (the
+    gearbox casing's rims most of all); without them, none (see CLEAR_SHIFT_GAIN; docs/BENCHMARKS.md).
+
+    The pose is not moved here (estimate_view moves the depth and estimates again, `move_depth_to_colour`).
+    On by default (`params.colour_check`); only with a colour image and an ok result. `look`: what
+    edges_suggest_shift found on this view, when already looked (None: nothing suggested; NOT_LOOKED: looked here)."""
     if not (params.colour_check and result.ok and view.rgb is not None):
         return result
     t0 = time.perf_counter()
@@ -374,8 +441,13 @@ def colour_checked(result: RegistrationResult, view: View, params: Params) -> Re
     window = view.box if view.box is not None else truth_box(view.mask, 0.0)  # the prompt's box, or the mask's
     if window is None:
         return result
-    (du, dv), ratio = shift_evidence(np.asarray(view.rgb), view.depth, window)
-    if SHIFT_MIN_PX <= max(abs(du), abs(dv)) <= CLEAR_SHIFT_MAX_PX and ratio < CLEAR_SHIFT_GAIN:
+    if look is NOT_LOOKED:
+        look = edges_suggest_shift(view)
+    (du, dv), ratio = look if look is not None else ((0, 0), 1.0)
+    if look is not None and mesh is not None:
+        explained = own_edges(mesh, result.T_world_base, view.T_world_camera, view.camera)
+        (du, dv), ratio = shift_evidence(np.asarray(view.rgb), view.depth, window, explained)
+    if look is not None and clear_shift(du, dv, ratio):
         z = view.depth[region & np.isfinite(view.depth) & (view.depth > 0)]
         zc = float(np.median(z)) if len(z) else float(se3.transform_points(se3.inv(view.T_world_camera),
                                                                             result.T_world_base[None, :3, 3])[0, 2])
@@ -692,6 +764,9 @@ class Tracker:
     seen: list[tuple[int, np.ndarray]] = field(default_factory=list)  # (im_id, T_world_base) of the last two
     # confident results: the base's motion per frame in the world (none when the camera's pose is known and the
     # base stands still; the camera's own motion when every frame's world is the camera's frame)
+    depth_shift: tuple[int, int] = (0, 0)  # how far (right, down) the camera's depth lies off its colour image, as the
+    # detection tracking started from found it (RegistrationResult.depth_moved_px): a sensor's registration does
+    # not change between frames, so the tracked frames' depth is moved back by as much
 
     def step(self, frame: Frame) -> TrackStep:
         t0 = time.perf_counter()
@@ -699,10 +774,13 @@ class Tracker:
         start = self.expected(frame.im_id) if tried else None
         if tried:
             pred = predict(start, frame.T_world_camera, frame.camera)
-            self.plane = table_now(self.plane, frame.depth, frame.camera, frame.T_world_camera, pred, self.ctx.base,
+            du, dv = self.depth_shift
+            depth = shift_image(frame.depth, -du, -dv) if (du, dv) != (0, 0) else frame.depth
+            self.plane = table_now(self.plane, depth, frame.camera, frame.T_world_camera, pred, self.ctx.base,
                                    TABLE_TOLERANCES * final_distance(self.params, self.ctx.base, start))
-            r = held_to_part(track(frame.depth, frame.camera, frame.T_world_camera, self.ctx.base,
+            r = held_to_part(track(depth, frame.camera, frame.T_world_camera, self.ctx.base,
                                    self.ctx.view.T_base_part, self.params, start, self.plane, pred), self.ctx.part)
+            r = replace(r, depth_moved_px=self.depth_shift)
             if r.confident:
                 return self._done(TrackStep(frame.im_id, r, "tracked", time.perf_counter() - t0), r)
             why = r.reason if not r.ok else doubts(r)
@@ -732,9 +810,11 @@ class Tracker:
         """Go on from `result`, a confident pose of `frame` (the one on show when a paused player plays again):
         the next frames are tracked from it; the table under the base fitted on `frame`."""
         mask = result.model_mask if result.model_mask is not None else np.zeros(frame.depth.shape, bool)
-        self.last, self.pending = result, None
+        self.last, self.pending, self.depth_shift = result, None, result.depth_moved_px
         self.seen = [(frame.im_id, result.T_world_base)]
-        self.plane = table_plane(frame.depth, mask, frame.camera, frame.T_world_camera, base_size=self.ctx.base.diameter)
+        du, dv = self.depth_shift
+        depth = shift_image(frame.depth, -du, -dv) if (du, dv) != (0, 0) else frame.depth
+        self.plane = table_plane(depth, mask, frame.camera, frame.T_world_camera, base_size=self.ctx.base.diameter)
 
     def expected(self, im_id: int) -> RegistrationResult:
         """The last confident result, moved on to frame `im_id` at the base's motion per frame between the last
@@ -749,6 +829,8 @@ class Tracker:
 
     def _done(self, s: TrackStep, confident: RegistrationResult | None = None) -> TrackStep:
         if confident is not None:
+            if not confident.tracked:  # an estimate: the depth's shift it found (or none) holds from here on
+                self.depth_shift = confident.depth_moved_px
             self.last = confident
             self.seen = [*self.seen[-1:], (s.im_id, confident.T_world_base)]
         self.steps.append(s)

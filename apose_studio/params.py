@@ -96,10 +96,13 @@ class Params:
     mask_hypotheses: bool = _p(True, "bool", "a result that is not confident is estimated again on other readings of "
                                "the mask (without what lies on the base or stands in front of it); the one whose model "
                                "explains the frame best is kept")
-    colour_check: bool = _p(False, "bool", "after the estimate, compare the depth's edges with the colour image's around "
-                            "the object; a clear shift found there (a Kinect v1's or Xtion's depth is often registered "
-                            "a few pixels off) counts against the confidence, by how far it would put the pose off. "
-                            "Off by default: a rim's shading along an outline fools it on some objects")
+    colour_check: bool = _p(True, "bool", "after the estimate, compare the depth's edges with the colour image's around "
+                            "the object, less the edges the object's own shape makes at its pose (creases, rims); a clear "
+                            "shift found there (a Kinect v1's or Xtion's depth is often registered a few pixels off) "
+                            "counts against the confidence, by how far it would put the pose off")
+    move_depth_to_colour: bool = _p(True, "bool", "when the colour check finds the depth clearly off the colour image, "
+                                    "move the depth back by that shift and estimate again; that estimate is the "
+                                    "result when no shift is left after it (else the first, not confident)")
     # --- tracking (registration.track: a frame's pose from the frame before's)
     track_motion: float = _p(0.15, "float", "tracking follows the base this far between frames, x its diameter (the "
                              "depth searched around its last pose)", 0.01, 1.0)
@@ -126,7 +129,8 @@ PRESETS: dict[str, dict[str, Any]] = {
                   source_camera=fov_camera(1280, 720, 60.0), use_symmetries=False, use_orientation_prior=True,
                   deterministic=False, global_voxel_factor=1.0, ransac_retry_iterations=0, use_flips=False,
                   prior_fast_path=False, upright=False, polish_voxel_factor=0.0, max_seconds=0.0, second_look=False,
-                  mask_hypotheses=False),
+                  mask_hypotheses=False, colour_check=False,
+                  move_depth_to_colour=False),
 }
 PRESET_PARAMS: dict[str, Params] = {name: Params(**over) for name, over in PRESETS.items()}
 

@@ -59,7 +59,8 @@ def test_a_capture_whose_depth_lies_off_its_colour_image(tmp_path):
     captures.py's `real` row): `apose estimate --box --align-depth` says how far it found it and moved it back,
     and the pose is within 5 mm (the watering can's label: 2.9 mm; 5.8 mm when benchmarks/captures.py left the
     depth where it was). Without a prompt the flag is refused: nothing says where to compare. Without the flag
-    but with the colour check on, the pose is not confident, and the doubt names the flag."""
+    the colour check after the estimate finds the shift and moves the depth back (the defaults); told to keep the depth
+    (`move_depth_to_colour=false`), the pose is not confident, and the doubt names the flag."""
     from .conftest import SAMPLES, rendered_frame
 
     desk = SAMPLES / "desk_objects" / "assembly.yaml"
@@ -76,11 +77,20 @@ def test_a_capture_whose_depth_lies_off_its_colour_image(tmp_path):
     assert "off the colour image around the prompt; moved back" in r.stdout, r.stdout
     r = run("estimate", cap, "--assembly", desk, "--step", 2, "--align-depth")
     assert r.returncode == 2 and "give it with --box or --point" in r.stderr, (r.returncode, r.stderr)
-    # not aligned, with the colour check: the depth's edges found off the colour's after the estimate, the pose
-    # that far from trustworthy is not confident; the doubt names the flag
-    r = run("estimate", cap, "--assembly", desk, "--step", 2, "--box", box, "--json", "--param", "colour_check=true")
+    # without the flag (the defaults): the depth's edges found off the colour's after the estimate, the depth
+    # moved back by that shift and the pose estimated again
+    r = run("estimate", cap, "--assembly", desk, "--step", 2, "--box", box, "--json")
+    doc = json.loads(r.stdout)
+    assert doc["ok"] and max(abs(v) for v in doc["depth_shift_px"]) >= 2, doc["depth_shift_px"]
+    assert mssd_to_truth(np.asarray(doc["T_camera_part"]), _T_camera_part_truth(frame), desk, frame.part) < 0.005
+    r = run("estimate", cap, "--assembly", desk, "--step", 2, "--box", box)
+    assert "off the colour image's; moved back, and the pose estimated on it" in r.stdout, r.stdout
+    # the depth kept as given: the pose that far from trustworthy is not confident; the doubt names the flag
+    r = run("estimate", cap, "--assembly", desk, "--step", 2, "--box", box, "--json", "--param",
+            "move_depth_to_colour=false")
     doc = json.loads(r.stdout)
     assert doc["ok"] and not doc["confident"] and "--align-depth" in doc["doubts"], doc["doubts"]
+    assert doc["depth_shift_px"] == [0, 0]
 
 
 def test_bop_scene_folder_with_ground_truth(clutter_dataset):

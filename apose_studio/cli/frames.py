@@ -140,7 +140,7 @@ def cmd_estimate(args) -> int:
         source = "box round the region from the ground truth"
     est = run_registration(replace(View.of(frame, mask), box=request.box), source, ctx, params, args.orientation_prior, t0,
                            time.perf_counter() - t1, trace_iterations=True, t_load=t1 - t0)
-    est.depth_shift_px = shift
+    est.depth_shift_px = shift if shift != (0, 0) else getattr(est.result, "depth_moved_px", (0, 0))  # asked, or found
     if hand_eye is not None:
         est.targets = robot_targets(est, asm, ctx, hand_eye, args.grasp, _pick(args, frame, ctx, params),
                                     _flange_of(frame, hand_eye, args.input[0]))
@@ -171,6 +171,10 @@ def cmd_estimate(args) -> int:
     if shift != (0, 0):
         print(f"depth: lay {shift[0]:+d}, {shift[1]:+d} px (right, down) off the colour image around the prompt; moved back "
               "before the mask and the registration")
+    elif est.depth_shift_px != (0, 0):
+        du, dv = est.depth_shift_px
+        print(f"depth: its edges lay {du:+d}, {dv:+d} px (right, down) off the colour image's; moved back, and the pose "
+              "estimated on it (--param move_depth_to_colour=false keeps the depth as given)")
     if not r.ok:
         print(f"estimation failed: {r.reason}")
         return 1

@@ -127,3 +127,38 @@ def _cast(mesh: trimesh.Trimesh, T_world_mesh: np.ndarray, T_world_camera: np.nd
         return None
     rays = ray_grid(cam).rays(se3.inv(T_world_mesh) @ T_world_camera, w)
     return b, w, rays, b.scene.cast_rays(o3d.core.Tensor(rays.reshape(-1, 6)), nthreads=0)
+
+
+CREASE_DEG = 25.0  # own_edges: neighbouring pixels whose surface normals lie farther apart than this show a crease
+
+
+def own_edges(mesh: trimesh.Trimesh, T_world_mesh: np.ndarray, T_world_camera: np.ndarray,
+              cam: CameraIntrinsics) -> np.ndarray:
+    """(H, W) bool: the pixels where a mesh alone, at a pose, shows an edge inside its own image: a crease
+    (neighbouring pixels' normals more than CREASE_DEG apart: a box's top face against its side) or a jump in
+    depth (an inner outline: a rim over a cavity, a boss over a face), marked on both sides. Its shading or
+    colour may change there in any image, so colour edges there say nothing about how the depth lies against
+    the colour image (geometry.sensor.shift_evidence). The outline against what lies behind is not marked."""
+    out = np.zeros((cam.height, cam.width), bool)
+    cast = _cast(mesh, T_world_mesh, T_world_camera, cam)
+    if cast is None:
+        return out
+    b, w, rays, hit = cast
+    h, wd = rays.shape[:2]
+    t = hit["t_hit"].numpy().reshape(h, wd)
+    ok = np.isfinite(t)
+    n = np.zeros((h, wd, 3))
+    n[ok] = b.normals[hit["primitive_ids"].numpy().view(np.int32).reshape(h, wd)[ok]]
+    n *= np.where(np.einsum("hwi,hwi->hw", n, rays[..., 3:]) > 0, -1.0, 1.0)[..., None]  # facing the camera
+    z = np.where(ok, t, 0.0)
+    cos = np.cos(np.radians(CREASE_DEG))
+    edges = np.zeros((h, wd), bool)
+    for dv, du in ((0, 1), (1, 0)):  # each pixel against its right and its lower neighbour
+        a, c = (slice(0, h - dv), slice(0, wd - du)), (slice(dv, h), slice(du, wd))
+        za, zc = z[a], z[c]
+        jump = np.abs(za - zc) > np.maximum(0.004, 0.012 * np.minimum(za, zc))  # as sensor.occluding_edges
+        e = ok[a] & ok[c] & ((np.einsum("hwi,hwi->hw", n[a], n[c]) < cos) | jump)
+        edges[a] |= e
+        edges[c] |= e
+    out[w[0]:w[1], w[2]:w[3]] = edges
+    return out

@@ -50,11 +50,14 @@ MAX_EDGE_PX = 20000  # at most this many depth-edge pixels are compared (every k
 # whole noisy 1080p frame held a million, and 169 shifts of them took 3 s
 
 
-def colour_edge_distance(rgb: np.ndarray) -> np.ndarray:
+def colour_edge_distance(rgb: np.ndarray, explained: np.ndarray | None = None) -> np.ndarray:
     """(H, W) float32: each pixel's distance to the nearest colour edge (Canny on the grey image, blurred 3x3),
-    capped at EDGE_DIST_CAP_PX."""
+    capped at EDGE_DIST_CAP_PX. `explained` ((H, W) bool, or None): colour edges within a pixel of these are left
+    out (an object's own creases and inner outlines, raycast.own_edges: shading changes there anyway)."""
     grey = cv2.cvtColor(np.ascontiguousarray(rgb[..., :3], dtype=np.uint8), cv2.COLOR_RGB2GRAY)
     colour = cv2.Canny(cv2.GaussianBlur(grey, (3, 3), 0), 40, 100) > 0
+    if explained is not None and explained.any():
+        colour &= cv2.dilate(explained.astype(np.uint8), np.ones((3, 3), np.uint8)) == 0
     return np.minimum(cv2.distanceTransform((~colour).astype(np.uint8), cv2.DIST_L2, 3), EDGE_DIST_CAP_PX)
 
 
@@ -88,7 +91,8 @@ def depth_colour_shift(rgb: np.ndarray, depth: np.ndarray, box: tuple[int, int, 
     return best
 
 
-def shift_evidence(rgb: np.ndarray, depth: np.ndarray, box: tuple[int, int, int, int] | None = None) -> tuple[tuple[int, int], float]:
+def shift_evidence(rgb: np.ndarray, depth: np.ndarray, box: tuple[int, int, int, int] | None = None,
+                   explained: np.ndarray | None = None) -> tuple[tuple[int, int], float]:
     """((du, dv), ratio): the shift of the depth image against the colour image that lays their edges nearest,
     and their mean distance there over unshifted (1.0, and (0, 0), when there is nothing to compare).
 
@@ -102,7 +106,9 @@ def shift_evidence(rgb: np.ndarray, depth: np.ndarray, box: tuple[int, int, int,
     shadows hiding one side of each object), so it is applied only when asked (estimation.colour_registered).
     Over the whole image instead of the box, 9 of the 24 were missed and desk frames without noise shifted.
     With a box the depth's edges are found in the window alone (their filters reach 3 px: the window is read
-    4 px wider); the colour's over the whole image (Canny's hysteresis follows an edge beyond any window)."""
+    4 px wider); the colour's over the whole image (Canny's hysteresis follows an edge beyond any window).
+    `explained` ((H, W) bool): colour edges that say nothing about the shift, left out (colour_edge_distance):
+    the base's own creases and inner outlines at its estimated pose (estimation.colour_checked)."""
     if rgb is None or rgb.ndim != 3:
         return (0, 0), 1.0
     h, w = depth.shape
@@ -129,7 +135,7 @@ def shift_evidence(rgb: np.ndarray, depth: np.ndarray, box: tuple[int, int, int,
     p = COLOUR_PAD_PX
     cx0, cy0 = max(int(us.min()) - p, 0), max(int(vs.min()) - p, 0)
     cx1, cy1 = min(int(us.max()) + p + 1, w), min(int(vs.max()) + p + 1, h)
-    dist = colour_edge_distance(rgb[cy0:cy1, cx0:cx1])
+    dist = colour_edge_distance(rgb[cy0:cy1, cx0:cx1], None if explained is None else explained[cy0:cy1, cx0:cx1])
     us, vs, w, h = us - cx0, vs - cy0, cx1 - cx0, cy1 - cy0
     clear = us.min() >= r and vs.min() >= r and us.max() < w - r and vs.max() < h - r  # no shift leaves the crop
     flat, at = dist.ravel(), vs * w + us

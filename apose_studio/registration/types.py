@@ -113,6 +113,8 @@ class RegistrationResult:
     # `colour_offset_px` (right, down) off the colour image by its edges (estimation.colour_checked): it counts
     # against the confidence with the spread; 0: no shift found
     colour_offset_px: tuple[int, int] = (0, 0)
+    depth_moved_px: tuple[int, int] = (0, 0)  # the depth lay this far (right, down) off the colour image, by its edges,
+    # and the result is the estimate on the depth moved back (estimation.estimate_view, `move_depth_to_colour`)
     reading: str = ""  # the reading of the mask the result came from ("": the mask as given; hypotheses.readings)
     problem: object = field(default=None, repr=False)  # the prepared registration problem (ours), for fusion
     base_alternatives: list[np.ndarray] = field(default_factory=list)  # T_world_base of the base turned by a near-

@@ -283,6 +283,10 @@ def metrics_markdown(score, result: RegistrationResult | None) -> str:
         rows.append(("mask IoU", f"{score.mask_iou:.3f}"))
     if result.reading:  # the pose came from another reading of the mask (registration/hypotheses.py)
         rows.append(("mask read as", html.escape(result.reading).replace("|", "&#124;")))
+    if result.ok and result.depth_moved_px != (0, 0):  # estimation.estimate_view moved the depth onto the colour image
+        du, dv = result.depth_moved_px
+        rows.append(("depth vs colour", f"the depth's edges lay {du:+d}, {dv:+d} px (right, down) off the colour image's: "
+                     "moved back, and the pose estimated on it"))
     if result.ok and result.colour_offset > 0:  # estimation.colour_checked found the depth's edges off the colour's
         du, dv = result.colour_offset_px
         rows.append(("depth vs colour", f"edges {du:+d}, {dv:+d} px apart (right, down): up to "
