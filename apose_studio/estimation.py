@@ -774,8 +774,7 @@ class Tracker:
         start = self.expected(frame.im_id) if tried else None
         if tried:
             pred = predict(start, frame.T_world_camera, frame.camera)
-            du, dv = self.depth_shift
-            depth = shift_image(frame.depth, -du, -dv) if (du, dv) != (0, 0) else frame.depth
+            depth = self._depth(frame)
             self.plane = table_now(self.plane, depth, frame.camera, frame.T_world_camera, pred, self.ctx.base,
                                    TABLE_TOLERANCES * final_distance(self.params, self.ctx.base, start))
             r = held_to_part(track(depth, frame.camera, frame.T_world_camera, self.ctx.base,
@@ -812,9 +811,12 @@ class Tracker:
         mask = result.model_mask if result.model_mask is not None else np.zeros(frame.depth.shape, bool)
         self.last, self.pending, self.depth_shift = result, None, result.depth_moved_px
         self.seen = [(frame.im_id, result.T_world_base)]
+        self.plane = table_plane(self._depth(frame), mask, frame.camera, frame.T_world_camera, base_size=self.ctx.base.diameter)
+
+    def _depth(self, frame: Frame) -> np.ndarray:
+        """The frame's depth moved back by the shift the detection found (depth_shift)."""
         du, dv = self.depth_shift
-        depth = shift_image(frame.depth, -du, -dv) if (du, dv) != (0, 0) else frame.depth
-        self.plane = table_plane(depth, mask, frame.camera, frame.T_world_camera, base_size=self.ctx.base.diameter)
+        return shift_image(frame.depth, -du, -dv) if (du, dv) != (0, 0) else frame.depth
 
     def expected(self, im_id: int) -> RegistrationResult:
         """The last confident result, moved on to frame `im_id` at the base's motion per frame between the last
