@@ -140,13 +140,16 @@ def shift_evidence(rgb: np.ndarray, depth: np.ndarray, box: tuple[int, int, int,
     clear = us.min() >= r and vs.min() >= r and us.max() < w - r and vs.max() < h - r  # no shift leaves the crop
     flat, at = dist.ravel(), vs * w + us
 
-    def mean_distance(du: int, dv: int) -> float:
-        if clear:
-            return float(flat[at - dv * w - du].mean())
+    def mean_distance(du: int, dv: int) -> float:  # some shifts leave the crop: only the edges inside count
         u, v = us - du, vs - dv
         inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
         return float(dist[v[inside], u[inside]].mean()) if inside.any() else EDGE_DIST_CAP_PX
 
-    scores = {(du, dv): mean_distance(du, dv) for dv in range(-r, r + 1) for du in range(-r, r + 1)}
+    shifts = [(du, dv) for dv in range(-r, r + 1) for du in range(-r, r + 1)]
+    if clear:  # every shift in one gather: row k holds the distances under the edges moved by shifts[k]
+        means = flat[at[None, :] - np.array([dv * w + du for du, dv in shifts])[:, None]].mean(axis=1)
+        scores = {sh: float(m) for sh, m in zip(shifts, means)}
+    else:
+        scores = {(du, dv): mean_distance(du, dv) for du, dv in shifts}
     best = min(scores, key=lambda s: (scores[s], abs(s[0]) + abs(s[1]), s))  # ties: the shortest, then fixed order
     return best, scores[best] / max(scores[(0, 0)], 1e-9)
