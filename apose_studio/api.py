@@ -152,7 +152,8 @@ def estimate_pose(rgb: np.ndarray, depth: np.ndarray, K, assembly, step: int, *,
     m, source = array_mask(rgb, depth, cam, mask, box, point, region=ctx.base.region is not None)
     view = View(depth, m, cam, np.asarray(T_world_camera, float), rgb=rgb, box=box)
     est = run_registration(view, source, ctx, p, orientation_prior, t0, time.perf_counter() - t1, t_load=t_load)
-    est.depth_shift_px = shift if shift != (0, 0) else getattr(est.result, "depth_moved_px", (0, 0))  # asked, or found
+    if shift != (0, 0):  # moved before the mask, as asked (the estimate then found none left to move)
+        est.depth_shift_px = shift
     if hand_eye is None:
         return est
     pick = None
@@ -231,4 +232,4 @@ def pose_estimate(r: RegistrationResult, T_world_camera, view, mask, source, tim
                         se3.inv(T_world_camera) @ r.T_world_part if ok else None, bool(r.confident), float(r.coverage),
                         bool(r.ambiguous), [c.T_world_part for c in r.alternatives], mask, source, dict(timings), r,
                         "" if r.confident or not ok else doubts(r), r.equivalent if ok else [], approach,
-                        base_alternatives=list(r.base_alternatives) if ok else [])
+                        base_alternatives=list(r.base_alternatives) if ok else [], depth_shift_px=r.depth_moved_px)

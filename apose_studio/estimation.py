@@ -335,8 +335,7 @@ def estimate_view(view: View, ctx: StepContext, params: Params, orientation_prio
         elif raw.fits:  # the other readings run only on a result that does not fit: this is the whole estimate
             return with_look(quick)
         spent = quick.seconds
-    raw, result = checked(view, params, first_look)
-    result = with_look(result, spent)
+    result = with_look(checked(view, params, first_look)[1], spent)
     if moving and result.ok and result.colour_offset > 0 and result.colour_offset_px != tried:
         return moved_back(result, result.seconds) or result
     return result
@@ -394,6 +393,11 @@ def clear_shift(du: int, dv: int, ratio: float) -> bool:
     return SHIFT_MIN_PX <= max(abs(du), abs(dv)) <= CLEAR_SHIFT_MAX_PX and ratio < CLEAR_SHIFT_GAIN
 
 
+def check_window(view: View) -> tuple[int, int, int, int] | None:
+    """Where the depth's edges are compared with the colour's: the prompt's box, or the mask's."""
+    return view.box if view.box is not None else truth_box(view.mask, 0.0)
+
+
 def edges_suggest_shift(view: View) -> tuple[tuple[int, int], float] | None:
     """The depth's edges against all the colour image's in the prompt's box (or the mask's), before any pose
     (geometry.sensor.shift_evidence): ((du, dv), ratio) when they suggest a clear shift, else None. Leaving an
@@ -401,10 +405,8 @@ def edges_suggest_shift(view: View) -> tuple[tuple[int, int], float] | None:
     benchmarks/captures.py and tune.py (a scratch script, the renderer's poses), no clear shift was found with
     them left out where none was found with them in; so a frame where this finds none is done (1.9 ms, against
     3.5 ms more for the object's own edges, on a gearbox frame of tune.py)."""
-    if view.rgb is None:
-        return None
-    window = view.box if view.box is not None else truth_box(view.mask, 0.0)  # the prompt's box, or the mask's
-    if window is None:
+    window = check_window(view)
+    if view.rgb is None or window is None:
         return None
     (du, dv), ratio = shift_evidence(np.asarray(view.rgb), view.depth, window)
     return ((du, dv), ratio) if clear_shift(du, dv, ratio) else None
@@ -413,7 +415,7 @@ def edges_suggest_shift(view: View) -> tuple[tuple[int, int], float] | None:
 NOT_LOOKED = object()  # colour_checked's `look` when edges_suggest_shift has not looked at the view yet
 
 
-def colour_checked(result: RegistrationResult, view: View, params: Params, mesh=None,
+def colour_checked(result: RegistrationResult, view: View, params: Params, mesh,
                    look=NOT_LOOKED) -> RegistrationResult:
     """`result` with what a depth lying off the colour image may cost it. The intrinsics are the colour
     camera's and the prompt is drawn on the colour image; where the depth lies a few pixels off it (a
@@ -436,18 +438,15 @@ def colour_checked(result: RegistrationResult, view: View, params: Params, mesh=
     if not (params.colour_check and result.ok and view.rgb is not None):
         return result
     t0 = time.perf_counter()
-    region = result.model_mask if result.model_mask is not None and result.model_mask.shape == view.depth.shape \
-        else view.mask
-    window = view.box if view.box is not None else truth_box(view.mask, 0.0)  # the prompt's box, or the mask's
-    if window is None:
-        return result
     if look is NOT_LOOKED:
         look = edges_suggest_shift(view)
-    (du, dv), ratio = look if look is not None else ((0, 0), 1.0)
-    if look is not None and mesh is not None:
-        explained = own_edges(mesh, result.T_world_base, view.T_world_camera, view.camera)
-        (du, dv), ratio = shift_evidence(np.asarray(view.rgb), view.depth, window, explained)
-    if look is not None and clear_shift(du, dv, ratio):
+    if look is None:  # nothing suggests a shift; leaving edges out only takes evidence away
+        return replace(result, timings={**result.timings, "colour check": time.perf_counter() - t0})
+    explained = own_edges(mesh, result.T_world_base, view.T_world_camera, view.camera)
+    (du, dv), ratio = shift_evidence(np.asarray(view.rgb), view.depth, check_window(view), explained)
+    if clear_shift(du, dv, ratio):
+        region = result.model_mask if result.model_mask is not None and result.model_mask.shape == view.depth.shape \
+            else view.mask
         z = view.depth[region & np.isfinite(view.depth) & (view.depth > 0)]
         zc = float(np.median(z)) if len(z) else float(se3.transform_points(se3.inv(view.T_world_camera),
                                                                             result.T_world_base[None, :3, 3])[0, 2])

@@ -140,7 +140,8 @@ def cmd_estimate(args) -> int:
         source = "box round the region from the ground truth"
     est = run_registration(replace(View.of(frame, mask), box=request.box), source, ctx, params, args.orientation_prior, t0,
                            time.perf_counter() - t1, trace_iterations=True, t_load=t1 - t0)
-    est.depth_shift_px = shift if shift != (0, 0) else getattr(est.result, "depth_moved_px", (0, 0))  # asked, or found
+    if shift != (0, 0):  # moved before the mask, as asked (the estimate then found none left to move)
+        est.depth_shift_px = shift
     if hand_eye is not None:
         est.targets = robot_targets(est, asm, ctx, hand_eye, args.grasp, _pick(args, frame, ctx, params),
                                     _flange_of(frame, hand_eye, args.input[0]))

@@ -10,6 +10,7 @@ import trimesh
 
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
+from apose_studio.geometry.sensor import depth_jump
 
 
 class RayGrid:
@@ -99,9 +100,14 @@ def raycast_points(mesh: trimesh.Trimesh, T_world_mesh: np.ndarray, T_world_came
     t = hit["t_hit"].numpy()
     ok = np.isfinite(t)
     pts = rays[ok, :3] + t[ok, None] * rays[ok, 3:]
-    n = b.normals[hit["primitive_ids"].numpy().view(np.int32)[ok]]
-    n = n * np.where(np.einsum("ij,ij->i", n, rays[ok, 3:]) > 0, -1.0, 1.0)[:, None]
+    n = facing_normals(b, hit["primitive_ids"].numpy().view(np.int32)[ok], rays[ok, 3:])
     return se3.transform_points(T_world_mesh, pts), n @ T_world_mesh[:3, :3].T
+
+
+def facing_normals(b: "Body", primitive_ids: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """(N, 3) the unit normals of the triangles hit (mesh frame), turned to face the rays' (N, 3) directions' origin."""
+    n = b.normals[primitive_ids]
+    return n * np.where(np.einsum("ij,ij->i", n, directions) > 0, -1.0, 1.0)[:, None]
 
 
 def raycast_depth(mesh: trimesh.Trimesh, T_world_mesh: np.ndarray, T_world_camera: np.ndarray,
@@ -148,16 +154,13 @@ def own_edges(mesh: trimesh.Trimesh, T_world_mesh: np.ndarray, T_world_camera: n
     t = hit["t_hit"].numpy().reshape(h, wd)
     ok = np.isfinite(t)
     n = np.zeros((h, wd, 3))
-    n[ok] = b.normals[hit["primitive_ids"].numpy().view(np.int32).reshape(h, wd)[ok]]
-    n *= np.where(np.einsum("hwi,hwi->hw", n, rays[..., 3:]) > 0, -1.0, 1.0)[..., None]  # facing the camera
+    n[ok] = facing_normals(b, hit["primitive_ids"].numpy().view(np.int32).reshape(h, wd)[ok], rays[ok][:, 3:])
     z = np.where(ok, t, 0.0)
     cos = np.cos(np.radians(CREASE_DEG))
     edges = np.zeros((h, wd), bool)
     for dv, du in ((0, 1), (1, 0)):  # each pixel against its right and its lower neighbour
         a, c = (slice(0, h - dv), slice(0, wd - du)), (slice(dv, h), slice(du, wd))
-        za, zc = z[a], z[c]
-        jump = np.abs(za - zc) > np.maximum(0.004, 0.012 * np.minimum(za, zc))  # as sensor.occluding_edges
-        e = ok[a] & ok[c] & ((np.einsum("hwi,hwi->hw", n[a], n[c]) < cos) | jump)
+        e = ok[a] & ok[c] & ((np.einsum("hwi,hwi->hw", n[a], n[c]) < cos) | depth_jump(z[a], z[c]))
         edges[a] |= e
         edges[c] |= e
     out[w[0]:w[1], w[2]:w[3]] = edges

@@ -61,6 +61,12 @@ def colour_edge_distance(rgb: np.ndarray, explained: np.ndarray | None = None) -
     return np.minimum(cv2.distanceTransform((~colour).astype(np.uint8), cv2.DIST_L2, 3), EDGE_DIST_CAP_PX)
 
 
+def depth_jump(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Where neighbouring depths a and b (metres) lie apart by more than 4 mm or 1.2 % of the nearer: an outline
+    (occluding_edges; raycast.own_edges for a model's inner outlines)."""
+    return np.abs(a - b) > np.maximum(0.004, 0.012 * np.minimum(a, b))
+
+
 def occluding_edges(depth: np.ndarray) -> np.ndarray:
     """(H, W) bool: the near side of each depth jump between two valid neighbours (median-filtered 5x5; a jump
     larger than 4 mm or 1.2 % of the depth): an object's outline as the depth sees it. Holes (no depth) make no
@@ -72,7 +78,7 @@ def occluding_edges(depth: np.ndarray) -> np.ndarray:
 
     def along_rows(z: np.ndarray, valid: np.ndarray) -> np.ndarray:  # jumps between left and right neighbours
         a, b = z[:, :-1], z[:, 1:]
-        jump = valid[:, :-1] & valid[:, 1:] & (np.abs(a - b) > np.maximum(0.004, 0.012 * np.minimum(a, b)))
+        jump = valid[:, :-1] & valid[:, 1:] & depth_jump(a, b)
         out = np.zeros(z.shape, bool)
         out[:, :-1] |= jump & (a < b)
         out[:, 1:] |= jump & (b < a)
