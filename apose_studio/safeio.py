@@ -405,6 +405,18 @@ def read_image(path: str | os.PathLike, flags: int, what: str = "an image", dept
     return decode_image(read_bytes(path, what, LIMITS.image_bytes), path, flags, what, depth)
 
 
+def truncated(data: bytes, fmt: str) -> bool:
+    """A PNG without its IEND chunk, or a JPEG without its end-of-image marker (FF D9): a copy cut short. libpng
+    then prints "PNG input buffer is incomplete" on stderr before OpenCV gives up, and libjpeg decodes the part it
+    has and paints the rest grey. A marker inside the data (a JPEG's thumbnail) can hide a cut: the check is cheap,
+    not complete."""
+    if fmt == "PNG":
+        return data.rfind(b"IEND") < 0
+    if fmt == "JPEG":
+        return data.rfind(b"\xff\xd9") < 2
+    return False
+
+
 def decode_image(data: bytes, path, flags: int, what: str = "an image", depth: bool = False):
     """read_image on bytes already in memory (a request's image): `path` names them in errors."""
     try:
@@ -414,6 +426,9 @@ def decode_image(data: bytes, path, flags: int, what: str = "an image", depth: b
     out = {cv2.IMREAD_COLOR: 3, getattr(cv2, "IMREAD_COLOR_RGB", cv2.IMREAD_COLOR): 3, cv2.IMREAD_GRAYSCALE: 1}.get(flags, 0)
     check_image_header(path, head, what, depth, out)
     fmt, w, h = head.format, head.width, head.height
+    if truncated(data, fmt):  # refused here: the decoder would print its own complaint to stderr, or decode half
+        raise AposeError(f"{path}: not a readable {fmt} image (truncated: it stops before its end marker); save {what} "
+                         "again, or copy it whole")
     try:
         img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)  # OpenCV's own pixel cap: set in __init__.py
     except cv2.error as e:  # a decoder's own refusal (e.g. its pixel cap) is bad input, not a bug

@@ -382,7 +382,7 @@ def parse_request(body: bytes, n_steps: int, max_pixels: int = 1920 * 1200, npz:
             raise BadRequest(f"the colour image is {rgb.shape[1]}x{rgb.shape[0]} but {dkey} is {w}x{h}; align depth "
                              "to colour first")
         cam, depth_scale, T_world_camera = check_camera_entry(req["camera"], "camera", w, h)
-        depth = depth_metres(raw, head, depth_scale, dkey)
+        depth = depth_metres(raw, head, depth_scale, dkey, "the request's camera")
         hand_eye = hand_eye_from_data(req["hand_eye"], "hand_eye") if req.get("hand_eye") is not None else None
         flange = matrix(req["T_robot_flange"], "request", "T_robot_flange") if req.get("T_robot_flange") is not None else None
         if flange is not None and hand_eye is not None and hand_eye.T_robot_flange is not None:

@@ -318,6 +318,34 @@ def test_a_capture_with_a_jpeg_colour_image_opens(capture, tmp_path):
     assert frame.rgb.shape == png_frame.rgb.shape and np.abs(frame.rgb.astype(int) - png_frame.rgb.astype(int)).mean() < 3
 
 
+def test_a_capture_cut_short_or_incomplete_is_named_with_its_fix(capture, tmp_path):
+    """A newcomer's findings: a truncated rgb.png printed libpng's own complaint on a line before ours; a missing
+    depth.png said only "missing"; a depth_scale 10x too small in camera.json blamed the PNG; a box reaching off the
+    image was refused quoting a box never typed. Each is now one line, exit 2, naming the file (or box) and the fix."""
+    f = capture["frame"]
+    h, w = f.depth.shape
+    cut_rgb, cut_depth, no_depth = (_variant(capture, tmp_path, n) for n in ("cut_rgb", "cut_depth", "no_depth"))
+    for folder, name in ((cut_rgb, "rgb.png"), (cut_depth, "depth.png")):
+        data = (folder / name).read_bytes()
+        (folder / name).write_bytes(data[: len(data) * 2 // 3])
+    (no_depth / "depth.png").unlink()
+    cam = f.camera
+    small = _variant(capture, tmp_path, "small", camera={"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
+                                                          "depth_scale": 0.01})
+    cases = [
+        (cut_rgb, capture["box"], f"{cut_rgb / 'rgb.png'}: not a readable PNG image (truncated"),
+        (cut_depth, capture["box"], f"{cut_depth / 'depth.png'}: not a readable PNG image (truncated"),
+        (no_depth, capture["box"], f"{no_depth}: no depth.png; a capture folder holds rgb.png"),
+        (small, capture["box"], f"with depth_scale 0.01 from {small / 'camera.json'}: is depth_scale too small"),
+        (capture["ours"], f"-20,{h - 60},100,{h - 5}", f"box -20,{h - 60},100,{h - 5} (within the {w}x{h} image: "
+                                                        f"0,{h - 60},100,{h - 5}) holds nothing"),
+    ]
+    for folder, box, message in cases:
+        r = run("estimate", folder, "--assembly", capture["asm"], "--step", 2, "--box", box)
+        assert r.returncode == 2 and message in r.stderr, (folder.name, r.returncode, r.stderr)
+        assert len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr, r.stderr
+
+
 def test_a_box_reaching_off_the_image_is_taken_as_typed_and_an_inverted_one_is_explained(capture):
     """`--box -5,-5,20,20` (a box reaching past the image's corner) was taken by argparse for an option
     ("expected one argument"); `--box X,Y,W,H` (a BOP/COCO bbox) was refused without a hint. Both reach the

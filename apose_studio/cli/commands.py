@@ -474,9 +474,10 @@ def _add_estimate(sub) -> None:
                    "registration (docs/CAPTURES_AND_BOP.md)")
     p.add_argument("--obj-map", action="append", metavar="PART=OBJ_ID",
                    help="BOP scene: which BOP obj_id each part is (repeatable), for the ground truth in scene_gt.json")
-    p.add_argument("--json", action="store_true", help="print JSON (metres): ok, reason, T_world_base, T_world_part, "
-                   "T_camera_part, confident, coverage, ambiguous, alternatives, mask, timings, stages (and with "
-                   "--hand-eye the robot targets: T_robot_part, T_robot_gripper_place, ...)")
+    p.add_argument("--json", action="store_true", help="print JSON (metres, 4x4 matrices): ok, reason, T_world_base, "
+                   "T_world_part, T_camera_part, T_world_camera, confident, doubts, coverage, ambiguous, alternatives, "
+                   "equivalent, base_confident, depth_shift_px, mask, timings_s, stages (and with --hand-eye the robot "
+                   "targets: T_robot_part, T_robot_gripper_place, ...); every field: docs/CAPTURES_AND_BOP.md")
     robot = p.add_argument_group("robot targets (docs/ROBOT.md)")
     robot.add_argument("--hand-eye", metavar="FILE", help="the camera in the robot's frame: JSON/YAML with T_robot_camera "
                        "(eye-to-hand) or T_flange_camera (eye-in-hand; the arm's T_robot_flange in the capture's "

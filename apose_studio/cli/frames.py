@@ -58,8 +58,9 @@ def open_estimate_input(args, path: str) -> tuple[Frame, Assembly, StepContext]:
         return src.frame(args.frame, ctx.view), asm, ctx
     ignored = [flag for flag, given in (("--frame", args.frame not in (None, 0)), ("--obj-map", bool(args.obj_map))) if given]
     if ignored:
-        raise AposeError(f"{path}: a capture folder holds one frame and no BOP object ids; remove "
-                         f"{' and '.join(ignored)} (they apply to datasets and BOP scene folders)")
+        what = {"--frame": "a capture folder holds one frame", "--obj-map": "a capture folder has no ground truth to map"}
+        raise AposeError(f"{path}: {'; '.join(what[f] for f in ignored)}; remove {' and '.join(ignored)} "
+                         f"({'it applies' if len(ignored) == 1 else 'they apply'} to datasets and BOP scene folders)")
     return replace(src, base=tuple(ctx.view.base), part=ctx.view.part, step=args.step), asm, ctx
 
 

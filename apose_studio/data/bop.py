@@ -138,7 +138,7 @@ class BopScene:
         rgb = read_rgb(rgb_path)
         h, w = rgb.shape[:2]
         cam, scale, T_world_camera = check_camera_entry(self.camera[key], f"{self.dir / 'scene_camera.json'}: {key}", w, h)
-        depth = read_depth(self._image("depth", im_id), scale)
+        depth = read_depth(self._image("depth", im_id), scale, f"{self.dir / 'scene_camera.json'}: {key}")
         if depth.shape != (h, w):
             raise DatasetError(f"{self.dir}: image {im_id}: depth is {depth.shape[1]}x{depth.shape[0]} but RGB is {w}x{h}")
         if T_world_camera is None:

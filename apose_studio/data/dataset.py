@@ -120,14 +120,16 @@ def read_rgb(path: Path) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
-def read_depth(path: Path, depth_scale_mm: float) -> np.ndarray:
-    """uint16 depth PNG -> metres (float32); NaN, negative and missing become 0."""
+def read_depth(path: Path, depth_scale_mm: float, scale_from: str = "") -> np.ndarray:
+    """uint16 depth PNG -> metres (float32); NaN, negative and missing become 0. `scale_from`: the file that gave
+    depth_scale, named when the depth it gives looks wrong."""
     raw, head = read_image(path, cv2.IMREAD_UNCHANGED, "the depth image", header=True, depth=True)
-    return depth_metres(raw, head, depth_scale_mm, path)
+    return depth_metres(raw, head, depth_scale_mm, path, scale_from)
 
 
-def depth_metres(raw: np.ndarray, head, depth_scale_mm: float, path) -> np.ndarray:
-    """A decoded depth image (checked: one uint16 channel, mm-scaled) in metres; `path` names it in errors."""
+def depth_metres(raw: np.ndarray, head, depth_scale_mm: float, path, scale_from: str = "") -> np.ndarray:
+    """A decoded depth image (checked: one uint16 channel, mm-scaled) in metres; `path` names it in errors, and
+    `scale_from` the file that gave depth_scale."""
     if raw.ndim != 2:  # the header said one channel (checked before decoding); the decoder disagrees
         raise DatasetError(f"{path}: its {head.format} header says one channel but it decodes to {raw.shape[2]}; "
                            "the file is damaged or crafted: save the depth image again as a 16-bit PNG")
@@ -136,8 +138,13 @@ def depth_metres(raw: np.ndarray, head, depth_scale_mm: float, path) -> np.ndarr
                            "depth_scale), as RealSense, Kinect and BOP write them")
     valid = raw[::4, ::4][raw[::4, ::4] > 0]  # every 16th pixel: the median of a sanity check, at a 16th of the cost
     if len(valid) and np.median(valid) * depth_scale_mm < 20.0:
-        raise DatasetError(f"{path}: the median depth is {np.median(valid) * depth_scale_mm:g} mm: the PNG looks "
-                           "metre-scaled (or depth_scale far too small); write depth in mm (or 0.1 mm) steps")
+        median = f"{path}: the median depth is {np.median(valid) * depth_scale_mm:g} mm"
+        if scale_from:
+            raise DatasetError(f"{median} with depth_scale {depth_scale_mm:g} from {scale_from}: is depth_scale too small "
+                               "(millimetres per depth unit: 1.0 for RealSense and Kinect, 0.1 for BOP's 0.1 mm steps)? "
+                               "If it is right, the PNG is metre-scaled: write depth in mm (or 0.1 mm) steps")
+        raise DatasetError(f"{median}: the PNG looks metre-scaled (or depth_scale far too small); write depth in mm "
+                           "(or 0.1 mm) steps")
     d = raw.astype(np.float32) * np.float32(depth_scale_mm / 1000.0)
     d[~np.isfinite(d) | (d < 0)] = 0.0
     return d
@@ -235,7 +242,7 @@ class Dataset:
             sc["scene_camera"][key], f"{d / 'scene_camera.json'}: {key}", rgb.shape[1], rgb.shape[0])
         if T_world_camera is None:
             raise DatasetError(f"{d / 'scene_camera.json'}: {key}: missing cam_R_w2c / cam_t_w2c; re-render the step")
-        depth = read_depth(d / "depth" / f"{im_id:06d}.png", depth_scale)
+        depth = read_depth(d / "depth" / f"{im_id:06d}.png", depth_scale, f"{d / 'scene_camera.json'}: {key}")
         if depth.shape != rgb.shape[:2]:
             raise DatasetError(f"{d}: frame {im_id}: depth is {depth.shape[1]}x{depth.shape[0]} but RGB is "
                                f"{rgb.shape[1]}x{rgb.shape[0]}")
@@ -412,10 +419,16 @@ def load_capture(folder: str | Path) -> Frame:
     Without the camera's pose, the world frame sits on the table plane when one is seen (z = 0 on it, z
     up, origin where the optical axis meets it), else on the camera."""
     folder = Path(folder)
+    absent = [n for n, p in (("rgb.png (or rgb.jpg)", capture_rgb(folder)), ("depth.png", folder / "depth.png"),
+                             ("camera.json", folder / "camera.json")) if not os.path.lexists(p)]
+    if absent and folder.is_dir():
+        raise DatasetError(f"{folder}: no {' or '.join(absent)}; a capture folder holds rgb.png (or rgb.jpg), "
+                           "depth.png (16-bit depth) and camera.json (the intrinsics and depth_scale): "
+                           "docs/CAPTURES_AND_BOP.md")
     rgb = read_rgb(capture_rgb(folder))
     h, w = rgb.shape[:2]
     intr, depth_scale, T_world_camera = read_capture_camera(folder / "camera.json", w, h)
-    depth = read_depth(folder / "depth.png", depth_scale)
+    depth = read_depth(folder / "depth.png", depth_scale, str(folder / "camera.json"))
     if depth.shape != rgb.shape[:2]:
         raise DatasetError(f"{folder}: depth.png is {depth.shape[1]}x{depth.shape[0]} but rgb.png is "
                            f"{rgb.shape[1]}x{rgb.shape[0]}; align depth to colour first")

@@ -117,8 +117,8 @@ def surfaces(depth: np.ndarray, cam: CameraIntrinsics) -> Surfaces:
 
 def _seed_patches(s: Surfaces, box, point, shown=None) -> tuple[np.ndarray, np.ndarray]:
     """(H, W) bool twice: the patches the prompt picks (clipped to the box), and those of them that
-    lie wholly in the box (a clicked patch counts as whole). `shown`: the box in the full image's pixels,
-    for messages (`box` is in the window's)."""
+    lie wholly in the box (a clicked patch counts as whole). `shown`: the box as the user gave it, for messages
+    (`box` is in the window's pixels)."""
     h, w = s.labels.shape
     if point is not None:
         u, v = point
@@ -146,7 +146,7 @@ def _seed_patches(s: Surfaces, box, point, shown=None) -> tuple[np.ndarray, np.n
     pick = (within >= MIN_PATCH_PX) & ((within >= 0.5 * total) | (within >= 0.1 * inside.sum()))
     pick[0] = False
     if not pick.any():
-        raise PromptError(f"box {','.join(map(str, shown or box))} holds nothing standing on the table (only table, or "
+        raise PromptError(f"box {shown or ','.join(map(str, box))} holds nothing standing on the table (only table, or "
                           "no depth); "
                           "draw it around the object")
     whole = pick & (within >= 0.9 * total)
@@ -280,11 +280,14 @@ def prompted_mask(rgb: np.ndarray, depth: np.ndarray, cam: CameraIntrinsics, box
         out = _prompted(rgb, depth, cam, None, tuple(int(v) for v in point), colour)
     else:
         x0, y0, x1, y1 = check_box(box, (h, w))
+        shown = ",".join(str(int(v)) for v in box)  # as given; where the image cut it, the part used too
+        if (x0, y0, x1, y1) != tuple(int(v) for v in box):
+            shown += f" (within the {w}x{h} image: {x0},{y0},{x1},{y1})"
         m = max(x1 - x0, y1 - y0)
         wx0, wy0, wx1, wy1 = max(x0 - m, 0), max(y0 - m, 0), min(x1 + m, w), min(y1 + m, h)
         sub_cam = replace(cam, width=wx1 - wx0, height=wy1 - wy0, cx=cam.cx - wx0, cy=cam.cy - wy0)
         out = _prompted(rgb[wy0:wy1, wx0:wx1], depth[wy0:wy1, wx0:wx1], sub_cam,
-                        (x0 - wx0, y0 - wy0, x1 - wx0, y1 - wy0), None, colour, shown=(x0, y0, x1, y1))
+                        (x0 - wx0, y0 - wy0, x1 - wx0, y1 - wy0), None, colour, shown=shown)
         full = np.zeros((h, w), bool)
         full[wy0:wy1, wx0:wx1] = out.mask
         out.mask = full

@@ -367,7 +367,7 @@ def test_real_capture_folder(tmp_path):
            ({"fx": -60, "fy": 60, "cx": 32, "cy": 24, "depth_scale": 1}, "fx and fy must be positive"),
            ({"fx": 60, "fy": 60, "cx": 320, "cy": 240, "depth_scale": 1}, "principal point .* outside the 64x48 image"),
            ({"cam_K": [60, 0, 32], "depth_scale": 1}, "cam_K must be 9 numbers"),
-           ({"fx": 60, "fy": 60, "cx": 32, "cy": 24, "depth_scale": 0.001}, "looks metre-scaled"),
+           ({"fx": 60, "fy": 60, "cx": 32, "cy": 24, "depth_scale": 0.001}, "depth_scale 0.001 from .*camera.json: is depth_scale too small"),
            ({"fx": "a", "fy": 60, "cx": 32, "cy": 24, "depth_scale": 1}, "fx must be a finite number")]
     for cam, message in bad:
         (tmp_path / "camera.json").write_text(json.dumps(cam))
