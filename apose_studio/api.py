@@ -19,6 +19,7 @@ import numpy as np
 
 from apose_studio.assembly.grasps import Grasp
 from apose_studio.assembly.model import Assembly
+from apose_studio.data.dataset import world_frame
 from apose_studio.errors import AposeError
 from apose_studio.estimation import (
     StepContext,
@@ -31,7 +32,6 @@ from apose_studio.estimation import (
 )
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
-from apose_studio.geometry.plane import table_frame
 from apose_studio.registration import Params, doubts, resolve_params
 from apose_studio.registration.types import RegistrationResult, View
 from apose_studio.robot.handeye import HandEye, read_hand_eye
@@ -68,6 +68,7 @@ class PoseEstimate:
     depth_shift_px: tuple[int, int] = (0, 0)  # how far the depth lay shifted (right, down) against the colour image,
     # moved back: around the prompt before the mask (align_depth, estimation.colour_registered), or after a first
     # estimate whose colour check found it off (estimation.estimate_view, `move_depth_to_colour`)
+    world: str = ""  # what T_world_camera's world is, in words (data.dataset.world_frame; a dataset's Frame.world)
 
     def to_json(self) -> dict:
         def m(T):
@@ -77,7 +78,8 @@ class PoseEstimate:
         return {"ok": self.ok, "reason": self.reason, "T_world_base": m(self.T_world_base),
                 "T_world_part": m(self.T_world_part), "T_world_part_approach": m(self.T_world_part_approach),
                 "T_camera_part": m(self.T_camera_part),
-                "T_world_camera": m(self.T_world_camera), "confident": self.confident, "coverage": cov,
+                "T_world_camera": m(self.T_world_camera), "world": self.world, "confident": self.confident,
+                "coverage": cov,
                 "doubts": self.doubts, "ambiguous": self.ambiguous, "alternatives": [m(T) for T in self.alternatives],
                 "equivalent": [m(T) for T in self.equivalent],
                 "base_confident": bool(self.confident and not self.base_alternatives),
@@ -146,12 +148,11 @@ def estimate_pose(rgb: np.ndarray, depth: np.ndarray, K, assembly, step: int, *,
     t_load = time.perf_counter() - t0
     t1 = time.perf_counter()
     depth, shift = colour_registered(rgb, depth, box, point) if align_depth else (depth, (0, 0))
-    if T_world_camera is None:
-        T_world_camera = table_frame(depth, cam)
-        T_world_camera = np.eye(4) if T_world_camera is None else T_world_camera
+    T_world_camera, world = world_frame(T_world_camera, depth, cam, "given (T_world_camera)")
     m, source = array_mask(rgb, depth, cam, mask, box, point, region=ctx.base.region is not None)
     view = View(depth, m, cam, np.asarray(T_world_camera, float), rgb=rgb, box=box)
     est = run_registration(view, source, ctx, p, orientation_prior, t0, time.perf_counter() - t1, t_load=t_load)
+    est.world = world
     if shift != (0, 0):  # moved before the mask, as asked (the estimate then found none left to move)
         est.depth_shift_px = shift
     if hand_eye is None:

@@ -49,9 +49,29 @@ def test_capture_both_camera_forms_give_the_true_pose(capture):
         for key in ("T_world_base", "T_world_part", "T_camera_part", "confident", "coverage", "ambiguous", "alternatives",
                     "timings_s"):
             assert key in doc
+        assert doc["world"].startswith("the table's frame (z up")  # the renderer's camera pose is not written
         T = np.asarray(doc["T_camera_part"])
         assert np.linalg.norm(T[:3, 3] - truth[:3, 3]) < 0.005, form  # within 5 mm of the renderer's pose
         assert mssd_to_truth(T, truth, capture["asm"], capture["frame"].part) < 0.005, form  # and not turned
+
+
+def test_the_text_and_json_say_what_the_world_frame_is(capture, tmp_path):
+    """A newcomer could not tell what frame T_world_part was in. Without cam_R_w2c/cam_t_w2c it is the table's
+    frame (the camera above it); with them, the world of that pose; the text and --json say which."""
+    args = ("--assembly", capture["asm"], "--step", 2, "--box", capture["box"])
+    r = run("estimate", capture["ours"], *args)
+    assert r.returncode == 0 and "world: the table's frame (z up from the table" in r.stdout, r.stdout
+    assert "cam_R_w2c" not in json.loads((capture["ours"] / "camera.json").read_text())
+    assert np.asarray(json.loads(run("estimate", capture["ours"], *args, "--json").stdout)["T_world_camera"])[2, 3] > 0.2
+    T_world_camera = np.eye(4)
+    T_world_camera[:3, 3] = (0.1, -0.2, 0.3)
+    cam = capture["frame"].camera
+    posed = write_capture(capture["frame"], tmp_path / "posed", {  # BOP's camera pose: world to camera, in mm
+        "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy, "depth_scale": 1.0,
+        "cam_R_w2c": np.eye(3).reshape(-1).tolist(), "cam_t_w2c": [-100.0, 200.0, -300.0]})
+    doc = json.loads(run("estimate", posed, *args, "--json").stdout)
+    assert doc["world"] == f"the world of the camera pose in {posed / 'camera.json'}"
+    np.testing.assert_allclose(doc["T_world_camera"], T_world_camera, atol=1e-9)
 
 
 def test_a_capture_whose_depth_lies_off_its_colour_image(tmp_path):
@@ -116,6 +136,9 @@ def test_api_matches_the_cli(capture):
     doc = json.loads(r.stdout)
     # the same input gives the same pose (to the JSON's printing of floats)
     assert est.ok and np.allclose(est.T_camera_part, np.asarray(doc["T_camera_part"]), rtol=0, atol=1e-12)
+    assert est.world == doc["world"] == est.to_json()["world"] and est.world.startswith("the table's frame")
+    T = estimate_pose(f.rgb, depth, f.camera.K, capture["asm"], 2, box=truth_box(f.base_mask()), T_world_camera=np.eye(4))
+    assert T.world == "the world of the camera pose given (T_world_camera)"
 
 
 def _variant(capture, tmp_path, name, camera=None, depth=None, rgb=None):

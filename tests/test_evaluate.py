@@ -86,7 +86,8 @@ def test_estimate_and_eval_commands(gearbox_fixed, tmp_path):
     np.testing.assert_allclose(doc["T_world_part"], est)
     r = subprocess.run(cli + ["estimate", str(gearbox_fixed.root), "--step", "2", "--frame", "1"],
                        capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0 and "T_world_part (estimated assembly pose):" in r.stdout and "q (w,x,y,z)" in r.stdout
+    assert r.returncode == 0 and "T_world_part (estimated assembly pose; world: the dataset's world frame):" in r.stdout \
+        and "q (w,x,y,z)" in r.stdout
     r = subprocess.run(cli + ["estimate", str(gearbox_fixed.root), "--step", "3"], capture_output=True, text=True)
     assert r.returncode == 2 and "step 3 was not rendered; rendered steps: 2" in r.stderr
     out = tmp_path / "eval.json"

@@ -141,6 +141,7 @@ def cmd_estimate(args) -> int:
         source = "box round the region from the ground truth"
     est = run_registration(replace(View.of(frame, mask), box=request.box), source, ctx, params, args.orientation_prior, t0,
                            time.perf_counter() - t1, trace_iterations=True, t_load=t1 - t0)
+    est.world = frame.world
     if shift != (0, 0):  # moved before the mask, as asked (the estimate then found none left to move)
         est.depth_shift_px = shift
     if hand_eye is not None:
@@ -180,7 +181,7 @@ def cmd_estimate(args) -> int:
     if not r.ok:
         print(f"estimation failed: {r.reason}")
         return 1
-    print("T_world_part (estimated assembly pose):")
+    print(f"T_world_part (estimated assembly pose; world: {frame.world}):")
     print("\n".join(pose_lines(r.T_world_part)))
     if est.T_world_part_approach is not None:
         print(f"T_world_part_approach (where the step's {ctx.view.approach.distance * 1000:.0f} mm approach starts):")

@@ -30,10 +30,10 @@ from apose_studio.data.dataset import (
     read_image,
     read_json,
     read_rgb,
+    world_frame,
 )
 from apose_studio.errors import AposeError
 from apose_studio.geometry import se3
-from apose_studio.geometry.plane import table_frame
 
 CSV_HEADER = ["scene_id", "im_id", "obj_id", "score", "R", "t", "time"]
 
@@ -141,11 +141,9 @@ class BopScene:
         depth = read_depth(self._image("depth", im_id), scale, f"{self.dir / 'scene_camera.json'}: {key}")
         if depth.shape != (h, w):
             raise DatasetError(f"{self.dir}: image {im_id}: depth is {depth.shape[1]}x{depth.shape[0]} but RGB is {w}x{h}")
-        if T_world_camera is None:
-            T_world_camera = table_frame(depth, cam)
-            T_world_camera = np.eye(4) if T_world_camera is None else T_world_camera
+        T_world_camera, world = world_frame(T_world_camera, depth, cam, f"in {self.dir / 'scene_camera.json'}: {key}")
         frame = Frame(rgb=rgb, depth=depth, camera=cam, T_world_camera=T_world_camera, im_id=im_id,
-                      source=str(rgb_path), step=self.scene_id)
+                      source=str(rgb_path), step=self.scene_id, world=world)
         part_of = {v: k for k, v in self.obj_of_part.items()}
         for i, (obj_id, T_camera_obj) in enumerate(gt_entries(self.gt, key, str(self.dir / "scene_gt.json"))):
             pid = part_of.get(obj_id)

@@ -89,6 +89,7 @@ class Frame:
     im_id: int = 0
     source: str = ""
     placement: int | None = None  # frames of one step with the same placement show the base at the same pose
+    world: str = "the dataset's world frame"  # what T_world_camera's world is, in words (a capture's: world_frame)
 
     @property
     def K(self) -> np.ndarray:
@@ -432,12 +433,21 @@ def load_capture(folder: str | Path) -> Frame:
     if depth.shape != rgb.shape[:2]:
         raise DatasetError(f"{folder}: depth.png is {depth.shape[1]}x{depth.shape[0]} but rgb.png is "
                            f"{rgb.shape[1]}x{rgb.shape[0]}; align depth to colour first")
-    if T_world_camera is None:  # no extrinsics: the world on the table (z = 0, z up) when one is seen
+    T_world_camera, world = world_frame(T_world_camera, depth, intr, f"in {folder / 'camera.json'}")
+    return Frame(rgb=rgb, depth=depth, camera=intr, T_world_camera=T_world_camera, source=str(folder), world=world)
 
-        T_world_camera = table_frame(depth, intr)
-        if T_world_camera is None:
-            T_world_camera = np.eye(4)
-    return Frame(rgb=rgb, depth=depth, camera=intr, T_world_camera=T_world_camera, source=str(folder))
+
+def world_frame(T_world_camera: np.ndarray | None, depth: np.ndarray, cam: CameraIntrinsics,
+                given: str) -> tuple[np.ndarray, str]:
+    """(T_world_camera, what its world is in words) of a capture: the camera pose given (`given` says where: "in
+    camera.json", a BOP scene_camera.json's cam_R_w2c and cam_t_w2c), else the table's frame when one is seen (z = 0 on it, z up, the origin where the optical axis meets
+    it), else the camera's own."""
+    if T_world_camera is not None:
+        return np.asarray(T_world_camera, float), f"the world of the camera pose {given}"
+    T_table = table_frame(depth, cam)
+    if T_table is not None:
+        return T_table, "the table's frame (z up from the table, the origin where the optical axis meets it)"
+    return np.eye(4), "the camera's frame (no table seen; x right, y down, z forward)"
 
 
 def write_capture(frame: Frame, folder: str | Path, depth_unit_mm: float = 1.0, info: dict | None = None) -> Path:
