@@ -39,6 +39,7 @@ import struct
 import threading
 import time
 import warnings
+import zlib
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -405,16 +406,34 @@ def read_image(path: str | os.PathLike, flags: int, what: str = "an image", dept
     return decode_image(read_bytes(path, what, LIMITS.image_bytes), path, flags, what, depth)
 
 
-def truncated(data: bytes, fmt: str) -> bool:
-    """A PNG without its IEND chunk, or a JPEG without its end-of-image marker (FF D9): a copy cut short. libpng
-    then prints "PNG input buffer is incomplete" on stderr before OpenCV gives up, and libjpeg decodes the part it
-    has and paints the rest grey. A marker inside the data (a JPEG's thumbnail) can hide a cut: the check is cheap,
-    not complete."""
+PNG_CHUNKS = 65536  # damaged: more chunks than this in a PNG is refused (a 64 MB PNG written in 8 KB chunks has 8192)
+
+
+def damaged(data: bytes, fmt: str) -> str:
+    """Why the bytes of a PNG or JPEG are damaged ("" when they look whole), checked before decoding: libpng prints
+    its own complaint on stderr before OpenCV gives up ("PNG input buffer is incomplete", "IDAT: CRC error"), and
+    libjpeg decodes what it has and paints the rest grey. A PNG's chunks are walked, each checked against its CRC,
+    up to IEND; a JPEG must end with its end-of-image marker (FF D9; one inside the data, a thumbnail's, can hide a
+    cut, and a JPEG's scan data has no checksum: damage inside it is decoded as it is)."""
     if fmt == "PNG":
-        return data.rfind(b"IEND") < 0
-    if fmt == "JPEG":
-        return data.rfind(b"\xff\xd9") < 2
-    return False
+        i, chunks = 8, 0
+        while i + 12 <= len(data):
+            chunks += 1
+            if chunks > PNG_CHUNKS:  # a writer's chunks hold kilobytes; millions of empty ones only make work
+                return f"over {PNG_CHUNKS} chunks"
+            n, kind = struct.unpack(">I4s", data[i:i + 8])
+            end = i + 12 + n
+            if end > len(data):
+                return f"truncated: its {kind.decode('latin-1')} chunk runs past the file's end"
+            if zlib.crc32(data[i + 4:end - 4]) != struct.unpack(">I", data[end - 4:end])[0]:
+                return f"its {kind.decode('latin-1')} chunk fails its checksum (CRC)"
+            if kind == b"IEND":
+                return ""
+            i = end
+        return "truncated: it stops before its IEND chunk"
+    if fmt == "JPEG" and data.rfind(b"\xff\xd9") < 2:
+        return "truncated: it stops before its end-of-image marker"
+    return ""
 
 
 def decode_image(data: bytes, path, flags: int, what: str = "an image", depth: bool = False):
@@ -426,9 +445,9 @@ def decode_image(data: bytes, path, flags: int, what: str = "an image", depth: b
     out = {cv2.IMREAD_COLOR: 3, getattr(cv2, "IMREAD_COLOR_RGB", cv2.IMREAD_COLOR): 3, cv2.IMREAD_GRAYSCALE: 1}.get(flags, 0)
     check_image_header(path, head, what, depth, out)
     fmt, w, h = head.format, head.width, head.height
-    if truncated(data, fmt):  # refused here: the decoder would print its own complaint to stderr, or decode half
-        raise AposeError(f"{path}: not a readable {fmt} image (truncated: it stops before its end marker); save {what} "
-                         "again, or copy it whole")
+    why = damaged(data, fmt)  # refused here: the decoder would print its own complaint on stderr, or decode half
+    if why:
+        raise AposeError(f"{path}: not a readable {fmt} image ({why}); save {what} again, or copy it whole")
     try:
         img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)  # OpenCV's own pixel cap: set in __init__.py
     except cv2.error as e:  # a decoder's own refusal (e.g. its pixel cap) is bad input, not a bug

@@ -342,15 +342,20 @@ def test_a_capture_with_a_jpeg_colour_image_opens(capture, tmp_path):
 
 
 def test_a_capture_cut_short_or_incomplete_is_named_with_its_fix(capture, tmp_path):
-    """A newcomer's findings: a truncated rgb.png printed libpng's own complaint on a line before ours; a missing
+    """A newcomer's findings: a truncated rgb.png printed libpng's own complaint on a line before ours (a damaged one
+    too: "IDAT: CRC error"); a missing
     depth.png said only "missing"; a depth_scale 10x too small in camera.json blamed the PNG; a box reaching off the
     image was refused quoting a box never typed. Each is now one line, exit 2, naming the file (or box) and the fix."""
     f = capture["frame"]
     h, w = f.depth.shape
-    cut_rgb, cut_depth, no_depth = (_variant(capture, tmp_path, n) for n in ("cut_rgb", "cut_depth", "no_depth"))
+    cut_rgb, cut_depth, no_depth, hit = (_variant(capture, tmp_path, n) for n in ("cut_rgb", "cut_depth", "no_depth",
+                                                                                   "hit"))
     for folder, name in ((cut_rgb, "rgb.png"), (cut_depth, "depth.png")):
         data = (folder / name).read_bytes()
         (folder / name).write_bytes(data[: len(data) * 2 // 3])
+    data = bytearray((hit / "depth.png").read_bytes())
+    data[len(data) // 2:len(data) // 2 + 16] = bytes(16)  # a copy damaged in the middle: libpng said "CRC error"
+    (hit / "depth.png").write_bytes(bytes(data))
     (no_depth / "depth.png").unlink()
     cam = f.camera
     small = _variant(capture, tmp_path, "small", camera={"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
@@ -358,6 +363,7 @@ def test_a_capture_cut_short_or_incomplete_is_named_with_its_fix(capture, tmp_pa
     cases = [
         (cut_rgb, capture["box"], f"{cut_rgb / 'rgb.png'}: not a readable PNG image (truncated"),
         (cut_depth, capture["box"], f"{cut_depth / 'depth.png'}: not a readable PNG image (truncated"),
+        (hit, capture["box"], f"{hit / 'depth.png'}: not a readable PNG image (its IDAT chunk fails its checksum"),
         (no_depth, capture["box"], f"{no_depth}: no depth.png; a capture folder holds rgb.png"),
         (small, capture["box"], f"with depth_scale 0.01 from {small / 'camera.json'}: is depth_scale too small"),
         (capture["ours"], f"-20,{h - 60},100,{h - 5}", f"box -20,{h - 60},100,{h - 5} (within the {w}x{h} image: "
