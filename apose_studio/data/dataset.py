@@ -439,9 +439,9 @@ def load_capture(folder: str | Path) -> Frame:
 
 def world_frame(T_world_camera: np.ndarray | None, depth: np.ndarray, cam: CameraIntrinsics,
                 given: str) -> tuple[np.ndarray, str]:
-    """(T_world_camera, what its world is in words) of a capture: the camera pose given (`given` says where: "in
-    camera.json", a BOP scene_camera.json's cam_R_w2c and cam_t_w2c), else the table's frame when one is seen (z = 0 on it, z up, the origin where the optical axis meets
-    it), else the camera's own."""
+    """(T_world_camera, what its world is in words) of a capture, a BOP scene's image or an API call: the camera pose
+    given (`given` says where: "in .../camera.json", a scene_camera.json's cam_R_w2c and cam_t_w2c), else the table's
+    frame when one is seen (z = 0 on it, z up, the origin where the optical axis meets it), else the camera's own."""
     if T_world_camera is not None:
         return np.asarray(T_world_camera, float), f"the world of the camera pose {given}"
     T_table = table_frame(depth, cam)
