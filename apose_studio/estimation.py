@@ -272,7 +272,7 @@ def find_mask(frame: Frame, request: MaskRequest, asm: Assembly, name: str = "",
         return array_mask(frame.rgb, frame.depth, frame.camera, box=request.box, point=request.point, region=region)
     source = request.source or ("gt" if frame.masks else "depth")
     if source.lower().endswith(IMAGE_SUFFIXES):
-        return check_mask(read_image(Path(source), cv2.IMREAD_GRAYSCALE), frame.depth.shape, source), source
+        return check_mask(read_image(Path(source), cv2.IMREAD_GRAYSCALE, "the mask image"), frame.depth.shape, source), source
     if source in TRUTH_MASK_SOURCES and not frame.masks:
         raise AposeError(f"{name or 'this frame'}: no ground-truth masks here (--mask {source} reads them); use "
                          "--box x0,y0,x1,y1, --point u,v, --mask depth or --mask MASK.png")

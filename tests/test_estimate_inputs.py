@@ -360,6 +360,13 @@ def test_a_capture_cut_short_or_incomplete_is_named_with_its_fix(capture, tmp_pa
     cam = f.camera
     small = _variant(capture, tmp_path, "small", camera={"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
                                                           "depth_scale": 0.01})
+    mask = tmp_path / "mask.png"  # the same reader by another path: a mask file, damaged in the middle
+    data = bytearray(cv2.imencode(".png", (f.base_mask() * 255).astype(np.uint8))[1].tobytes())
+    data[len(data) // 2:len(data) // 2 + 8] = bytes(8)
+    mask.write_bytes(bytes(data))
+    r = run("estimate", capture["ours"], "--assembly", capture["asm"], "--step", 2, "--mask", mask)
+    assert r.returncode == 2 and r.stderr.strip() == (f"error: {mask}: not a readable PNG image (its IDAT chunk fails its "
+                                                      "checksum (CRC)); save the mask image again, or copy it whole"), r.stderr
     cases = [
         (cut_rgb, capture["box"], f"{cut_rgb / 'rgb.png'}: not a readable PNG image (truncated"),
         (cut_depth, capture["box"], f"{cut_depth / 'depth.png'}: not a readable PNG image (truncated"),
