@@ -69,6 +69,8 @@ class PoseEstimate:
     # moved back: around the prompt before the mask (align_depth, estimation.colour_registered), or after a first
     # estimate whose colour check found it off (estimation.estimate_view, `move_depth_to_colour`)
     world: str = ""  # what T_world_camera's world is, in words (data.dataset.world_frame; a dataset's Frame.world)
+    depth_scale_better: float = 1.0  # a factor on the depth that the model explains clearly better: the depth_scale or
+    # the intrinsics look off, and the pose with them (registration.calibration); 1.0: none, or not checked
 
     def to_json(self) -> dict:
         def m(T):
@@ -87,6 +89,7 @@ class PoseEstimate:
                 "mask": {"source": self.mask_source, "pixels": int(self.mask.sum())},
                 "timings_s": {k: round(v, 4) for k, v in self.timings.items()},
                 "depth_shift_px": [int(v) for v in self.depth_shift_px],
+                "depth_scale_better": round(float(self.depth_scale_better), 4),
                 **(self.targets.to_json() if self.targets is not None else {})}
 
 
@@ -233,4 +236,5 @@ def pose_estimate(r: RegistrationResult, T_world_camera, view, mask, source, tim
                         se3.inv(T_world_camera) @ r.T_world_part if ok else None, bool(r.confident), float(r.coverage),
                         bool(r.ambiguous), [c.T_world_part for c in r.alternatives], mask, source, dict(timings), r,
                         "" if r.confident or not ok else doubts(r), r.equivalent if ok else [], approach,
-                        base_alternatives=list(r.base_alternatives) if ok else [], depth_shift_px=r.depth_moved_px)
+                        base_alternatives=list(r.base_alternatives) if ok else [], depth_shift_px=r.depth_moved_px,
+                        depth_scale_better=float(r.depth_scale_better))

@@ -35,6 +35,7 @@ from apose_studio.masks.prompt import box_depth, prompted_mask
 from apose_studio.masks.segment import depth_mask, load_model, table_objects
 from apose_studio.registration import BaseObject, Params, RegistrationResult, doubts, estimate, failed, prepare_base
 from apose_studio.registration.base import PLAIN_SHARE, Region, plainness, raycast_source
+from apose_studio.registration.calibration import scale_checked
 from apose_studio.registration.fusion import estimate_views
 from apose_studio.registration.next_view import next_view
 from apose_studio.registration.table import table_plane
@@ -283,6 +284,20 @@ def find_mask(frame: Frame, request: MaskRequest, asm: Assembly, name: str = "",
 
 def estimate_view(view: View, ctx: StepContext, params: Params, orientation_prior: bool = False,
                   trace_iterations: bool = False) -> RegistrationResult:
+    """Step `ctx`'s assembly pose in one view (`estimate_colour_checked`), a confident one checked for a depth
+    whose scale is off (calibration.scale_checked, `params.scale_check`)."""
+    result = estimate_colour_checked(view, ctx, params, orientation_prior, trace_iterations)
+    if not result.confident:
+        return result
+    seen = region_target(view, ctx.base)
+    if result.depth_moved_px != (0, 0):  # the result is the estimate on the depth moved back onto the colour image
+        du, dv = result.depth_moved_px
+        seen = replace(seen, depth=shift_image(seen.depth, -du, -dv))
+    return scale_checked(result, seen, ctx.base, params)
+
+
+def estimate_colour_checked(view: View, ctx: StepContext, params: Params, orientation_prior: bool = False,
+                            trace_iterations: bool = False) -> RegistrationResult:
     """Step `ctx`'s assembly pose in one view. With orientation_prior the CAD's orientation is taken as
     the base's orientation in the world (what `--base-pose fixed` renders, and the paper assumes). With
     `params.colour_check`, a clear shift of the depth against the colour image costs confidence

@@ -96,6 +96,9 @@ class Params:
     mask_hypotheses: bool = _p(True, "bool", "a result that is not confident is estimated again on other readings of "
                                "the mask (without what lies on the base or stands in front of it); the one whose model "
                                "explains the frame best is kept")
+    scale_check: bool = _p(True, "bool", "a confident result is refitted with the depth scaled 12 % either way about "
+                           "the camera; where the model explains a scaled depth clearly better, the depth_scale or the "
+                           "intrinsics are off and the result is not confident (registration.calibration)")
     colour_check: bool = _p(True, "bool", "after the estimate, compare the depth's edges with the colour image's around "
                             "the object, less the edges the object's own shape makes at its pose (creases, rims); a clear "
                             "shift found there (a Kinect v1's or Xtion's depth is often registered a few pixels off) "
@@ -130,7 +133,7 @@ PRESETS: dict[str, dict[str, Any]] = {
                   deterministic=False, global_voxel_factor=1.0, ransac_retry_iterations=0, use_flips=False,
                   prior_fast_path=False, upright=False, polish_voxel_factor=0.0, max_seconds=0.0, second_look=False,
                   mask_hypotheses=False, colour_check=False,
-                  move_depth_to_colour=False),
+                  move_depth_to_colour=False, scale_check=False),
 }
 PRESET_PARAMS: dict[str, Params] = {name: Params(**over) for name, over in PRESETS.items()}
 

@@ -4,7 +4,7 @@
     .venv/bin/python benchmarks/captures.py [--frames 6] [--conditions none,gaussian,realsense,kinect,stacked,hidden,real]
                                             [--assemblies fidget,helical_gearbox,planetary_reducer,desk_objects]
                                             [--preset paper] [--param NAME=VALUE] [--margin-px 10] [--compare-depth] [--align-depth]
-                                            [--json ROWS.json]
+                                            [--depth-scale F] [--json ROWS.json]
 
 Renders `apose render --clutter ...` datasets per condition (kept in artifacts/captures/ for the next
 run), then per frame: the box prompt (the ground truth's visible box, --margin-px wider per side, as
@@ -18,6 +18,10 @@ capture has: the bench, a flat object on the base, printed textures, a 3 mm dept
 registered 3 px off the colour image, the camera 0.65-1.2 m away, the Kinect's noise as measured
 (Khoshelham and Elberink 2012: 1.4 mm at 1 m, growing with z squared; `kinect` renders use the
 RealSense-like 4 mm at 1 m) on top of its disparity steps (3 mm at 1 m).
+
+`--depth-scale F` reads every frame's depth F times too far (a camera.json whose depth_scale is off), to measure
+the depth-scale check (registration/calibration.py): every pose is then wrong by the scale, and a confident one is
+confident-and-wrong.
 
 Frames are opened as a dataset (the renderer's world frame); the estimate does not depend on the world
 frame (tests/registration/test_world_frame.py), so each answer is the one a capture folder of the same
@@ -164,7 +168,7 @@ def base_add(ctx: StepContext, T_est: np.ndarray, T_true: np.ndarray) -> float:
 
 
 def run(ds: Dataset, asm, models, params, margin_px: int, compare_depth: bool = False,
-        align_depth: bool = False) -> list[dict]:
+        align_depth: bool = False, depth_scale: float = 1.0) -> list[dict]:
     from apose_studio.registration.types import doubts
 
     rows = []
@@ -172,7 +176,9 @@ def run(ds: Dataset, asm, models, params, margin_px: int, compare_depth: bool = 
         ctx = StepContext(asm, models, step)
         ctx.base.warm_up(params)
         for im_id in ds.image_ids(step):
-            frame = ds.frame(step, im_id)
+            frame = replace(ds.frame(step, im_id), depth_scale_known=False)  # as a capture: its scale is checked
+            if depth_scale != 1.0:  # a camera.json whose depth_scale is off: every depth read that much too far
+                frame = replace(frame, depth=frame.depth * np.float32(depth_scale))
             truth = frame.base_mask()
             shift, visible = frame_extras(ds.root, step, im_id)
             box = prompt_box(truth, margin_px)
@@ -214,6 +220,7 @@ def run(ds: Dataset, asm, models, params, margin_px: int, compare_depth: bool = 
                          "noise_mm": r.depth_noise * 1000,
                          "telling_px": telling_pixels(frame, ctx, shift),
                          "depth_shift_px": list(shift), "shift_found_px": list(found),
+                         "depth_scale_gain": float(r.depth_scale_gain),
                          "colour_offset_mm": r.colour_offset * 1000, "colour_offset_px": list(r.colour_offset_px)})
     return rows
 
@@ -233,6 +240,9 @@ def main() -> int:
     ap.add_argument("--compare-depth", action="store_true", help="also score the DBSCAN depth mask with the same box")
     ap.add_argument("--align-depth", action="store_true", help="move the depth back onto the colour image around the "
                     "box first, as `apose estimate --align-depth` does")
+    ap.add_argument("--depth-scale", type=float, default=1.0, help="read every frame's depth this many times too far, "
+                    "as a camera.json whose depth_scale is off does (default 1: as rendered); the poses are scored "
+                    "against the true ones")
     ap.add_argument("--json", help="write every frame's row here (assembly, condition, step, im_id, right, confident, "
                     "doubts, ...)")
     args = ap.parse_args()
@@ -255,7 +265,8 @@ def main() -> int:
                 if asm.camera is not None:
                     settings = replace(settings, camera=asm.camera)
                 render_dataset(asm, root, settings, overwrite=True, progress=False)
-            rows = run(Dataset(root), asm, models, params, args.margin_px, args.compare_depth, args.align_depth)
+            rows = run(Dataset(root), asm, models, params, args.margin_px, args.compare_depth, args.align_depth,
+                       args.depth_scale)
             if args.compare_depth:
                 depth_ious = [r["depth_iou"] for r in rows if "depth_iou" in r]
                 rows = [r for r in rows if "depth_iou" not in r]

@@ -113,6 +113,48 @@ def test_a_capture_whose_depth_lies_off_its_colour_image(tmp_path):
     assert doc["depth_shift_px"] == [0, 0]
 
 
+def test_a_capture_whose_depth_scale_is_off_is_not_confident(tmp_path):
+    """camera.json's depth_scale 10 % too large reads every depth 10 % too far: the pose is as far off along the
+    ray (truth: the renderer's), and on this desk object it came out confident before the depth's scale was
+    checked. Now the text and --json say the depth's scale looks off, and which way would mend it; the right
+    scale stays confident."""
+    from .conftest import SAMPLES, rendered_frame
+
+    desk = SAMPLES / "desk_objects" / "assembly.yaml"
+    frame = rendered_frame(desk, 3, 0, seed=5, noise="kinect", clutter="bench")
+    cam = frame.camera
+    camera = {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy, "depth_scale": 1.0}
+    right = write_capture(frame, tmp_path / "right", camera)
+    off = write_capture(frame, tmp_path / "off", {**camera, "depth_scale": 1.1})
+    args = ("--assembly", desk, "--step", 3, "--box", ",".join(map(str, truth_box(frame.base_mask()))))
+    doc = json.loads(run("estimate", right, *args, "--json").stdout)
+    assert doc["confident"] and doc["depth_scale_better"] == 1.0, doc["doubts"]
+    r = run("estimate", off, *args, "--json")
+    assert r.returncode == 0, r.stderr
+    doc = json.loads(r.stdout)
+    truth = _T_camera_part_truth(frame)
+    assert np.linalg.norm(np.asarray(doc["T_camera_part"])[:3, 3] - truth[:3, 3]) > 0.03  # the pose is wrong
+    assert not doc["confident"] and doc["depth_scale_better"] < 1.0
+    assert "check the depth_scale in camera.json" in doc["doubts"]
+    text = run("estimate", off, *args)
+    assert text.returncode == 0 and "not confident: " in text.stdout and "depth's scale looks off" in text.stdout, \
+        text.stdout
+
+
+def test_a_depth_scale_ten_times_too_large_is_bad_input(capture, tmp_path):
+    """Depth 10x too far is found only at the estimate (a metre or more is a plausible depth), unlike 10x too near
+    (refused as the depth is read); both are the input's fault, so both exit 2, as any bad input."""
+    cam = capture["frame"].camera
+    far = write_capture(capture["frame"], tmp_path / "far", {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
+                                                             "depth_scale": 10.0})
+    args = ("--assembly", capture["asm"], "--step", 2, "--box", capture["box"])
+    r = run("estimate", far, *args)
+    assert r.returncode == 2 and "is depth_scale 10x too large" in r.stdout, (r.returncode, r.stdout)
+    r = run("estimate", far, *args, "--json")
+    doc = json.loads(r.stdout)
+    assert r.returncode == 2 and not doc["ok"] and doc["refused"] and doc["exit_code"] == 2 and "10x too large" in r.stderr
+
+
 def test_bop_scene_folder_with_ground_truth(clutter_dataset):
     """Our renders' scene folders are BOP scenes: read through the BOP reader, with scene_gt mapped by --obj-map."""
     info = json.loads((clutter_dataset / "dataset_info.json").read_text())

@@ -61,6 +61,12 @@ def param_overrides(args) -> dict:
     return over
 
 
+def failed_exit(result) -> int:
+    """`apose estimate`'s exit code for a result that is not ok: 2 where the input is wrong (units 10x off, a mask of
+    the whole scene: RegistrationResult.input_error), as for any bad input; 1 where the estimate failed."""
+    return 2 if result.input_error else 1
+
+
 def finite(x: float) -> float | None:
     """JSON has no NaN: an unknown number is null."""
     return float(x) if np.isfinite(x) else None

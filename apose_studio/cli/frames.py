@@ -13,7 +13,7 @@ import numpy as np
 
 from apose_studio.api import grasp_of, pose_estimate, robot_targets, run_registration
 from apose_studio.assembly.model import Assembly, load_assembly
-from apose_studio.cli.common import check_output_file, finite, params_of, parse_prompt, pose_lines
+from apose_studio.cli.common import check_output_file, failed_exit, finite, params_of, parse_prompt, pose_lines
 from apose_studio.cli.views import cmd_estimate_views
 from apose_studio.data.bop import BopScene, parse_obj_map, read_results_csv, results_from_eval, scene_folders, write_results_csv
 from apose_studio.data.dataset import Dataset, Frame, write_json
@@ -160,6 +160,8 @@ def cmd_estimate(args) -> int:
                             "inlier_rmse": st.inlier_rmse} for st in r.stages],
                    voxel_m=r.voxel, fitness=r.fitness, contradiction=finite(r.contradiction), out_of_time=r.out_of_time,
                    alternatives_scores=[c.score for c in r.alternatives])
+        if r.input_error:  # bad input, found at the estimate: said as every refused input says it
+            doc.update(refused=True, exit_code=failed_exit(r))
         if sc is not None:  # against the ground truth; also at the top level (mask_iou, adi, mssd, ...), where scripts read them
             doc["truth"] = sc.to_json()
             doc.update({k: v for k, v in doc["truth"].items() if k not in doc})
@@ -168,7 +170,7 @@ def cmd_estimate(args) -> int:
             print(f"wrote {args.mcap}", file=sys.stderr)
         if not r.ok:  # the reason is in the JSON; said in words too, for whoever reads the terminal
             print(f"estimation failed: {r.reason}", file=sys.stderr)
-        return 0 if r.ok else 1
+        return 0 if r.ok else failed_exit(r)
     print(f"step {args.step}, frame {args.frame}: place {ctx.part.id} on [{', '.join(ctx.view.base)}]  (preset {params.preset})")
     print(f"mask: {source}, {int(mask.sum())} pixels ({est.timings['mask'] * 1000:.0f} ms; --json: mask.prompt_pixels)")
     if shift != (0, 0):
@@ -180,7 +182,7 @@ def cmd_estimate(args) -> int:
               "estimated on it (--param move_depth_to_colour=false keeps the depth as given)")
     if not r.ok:
         print(f"estimation failed: {r.reason}")
-        return 1
+        return failed_exit(r)
     print(f"T_world_part (estimated assembly pose; world: {frame.world}):")
     print("\n".join(pose_lines(r.T_world_part)))
     if est.T_world_part_approach is not None:

@@ -90,6 +90,8 @@ class Frame:
     source: str = ""
     placement: int | None = None  # frames of one step with the same placement show the base at the same pose
     world: str = "the dataset's world frame"  # what T_world_camera's world is, in words (a capture's: world_frame)
+    depth_scale_known: bool = False  # the depth's scale is the renderer's own (a dataset apose rendered): the
+    # depth-scale check (registration.calibration) has nothing to check; False for captures, BOP scenes, cameras
 
     @property
     def K(self) -> np.ndarray:
@@ -265,7 +267,8 @@ class Dataset:
                      T_world_camera=T_world_camera, masks=masks, poses=poses, step=step, part=asm["part"],
                      base=tuple(asm["base"]), T_base_part=np.asarray(asm["T_base_part"]),
                      T_world_base=np.asarray(fr["T_world_base"]), T_world_part=np.asarray(fr["T_world_part"]),
-                     im_id=im_id, source=str(rgb_path), placement=int(fr.get("placement", im_id)))
+                     im_id=im_id, source=str(rgb_path), placement=int(fr.get("placement", im_id)),
+                     depth_scale_known=True)
 
 
 def check_scene_images(doc, where: str, entry: str) -> dict:

@@ -155,7 +155,7 @@ def estimate_mask(view: View, base: BaseObject, T_base_part: np.ndarray, params:
         unit_error = (f"the mask covers {100 * mask.mean():.0f}% of the image and spans far more than the base object "
                       f"({base.diameter * 1000:.3g} mm across); prompt a box around the object, or check the mask file")
     if unit_error is not None:
-        return failed(unit_error, preset=params.preset, target_cloud=target_pts, timings=timings)
+        return failed(unit_error, preset=params.preset, target_cloud=target_pts, timings=timings, input_error=True)
     if prior_T_world_base is None and params.use_orientation_prior:
         prior_T_world_base = np.eye(4)  # the CAD's orientation is the base's orientation in the world
     voxel = params.voxel(base.diameter)

@@ -120,6 +120,13 @@ class RegistrationResult:
     base_alternatives: list[np.ndarray] = field(default_factory=list)  # T_world_base of the base turned by a near-
     # symmetry that places the part alike and explains the data as well (refine.base_twins_alike): the part's place is
     # sure, the base's own turn is not (`confident` is about the part's placement; see `base_confident`)
+    input_error: bool = False  # a failure that is the input's, not the scene's: depth or CAD units 10x or more off, or
+    # a mask of the whole scene (task.scale_problem); `apose estimate` exits 2 (bad input) on it
+    depth_scale_better: float = 1.0  # a factor on the depth that the model explains clearly better than the depth as
+    # given (calibration.scale_checked): the depth_scale or the intrinsics are off, and the pose with them; never
+    # confident then. 1.0: none, or not checked
+    depth_scale_gain: float = float("nan")  # how much more the best explained scaled depth is explained than the depth
+    # as given (a share; below 0: less; NaN: not checked)
 
     @property
     def base_confident(self) -> bool:
@@ -148,7 +155,8 @@ class RegistrationResult:
         a wrong pose, whatever else it says), the depth contradicts almost nothing the model shows, no
         search was cut short, and no other placement fits as well (ambiguous). An unknown coverage (NaN)
         is never confident."""
-        return self.fits and not self.ambiguous and not self.region_twin and not self.part_doubt
+        return (self.fits and not self.ambiguous and not self.region_twin and not self.part_doubt
+                and self.depth_scale_better == 1.0)
 
 
 def doubts(result: RegistrationResult) -> str:
@@ -193,6 +201,12 @@ def doubts(result: RegistrationResult) -> str:
     if result.region_twin:
         why.append(f"the box may hold {result.region_twin} (a region alike on the same part): the rest of the part fits "
                    "as well or better were it that one (draw the box round the step's own region, or show more of the part)")
+    if result.depth_scale_better != 1.0:
+        f = result.depth_scale_better
+        why.append(f"the model explains the view {result.depth_scale_gain:.0%} better with every depth "
+                   f"{abs(f - 1):.0%} {'nearer' if f < 1 else 'farther'} (x {f:.2f}): the depth's scale looks off (check the "
+                   "depth_scale in camera.json, or the depth's unit, and that cam_K is for this image's resolution); the "
+                   "pose is off along the camera's rays by as much")
     if result.ambiguous:
         why.append(f"{len(result.alternatives) + 1} placements fit the data equally (ambiguous)")
     return "; ".join(why)
@@ -252,6 +266,7 @@ class View:
     # readings (hypotheses.readings)
     box: tuple[int, int, int, int] | None = None  # the prompt's box (x0, y0, x1, y1), when a box gave the mask: what
     # the model shows of the base far outside it contradicts the pose (the user drew it around all they see)
+    depth_scale_known: bool = False  # the depth's scale is the renderer's own (Frame.depth_scale_known): not checked
 
     def outside_box(self) -> np.ndarray | None:
         """(H, W) bool: pixels farther outside the prompt's box than its margin (BOX_SLACK of its size, at least
@@ -265,4 +280,4 @@ class View:
     def of(cls, frame, mask: np.ndarray) -> "View":
         """A dataset.Frame (a render, a capture) with the base's mask."""
         return cls(frame.depth, mask, frame.camera, frame.T_world_camera, frame.source or f"frame {frame.im_id}",
-                   getattr(frame, "rgb", None))
+                   getattr(frame, "rgb", None), depth_scale_known=getattr(frame, "depth_scale_known", False))
