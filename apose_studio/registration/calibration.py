@@ -24,11 +24,11 @@ from apose_studio.geometry.nn import NearestTree
 from apose_studio.params import Params
 from apose_studio.registration.base import BaseObject, raycast_source
 from apose_studio.registration.hypotheses import explained
-from apose_studio.registration.scoring import mask_edge
+from apose_studio.registration.pipeline import view_task
 from apose_studio.registration.solvers import icp_point_to_plane
-from apose_studio.registration.stages import cloud, project_to_cloud
-from apose_studio.registration.task import Task, prepare_task
-from apose_studio.registration.types import MIN_POINTS, Degenerate, Observation, RegistrationResult, View
+from apose_studio.registration.stages import cloud
+from apose_studio.registration.task import Task
+from apose_studio.registration.types import MIN_POINTS, RegistrationResult, View
 
 SCALE_PROBES = (1 / 1.12, 1.12)  # the depth's scale tried beside the one given: 12 % either way
 SCALE_GAIN = 0.025  # a scaled depth explained by more than this share better than the depth as given puts its scale
@@ -59,20 +59,6 @@ def refitted(pb: Task, base: BaseObject, T_world_camera: np.ndarray, T_start: np
     return icp_point_to_plane(src, target, normals, T, pb.thr, pb.params.icp_max_iterations, tgt_tree=tree)
 
 
-def target_of(view: View, base: BaseObject, params: Params, noise: float) -> Task | None:
-    """The view's prepared target (its fine points with their normals), for a result that did not keep its own (the
-    orientation prior's fast path keeps none); None where it is degenerate."""
-    camera_pts = project_to_cloud(view.depth, view.mask, view.camera, np.eye(4))
-    if len(camera_pts) < MIN_POINTS:
-        return None
-    observation = Observation(view.mask, view.depth, mask_edge(view.mask), noise)
-    try:
-        return prepare_task(se3.transform_points(view.T_world_camera, camera_pts), view.camera, view.T_world_camera, base,
-                            np.eye(4), params, params.voxel(base.diameter), observation, camera_pts=camera_pts)
-    except Degenerate:
-        return None
-
-
 def scale_checked(result: RegistrationResult, view: View, base: BaseObject, params: Params) -> RegistrationResult:
     """`result`, with `depth_scale_better` set where a depth scaled by one of SCALE_PROBES is explained clearly
     better at the model refitted there (the module's doc). Only a confident result is checked: an unconfident one
@@ -82,7 +68,9 @@ def scale_checked(result: RegistrationResult, view: View, base: BaseObject, para
             and not view.depth_scale_known):
         return result
     t = time.perf_counter()
-    pb = result.problem if isinstance(result.problem, Task) else target_of(view, base, params, result.depth_noise)
+    # the result's own prepared target; the orientation prior's fast path keeps none, so the view's is prepared
+    pb = result.problem if isinstance(result.problem, Task) else view_task(view, base, np.eye(4), params,
+                                                                               noise=result.depth_noise)
     if pb is None:
         return result
     own = explained(result, view, base, view.mask)

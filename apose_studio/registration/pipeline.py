@@ -304,20 +304,34 @@ def refit(view: View, base: BaseObject, T_base_part: np.ndarray, params: Params,
     then at the final threshold or the polish), judged as any estimate; None where the camera sees too little of the
     base or the mask too little depth. No search: nothing here looks for rival placements, so a caller uses it only
     on a pose whose rivals were sought already (second_look_from_pose)."""
-    camera_pts = project_to_cloud(view.depth, view.mask, view.camera, np.eye(4))
-    if len(camera_pts) < MIN_POINTS:
+    pb = view_task(view, base, T_base_part, params, part_symmetries)
+    if pb is None:
         return None
-    observation = observe(view.depth, view.mask)
     try:
-        pb = prepare_task(se3.transform_points(view.T_world_camera, camera_pts), view.camera, view.T_world_camera, base,
-                          T_base_part, params, params.voxel(base.diameter), observation,
-                          part_symmetries=part_symmetries, camera_pts=camera_pts)
         r = try_prior(pb, T_world_base, False, {}, from_pose=True, preset=params.preset)
     except Degenerate:
         return None
     if r is None:
         return None
-    return judged(replace(r, depth_noise=observation.noise, problem=pb), view, base, params, pb.table)
+    return judged(replace(r, depth_noise=pb.observation.noise, problem=pb), view, base, params, pb.table)
+
+
+def view_task(view: View, base: BaseObject, T_base_part: np.ndarray, params: Params,
+              part_symmetries: np.ndarray | None = None, noise: float | None = None) -> Task | None:
+    """The view's mask and depth prepared as a registration Task (prepare_task), in the view's world; None where the
+    mask holds too little depth or its target is degenerate. `noise`: the frame's depth noise when already measured
+    (else `observe` measures it)."""
+    camera_pts = project_to_cloud(view.depth, view.mask, view.camera, np.eye(4))
+    if len(camera_pts) < MIN_POINTS:
+        return None
+    observation = observe(view.depth, view.mask) if noise is None else \
+        Observation(view.mask, view.depth, mask_edge(view.mask), noise)
+    try:
+        return prepare_task(se3.transform_points(view.T_world_camera, camera_pts), view.camera, view.T_world_camera, base,
+                            T_base_part, params, params.voxel(base.diameter), observation,
+                            part_symmetries=part_symmetries, camera_pts=camera_pts)
+    except Degenerate:
+        return None
 
 
 def judged(r: RegistrationResult, view: View, base: BaseObject, params: Params, plane) -> RegistrationResult:
