@@ -31,7 +31,7 @@ from apose_studio.estimation import (
     step_context,
 )
 from apose_studio.geometry import se3
-from apose_studio.geometry.camera import CameraIntrinsics
+from apose_studio.geometry.camera import CameraIntrinsics, principal_point_problem
 from apose_studio.registration import Params, doubts, resolve_params
 from apose_studio.registration.types import RegistrationResult, View
 from apose_studio.robot.handeye import HandEye, read_hand_eye
@@ -94,12 +94,28 @@ class PoseEstimate:
 
 
 def camera_from_K(K, width: int, height: int) -> CameraIntrinsics:
-    K = np.asarray(K, float)
+    """The intrinsics of a `width` x `height` image from K (3x3, or its 9 numbers row by row), checked as a capture's
+    camera.json is (data.dataset.check_camera_entry): a pinhole matrix without skew, the principal point one of this
+    image's. AposeError naming K otherwise."""
+    try:
+        K = np.asarray(K, float)
+    except (TypeError, ValueError):
+        raise AposeError(f"K must be a 3x3 intrinsic matrix of numbers (or its 9 numbers), got {type(K).__name__}") from None
     if K.shape == (9,):
         K = K.reshape(3, 3)
     if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
         raise AposeError(f"K must be a 3x3 intrinsic matrix with positive fx, fy; got {np.asarray(K).tolist()}"[:200])
-    return CameraIntrinsics.from_K(K, width, height)
+    if K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
+        raise AposeError(f"K's last row must be 0 0 1 and K[1][0] 0 (a pinhole camera matrix, row by row), got rows "
+                         f"{K[1].tolist()} and {K[2].tolist()}; is it transposed?"[:240])
+    if abs(K[0, 1]) > 1e-6 * K[0, 0]:
+        raise AposeError(f"K[0][1] (skew) is {K[0, 1]:g}; apose's pinhole model has no skew (rectify the images, or set it "
+                         "to 0 if the calibration's skew is negligible)")
+    cam = CameraIntrinsics.from_K(K, width, height)
+    wrong_size = principal_point_problem(cam.width, cam.height, cam.cx, cam.cy)
+    if wrong_size is not None:
+        raise AposeError(f"K: {wrong_size}")
+    return cam
 
 
 def pixel_numbers(value, n: int, name: str) -> tuple[int, ...] | None:

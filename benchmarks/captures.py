@@ -220,7 +220,7 @@ def run(ds: Dataset, asm, models, params, margin_px: int, compare_depth: bool = 
                          "noise_mm": r.depth_noise * 1000,
                          "telling_px": telling_pixels(frame, ctx, shift),
                          "depth_shift_px": list(shift), "shift_found_px": list(found),
-                         "depth_scale_gain": float(r.depth_scale_gain),
+                         "depth_scale_gain": float(r.depth_scale_gain), "target_span": float(r.target_span),
                          "colour_offset_mm": r.colour_offset * 1000, "colour_offset_px": list(r.colour_offset_px)})
     return rows
 

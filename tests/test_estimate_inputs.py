@@ -141,6 +141,26 @@ def test_a_capture_whose_depth_scale_is_off_is_not_confident(tmp_path):
         text.stdout
 
 
+def test_a_depth_scale_a_few_times_too_large_is_named_with_the_fix(capture, tmp_path):
+    """depth_scale 3x too large (a target under the 4 diameters refused outright) gave "not confident: only 24% of
+    the target lies near the model" or "the mask holds something else", with no word about the camera; the target
+    then spans more than any view of the base, and the words say so and where to look; 2.5x too small, it spans too
+    little, and they say that. The true scale says neither."""
+    cam = capture["frame"].camera
+    camera = {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy}
+    far = write_capture(capture["frame"], tmp_path / "far3", {**camera, "depth_scale": 3.0})
+    args = ("--assembly", capture["asm"], "--step", 2, "--box", capture["box"], "--json")
+    doc = json.loads(run("estimate", far, *args).stdout)
+    said = doc["doubts"] if doc["ok"] else doc["reason"]
+    assert not doc["confident"] and "the masked depth spans" in said and "depth_scale in camera.json" in said, said
+    near = write_capture(capture["frame"], tmp_path / "near", {**camera, "depth_scale": 0.4})  # 2.5x too near
+    doc = json.loads(run("estimate", near, *args).stdout)
+    said = doc["doubts"] if doc["ok"] else doc["reason"]
+    assert not doc["confident"] and "the masked depth spans only" in said and "depth's scale is too small" in said, said
+    doc = json.loads(run("estimate", capture["ours"], *args).stdout)
+    assert "the masked depth spans" not in (doc["doubts"] or "") + (doc["reason"] or ""), doc
+
+
 def test_a_depth_scale_ten_times_too_large_is_bad_input(capture, tmp_path):
     """Depth 10x too far is found only at the estimate (a metre or more is a plausible depth), unlike 10x too near
     (refused as the depth is read); both are the input's fault, so both exit 2, as any bad input."""
@@ -211,6 +231,12 @@ def test_every_bad_input_exits_2_with_one_line(capture, tmp_path):
         (_variant(capture, tmp_path, "metres", depth=np.round(f.depth).astype(np.uint16)), ["--box", box], "metre-scaled"),
         (_variant(capture, tmp_path, "8bit", depth=np.clip(f.depth * 100, 0, 255).astype(np.uint8)), ["--box", box],
          "expected 16-bit"),
+        # intrinsics for twice and half this resolution: the principal point is the centre of another image
+        (_variant(capture, tmp_path, "K2x", camera={"cam_K": [2 * cam.fx, 0, 2 * cam.cx, 0, 2 * cam.fy, 2 * cam.cy, 0, 0, 1],
+                                                   "depth_scale": 1.0}), ["--box", box],
+         f"is the centre of a {2 * w}x{2 * h} image, not of this {w}x{h} one"),
+        (_variant(capture, tmp_path, "Khalf", camera={"fx": cam.fx / 2, "fy": cam.fy / 2, "cx": cam.cx / 2, "cy": cam.cy / 2,
+                                                     "depth_scale": 1.0}), ["--box", box], "scale fx, fy, cx and cy by about 2"),
         (capture["ours"], ["--box", f"{w + 5},{h + 5},{w + 90},{h + 90}"], "lies outside the"),
         (capture["ours"], ["--point", f"3,{h - 3}"], "falls on the table"),
         (capture["ours"], ["--mask", wrong_mask], "same size as the image"),

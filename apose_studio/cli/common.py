@@ -67,6 +67,11 @@ def failed_exit(result) -> int:
     return 2 if result.input_error else 1
 
 
+def failed_words(result) -> str:
+    """What a result that is not ok is called before its reason: bad input refused (exit 2), or a failed estimate."""
+    return "refused, bad input" if result.input_error else "estimation failed"
+
+
 def finite(x: float) -> float | None:
     """JSON has no NaN: an unknown number is null."""
     return float(x) if np.isfinite(x) else None

@@ -13,7 +13,7 @@ import numpy as np
 
 from apose_studio.api import grasp_of, pose_estimate, robot_targets, run_registration
 from apose_studio.assembly.model import Assembly, load_assembly
-from apose_studio.cli.common import check_output_file, failed_exit, finite, params_of, parse_prompt, pose_lines
+from apose_studio.cli.common import check_output_file, failed_exit, failed_words, finite, params_of, parse_prompt, pose_lines
 from apose_studio.cli.views import cmd_estimate_views
 from apose_studio.data.bop import BopScene, parse_obj_map, read_results_csv, results_from_eval, scene_folders, write_results_csv
 from apose_studio.data.dataset import Dataset, Frame, write_json
@@ -169,7 +169,7 @@ def cmd_estimate(args) -> int:
         if args.mcap:
             print(f"wrote {args.mcap}", file=sys.stderr)
         if not r.ok:  # the reason is in the JSON; said in words too, for whoever reads the terminal
-            print(f"estimation failed: {r.reason}", file=sys.stderr)
+            print(f"{failed_words(r)}: {r.reason}", file=sys.stderr)
         return 0 if r.ok else failed_exit(r)
     print(f"step {args.step}, frame {args.frame}: place {ctx.part.id} on [{', '.join(ctx.view.base)}]  (preset {params.preset})")
     print(f"mask: {source}, {int(mask.sum())} pixels ({est.timings['mask'] * 1000:.0f} ms; --json: mask.prompt_pixels)")
@@ -181,7 +181,7 @@ def cmd_estimate(args) -> int:
         print(f"depth: its edges lay {du:+d}, {dv:+d} px (right, down) off the colour image's; moved back, and the pose "
               "estimated on it (--param move_depth_to_colour=false keeps the depth as given)")
     if not r.ok:
-        print(f"estimation failed: {r.reason}")
+        print(f"{failed_words(r)}: {r.reason}")
         return failed_exit(r)
     print(f"T_world_part (estimated assembly pose; world: {frame.world}):")
     print("\n".join(pose_lines(r.T_world_part)))

@@ -13,7 +13,7 @@ import numpy as np
 
 from apose_studio.api import pose_estimate
 from apose_studio.assembly.model import load_assembly
-from apose_studio.cli.common import failed_exit, params_of, parse_prompt, pose_lines
+from apose_studio.cli.common import failed_exit, failed_words, params_of, parse_prompt, pose_lines
 from apose_studio.data.dataset import Dataset, read_json
 from apose_studio.data.sources import open_frames
 from apose_studio.errors import AposeError
@@ -92,7 +92,7 @@ def cmd_estimate_views(args) -> int:
     print(f"step {args.step}: place {ctx.part.id} on [{', '.join(ctx.view.base)}] from {len(views)} views "
           f"({', '.join(v.name for v in views)})")
     if not r.ok:
-        print(f"estimation failed: {r.reason}")
+        print(f"{failed_words(r)}: {r.reason}")
         return failed_exit(r)
 
     print("T_world_part (estimated assembly pose, fused):")

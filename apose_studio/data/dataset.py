@@ -38,7 +38,7 @@ from apose_studio.assembly.model import Assembly, load_assembly, save_assembly
 from apose_studio.data.outdir import claim
 from apose_studio.errors import AposeError, DatasetError
 from apose_studio.geometry import se3
-from apose_studio.geometry.camera import FOCAL_PX, CameraIntrinsics, is_number
+from apose_studio.geometry.camera import FOCAL_PX, CameraIntrinsics, is_number, principal_point_problem
 from apose_studio.geometry.plane import table_frame
 from apose_studio.geometry.units import MAX_COORDINATE_M
 
@@ -362,9 +362,14 @@ def check_camera_entry(cam, where: str, width: int, height: int) -> tuple[Camera
         raise DatasetError(f"{where}: fx={fx:g}, fy={fy:g} pixels; a camera's focal length in pixels lies between "
                            f"{FOCAL_PX[0]:g} and {FOCAL_PX[1]:g} (Kinect: ~525, RealSense D435: ~615). Are they in "
                            "pixels, for this image size?")
-    if not (0 <= cx <= width and 0 <= cy <= height):
-        raise DatasetError(f"{where}: the principal point ({cx:g}, {cy:g}) lies outside the {width}x{height} image; "
-                           "are the intrinsics for another resolution?")
+    for key, size in (("width", width), ("height", height)):  # optional; when given, the images' own size
+        if key in cam and number(key) != size:
+            raise DatasetError(f"{where}: {key} is {number(key):g} but the images are {width}x{height}: the intrinsics "
+                               f"are for another resolution; use the calibration for {width}x{height} (or leave out "
+                               "width and height)")
+    wrong_size = principal_point_problem(width, height, cx, cy)
+    if wrong_size is not None:
+        raise DatasetError(f"{where}: {wrong_size}")
     if not DEPTH_SCALE_MM[0] <= depth_scale <= DEPTH_SCALE_MM[1]:
         raise DatasetError(f"{where}: depth_scale is {depth_scale:g}; it is millimetres per depth unit, between "
                            f"{DEPTH_SCALE_MM[0]:g} and {DEPTH_SCALE_MM[1]:g} (1.0 for RealSense and Kinect PNGs in mm, "

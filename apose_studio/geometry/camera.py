@@ -55,6 +55,42 @@ def is_number(v) -> bool:
         return False
 
 
+OTHER_RESOLUTION = 1.4  # a principal point whose image (2 cx by 2 cy) is this many times larger or smaller than
+# the image on both axes is that of intrinsics for another resolution (a camera's principal point lies within a few
+# per cent of its image's centre: Kinect 640 x 480 at (320, 240), BOP's LM at (325, 242)). A 1280 x 720 calibration on
+# 640 x 480 frames: 2 and 1.5. Scaled by less than 1.4 (1.25, 1.33) it cannot be told from a crop off the centre
+SAME_RATIO = 0.15  # the two axes' ratios within this share of each other: one factor mends all four numbers
+TURNED = 0.1  # a principal point within this share of the centre of the image turned a quarter (and not of the image)
+
+
+def principal_point_problem(width: int, height: int, cx: float, cy: float) -> str | None:
+    """Why intrinsics with principal point (cx, cy) cannot be those of a `width` x `height` image, in words, or None:
+    the point outside the image or on its edge; the centre of an image 1.4 times as large (or small) on both axes,
+    what intrinsics for another resolution of the camera look like (a 1280 x 960 calibration on 640 x 480 frames);
+    the centre of the image turned a quarter (a portrait frame with the landscape calibration). Each puts every
+    pixel's ray off: the scene comes out flattened, stretched or skewed, and the pose fits it worse than its noise
+    allows or not at all, with no word about the camera."""
+    outside = (f"the principal point ({cx:g}, {cy:g}) lies outside the {width}x{height} image or on its edge; are the "
+               "intrinsics for another resolution, or cx and cy missing?")
+    if cx <= 0 or cy <= 0:
+        return outside
+    rx, ry = 2 * cx / width, 2 * cy / height  # the size of the image the point is the centre of, per image side
+    if min(rx, ry) >= OTHER_RESOLUTION or max(rx, ry) <= 1 / OTHER_RESOLUTION:
+        said = (f"the principal point ({cx:g}, {cy:g}) is the centre of a {2 * cx:.0f}x{2 * cy:.0f} image, not of this "
+                f"{width}x{height} one: the intrinsics look like those for another resolution. Use the calibration for "
+                f"{width}x{height}")
+        return said + (f", or scale fx, fy, cx and cy by about {width / (2 * cx):.3g}" if abs(rx / ry - 1) < SAME_RATIO
+                       else "")
+    if cx >= width or cy >= height:
+        return outside
+    if width != height and abs(2 * cx / height - 1) < TURNED and abs(2 * cy / width - 1) < TURNED \
+            and not (abs(rx - 1) < TURNED and abs(ry - 1) < TURNED):
+        return (f"the principal point ({cx:g}, {cy:g}) is the centre of a {height}x{width} image, this {width}x{height} "
+                "one turned a quarter: was the image rotated after calibration? Turn it back, or use intrinsics for the "
+                "turned image (fx and fy swapped, cx and cy the new centre)")
+    return None
+
+
 _CAMERA_KEYS = {"width": "int", "height": "int", "fx": "float", "fy": "float", "cx": "float", "cy": "float"}
 FOCAL_PX = (10.0, 1e5)  # focal lengths in pixels a camera can have (Kinect ~525, RealSense D435 ~615)
 MAX_SIDE_PX = 16384  # an image's side

@@ -5,6 +5,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from apose_studio.geometry.sensor import nearest_within
+
 NOISE_MODELS = ("none", "gaussian", "realsense", "kinect")
 KINECT_FB = 580.0 * 0.075  # Kinect v1: IR focal length 580 px x baseline 75 mm: 1/8 px steps are 2.9 mm at 1 m
 
@@ -74,7 +76,7 @@ def add_depth_noise(depth: np.ndarray, model: str, sigma_at_05m: float, rng: np.
     elif model == "kinect":
         fb = fx * 0.075
         edge = depth_edges(z)
-        near = cv2.erode(np.where(valid, noisy, np.inf).astype(np.float32), np.ones((3, 3), np.uint8))
+        near = nearest_within(np.where(valid, noisy, np.inf), 1)
         noisy = np.where(edge & np.isfinite(near), near, noisy)  # near surfaces bleed into far ones at edges
         u = rng.random(z.shape, dtype=np.float32)
         wide_edge = cv2.dilate(edge.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0

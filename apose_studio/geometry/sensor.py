@@ -14,6 +14,16 @@ import numpy as np
 from apose_studio.geometry.camera import box_region
 
 
+def nearest_within(z: np.ndarray, px: int) -> np.ndarray:
+    """(H, W) float32: the least of `z` (a depth image, inf where none) within `px` pixels of each pixel (the
+    (2 px + 1)-wide square round it): the nearer surface winning, a model's depth widened by px, a splat's gaps
+    closed. Beyond the image's edge there is nothing (inf). OpenCV's own border for a float erosion is FLT_MAX, a
+    finite depth: the outermost px pixels of every image or window would read as 3e38 m away, finite, so a
+    silhouette's or a window's edge would count as shown."""
+    return cv2.erode(np.asarray(z, np.float32), np.ones((2 * px + 1, 2 * px + 1), np.uint8),
+                     borderType=cv2.BORDER_CONSTANT, borderValue=float("inf"))
+
+
 def quantisation_step(depth: np.ndarray, region: np.ndarray) -> float:
     """The sensor's depth step at the region's depth (metres): the median gap between neighbouring distinct
     depth values there (a Kinect v1 reads in disparity steps, about 3 mm apart at 1 m; most sensors in

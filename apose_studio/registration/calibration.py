@@ -46,7 +46,10 @@ def scaled_pose(T_world_camera: np.ndarray, T_world_base: np.ndarray, f: float) 
 def refitted(pb: Task, base: BaseObject, T_world_camera: np.ndarray, T_start: np.ndarray, f: float) -> np.ndarray | None:
     """T_world_base refitted to `pb`'s fine target scaled by `f` about the camera (normals unchanged), from T_start:
     point-to-plane ICP of what the camera sees of the model there, at 2 voxels and then at the fine threshold, as
-    a refit from a pose does (searches.try_prior, from_pose). None where the camera sees too little of the model."""
+    a refit from a pose does (searches.try_prior, from_pose). None where the camera sees too little of the model.
+    All the model's points, also in the first fit: thinned to a quarter there (as try_prior's fits from an
+    orientation are), a fidget casing 30 % visible under a stacked object, its depth 10 % too far, refitted from
+    its scaled pose onto the wrong surface, and the check missed it (benchmarks/captures.py --depth-scale 1.1)."""
     centre = T_world_camera[:3, 3]
     target = centre + f * (pb.fine_pts - centre)
     normals = np.asarray(pb.fine.normals)

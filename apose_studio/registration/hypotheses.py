@@ -40,7 +40,7 @@ from apose_studio.geometry import se3
 from apose_studio.geometry.camera import box_region
 from apose_studio.geometry.noise import depth_edges
 from apose_studio.registration.base import BaseObject, raycast_source
-from apose_studio.registration.scoring import agreement_tolerance, depth_buffer, mask_edge
+from apose_studio.registration.scoring import MASK_MARGIN_PX, agreement_tolerance, depth_window, mask_edge
 from apose_studio.registration.types import MIN_POINTS, RegistrationResult, View
 
 MIN_PATCH_PX = 20  # depth patches smaller than this are noise (as prompt.py)
@@ -279,17 +279,19 @@ def explained(result: RegistrationResult, view: View, base: BaseObject, region: 
     seen, _ = raycast_source(base, result.T_world_base, view.T_world_camera, view.camera)
     if len(seen) == 0:
         return float("-inf")
-    zbuf = depth_buffer(seen, view.T_world_camera, view.camera)
+    # every pixel counted below is one the model shows: the window round them (wider than the outline's margin,
+    # so that mask_edge reads there as in the whole image) gives the same counts as the whole image
+    zbuf, win = depth_window(seen, view.T_world_camera, view.camera, MASK_MARGIN_PX + 2)
     shown = np.isfinite(zbuf)
-    d = view.depth
+    d = view.depth[win]
     valid = shown & np.isfinite(d) & (d > 0)
     tol = agreement_tolerance(result.voxel, result.depth_noise)
     with np.errstate(invalid="ignore"):
-        confirmed = valid & (view.mask if region is None else region) & (np.abs(d - zbuf) < tol)
+        confirmed = valid & (view.mask if region is None else region)[win] & (np.abs(d - zbuf) < tol)
         past = valid & (d > zbuf + tol) & ~mask_edge(shown)
         box = view.outside_box()
         if box is not None:  # shown where the user's box says the base is not (and nothing nearer hides it)
-            past |= shown & box & ~(valid & (d < zbuf - tol))
+            past |= shown & box[win] & ~(valid & (d < zbuf - tol))
     return float(confirmed.sum()) - CONTRADICTION_WEIGHT * float(past.sum())
 
 

@@ -18,7 +18,7 @@ from apose_studio.geometry.camera import box_region
 from apose_studio.geometry.nn import NearestTree
 from apose_studio.geometry.noise import estimate_depth_noise
 from apose_studio.geometry.raycast import raycast_depth
-from apose_studio.geometry.sensor import quantisation_step
+from apose_studio.geometry.sensor import nearest_within, quantisation_step
 from apose_studio.params import Params
 from apose_studio.registration.base import BaseObject, place_source, raycast_source
 from apose_studio.registration.hypotheses import both_out, explained, readings
@@ -37,6 +37,7 @@ from apose_studio.registration.refine import (
 from apose_studio.registration.scoring import (
     agreement_tolerance,
     depth_buffer,
+    depth_window,
     distinct_placements,
     evidence,
     hidden_share,
@@ -47,7 +48,7 @@ from apose_studio.registration.scoring import (
 from apose_studio.registration.searches import ModelSearch, search_poses, try_prior
 from apose_studio.registration.stages import project_to_cloud, trace_stages
 from apose_studio.registration.table import table_plane
-from apose_studio.registration.task import Task, prepare_task, scale_problem
+from apose_studio.registration.task import Task, prepare_task, scale_problem, target_span
 from apose_studio.registration.types import (
     CONFIDENT_CONTRADICTION,
     CONFIDENT_COVERAGE,
@@ -58,6 +59,7 @@ from apose_studio.registration.types import (
     RegistrationResult,
     View,
     failed,
+    span_hint,
 )
 
 
@@ -75,6 +77,8 @@ def estimate(view: View, base: BaseObject, T_base_part: np.ndarray, params: Para
     the mask it came from). A confident result also says whether the base's own turn is sure
     (`base_alternatives`: refine.base_twins_alike)."""
     result = estimate_readings(view, base, T_base_part, params, prior_T_world_base, trace_iterations, part_symmetries)
+    if not result.confident and not result.input_error and view.mask is not None and view.mask.any():
+        result = spanned(result, view, base)
     pb = result.problem
     if not (result.ok and result.confident and isinstance(pb, Task) and params.use_symmetries):
         return result
@@ -82,6 +86,19 @@ def estimate(view: View, base: BaseObject, T_base_part: np.ndarray, params: Para
     alternatives = base_twins_alike(pb, result.T_world_base)
     return replace(result, base_alternatives=alternatives,
                    timings={**result.timings, "base twins": time.perf_counter() - t})
+
+
+def spanned(result: RegistrationResult, view: View, base: BaseObject) -> RegistrationResult:
+    """`result` (not confident, or failed) with `target_span` of the whole mask's depth (not only of the reading that
+    won: a reading may leave out what made the mask too wide), and, when it failed and the mask spans more than any
+    view of the base or very little of it, the reason saying where to look (`types.span_hint`)."""
+    pts = project_to_cloud(view.depth, view.mask, view.camera, np.eye(4))
+    span = target_span(pts, base.diameter) if len(pts) >= MIN_POINTS else float("nan")
+    result = replace(result, target_span=span)
+    hint = span_hint(span)
+    if not result.ok and hint and result.reason:
+        result = replace(result, reason=f"{result.reason}; {hint}")
+    return result
 
 
 def estimate_readings(view: View, base: BaseObject, T_base_part: np.ndarray, params: Params,
@@ -223,15 +240,24 @@ def model_cut_mask(result: RegistrationResult, view: View, base: BaseObject,
     added for agreeing with the pose would only confirm it."""
     depth, mask, cam, T_world_camera = view.depth, view.mask, view.camera, view.T_world_camera
     seen, _ = raycast_source(base, result.T_world_base, T_world_camera, cam)
-    z = depth_buffer(seen, T_world_camera, cam).astype(np.float32)
-    zbuf = z if reach is not None else cv2.erode(z, np.ones((5, 5), np.uint8))  # 2 px wider, the nearer surface winning
+    # the window of the image the model shows, 3 px wider than the 2 px the silhouette is widened by: nothing
+    # below is true outside it, so the cut is the whole image's
+    z, win = depth_window(seen, T_world_camera, cam, 3)
+    cut = np.zeros(mask.shape, bool)
+    if z.size == 0:
+        return cut
+    z = z.astype(np.float32)
+    zbuf = z if reach is not None else nearest_within(z, 2)  # 2 px wider, the nearer surface winning
     tol = agreement_tolerance(result.voxel, result.depth_noise)
+    d = depth[win]
     with np.errstate(invalid="ignore"):
-        in_front = (depth > 0) & (depth < zbuf - tol)
-        cut = mask & np.isfinite(zbuf) & ~in_front
+        in_front = (d > 0) & (d < zbuf - tol)
+        cut[win] = mask[win] & np.isfinite(zbuf) & ~in_front
         if reach is not None:
-            on_surface = np.abs(depth - z) < tol  # (false off the silhouette, where z is inf)
-            cut |= (reach & on_surface) | like_nearest_depth(depth, on_surface, reach & np.isfinite(z))
+            on_surface, silhouette = np.zeros(mask.shape, bool), np.zeros(mask.shape, bool)
+            on_surface[win] = np.abs(d - z) < tol  # (false off the silhouette, where z is inf)
+            silhouette[win] = np.isfinite(z)
+            cut |= (reach & on_surface) | like_nearest_depth(depth, on_surface, reach & silhouette)
     return cut
 
 

@@ -10,6 +10,7 @@ import numpy as np
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.geometry.nn import NearestTree, local_normals
+from apose_studio.geometry.sensor import nearest_within
 from apose_studio.registration.base import raycast_source
 from apose_studio.registration.task import Task
 from apose_studio.registration.types import MIN_POINTS, Candidate
@@ -157,6 +158,24 @@ def depth_buffer(points_world: np.ndarray, T_world_camera: np.ndarray, cam: Came
     return zbuf
 
 
+def depth_window(points_world: np.ndarray, T_world_camera: np.ndarray, cam: CameraIntrinsics,
+                 margin: int) -> tuple[np.ndarray, tuple[slice, slice]]:
+    """`depth_buffer` over the window of the image the points fall in, `margin` pixels wider (clipped to the
+    image): (the window's buffer, the window as (rows, columns) slices of the image). A per-pixel test that
+    only counts pixels the model shows (and their neighbours within `margin`) reads the same in the window as
+    in the whole image, at a fraction of the cost (a base covers a few per cent of a 640 x 480 frame).
+    An empty window (0 x 0) when no point falls in the image."""
+    v, u, z, inside = pixels(points_world, T_world_camera, cam)
+    if not inside.any():
+        return np.full((0, 0), np.inf), (slice(0, 0), slice(0, 0))
+    v, u, z = v[inside], u[inside], z[inside]
+    v0, v1 = max(int(v.min()) - margin, 0), min(int(v.max()) + margin + 1, cam.height)
+    u0, u1 = max(int(u.min()) - margin, 0), min(int(u.max()) + margin + 1, cam.width)
+    zbuf = np.full((v1 - v0, u1 - u0), np.inf)
+    np.minimum.at(zbuf, (v - v0, u - u0), z)
+    return zbuf, (slice(v0, v1), slice(u0, u1))
+
+
 def evidence(points_world: np.ndarray, T_world_camera, cam: CameraIntrinsics, depth_obs: np.ndarray,
               mask: np.ndarray, outside: np.ndarray, tol: float,
               outside_box: np.ndarray | None = None) -> tuple[int, int]:
@@ -245,7 +264,7 @@ def discriminate(pb: "Task", close: list[int], cands: list[Candidate], traces: l
         v, u, z, inside = pix[i]
         zbuf[i] = np.full((v1 - v0, u1 - u0), np.inf, np.float32)
         zbuf[i][v[inside] - v0, u[inside] - u0] = z[inside]
-        lo[i], hi[i] = cv2.erode(zbuf[i], k), cv2.dilate(zbuf[i], k)  # the depths it shows within EDGE_PX
+        lo[i], hi[i] = nearest_within(zbuf[i], EDGE_PX), cv2.dilate(zbuf[i], k)  # the depths it shows within EDGE_PX
 
     def support(a, b):  # (confirmed, contradicted, compared) pixels of a that b shows nowhere near, along the ray
         za = zbuf[a]

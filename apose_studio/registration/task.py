@@ -17,7 +17,7 @@ from apose_studio.params import Params
 from apose_studio.registration.base import BaseObject
 from apose_studio.registration.stages import cloud, down_sample, estimate_normals
 from apose_studio.registration.table import table_plane
-from apose_studio.registration.types import Degenerate, Observation
+from apose_studio.registration.types import DEPTH_SCALE_WHERE, Degenerate, Observation
 
 
 @dataclass(frozen=True, eq=False)
@@ -134,21 +134,36 @@ from it in the last bits)."""
                 NearestTree(np.asarray(fine.points)), deadline, part_symmetries=part_symmetries, target_cam=target_cam)
 
 
+def factor_of(ratio: float) -> int:
+    """How many times too far (or near) a depth `ratio` times too wide looks: the power of ten when it is near one
+    (a unit mixed up: mm for 0.1 mm, mm for metres), else the ratio itself, rounded."""
+    k = 10 ** round(np.log10(ratio))
+    return int(k) if abs(np.log10(ratio / k)) < 0.15 else int(round(ratio))
+
+
+def target_span(target_pts: np.ndarray, diameter: float) -> float:
+    """The target's extent over the base's `diameter`: the diagonal of its 5th-95th percentile box (a few flying
+    pixels do not count). A view of a part never spans much more than its diameter (the mask may take in a little
+    clutter), and rarely much less than a tenth of it. NaN without points."""
+    if len(target_pts) == 0:
+        return float("nan")
+    lo, hi = np.percentile(target_pts, [5, 95], axis=0)
+    return float(np.linalg.norm(hi - lo)) / max(diameter, 1e-9)
+
+
 def scale_problem(target_pts: np.ndarray, diameter: float) -> str | None:
     """A unit error, in words, when the masked depth is far larger or smaller than the CAD could ever
-    look (depth_scale off by 10 or 1000, a model in the wrong unit); None when the sizes are compatible.
-
-    The target's extent is the diagonal of its 5th-95th percentile box; a view of a part never spans
-    much more than its diameter (the mask may take in a little clutter), and rarely much less than a
-    tenth of it."""
-    lo, hi = np.percentile(target_pts, [5, 95], axis=0)
-    ratio = float(np.linalg.norm(hi - lo)) / max(diameter, 1e-9)
+    look (depth_scale off by 10 or 1000, a model in the wrong unit: `target_span` over 4 or under 0.1); None
+    when the sizes are compatible."""
+    ratio = target_span(target_pts, diameter)
+    where = DEPTH_SCALE_WHERE
     if 4.0 < ratio:
-        k = 10 ** round(np.log10(ratio))
+        k = factor_of(ratio)
         return (f"the target is {ratio:.0f}x the base object's diameter ({diameter * 1000:.3g} mm): depth looks about "
-                f"{k}x too far; is depth_scale {k}x too large (1.0 instead of 0.1?), or the CAD's units too small?")
+                f"{k}x too far; is depth_scale {k}x too large{' (1.0 instead of 0.1?)' if k == 10 else ''} (check "
+                f"{where}), or the CAD's units too small?")
     if ratio < 0.1:
-        k = 10 ** round(-np.log10(max(ratio, 1e-12)))
+        k = factor_of(1.0 / max(ratio, 1e-12))
         return (f"the target spans only {ratio:.3f}x the base object's diameter ({diameter * 1000:.3g} mm): depth looks "
-                f"about {k}x too near; is depth_scale {k}x too small, or the CAD's units too large?")
+                f"about {k}x too near; is depth_scale {k}x too small (check {where}), or the CAD's units too large?")
     return None

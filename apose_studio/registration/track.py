@@ -28,6 +28,7 @@ import numpy as np
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.geometry.nn import NearestTree
+from apose_studio.geometry.sensor import nearest_within
 from apose_studio.params import Params
 from apose_studio.registration.base import BaseObject, raycast_source
 from apose_studio.registration.pipeline import judged
@@ -115,7 +116,7 @@ def predict(last: RegistrationResult, T_world_camera: np.ndarray, cam: CameraInt
     zbuf, window = window_buffer(seen, T_world_camera, cam, 1)
     if window is None or min(zbuf.shape) < 3:
         return Prediction(last.T_world_base, zbuf, None)
-    zbuf = cv2.erode(zbuf, np.ones((3, 3), np.uint8))  # the nearest of each 3x3: the splat's gaps closed
+    zbuf = nearest_within(zbuf, 1)  # the nearest of each 3x3: the splat's gaps closed
     return Prediction(last.T_world_base, zbuf, window)
 
 
@@ -318,7 +319,7 @@ def observed_mask(seen: np.ndarray, depth: np.ndarray, T_world_camera: np.ndarra
     if window is None:
         return mask
     v0, v1, u0, u1 = window
-    zbuf = cv2.erode(zbuf, np.ones((5, 5), np.uint8))
+    zbuf = nearest_within(zbuf, 2)
     d = depth[v0:v1, u0:u1]
     with np.errstate(invalid="ignore"):
         mask[v0:v1, u0:u1] = np.isfinite(zbuf) & (d > 0) & (np.abs(d - zbuf) < tol)

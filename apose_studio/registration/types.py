@@ -127,6 +127,8 @@ class RegistrationResult:
     # confident then. 1.0: none, or not checked
     depth_scale_gain: float = float("nan")  # how much more the best explained scaled depth is explained than the depth
     # as given (a share; below 0: less; NaN: not checked)
+    target_span: float = float("nan")  # the whole mask's depth: its extent over the base's diameter (task.target_span),
+    # set where the result is not confident (pipeline.spanned; NaN elsewhere); above SPAN_HINT the doubts say so
 
     @property
     def base_confident(self) -> bool:
@@ -204,12 +206,37 @@ def doubts(result: RegistrationResult) -> str:
     if result.depth_scale_better != 1.0:
         f = result.depth_scale_better
         why.append(f"the model explains the view {result.depth_scale_gain:.0%} better with every depth "
-                   f"{abs(f - 1):.0%} {'nearer' if f < 1 else 'farther'} (x {f:.2f}): the depth's scale looks off (check the "
-                   "depth_scale in camera.json, or the depth's unit, and that cam_K is for this image's resolution); the "
-                   "pose is off along the camera's rays by as much")
+                   f"{abs(f - 1):.0%} {'nearer' if f < 1 else 'farther'} (x {f:.2f}): the depth's scale looks off (check "
+                   f"{DEPTH_SCALE_WHERE}, and that cam_K is for this image's resolution); the pose is off along the "
+                   "camera's rays by as much")
     if result.ambiguous:
         why.append(f"{len(result.alternatives) + 1} placements fit the data equally (ambiguous)")
+    hint = span_hint(result.target_span)
+    if why and hint:
+        why.append(hint)
     return "; ".join(why)
+
+
+DEPTH_SCALE_WHERE = ("the depth_scale in camera.json (scene_camera.json in a BOP scene), or the depth's unit (metres in "
+                     "the API)")  # where a depth's scale is set, for every message that doubts it
+SPAN_HINT = 1.9  # a target this many times wider than the base's diameter is more than a view of the base: its mask
+# holds other things, or the depth's scale is off. benchmarks/captures.py's prompted masks (all their depth): 1.03
+# median, 1.60 at the 99th percentile, at most 1.89 (a motor's mask with a neighbour in it); a fidget casing's capture
+# with depth_scale 2x and 3x too large: 1.92, 2.80 (a span over 4 is refused outright: task.scale_problem)
+SPAN_LOW = 0.5  # ... and this many times narrower, too little of it, or a depth scaled too small: the same masks span
+# 0.30 at the least (a base mostly hidden), 0.62 at the 1st percentile; the fidget casing with depth_scale 0.5x: 0.43
+
+
+def span_hint(span: float) -> str:
+    """The words for a target `span` times the base's diameter (a doubt's or a failure's last clause), or "" where
+    the span is one a view of the base can have."""
+    if span > SPAN_HINT:
+        return (f"the masked depth spans {span:.1f}x the base object's diameter, more than any view of it: the mask takes "
+                f"in other things (draw the box tighter), or the depth's scale is off (check {DEPTH_SCALE_WHERE})")
+    if span < SPAN_LOW:
+        return (f"the masked depth spans only {span:.2f}x the base object's diameter: too little of the base is in view, "
+                f"or the depth's scale is too small (check {DEPTH_SCALE_WHERE})")
+    return ""
 
 
 def failed(reason: str, **kw) -> RegistrationResult:

@@ -98,3 +98,22 @@ def test_colour_edges_the_object_makes_itself_are_left_out_of_the_comparison():
     (du, dv), ratio = shift_evidence(painted, moved, box, own)
     assert (du, dv) == (-2, 3) and ratio < 0.5, ((du, dv), ratio)
     assert shift_evidence(painted, depth, box, own)[0] == (0, 0)
+
+
+def test_nearest_within_sees_nothing_beyond_the_image():
+    """The least depth within px of each pixel, inf beyond the image's edge (OpenCV's own border for a float
+    erosion is FLT_MAX: the edge's pixels read 3e38 m, finite), and the same in a window as in the whole image."""
+    from apose_studio.geometry.sensor import nearest_within
+
+    z = np.full((40, 60), np.inf, np.float32)
+    z[10:14, 20:25] = 1.0
+    z[12, 22] = 0.5
+    out = nearest_within(z, 2)
+    want = np.full_like(z, np.inf)
+    for v in range(40):  # the definition, pixel by pixel
+        for u in range(60):
+            want[v, u] = z[max(v - 2, 0):v + 3, max(u - 2, 0):u + 3].min()
+    np.testing.assert_array_equal(out, want)
+    assert np.isfinite(out).sum() == 8 * 9  # the 4 x 5 patch, 2 px wider each way; nothing at the image's edge
+    window = nearest_within(z[7:17, 17:28], 2)  # a window 3 px round the patch
+    np.testing.assert_array_equal(window, out[7:17, 17:28])

@@ -221,6 +221,78 @@ def test_explained_prefers_the_true_pose_and_counts_what_the_camera_sees_past():
     assert explained(RegistrationResult(ok=False), view, base) == float("-inf")
 
 
+def test_explained_counts_the_whole_image_also_where_the_base_runs_off_it():
+    """`explained` counts in the window the model shows; the same counts over the whole image (computed here from
+    the model's points splatted into a full-size buffer), with a prompt's box, and with the base half off the
+    image's edge (the window clipped there)."""
+    from apose_studio.registration.base import raycast_source
+    from apose_studio.registration.hypotheses import CONTRADICTION_WEIGHT
+    from apose_studio.registration.scoring import agreement_tolerance, mask_edge, pixels
+
+    base = _box_base()
+
+    def whole_image(r, view):
+        seen, _ = raycast_source(base, r.T_world_base, view.T_world_camera, view.camera)
+        v, u, z, inside = pixels(seen, view.T_world_camera, view.camera)
+        zbuf = np.full(view.depth.shape, np.inf)
+        for vv, uu, zz in zip(v[inside], u[inside], z[inside]):
+            zbuf[vv, uu] = min(zbuf[vv, uu], zz)
+        shown, d = np.isfinite(zbuf), view.depth
+        valid = shown & (d > 0)
+        tol = agreement_tolerance(r.voxel, r.depth_noise)
+        confirmed = valid & view.mask & (np.abs(d - zbuf) < tol)
+        past = valid & (d > zbuf + tol) & ~mask_edge(shown)
+        if view.box is not None:
+            past |= shown & view.outside_box() & ~(valid & (d < zbuf - tol))
+        return float(confirmed.sum()) - CONTRADICTION_WEIGHT * float(past.sum())
+
+    edge_camera = se3.look_at([0.35, -0.3, 0.35], [0.2, 0.3, 0.03])  # the base at the image's left edge
+    for camera in (CAMERA, edge_camera):
+        depth, mask = _table_scene(base, np.eye(4), camera)
+        for box in (None, (0, 0, 200, 200)):
+            view = View(depth, mask, CAM, camera, box=box)
+            for T in (np.eye(4), se3.make_T(np.eye(3), [0.01, 0.005, 0.0]), se3.make_T(np.eye(3), [0.0, 0.0, 0.02])):
+                r = RegistrationResult(ok=True, T_world_base=T, voxel=base.diameter / 50, depth_noise=0.0)
+                assert explained(r, view, base) == whole_image(r, view)
+    v, u, _, inside = pixels(base.samples, edge_camera, CAM)
+    assert (~inside).mean() > 0.2 and (u[inside] < 3).any()  # the edge case is one: part of the base off the image
+
+
+def test_the_model_cut_mask_is_the_whole_images_also_where_the_base_runs_off_it():
+    """pipeline.model_cut_mask cuts in the window the model shows; here the same cut over the whole image: the mask
+    where the model's depth (2 px wider, the nearer winning, nothing beyond the image) is not in front of it, and
+    the result's mask (the silhouette exactly, what the mask missed added where the depth lies on the model)."""
+    from apose_studio.registration.base import raycast_source
+    from apose_studio.registration.pipeline import like_nearest_depth, mask_reach, model_cut_mask
+    from apose_studio.registration.scoring import agreement_tolerance, pixels
+
+    base = _box_base()
+    edge_camera = se3.look_at([0.35, -0.3, 0.35], [0.2, 0.3, 0.03])  # the base half off the image's left edge
+    for camera in (CAMERA, edge_camera):
+        depth, mask = _table_scene(base, np.eye(4), camera)
+        mask[::7] = False  # a mask that missed rows of the base: the result's mask adds them back
+        depth[:, :2] = 0  # no depth in the image's first two columns (a sensor's edge)
+        mask[:, :2] = True  # ... where the mask runs on: only the model may say what there is the base
+        for T in (np.eye(4), se3.make_T(np.eye(3), [0.004, -0.003, 0.0])):
+            r = RegistrationResult(ok=True, T_world_base=T, voxel=base.diameter / 50, depth_noise=0.0)
+            view = View(depth, mask, CAM, camera)
+            seen, _ = raycast_source(base, T, camera, CAM)
+            v, u, z, inside = pixels(seen, camera, CAM)
+            zbuf = np.full(depth.shape, np.inf)
+            np.minimum.at(zbuf, (v[inside], u[inside]), z[inside])
+            zbuf = zbuf.astype(np.float32)
+            padded = np.pad(zbuf, 2, constant_values=np.inf)
+            wider = np.min([padded[i:i + depth.shape[0], j:j + depth.shape[1]] for i in range(5) for j in range(5)], axis=0)
+            tol = agreement_tolerance(r.voxel, 0.0)
+            want = mask & np.isfinite(wider) & ~((depth > 0) & (depth < wider - tol))
+            np.testing.assert_array_equal(model_cut_mask(r, view, base), want)
+            reach = mask_reach(view)
+            on = np.abs(depth - zbuf) < tol
+            want = (mask & np.isfinite(zbuf) & ~((depth > 0) & (depth < zbuf - tol))) | (reach & on) | \
+                like_nearest_depth(depth, on, reach & np.isfinite(zbuf))
+            np.testing.assert_array_equal(model_cut_mask(r, view, base, reach=reach), want)
+
+
 def test_pose_spread_is_small_for_a_corner_and_large_for_a_plane():
     base = _box_base()
     rng = np.random.default_rng(0)

@@ -365,7 +365,11 @@ def test_real_capture_folder(tmp_path):
            ({"fx": 60, "fy": 60, "cx": 32, "cy": 24}, "missing depth_scale"),
            ({"fx": 0, "fy": 60, "cx": 32, "cy": 24, "depth_scale": 1}, "fx and fy must be positive"),
            ({"fx": -60, "fy": 60, "cx": 32, "cy": 24, "depth_scale": 1}, "fx and fy must be positive"),
-           ({"fx": 60, "fy": 60, "cx": 320, "cy": 240, "depth_scale": 1}, "principal point .* outside the 64x48 image"),
+           ({"fx": 60, "fy": 60, "cx": 320, "cy": 240, "depth_scale": 1}, "principal point .* centre of a 640x480 image, not of this 64x48"),
+           ({"fx": 60, "fy": 60, "cx": 70, "cy": 24, "depth_scale": 1}, "principal point .* outside the 64x48 image"),
+           ({"fx": 60, "fy": 60, "cx": 0, "cy": 0, "depth_scale": 1}, "outside the 64x48 image or on its edge"),
+           ({"fx": 60, "fy": 60, "cx": 32, "cy": 24, "width": 128, "height": 96, "depth_scale": 1},
+            "width is 128 but the images are 64x48"),
            ({"cam_K": [60, 0, 32], "depth_scale": 1}, "cam_K must be 9 numbers"),
            ({"fx": 60, "fy": 60, "cx": 32, "cy": 24, "depth_scale": 0.001}, "depth_scale 0.001 from .*camera.json: is depth_scale too small"),
            ({"fx": "a", "fy": 60, "cx": 32, "cy": 24, "depth_scale": 1}, "fx must be a finite number")]
