@@ -171,6 +171,9 @@ def estimate_pose(rgb: np.ndarray, depth: np.ndarray, K, assembly, step: int, *,
     m, source = array_mask(rgb, depth, cam, mask, box, point, region=ctx.base.region is not None)
     view = View(depth, m, cam, np.asarray(T_world_camera, float), rgb=rgb, box=box)
     est = run_registration(view, source, ctx, p, orientation_prior, t0, time.perf_counter() - t1, t_load=t_load)
+    if est.result is not None and est.result.input_error:  # the input's fault, found at the estimate (units 10x off,
+        # a mask of the whole scene): bad input, raised as every other is (`apose estimate` exits 2 on it)
+        raise AposeError(est.reason)
     est.world = world
     if shift != (0, 0):  # moved before the mask, as asked (the estimate then found none left to move)
         est.depth_shift_px = shift

@@ -467,6 +467,19 @@ def test_a_box_reaching_off_the_image_is_taken_as_typed_and_an_inverted_one_is_e
     assert r.returncode in (0, 1) and "expected one argument" not in r.stderr, r.stderr
 
 
+def test_the_api_raises_on_depth_in_the_wrong_unit(capture):
+    """Depth in millimetres handed to the API (which takes metres): bad input, raised as AposeError as any other
+    (it returned ok=False, as a failed estimate does, while `apose estimate` exits 2 on it), saying where the unit is
+    set."""
+    from apose_studio.api import estimate_pose
+    from apose_studio.errors import AposeError
+
+    f = capture["frame"]
+    box = tuple(int(v) for v in capture["box"].split(","))
+    with pytest.raises(AposeError, match="depth looks about 1000x too far.*metres in the API"):
+        estimate_pose(f.rgb, f.depth * 1000, f.camera.K, capture["asm"], 2, box=box)
+
+
 @pytest.mark.parametrize("kw,said", [
     (dict(box=(float("nan"), 0, 10, 10)), "box must be 4 finite pixel numbers"),
     (dict(box="a,b"), "box must be 4 pixel numbers"),
