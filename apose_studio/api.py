@@ -19,7 +19,7 @@ import numpy as np
 
 from apose_studio.assembly.grasps import Grasp
 from apose_studio.assembly.model import Assembly
-from apose_studio.data.dataset import world_frame
+from apose_studio.data.dataset import check_camera_entry, world_frame
 from apose_studio.errors import AposeError
 from apose_studio.estimation import (
     StepContext,
@@ -31,7 +31,7 @@ from apose_studio.estimation import (
     step_context,
 )
 from apose_studio.geometry import se3
-from apose_studio.geometry.camera import CameraIntrinsics, principal_point_problem
+from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.registration import Params, doubts, resolve_params
 from apose_studio.registration.types import RegistrationResult, View
 from apose_studio.robot.handeye import HandEye, read_hand_eye
@@ -95,8 +95,8 @@ class PoseEstimate:
 
 def camera_from_K(K, width: int, height: int) -> CameraIntrinsics:
     """The intrinsics of a `width` x `height` image from K (3x3, or its 9 numbers row by row), checked as a capture's
-    camera.json is (data.dataset.check_camera_entry): a pinhole matrix without skew, the principal point one of this
-    image's. AposeError naming K otherwise."""
+    camera.json is (data.dataset.check_camera_entry: a pinhole matrix without skew, focal lengths a camera can have,
+    the principal point one of this image's). AposeError naming K otherwise."""
     try:
         K = np.asarray(K, float)
     except (TypeError, ValueError):
@@ -105,17 +105,7 @@ def camera_from_K(K, width: int, height: int) -> CameraIntrinsics:
         K = K.reshape(3, 3)
     if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
         raise AposeError(f"K must be a 3x3 intrinsic matrix with positive fx, fy; got {np.asarray(K).tolist()}"[:200])
-    if K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
-        raise AposeError(f"K's last row must be 0 0 1 and K[1][0] 0 (a pinhole camera matrix, row by row), got rows "
-                         f"{K[1].tolist()} and {K[2].tolist()}; is it transposed?"[:240])
-    if abs(K[0, 1]) > 1e-6 * K[0, 0]:
-        raise AposeError(f"K[0][1] (skew) is {K[0, 1]:g}; apose's pinhole model has no skew (rectify the images, or set it "
-                         "to 0 if the calibration's skew is negligible)")
-    cam = CameraIntrinsics.from_K(K, width, height)
-    wrong_size = principal_point_problem(cam.width, cam.height, cam.cx, cam.cy)
-    if wrong_size is not None:
-        raise AposeError(f"K: {wrong_size}")
-    return cam
+    return check_camera_entry({"cam_K": K.reshape(-1).tolist(), "depth_scale": 1.0}, "K", width, height)[0]
 
 
 def pixel_numbers(value, n: int, name: str) -> tuple[int, ...] | None:

@@ -338,7 +338,7 @@ def check_camera_entry(cam, where: str, width: int, height: int) -> tuple[Camera
         fx, skew, cx, _, fy, cy = k[:6]
         if k[3] != 0 or k[6] != 0 or k[7] != 0 or abs(k[8] - 1.0) > 1e-9:
             raise DatasetError(f"{where}: cam_K's last row must be 0 0 1 and K[3] 0 (a pinhole camera matrix), got "
-                               f"{k[3]:g}, {k[6]:g} {k[7]:g} {k[8]:g}; is it the row-major 3x3 matrix?")
+                               f"{k[3]:g}, {k[6]:g} {k[7]:g} {k[8]:g}; is it transposed? (it is the row-major 3x3 matrix)")
         if abs(skew) > 1e-6 * max(abs(fx), 1.0):
             raise DatasetError(f"{where}: cam_K[1] (skew) is {skew:g}; apose's pinhole model has no skew. Rectify the "
                                "images, or set it to 0 if the calibration's skew is negligible")

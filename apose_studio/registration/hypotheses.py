@@ -277,11 +277,12 @@ def explained(result: RegistrationResult, view: View, base: BaseObject, region: 
     if not result.ok or result.T_world_base is None:
         return float("-inf")
     seen, _ = raycast_source(base, result.T_world_base, view.T_world_camera, view.camera)
-    if len(seen) == 0:
-        return float("-inf")
     # every pixel counted below is one the model shows: the window round them (wider than the outline's margin,
     # so that mask_edge reads there as in the whole image) gives the same counts as the whole image
-    zbuf, win = depth_window(seen, view.T_world_camera, view.camera, MASK_MARGIN_PX + 2)
+    zbuf, box = depth_window(seen, view.T_world_camera, view.camera, MASK_MARGIN_PX + 2)
+    if box is None:  # (fewer than 3 of its points in the image) the model is not in view
+        return float("-inf")
+    win = np.s_[box[0]:box[1], box[2]:box[3]]
     shown = np.isfinite(zbuf)
     d = view.depth[win]
     valid = shown & np.isfinite(d) & (d > 0)
@@ -289,9 +290,9 @@ def explained(result: RegistrationResult, view: View, base: BaseObject, region: 
     with np.errstate(invalid="ignore"):
         confirmed = valid & (view.mask if region is None else region)[win] & (np.abs(d - zbuf) < tol)
         past = valid & (d > zbuf + tol) & ~mask_edge(shown)
-        box = view.outside_box()
-        if box is not None:  # shown where the user's box says the base is not (and nothing nearer hides it)
-            past |= shown & box[win] & ~(valid & (d < zbuf - tol))
+        outside = view.outside_box()
+        if outside is not None:  # shown where the user's box says the base is not (and nothing nearer hides it)
+            past |= shown & outside[win] & ~(valid & (d < zbuf - tol))
     return float(confirmed.sum()) - CONTRADICTION_WEIGHT * float(past.sum())
 
 

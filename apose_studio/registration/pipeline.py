@@ -36,7 +36,6 @@ from apose_studio.registration.refine import (
 )
 from apose_studio.registration.scoring import (
     agreement_tolerance,
-    depth_buffer,
     depth_window,
     distinct_placements,
     evidence,
@@ -242,10 +241,11 @@ def model_cut_mask(result: RegistrationResult, view: View, base: BaseObject,
     seen, _ = raycast_source(base, result.T_world_base, T_world_camera, cam)
     # the window of the image the model shows, 3 px wider than the 2 px the silhouette is widened by: nothing
     # below is true outside it, so the cut is the whole image's
-    z, win = depth_window(seen, T_world_camera, cam, 3)
+    z, box = depth_window(seen, T_world_camera, cam, 3)
     cut = np.zeros(mask.shape, bool)
-    if z.size == 0:
+    if box is None:
         return cut
+    win = np.s_[box[0]:box[1], box[2]:box[3]]
     z = z.astype(np.float32)
     zbuf = z if reach is not None else nearest_within(z, 2)  # 2 px wider, the nearer surface winning
     tol = agreement_tolerance(result.voxel, result.depth_noise)
@@ -505,18 +505,15 @@ def outline_continuation(seen: np.ndarray, view: View, tol: float, plane: tuple[
     occluder in front); a model laid onto part of a larger surface (a box face in front of the base) has
     that surface running on past its outline all round. The table at the base's foot (within `slack` of
     `plane`) does not count as running on. NaN when the ring has too few pixels with depth."""
-    zbuf = depth_buffer(seen, view.T_world_camera, view.camera).astype(np.float32)
-    shown = np.isfinite(zbuf)
-    if shown.sum() < MIN_POINTS:
-        return float("nan")
     near_px, far_px = OUTLINE_RING_PX
     # the window round the silhouette that the ring and the edge's depth can reach (the same numbers as on the
     # whole image, at a fraction of the cost: dilation and erosion leave pixels beyond their reach unchanged)
-    rows, cols = np.nonzero(shown.any(axis=1))[0], np.nonzero(shown.any(axis=0))[0]
-    m = 2 * far_px + 2
-    v0, u0 = max(int(rows[0]) - m, 0), max(int(cols[0]) - m, 0)
-    v1, u1 = int(rows[-1]) + m + 1, int(cols[-1]) + m + 1
-    zbuf, shown, d = zbuf[v0:v1, u0:u1], shown[v0:v1, u0:u1], view.depth[v0:v1, u0:u1]
+    zbuf, box = depth_window(seen, view.T_world_camera, view.camera, 2 * far_px + 2)
+    shown = np.isfinite(zbuf)
+    if box is None or shown.sum() < MIN_POINTS:
+        return float("nan")
+    v0, v1, u0, u1 = box
+    zbuf, d = zbuf.astype(np.float32), view.depth[v0:v1, u0:u1]
     inner = cv2.dilate(shown.astype(np.uint8), np.ones((2 * near_px + 1,) * 2, np.uint8)) > 0
     outer = cv2.dilate(shown.astype(np.uint8), np.ones((2 * far_px + 1,) * 2, np.uint8)) > 0
     ring = outer & ~inner

@@ -158,22 +158,33 @@ def depth_buffer(points_world: np.ndarray, T_world_camera: np.ndarray, cam: Came
     return zbuf
 
 
-def depth_window(points_world: np.ndarray, T_world_camera: np.ndarray, cam: CameraIntrinsics,
-                 margin: int) -> tuple[np.ndarray, tuple[slice, slice]]:
-    """`depth_buffer` over the window of the image the points fall in, `margin` pixels wider (clipped to the
-    image): (the window's buffer, the window as (rows, columns) slices of the image). A per-pixel test that
-    only counts pixels the model shows (and their neighbours within `margin`) reads the same in the window as
-    in the whole image, at a fraction of the cost (a base covers a few per cent of a 640 x 480 frame).
-    An empty window (0 x 0) when no point falls in the image."""
+def pixel_box(points_world: np.ndarray, T_world_camera: np.ndarray, cam: CameraIntrinsics, pad: int):
+    """(v, u, z of the points in front of the camera and in the image; their pixel box `pad` pixels wider,
+    clipped to the image, as (v0, v1, u0, u1)), or None when fewer than 3 points fall in the image."""
     v, u, z, inside = pixels(points_world, T_world_camera, cam)
-    if not inside.any():
-        return np.full((0, 0), np.inf), (slice(0, 0), slice(0, 0))
+    inside &= z > 0
+    if inside.sum() < 3:
+        return None
     v, u, z = v[inside], u[inside], z[inside]
-    v0, v1 = max(int(v.min()) - margin, 0), min(int(v.max()) + margin + 1, cam.height)
-    u0, u1 = max(int(u.min()) - margin, 0), min(int(u.max()) + margin + 1, cam.width)
+    box = (max(int(v.min()) - pad, 0), min(int(v.max()) + pad + 1, cam.height),
+           max(int(u.min()) - pad, 0), min(int(u.max()) + pad + 1, cam.width))
+    return v, u, z, box
+
+
+def depth_window(points_world: np.ndarray, T_world_camera: np.ndarray, cam: CameraIntrinsics,
+                 pad: int) -> tuple[np.ndarray, tuple[int, int, int, int] | None]:
+    """`depth_buffer` over the points' pixel box only (`pixel_box`: `pad` pixels wider, clipped to the image):
+    (the nearest depth per pixel there, inf where none; the box (v0, v1, u0, u1)), or
+    (empty, None) when fewer than 3 points fall in the image. A per-pixel test that only counts pixels the points
+    show (and their neighbours within `pad`) reads the same in the box as in the whole image, at a fraction of the
+    cost (a base covers a few per cent of a 640 x 480 frame)."""
+    found = pixel_box(points_world, T_world_camera, cam, pad)
+    if found is None:
+        return np.full((0, 0), np.inf), None
+    v, u, z, (v0, v1, u0, u1) = found
     zbuf = np.full((v1 - v0, u1 - u0), np.inf)
     np.minimum.at(zbuf, (v - v0, u - u0), z)
-    return zbuf, (slice(v0, v1), slice(u0, u1))
+    return zbuf, (v0, v1, u0, u1)
 
 
 def evidence(points_world: np.ndarray, T_world_camera, cam: CameraIntrinsics, depth_obs: np.ndarray,

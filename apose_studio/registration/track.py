@@ -32,7 +32,7 @@ from apose_studio.geometry.sensor import nearest_within
 from apose_studio.params import Params
 from apose_studio.registration.base import BaseObject, raycast_source
 from apose_studio.registration.pipeline import judged
-from apose_studio.registration.scoring import NOISE_SIGMAS, agreement_tolerance, pixels
+from apose_studio.registration.scoring import NOISE_SIGMAS, agreement_tolerance, depth_window, pixel_box
 from apose_studio.registration.solvers import icp_point_to_plane
 from apose_studio.registration.stages import down_sample
 from apose_studio.registration.table import table_plane
@@ -81,41 +81,14 @@ class Prediction:
     window: tuple[int, int, int, int] | None
 
 
-def pixel_box(points_world: np.ndarray, T_world_camera: np.ndarray, cam: CameraIntrinsics, pad: int):
-    """(v, u, z of the points in front of the camera and in the image; their pixel box `pad` pixels wider,
-    clipped to the image, as (v0, v1, u0, u1)), or None when fewer than 3 points fall in the image."""
-    v, u, z, inside = pixels(points_world, T_world_camera, cam)
-    inside &= z > 0
-    if inside.sum() < 3:
-        return None
-    v, u, z = v[inside], u[inside], z[inside]
-    box = (max(int(v.min()) - pad, 0), min(int(v.max()) + pad + 1, cam.height),
-           max(int(u.min()) - pad, 0), min(int(u.max()) + pad + 1, cam.width))
-    return v, u, z, box
-
-
-def window_buffer(points_world: np.ndarray, T_world_camera: np.ndarray, cam: CameraIntrinsics,
-                  pad: int) -> tuple[np.ndarray, tuple[int, int, int, int] | None]:
-    """scoring.depth_buffer on the points' pixel box only (`pad` pixels wider, clipped to the image): (the
-    nearest depth per pixel there, float32, inf where none; the box (v0, v1, u0, u1)), or (empty, None) when
-    no point falls in the image. The same numbers in the box, without a whole image to fill and filter."""
-    found = pixel_box(points_world, T_world_camera, cam, pad)
-    if found is None:
-        return np.zeros((0, 0), np.float32), None
-    v, u, z, (v0, v1, u0, u1) = found
-    zbuf = np.full((v1 - v0, u1 - u0), np.inf)
-    np.minimum.at(zbuf, (v - v0, u - u0), z)
-    return zbuf.astype(np.float32), (v0, v1, u0, u1)
-
-
 def predict(last: RegistrationResult, T_world_camera: np.ndarray, cam: CameraIntrinsics) -> Prediction:
     """The base at the last pose seen from the new camera: what the camera saw of it then (the last
     result's source cloud, one point per pixel), splatted into the new image, its gaps closed (the
     window's depth, `Prediction.zbuf`)."""
     seen = se3.transform_points(last.T_world_base, last.source_cloud)
-    zbuf, window = window_buffer(seen, T_world_camera, cam, 1)
+    zbuf, window = depth_window(seen, T_world_camera, cam, 1)
     if window is None or min(zbuf.shape) < 3:
-        return Prediction(last.T_world_base, zbuf, None)
+        return Prediction(last.T_world_base, zbuf.astype(np.float32), None)
     zbuf = nearest_within(zbuf, 1)  # the nearest of each 3x3: the splat's gaps closed
     return Prediction(last.T_world_base, zbuf, window)
 
@@ -314,7 +287,7 @@ def observed_mask(seen: np.ndarray, depth: np.ndarray, T_world_camera: np.ndarra
     """The base's mask as the tracked pose finds it in the depth: pixels of the model's silhouette (2 px wider,
     as the model-cut mask) where the depth lies within `tol` of the model's surface. What the judge takes as
     the mask: where the camera sees past the model away from this mask's edge contradicts the pose."""
-    zbuf, window = window_buffer(seen, T_world_camera, cam, 3)
+    zbuf, window = depth_window(seen, T_world_camera, cam, 3)
     mask = np.zeros(depth.shape, bool)
     if window is None:
         return mask
