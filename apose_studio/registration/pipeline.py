@@ -228,14 +228,17 @@ def model_cut_mask(result: RegistrationResult, view: View, base: BaseObject,
     bool: `mask_reach(view)`), the result's mask: the silhouette exactly (clutter touching the base lies
     in the 2 px), and the pixels there that the mask missed added where the depth lies on the model's
     surface (within the tolerance) or where there is no depth and the nearest depth does (like_nearest_depth):
-    what the model shows, not only the share of it the prompt caught.
+    what the model shows, not only the share of it the prompt caught. With a colour image, what the depth cannot
+    place there (a pixel without depth, the mask's own too, or one the mask missed) stays only where its colour is
+    the base's rather than that of what stands in front (as_common_in).
 
     Every ok result carries it (`model_mask`): on 240 cluttered renders with box prompts
     (benchmarks/captures.py, Kinect-like noise) the cut raised the mask IoU against the renderer's masks
     from 0.85 to 0.93. The exact silhouette and the pixels added back (prompted masks there miss about
     5 % of the base) raised it over its 528 frames from 0.868 to 0.908, and with a flat object on the
     base from 0.809 to 0.868; the holes added back, from 0.914 to 0.925, 0.880 to 0.896 with the flat object,
-    0.706 to 0.750 for a mostly hidden base (docs/BENCHMARKS.md). The second look registers on the cut alone: pixels
+    0.706 to 0.750 for a mostly hidden base; their colour, from 0.930 to 0.936, 0.896 to 0.913 with the flat object
+    (docs/BENCHMARKS.md). The second look registers on the cut alone: pixels
     added for agreeing with the pose would only confirm it."""
     depth, mask, cam, T_world_camera = view.depth, view.mask, view.camera, view.T_world_camera
     seen, _ = raycast_source(base, result.T_world_base, T_world_camera, cam)
@@ -258,7 +261,40 @@ def model_cut_mask(result: RegistrationResult, view: View, base: BaseObject,
             on_surface[win] = np.abs(d - z) < tol  # (false off the silhouette, where z is inf)
             silhouette[win] = np.isfinite(z)
             cut |= (reach & on_surface) | like_nearest_depth(depth, on_surface, reach & silhouette)
+            if view.rgb is not None and view.rgb.ndim == 3 and view.rgb.shape[:2] == mask.shape:
+                # what neither the depth nor the prompt vouches for: a pixel without depth (the mask's own too), or
+                # one on the surface that the mask missed; it stays where its colour is the base's more than that of
+                # what stands in front. In front of the model's depth 2 px wider: a pixel that took the depth of
+                # the base's own nearer edge beside it (a Kinect bleeds near surfaces a pixel or two into far ones,
+                # between a ring gear's teeth) is not an occluder, and its shadowed colour not an occluder's
+                doubtful = (cut[win] & ~((d > 0) & np.isfinite(d))) | (reach[win] & on_surface[win] & ~mask[win])
+                front = (d > 0) & (d < nearest_within(z, 2) - tol) & silhouette[win]
+                cut[win] &= ~(doubtful & ~as_common_in(view.rgb[win], on_surface[win], front))
     return cut
+
+
+COLOUR_BINS = 8  # as_common_in's bins per channel (32 levels each: a surface's shading stays in one or two)
+COLOUR_MIN_PX = 20  # ... and the fewest pixels of either kind it compares on
+
+
+def as_common_in(rgb: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the pixels whose colour (COLOUR_BINS per channel) is at least as common among `a`'s pixels as
+    among `b`'s, each counted as a share of its own. All true when either has fewer than COLOUR_MIN_PX pixels: no
+    colour is told apart then. The result's mask asks it of what the depth cannot place (model_cut_mask): a
+    pixel without depth is the base's when it looks like the pixels on the model's surface rather than like
+    those standing in front of it (a dark object in front of a duck, its depth mostly missing, took 431 pixels
+    of the duck's mask of 2,709: benchmarks/captures.py, stacked). Shares, not the nearest colours as the prompt's
+    masks.prompt._nearer_colour: a few dark pixels in front (a bled edge, a shadow) would make every dark hole of
+    the base an occluder's (that test here: the stacked row's IoU 0.913 -> 0.830, docs/BENCHMARKS.md)."""
+    na, nb = int(np.count_nonzero(a)), int(np.count_nonzero(b))
+    if na < COLOUR_MIN_PX or nb < COLOUR_MIN_PX:
+        return np.ones(a.shape, bool)
+    q = np.clip(rgb.astype(np.int64) * COLOUR_BINS // 256, 0, COLOUR_BINS - 1)  # (8-bit colour; anything else clipped)
+    code = (q[..., 0] * COLOUR_BINS + q[..., 1]) * COLOUR_BINS + q[..., 2]
+    n = COLOUR_BINS ** 3
+    share_a = np.bincount(code[a], minlength=n) / na
+    share_b = np.bincount(code[b], minlength=n) / nb
+    return share_a[code] >= share_b[code]
 
 
 HOLE_SEARCH_PX = 16  # like_nearest_depth looks this far round the pixels asked about for depth

@@ -293,6 +293,67 @@ def test_the_model_cut_mask_is_the_whole_images_also_where_the_base_runs_off_it(
             np.testing.assert_array_equal(model_cut_mask(r, view, base, reach=reach), want)
 
 
+def test_what_the_depth_cannot_place_joins_the_result_mask_by_its_colour():
+    """A grey box with a dark object standing in front of part of it, the dark object's depth mostly missing (a
+    Kinect reads nothing off dark surfaces) and the box's own dark-free face with holes too; the prompt's mask
+    took in all of it. The result's mask keeps the box's holes (their colour is that of the box's surface) and
+    leaves out the dark object's (their colour is that of what stands in front); without a colour image, both
+    stay, as the depth alone cannot tell them apart. The truth here is built by hand, pixel by pixel."""
+    from apose_studio.registration.base import raycast_source
+    from apose_studio.registration.pipeline import mask_reach, model_cut_mask
+    from apose_studio.registration.scoring import pixels
+
+    base = _box_base()
+    depth, mask = _table_scene(base, np.eye(4), CAMERA)
+    seen, _ = raycast_source(base, np.eye(4), CAMERA, CAM)
+    v, u, z, inside = pixels(seen, CAMERA, CAM)
+    zbuf = np.full(depth.shape, np.inf)
+    np.minimum.at(zbuf, (v[inside], u[inside]), z[inside])
+    silhouette = np.isfinite(zbuf)
+    vs, us = np.nonzero(silhouette)
+    rgb = np.full(depth.shape + (3,), 150, np.uint8)  # the box and the table: grey
+    # the dark object: the silhouette's left third, 5 cm in front of the box; 85 % of its pixels without depth
+    dark = silhouette & (np.arange(depth.shape[1])[None, :] < us.min() + (us.max() - us.min()) // 3)
+    rgb[dark] = (20, 20, 30)
+    rng = np.random.default_rng(0)
+    depth[dark] = zbuf[dark] - 0.05
+    dark_holes = dark & (rng.random(depth.shape) < 0.85)
+    depth[dark_holes] = 0
+    box_holes = silhouette & ~dark & (rng.random(depth.shape) < 0.1)  # the box's own holes, grey
+    depth[box_holes] = 0
+    mask = silhouette.copy()  # the prompt took in the box and the dark object
+    r = RegistrationResult(ok=True, T_world_base=np.eye(4), voxel=base.diameter / 50, depth_noise=0.0)
+    box = (int(us.min()) - 10, int(vs.min()) - 10, int(us.max()) + 11, int(vs.max()) + 11)
+    for with_colour in (True, False):
+        view = View(depth, mask, CAM, CAMERA, rgb=rgb if with_colour else None, box=box)
+        got = model_cut_mask(r, view, base, reach=mask_reach(view))
+        assert got[box_holes].all()  # the box's holes stay either way
+        assert not got[dark & (depth > 0)].any()  # what the depth puts in front is cut either way
+        if with_colour:
+            assert not got[dark_holes].any(), int(got[dark_holes].sum())
+            assert (got == (silhouette & ~dark)).all()  # exactly the box's pixels
+        else:
+            assert got[dark_holes].all()  # the depth alone keeps the mask's holes
+
+
+def test_as_common_in_tells_colours_by_their_share_and_keeps_all_on_too_little():
+    from apose_studio.registration.pipeline import COLOUR_MIN_PX, as_common_in
+
+    rgb = np.zeros((10, 40, 3), np.uint8)
+    rgb[:, :20] = (200, 30, 30)  # red on the left, blue on the right
+    rgb[:, 20:] = (30, 30, 200)
+    a = np.zeros((10, 40), bool)
+    b = np.zeros((10, 40), bool)
+    a[:, :18] = True  # a: mostly red, a little blue
+    a[:, 20:22] = True
+    b[:, 25:] = True  # b: blue
+    got = as_common_in(rgb, a, b)
+    assert got[:, :20].all() and not got[:, 20:].any()
+    few = np.zeros_like(b)
+    few.flat[:COLOUR_MIN_PX - 1] = True
+    assert as_common_in(rgb, a, few).all()  # too few pixels to tell a colour by
+
+
 def test_pose_spread_is_small_for_a_corner_and_large_for_a_plane():
     base = _box_base()
     rng = np.random.default_rng(0)

@@ -85,6 +85,20 @@ def test_a_flat_object_of_another_colour_is_told_apart_by_its_colour():
     assert r.reading.startswith("without colour")
 
 
+def test_a_dark_object_in_front_without_depth_stays_out_of_the_result_mask():
+    """A dark object stands in front of the duck; a Kinect reads depth off few of its pixels, and the prompted mask
+    takes in the rest, pixels without depth that nothing in the depth tells from the duck's own holes. Their colour
+    does: that of what stands in front, not of the duck's surface. Before, the result's mask kept them (431 false
+    pixels of a mask of 2,709, IoU 0.85); the pose and its confidence are as before."""
+    frame, r, mask, err = estimate_prompted(DESK, 4, 0, clutter="bench,stacked", **KINECT)
+    truth = frame.base_mask()
+    assert r.ok and r.confident and err < 0.1, (r.reason, err)
+    no_depth = ~(frame.depth > 0)
+    assert (mask & ~truth & no_depth).sum() > 300  # the prompted mask holds the dark object's holes
+    assert (r.model_mask & ~truth & no_depth).sum() < 30
+    assert iou(r.model_mask, truth) > 0.93
+
+
 def test_a_base_mostly_hidden_behind_an_object_in_front():
     """A box stands in front of the casing and leaves a quarter of it visible; the prompt around that quarter
     takes in the box (the mask holds something else). It was right and confident without that depth patch;
