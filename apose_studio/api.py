@@ -24,6 +24,7 @@ from apose_studio.errors import AposeError
 from apose_studio.estimation import (
     StepContext,
     array_mask,
+    check_colour,
     check_mask,
     colour_registered,
     estimate_pick,
@@ -126,7 +127,8 @@ def estimate_pose(rgb: np.ndarray, depth: np.ndarray, K, assembly, step: int, *,
                   mask=None, box=None, point=None, preset: str = "default", orientation_prior: bool = False,
                   hand_eye=None, grasp: str | None = None, pick_box=None, pick_point=None, T_robot_flange=None,
                   align_depth: bool = False, **params) -> PoseEstimate:
-    """The assembly pose of `step`'s part from one frame. rgb (H, W, 3) uint8; depth (H, W) metres (0 or
+    """The assembly pose of `step`'s part from one frame. rgb (H, W, 3) uint8 (RGBA loses its alpha, a grey (H, W)
+    image is taken as each channel; a float or 16-bit image is refused with the fix); depth (H, W) metres (0 or
     NaN where missing); K 3x3. Raises AposeError on bad input; a failed estimate is ok=False with a reason.
 
     With `hand_eye` (a HandEye, or the path of a calibration file: robot.handeye) the estimate also carries
@@ -145,10 +147,7 @@ def estimate_pose(rgb: np.ndarray, depth: np.ndarray, K, assembly, step: int, *,
     depth = np.asarray(depth, np.float32)
     if depth.ndim != 2:
         raise AposeError(f"depth must be an (H, W) image in metres, got shape {depth.shape}")
-    rgb = np.asarray(rgb)
-    if rgb.shape[:2] != depth.shape:
-        raise AposeError(f"RGB is {rgb.shape[1]}x{rgb.shape[0]} but depth is {depth.shape[1]}x{depth.shape[0]}; "
-                         "align depth to colour first")
+    rgb = check_colour(rgb, depth.shape)
     depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0).astype(np.float32)
     cam = camera_from_K(K, depth.shape[1], depth.shape[0])
     asm, ctx = step_context(assembly, step)  # cached: the second call for this file and step costs nothing

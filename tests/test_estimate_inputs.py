@@ -501,3 +501,37 @@ def test_the_api_names_a_bad_prompt_or_step(kw, said):
     with pytest.raises(AposeError, match=said):
         estimate_pose(rgb, depth, [[50, 0, 32], [0, 50, 24], [0, 0, 1]], SAMPLES / "helical_gearbox" / "assembly.yaml",
                       **args)
+
+
+@pytest.mark.parametrize("rgb, said", [
+    (np.full((48, 64, 3), 0.5), r"uint8, 0-255\), got float64 with values 0.5 to 0.5; give \(rgb \* 255\)"),
+    (np.full((48, 64, 3), 300, np.uint16), r"got uint16 .* give \(rgb >> 8\)"),
+    (np.full((48, 64, 3), np.nan, np.float32), "holds NaN or inf"),
+    (np.zeros((48, 64, 2), np.uint8), r"must be an \(H, W, 3\) colour image, got shape \(48, 64, 2\)"),
+    (np.zeros((40, 64, 3), np.uint8), "rgb is 64x40 but the depth is 64x48"),
+    (np.zeros((48, 64, 3), object), "got object"),
+])
+def test_the_api_names_a_colour_image_it_cannot_read(rgb, said):
+    """estimate_pose with a colour image of another kind than 8-bit (a float image in 0-1, 16-bit colour, NaN, two
+    channels, another size): an AposeError naming what it got and the fix. OpenCV's own error from deep inside
+    the mask was all a caller got before."""
+    from apose_studio.api import estimate_pose
+    from apose_studio.errors import AposeError
+
+    from .conftest import SAMPLES
+
+    depth = np.full((48, 64), 0.5, np.float32)
+    with pytest.raises(AposeError, match=said):
+        estimate_pose(rgb, depth, [[50, 0, 32], [0, 50, 24], [0, 0, 1]], SAMPLES / "helical_gearbox" / "assembly.yaml",
+                      1, box=(10, 10, 40, 40))
+
+
+def test_a_grey_or_rgba_colour_image_is_read_as_rgb():
+    from apose_studio.estimation import check_colour
+
+    grey = np.arange(12, dtype=np.uint8).reshape(3, 4)
+    np.testing.assert_array_equal(check_colour(grey, (3, 4)), np.stack([grey] * 3, axis=2))
+    rgba = np.arange(48, dtype=np.uint8).reshape(3, 4, 4)
+    got = check_colour(rgba, (3, 4))
+    assert got.shape == (3, 4, 3) and got.flags.c_contiguous
+    np.testing.assert_array_equal(got, rgba[..., :3])
