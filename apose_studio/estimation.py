@@ -219,30 +219,38 @@ def check_mask(mask: np.ndarray, shape: tuple[int, int], what: str = "mask") -> 
 
 def check_colour(rgb, shape: tuple[int, int], what: str = "rgb") -> np.ndarray:
     """A caller's colour image as (H, W, 3) uint8 of the depth's size: RGBA loses its alpha, a grey (H, W) image is
-    taken as each channel. AposeError naming what it got and the fix otherwise (a float image in 0-1, 16-bit
-    colour, NaN: OpenCV failed deep inside the mask with a message about its own internals)."""
+    taken as each channel, whole numbers in 0-255 of any integer type (a nested list) as they are. AposeError naming
+    what it got and the fix otherwise (a float image in 0-1, 16-bit colour, NaN, a mask: OpenCV failed deep inside
+    the mask with a message about its own internals)."""
+    got = rgb
     rgb = np.asarray(rgb)
+    if rgb.ndim < 2 or rgb.ndim > 3:
+        raise AposeError(f"{what} must be an (H, W, 3) colour image (uint8), got "
+                         f"{'None' if got is None else f'an array of shape {rgb.shape}'}")
     if rgb.shape[:2] != tuple(shape):
-        raise AposeError(f"{what} is {rgb.shape[1] if rgb.ndim > 1 else '?'}x{rgb.shape[0] if rgb.ndim else '?'} but "
-                         f"the depth is {shape[1]}x{shape[0]}; align depth to colour first")
+        raise AposeError(f"{what} is {rgb.shape[1]}x{rgb.shape[0]} but the depth is {shape[1]}x{shape[0]}; align depth "
+                         "to colour first")
     if rgb.dtype != np.uint8:
-        fix = "rgb.astype(np.uint8)"
-        if rgb.dtype.kind not in "biuf" or rgb.size == 0:
+        if rgb.dtype.kind not in "iuf" or rgb.size == 0:
             raise AposeError(f"{what} must be 8-bit colour (uint8, 0-255), got {rgb.dtype}")
         if rgb.dtype.kind == "f" and not np.isfinite(rgb).all():
             raise AposeError(f"{what} holds NaN or inf; give 8-bit colour (uint8, 0-255)")
         lo, hi = float(rgb.min()), float(rgb.max())
-        if rgb.dtype.kind == "f" and hi <= 1.0:
-            fix = "(rgb * 255).round().astype(np.uint8)"
-        elif hi > 255:
-            fix = "(rgb >> 8).astype(np.uint8)" if rgb.dtype.kind in "iu" and hi <= 65535 else "rgb scaled to 0-255"
-        raise AposeError(f"{what} must be 8-bit colour (uint8, 0-255), got {rgb.dtype} with values {lo:.3g} to "
-                         f"{hi:.3g}; give {fix}")
+        if rgb.dtype.kind in "iu" and lo >= 0 and hi <= 255:
+            rgb = rgb.astype(np.uint8)  # the same numbers: nothing to guess
+        else:
+            fix = "rgb.astype(np.uint8)"
+            if rgb.dtype.kind == "f" and hi <= 1.0:
+                fix = "(rgb * 255).round().astype(np.uint8)"
+            elif hi > 255:
+                fix = "(rgb >> 8).astype(np.uint8)" if rgb.dtype.kind in "iu" and hi <= 65535 else "rgb scaled to 0-255"
+            raise AposeError(f"{what} must be 8-bit colour (uint8, 0-255), got {rgb.dtype} with values {lo:.3g} to "
+                             f"{hi:.3g}; give {fix}")
     if rgb.ndim == 2:
         return np.repeat(rgb[..., None], 3, axis=2)
-    if rgb.ndim == 3 and rgb.shape[2] == 4:
+    if rgb.shape[2] == 4:
         return np.ascontiguousarray(rgb[..., :3])
-    if rgb.ndim != 3 or rgb.shape[2] != 3:
+    if rgb.shape[2] != 3:
         raise AposeError(f"{what} must be an (H, W, 3) colour image, got shape {rgb.shape}")
     return rgb
 

@@ -510,6 +510,9 @@ def test_the_api_names_a_bad_prompt_or_step(kw, said):
     (np.zeros((48, 64, 2), np.uint8), r"must be an \(H, W, 3\) colour image, got shape \(48, 64, 2\)"),
     (np.zeros((40, 64, 3), np.uint8), "rgb is 64x40 but the depth is 64x48"),
     (np.zeros((48, 64, 3), object), "got object"),
+    (np.zeros((48, 64, 3), bool), "got bool"),
+    (np.full((48, 64, 3), -1, np.int16), r"got int16 with values -1 to -1"),
+    (None, r"must be an \(H, W, 3\) colour image \(uint8\), got None"),
 ])
 def test_the_api_names_a_colour_image_it_cannot_read(rgb, said):
     """estimate_pose with a colour image of another kind than 8-bit (a float image in 0-1, 16-bit colour, NaN, two
@@ -535,3 +538,7 @@ def test_a_grey_or_rgba_colour_image_is_read_as_rgb():
     got = check_colour(rgba, (3, 4))
     assert got.shape == (3, 4, 3) and got.flags.c_contiguous
     np.testing.assert_array_equal(got, rgba[..., :3])
+    listed = [[[0, 128, 255]] * 4] * 3  # whole numbers in 0-255, of any integer type: the same image
+    got = check_colour(listed, (3, 4))
+    assert got.dtype == np.uint8
+    np.testing.assert_array_equal(got, np.array(listed))
