@@ -23,6 +23,7 @@ from apose_studio.registration.scoring import (
     score_pose,
     score_seen,
 )
+from apose_studio.registration.solvers import icp_point_to_plane_many
 from apose_studio.registration.stages import cloud, icp
 from apose_studio.registration.types import (
     CONFIDENT_COVERAGE,
@@ -79,14 +80,23 @@ def refine_candidates(pb, starts: list[Start], trace_iterations: bool) -> list[R
     """Fine ICP of each start against what the camera would see of the base at its coarse pose, and its
     score; a start that converges onto a pose already refined adds nothing."""
     p, voxel, out = pb.params, pb.voxel, []
+    views = []  # per start: (what the camera would see of the base there, its normals, the ICP's source)
     for s in starts:
-        if out and pb.out_of_time("refining the other starting poses"):
+        if views and pb.out_of_time("refining the other starting poses"):
             break
-        trace: list | None = [] if trace_iterations else None
         src_w, src_n = raycast_source(pb.base, s.T_coarse, pb.T_world_camera, pb.cam)  # what the camera would see
         shown = icp_source(pb, src_w)  # less what stands in front of a mostly hidden base
-        src = cloud(se3.transform_points(se3.inv(s.T_coarse), src_w[shown])).voxel_down_sample(voxel)
-        T = icp(src, pb.fine, s.T_coarse, pb.vg, p.icp_max_iterations, trace, p.deterministic, pb.fine_tree)
+        views.append((src_w, src_n, cloud(se3.transform_points(se3.inv(s.T_coarse), src_w[shown])).voxel_down_sample(voxel)))
+    traces: list[list | None] = [[] if trace_iterations else None for _ in views]
+    if p.deterministic:  # the starts' ICPs side by side, one k-d tree query a step for all (the same poses)
+        fine = pb.fine
+        Ts = icp_point_to_plane_many([np.asarray(v[2].points) for v in views], np.asarray(fine.points),
+                                     np.asarray(fine.normals), [s.T_coarse for s in starts[:len(views)]], pb.vg,
+                                     p.icp_max_iterations, pb.fine_tree, traces)
+    else:
+        Ts = [icp(v[2], pb.fine, s.T_coarse, pb.vg, p.icp_max_iterations, tr, False)
+              for v, s, tr in zip(views, starts, traces)]
+    for s, (src_w, src_n, src), T, trace in zip(starts, views, Ts, traces):
         if any(poses_within(T, r.candidate.T_world_base, voxel, 2.0) for r in out):
             continue  # converged onto a pose already refined: nothing new to score
         if p.polish_voxel_factor <= 0:  # else no ICP at thr: only the chosen pose needs the last tenth of a

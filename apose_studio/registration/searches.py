@@ -21,6 +21,7 @@ from apose_studio.geometry.plane import table_axes
 from apose_studio.registration.base import place_source, raycast_source
 from apose_studio.registration.refine import polish
 from apose_studio.registration.scoring import agreement_tolerance, icp_source, score_seen, visible_agreement
+from apose_studio.registration.solvers import icp_point_to_plane_many
 from apose_studio.registration.stages import (
     cloud,
     estimate_normals,
@@ -258,25 +259,41 @@ class ModelSearch:
         vg, cam_pos = pb.vg, pb.cam_pos
         share = self.explained([T for _, T in starts]) if share is None else share
         screened = [starts[i] for i in np.argsort(-share, kind="stable")]
-        out = []
+        todo = []
         for k, T0 in screened[:n_try] + [s_ for s_ in screened[n_try:] if s_[0] == -1]:
             # cheap view of the model for screening: its outer surface, back faces culled (no occlusion)
             src_b = facing(self.model_pts, self.model_nrm, T0, cam_pos)
-            src = cloud(src_b[icp_source(pb, se3.transform_points(T0, src_b))])  # (what stands in front of a
+            src_b = src_b[icp_source(pb, se3.transform_points(T0, src_b))]  # (what stands in front of a
             # mostly hidden base leaves ICP nothing to match)
-            if len(src.points) < MIN_POINTS:
-                continue
-            T = icp(src, pb.target, T0, 2.0 * vg, 8, None, pb.params.deterministic, pb.target_tree)
-            seen = se3.transform_points(T, facing(self.model_pts, self.model_nrm, T, cam_pos))
-            out.append(Start(near_target_share(pb, seen), k, T0, T))
-        return sorted(out, key=lambda x: -x.explained)
+            if len(src_b) >= MIN_POINTS:
+                todo.append((k, T0, src_b))
+        if pb.params.deterministic:  # the starts' ICPs side by side: one query a step for all (the same poses)
+            target = pb.target
+            Ts = icp_point_to_plane_many([s_ for _, _, s_ in todo], np.asarray(target.points), np.asarray(target.normals),
+                                         [T0 for _, T0, _ in todo], 2.0 * vg, 8, pb.target_tree)
+        else:
+            Ts = [icp(cloud(s_), pb.target, T0, 2.0 * vg, 8, None, False) for _, T0, s_ in todo]
+        seen = [se3.transform_points(T, facing(self.model_pts, self.model_nrm, T, cam_pos)) for T in Ts]
+        shares = near_target_shares(pb, seen)
+        return sorted([Start(e, k, T0, T) for (k, T0, _), T, e in zip(todo, Ts, shares)], key=lambda x: -x.explained)
 
 
 def near_target_share(pb, points_world: np.ndarray) -> float:
     """The share of the model points (world) that lie within a coarse voxel of the (fine) target; 0 for none."""
-    if len(points_world) == 0:
-        return 0.0
-    return float(np.mean(pb.fine_tree.query(points_world, distance_upper_bound=pb.vg)[0] < np.inf))
+    return near_target_shares(pb, [points_world])[0]
+
+
+def near_target_shares(pb, clouds: list[np.ndarray]) -> list[float]:
+    """near_target_share of each cloud, in one k-d tree query for all (each point is answered on its own: the
+    same shares as one query each)."""
+    if not clouds:
+        return []
+    near = pb.fine_tree.query(np.concatenate(clouds), distance_upper_bound=pb.vg)[0] < np.inf
+    out, o = [], 0
+    for c in clouds:
+        out.append(float(np.mean(near[o:o + len(c)])) if len(c) else 0.0)
+        o += len(c)
+    return out
 
 
 def prior_starts(pb, ms: ModelSearch, T_world_source: np.ndarray) -> list:

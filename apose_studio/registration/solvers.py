@@ -78,33 +78,22 @@ def icp_point_to_plane(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.ndarray
     def match(T):
         p = src @ T[:3, :3].T + T[:3, 3]
         d, i = tree.query(p, distance_upper_bound=threshold)
-        ok = np.isfinite(d)
         if viewpoint is not None:
+            ok = np.isfinite(d)
             eye = T[:3, :3] @ viewpoint + T[:3, 3]
             ok[ok] = np.einsum("ij,ij->i", tgt_normals[i[ok]], tgt[i[ok]] - eye) < 0
-        n_ok = int(np.count_nonzero(ok))
-        if n_ok == len(ok):  # every point matched: no copies
-            return p, i, 1.0, float(np.sqrt(np.mean(d ** 2)))
-        rmse = float(np.sqrt(np.mean(d[ok] ** 2))) if n_ok else 0.0
-        return p[ok], i[ok], n_ok / len(ok), rmse
+            d = np.where(ok, d, np.inf)  # (a pair facing away counts as unmatched)
+        return _matched(p, d, i)
 
     p, idx, fit, rmse = match(T)
     extent = 2.0 * float(np.linalg.norm(src - src.mean(axis=0), axis=1).max()) if min_step > 0 else 0.0  # any frame
     for _ in range(iterations):
         if len(p) < 6:
             break
-        q, n = tgt[idx], tgt_normals[idx]
-        c = p.mean(axis=0)  # linearised about the matched points' centre, not the frame's origin (below)
-        J = _jacobian(p - c, n)
-        r = np.einsum("ij,ij->i", p - q, n)
-        JtJ, Jtr = J.T @ J, J.T @ r
-        try:
-            x = _solve_constrained(JtJ, -Jtr)
-        except np.linalg.LinAlgError:
+        step = _step(p, tgt[idx], tgt_normals[idx])
+        if step is None:
             break
-        R = _small_rotation(x[:3])
-        update = np.eye(4)
-        update[:3, :3], update[:3, 3] = R, x[3:] + c - R @ c  # the turn about c
+        update, x = step
         T = update @ T
         if trace is not None:
             trace.append(T.copy())
@@ -116,3 +105,77 @@ def icp_point_to_plane(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.ndarray
         if done:
             break
     return T
+
+
+def _step(p: np.ndarray, q: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """One linearised point-to-plane step for matched points p (moved source), q and n (target points and
+    normals): (the 4 x 4 update, the solution [rotation vector, translation]), or None where the solve fails."""
+    c = p.mean(axis=0)  # linearised about the matched points' centre, not the frame's origin (icp_point_to_plane)
+    J = _jacobian(p - c, n)
+    r = np.einsum("ij,ij->i", p - q, n)
+    JtJ, Jtr = J.T @ J, J.T @ r
+    try:
+        x = _solve_constrained(JtJ, -Jtr)
+    except np.linalg.LinAlgError:
+        return None
+    R = _small_rotation(x[:3])
+    update = np.eye(4)
+    update[:3, :3], update[:3, 3] = R, x[3:] + c - R @ c  # the turn about c
+    return update, x
+
+
+def _matched(p: np.ndarray, d: np.ndarray, i: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """The matched pairs of moved source points p, given their neighbours' distances d (inf: none within the
+    threshold) and indices i: (p matched, their target indices, fitness, inlier RMSE)."""
+    ok = np.isfinite(d)
+    n_ok = int(np.count_nonzero(ok))
+    if n_ok == len(ok):  # every point matched: no copies
+        return p, i, 1.0, float(np.sqrt(np.mean(d ** 2)))
+    rmse = float(np.sqrt(np.mean(d[ok] ** 2))) if n_ok else 0.0
+    return p[ok], i[ok], n_ok / len(ok), rmse
+
+
+def icp_point_to_plane_many(srcs: list[np.ndarray], tgt: np.ndarray, tgt_normals: np.ndarray, T_inits: list[np.ndarray],
+                            threshold: float, iterations: int, tgt_tree: NearestTree | None = None,
+                            traces: list[list | None] | None = None) -> list[np.ndarray]:
+    """icp_point_to_plane of each source from its own start onto one target, the same poses to the last bit,
+    with one k-d tree query a round for all the sources still iterating instead of one per source and step:
+    the upright search refines a dozen starts of a few hundred points each by 8 steps, where a query's fixed
+    cost and the threads' wake-up outweigh its work. Each point's neighbour is found on its own, and every
+    other sum runs over each source's own points as before, so nothing depends on the batch. `traces`: per
+    source, a list to append each iteration's T to (or None)."""
+    tree = tgt_tree if tgt_tree is not None else NearestTree(tgt)
+    Ts = [np.array(T, dtype=float) for T in T_inits]
+    if len(tgt) == 0:
+        return Ts
+
+    def match(ids: list[int]) -> list[tuple[np.ndarray, np.ndarray, float, float]]:
+        moved = [srcs[k] @ Ts[k][:3, :3].T + Ts[k][:3, 3] for k in ids]
+        d, i = tree.query(np.concatenate(moved), distance_upper_bound=threshold)
+        out, o = [], 0
+        for p in moved:
+            out.append(_matched(p, d[o:o + len(p)], i[o:o + len(p)]))
+            o += len(p)
+        return out
+
+    live = [k for k in range(len(srcs)) if len(srcs[k])]
+    state = dict(zip(live, match(live))) if live else {}
+    for _ in range(iterations):
+        stepped = []
+        for k in live:
+            p, idx = state[k][0], state[k][1]
+            step = _step(p, tgt[idx], tgt_normals[idx]) if len(p) >= 6 else None
+            if step is not None:
+                Ts[k] = step[0] @ Ts[k]
+                stepped.append(k)
+                if traces is not None and traces[k] is not None:
+                    traces[k].append(Ts[k].copy())
+        if not stepped:
+            break
+        live = []
+        for k, m in zip(stepped, match(stepped)):
+            fit, rmse = state[k][2], state[k][3]
+            state[k] = m
+            if not (abs(m[2] - fit) < 1e-6 and abs(m[3] - rmse) < 1e-6):
+                live.append(k)
+    return Ts

@@ -39,3 +39,35 @@ def test_icp_recovers_a_known_small_motion(gearbox_step2):
     icp(source, target, T0, 0.005, 60, trace)
     assert len(trace) >= 2 and np.linalg.norm(trace[-1][:3, 3] - T_true[:3, 3]) < 5e-4
 
+
+
+def test_icps_side_by_side_give_each_start_the_pose_and_trace_it_gets_alone():
+    """icp_point_to_plane_many answers every source's ICP as icp_point_to_plane does on its own, to the last bit,
+    iteration by iteration (the searches run their starts side by side to share the k-d tree queries): sources
+    that converge early, late or never, one too small to step, one empty, one that never comes near the target."""
+    from apose_studio.geometry.nn import NearestTree, local_normals
+    from apose_studio.registration.solvers import icp_point_to_plane, icp_point_to_plane_many
+
+    rng = np.random.default_rng(7)
+    u, v = np.meshgrid(np.linspace(-0.04, 0.04, 40), np.linspace(-0.03, 0.03, 30))
+    tgt = np.stack([u.ravel(), v.ravel(), 0.01 * np.sin(60 * u.ravel()) + 0.008 * np.cos(80 * v.ravel())], axis=1)
+    tgt = np.concatenate([tgt, tgt[::3] * [1, 1, 0] + [0.0, 0.0, -0.02]])  # a second sheet below: another basin
+    nrm = local_normals(tgt, 12)
+    srcs = [tgt[rng.choice(len(tgt), n, replace=False)] + rng.normal(0, 0.0005, (n, 3)) for n in (400, 250, 700)]
+    srcs += [tgt[600:605] + [0.0, 0.0, 0.001], np.zeros((0, 3)), tgt[:300] + [0.5, 0.0, 0.0]]
+    starts = [se3.make_T(se3.axis_angle_matrix(rng.normal(size=3), rng.normal(0, 0.08)), rng.normal(0, 0.004, 3)) for _ in srcs]
+    starts[3] = np.eye(4)  # five points 1 mm off the target: matched, too few to step
+    tree = NearestTree(tgt)
+    alone, alone_traces = [], []
+    for src, T0 in zip(srcs, starts):
+        trace: list = []
+        alone.append(icp_point_to_plane(src, tgt, nrm, T0, 0.006, 12, trace, tree))
+        alone_traces.append(trace)
+    traces: list = [[] for _ in srcs]
+    together = icp_point_to_plane_many(srcs, tgt, nrm, starts, 0.006, 12, tree, traces)
+    for k in range(len(srcs)):
+        assert np.array_equal(together[k], alone[k]), k
+        assert len(traces[k]) == len(alone_traces[k]) and all(np.array_equal(a, b) for a, b in zip(traces[k], alone_traces[k]))
+    lengths = {len(t) for t in alone_traces[:3]}
+    assert [len(t) for t in alone_traces[3:]] == [0, 0, 0] and len(lengths | {12}) > 1  # the cases differ, as meant
+    assert not np.array_equal(alone[0], starts[0])  # and the ICP moved
