@@ -93,8 +93,8 @@ def _pick(args, frame: Frame, ctx, params):
     """The loose part's own estimate (--pick-box / --pick-point), or None."""
     if not (args.pick_box or args.pick_point):
         return None
-    box = parse_box(args.pick_box) if args.pick_box else None
-    point = parse_point(args.pick_point) if args.pick_point else None
+    box = parse_box(args.pick_box, "--pick-box") if args.pick_box else None
+    point = parse_point(args.pick_point, "--pick-point") if args.pick_point else None
     mask, _ = array_mask(frame.rgb, frame.depth, frame.camera, box=box, point=point)
     return estimate_pick(replace(View.of(frame, mask), box=box), ctx.part, params)
 
@@ -121,7 +121,8 @@ def cmd_estimate(args) -> int:
         return _estimate_instances(args, frame, asm, ctx, t0)
     if hand_eye is not None:  # a wrong grasp name or pick prompt is said before any work
         grasp_of(asm, ctx.view.part, args.grasp)
-        _ = (parse_box(args.pick_box) if args.pick_box else None, parse_point(args.pick_point) if args.pick_point else None)
+        _ = (parse_box(args.pick_box, "--pick-box") if args.pick_box else None,
+             parse_point(args.pick_point, "--pick-point") if args.pick_point else None)
     params = params_of(args, asm.registration)
     ctx.base.warm_up(params)
     t1 = time.perf_counter()

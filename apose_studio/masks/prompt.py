@@ -43,20 +43,22 @@ class PromptedMask:
     notes: list[str] = field(default_factory=list)
 
 
-def parse_box(text: str) -> tuple[int, int, int, int]:
-    """'x0,y0,x1,y1' (pixels) -> a box; PromptError naming the flag otherwise."""
+def parse_box(text: str, where: str = "--box") -> tuple[int, int, int, int]:
+    """'x0,y0,x1,y1' (pixels) -> a box; PromptError naming `where` the text came from (the flag, or the studio's
+    field: a page's user never typed --box) otherwise."""
     try:
         x0, y0, x1, y1 = (int(round(float(t))) for t in text.split(","))
     except (ValueError, OverflowError):  # OverflowError: inf, 1e309
-        raise PromptError(f"--box {text}: expected four pixel numbers x0,y0,x1,y1 (left, top, right, bottom)") from None
+        raise PromptError(f"{where} {text}: expected four pixel numbers x0,y0,x1,y1 (left, top, right, bottom)") from None
     return x0, y0, x1, y1
 
 
-def parse_point(text: str) -> tuple[int, int]:
+def parse_point(text: str, where: str = "--point") -> tuple[int, int]:
+    """'u,v' (pixels) -> a point; PromptError naming `where` the text came from otherwise."""
     try:
         u, v = (int(round(float(t))) for t in text.split(","))
     except (ValueError, OverflowError):  # OverflowError: inf, 1e309
-        raise PromptError(f"--point {text}: expected two pixel numbers u,v (column, row)") from None
+        raise PromptError(f"{where} {text}: expected two pixel numbers u,v (column, row)") from None
     return u, v
 
 
@@ -68,10 +70,18 @@ def check_box(box, shape: tuple[int, int]) -> tuple[int, int, int, int]:
     h, w = shape
     x0, y0, x1, y1 = (int(v) for v in box)
     if x1 <= x0 or y1 <= y0:
-        as_size = (f"; if {x1},{y1} are its width and height (x,y,w,h, as a COCO or BOP bbox gives it), the box is "
-                   f"{x0},{y0},{x0 + x1},{y0 + y1}") if x1 > 0 and y1 > 0 and x0 >= 0 and y0 >= 0 else ""
+        # what was likely meant: corners given the other way round (a box dragged up from its bottom right), or a
+        # COCO/BOP bbox's width and height; each offered only where it makes a box that lies in the image
+        swapped = (min(x0, x1), min(y0, y1), max(x0, x1), max(y0, y1))
+        sized = (x0, y0, x0 + x1, y0 + y1)
+        hints = []
+        if x0 != x1 and y0 != y1 and swapped[0] >= 0 and swapped[1] >= 0 and swapped[2] <= w and swapped[3] <= h:
+            hints.append("if its corners are the other way round, the box is " + ",".join(map(str, swapped)))
+        if x1 > 0 and y1 > 0 and x0 >= 0 and y0 >= 0 and sized[2] <= w and sized[3] <= h:
+            hints.append(f"if {x1},{y1} are its width and height (x,y,w,h, as a COCO or BOP bbox gives it), the box is "
+                         + ",".join(map(str, sized)))
         raise PromptError(f"box {x0},{y0},{x1},{y1}: expected x0 < x1 and y0 < y1 (left, top, right, bottom in "
-                          f"pixels){as_size}")
+                          f"pixels)" + "".join("; " + t for t in hints))
     if (x1 - x0 < MIN_BOX_PX or y1 - y0 < MIN_BOX_PX) and 0 <= x0 and x1 <= w and 0 <= y0 and y1 <= h:
         raise PromptError(f"box {x0},{y0},{x1},{y1} is {x1 - x0}x{y1 - y0} pixels; draw it around the whole object "
                           f"(at least {MIN_BOX_PX}x{MIN_BOX_PX} pixels), or click on the object instead")

@@ -91,6 +91,7 @@ class Studio:
         self.events = Events(tap=lambda event, payload: self.desk.record(self, event, payload))
         self.nodes: dict[str, object] = {}  # scene nodes by name (tests look here)
         self._errors_shown: dict[int, list] = {}  # client id -> its error notifications still on screen
+        self._error_titles: dict[int, str] = {}  # id() of such a notification -> the action that raised it
         self.current_view = "Assembly"
         self._notice_timer: threading.Timer | None = None
         self._last_notice = ""
@@ -166,10 +167,13 @@ class Studio:
         for c in clients:
             try:
                 for old in self._errors_shown.pop(c.client_id, []):
+                    self._error_titles.pop(id(old), None)
                     old.remove()
                 handle = c.add_notification(title, body, auto_close_seconds=None if lasting else 4.0, color=colour)
                 if lasting:
                     self._errors_shown.setdefault(c.client_id, []).append(handle)
+                    if error:
+                        self._error_titles[id(handle)] = title
             except Exception:  # a tab that just closed
                 pass
 
@@ -186,10 +190,12 @@ class Studio:
                     with self.lock, reads_within(self.workspace.readable):  # no page action reads outside it
                         if cid is not None and cid not in self.server.get_clients():
                             return  # the tab closed while this waited: nobody is asking any more
+                        before = list(self._errors_shown.get(cid, [])) if cid is not None else []
                         try:
                             fn(client)
                         finally:
                             self.desk.spread(self)  # the other tabs draw the draft as this action left it
+                        self.close_errors_of(client, title, before)
                 except AssemblyError as e:
                     lines = [str(p) for p in e.problems[:6]]
                     more = f"\n(+{len(e.problems) - 6} more)" if len(e.problems) > 6 else ""
@@ -508,11 +514,30 @@ class Studio:
         """A part's loaded mesh and derived geometry, cached by file, unit, colour and index."""
         return self.desk.model(pid, asm if asm is not None else self.asm)
 
+    def close_errors_of(self, client, title: str, shown: list) -> None:
+        """Close the errors among `shown` (on screen before the action ran) that an earlier try of the action
+        `title` raised on `client`'s tab: it has now gone through, and a refusal left beside a success that says
+        nothing (a prompt typed anew and sent with Enter) reads as if the new try had been refused too."""
+        if client is None or not shown:
+            return
+        mine = [h for h in shown if self._error_titles.get(id(h)) == title]
+        if not mine:
+            return
+        left = [h for h in self._errors_shown.get(client.client_id, []) if not any(h is m for m in mine)]
+        self._errors_shown[client.client_id] = left
+        for old in mine:
+            self._error_titles.pop(id(old), None)
+            try:
+                old.remove()
+            except Exception:  # a tab that just closed
+                pass
+
     def clear_errors(self, client) -> None:
         """Close the errors kept open on `client`'s tab: an action that takes back what they were about (Undo)."""
         if client is None:
             return
         for old in self._errors_shown.pop(client.client_id, []):
+            self._error_titles.pop(id(old), None)
             try:
                 old.remove()
             except Exception:  # a tab that just closed

@@ -27,9 +27,9 @@ def parse_prompt(text: str) -> tuple[tuple | None, tuple | None]:
     """'x0,y0,x1,y1' -> (box, None); 'u,v' -> (None, point); AposeError otherwise."""
     n = len([t for t in text.split(",") if t.strip()])
     if n == 4:
-        return parse_box(text), None
+        return parse_box(text, "Prompt (px)"), None
     if n == 2:
-        return None, parse_point(text)
+        return None, parse_point(text, "Prompt (px)")
     raise AposeError(f"prompt {text[:60]!r}: type a box x0,y0,x1,y1 or a point u,v (pixels), or press 'Prompt at click'")
 
 

@@ -3,6 +3,7 @@
 
 import numpy as np
 
+from apose_studio.errors import AposeError
 from apose_studio.geometry import se3
 from apose_studio.studio import serve
 
@@ -614,3 +615,56 @@ def test_a_seat_of_an_engine_head_is_inspected_from_a_box_and_a_click_is_told_to
     st.prompt.i_prompt.value = f"{(x0 + x1) // 2},{(y0 + y1) // 2}"
     act(st, st.inspect.run_estimation, False)
     assert "draw a box around the region" in errors(st)[-1][1]
+
+
+def test_a_prompt_that_goes_through_closes_the_refusal_its_earlier_try_left(studio, capture, monkeypatch):
+    """A refused prompt's error stays on the tab until its next message; a prompt typed anew that goes through says
+    nothing, so the old refusal stayed beside it and read as if the new box had been refused too (a newcomer's
+    report). Now the action that goes through closes its own earlier refusals on that tab, and only those: an
+    error another action left stays. The refusals name the field, not the command line's --box."""
+    import types
+
+    st = open_capture(studio, capture)
+    monkeypatch.setattr(st, "notify", types.MethodType(type(st).notify, st))  # the real notices, as a tab sees them
+
+    class Handle:
+        def __init__(self, title):
+            self.title, self.removed = title, False
+
+        def remove(self):
+            self.removed = True
+
+    class Tab:
+        client_id = 7
+
+        def __init__(self):
+            self.shown = []
+
+        def add_notification(self, title, body, **kw):
+            self.shown.append(Handle(title))
+            self.shown[-1].body = body
+            return self.shown[-1]
+
+    class Typed:
+        client = Tab()
+
+    tab = Typed.client
+    monkeypatch.setattr(st.server, "get_clients", lambda: {7: tab})
+    type_prompt = st.guarded("Prompt")(lambda c: st.prompt.on_prompt_typed())
+    other = st.guarded("Save")(lambda c: (_ for _ in ()).throw(AposeError("the folder is read-only")))
+    st.prompt.i_prompt.value = "nan,1,2,3"
+    type_prompt(Typed)
+    assert tab.shown[-1].body.startswith("Prompt (px) nan,1,2,3: expected four pixel numbers") and "--box" not in tab.shown[-1].body
+    st.prompt.i_prompt.value = "356,342,262,218"  # corners the other way round
+    type_prompt(Typed)
+    refusal = tab.shown[-1]
+    assert "if its corners are the other way round, the box is 262,218,356,342" in refusal.body, refusal.body
+    assert "width and height" not in refusal.body  # as x,y,w,h it would reach off the 640x480 image: not offered
+    st.prompt.i_prompt.value = "262,218,356,342"
+    type_prompt(Typed)
+    assert refusal.removed and tab.shown[-1] is refusal and st.inspect.i_mask.value == "prompt"
+    other(Typed)  # another action's error ...
+    saved = tab.shown[-1]
+    st.prompt.i_prompt.value = "260,218,356,342"
+    type_prompt(Typed)
+    assert not saved.removed  # ... is not the prompt's to close

@@ -160,7 +160,7 @@ def test_a_tab_s_next_message_closes_its_older_error():
         return SimpleNamespace(client_id=cid, add_notification=lambda t, b, **k: (log.append(("shown", t)), Handle(log, t))[1])
 
     st = Studio.__new__(Studio)  # only notify's own state
-    st._errors_shown = {}
+    st._errors_shown, st._error_titles = {}, {}
     a_log, b_log = [], []
     a, b = tab(1, a_log), tab(2, b_log)
     st.notify(a, "Prompt", "malformed", error=True)
