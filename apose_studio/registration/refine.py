@@ -146,7 +146,7 @@ def _add_twins_of(pb, refined: list[Refined], best: Refined) -> None:
         if k > exact:  # a close twin maps the base only nearly onto itself (a turn a few degrees off): refined
             # as a start is, then polished, before it is scored (a hole punch's right pose, derived 3 mm and 7
             # degrees off, lost to its half-turned twin)
-            T = _refine_from(pb, T)
+            T = refine_from(pb, T)
             if pb.params.polish_voxel_factor > 0:
                 T, _ = polish(pb, T, None)
         cand, src_w, src_n = score_pose(pb, T, k)
@@ -154,7 +154,7 @@ def _add_twins_of(pb, refined: list[Refined], best: Refined) -> None:
         refined.append(Refined(cand, best.T_start @ S, trace, src_w, src_n))
 
 
-def _refine_from(pb, T: np.ndarray) -> np.ndarray:
+def refine_from(pb, T: np.ndarray) -> np.ndarray:
     """ICP of what the camera would see of the base at T onto the target, at the coarse threshold (as
     refine_candidates refines a start)."""
     src_w, _ = raycast_source(pb.base, T, pb.T_world_camera, pb.cam)
@@ -316,7 +316,7 @@ def neighbour_rivals(pb, refined: list[Refined], chosen: int, slid: bool = False
 
     new: list[int] = []
     for M in moves:
-        T = _refine_from(pb, M @ T_b)
+        T = refine_from(pb, M @ T_b)
         if known(T):
             continue  # (before the polish too: most neighbours of a pose the data pins fall back onto it)
         if pb.params.polish_voxel_factor > 0:
@@ -373,7 +373,7 @@ def base_twins_alike(pb, T_world_base: np.ndarray) -> list[np.ndarray]:
             if not any(poses_within(T, A, pb.voxel, 2.0) for A in out):
                 out.append(T)
             continue
-        T = _refine_from(pb, T)
+        T = refine_from(pb, T)
         if poses_within(T, T_world_base, pb.voxel, 2.0) or any(poses_within(T, A, pb.voxel, 2.0) for A in out):
             continue  # refined back onto the pose (or onto one already found)
         if not same_placement(T_part, T @ pb.T_base_part, pb.part_symmetries, 3 * pb.voxel, 5.0):

