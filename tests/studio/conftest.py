@@ -61,3 +61,23 @@ def open_capture(studio, cap):
     act(st, lambda c: st.inspect.open_frames(st.inspect.i_path.value, c))
     return st
 
+
+class Notice:
+    """A notification a NoticeTab was shown: its title and body, and whether it was closed."""
+
+    def __init__(self, title: str, body: str):
+        self.title, self.body, self.removed = title, body, False
+
+    def remove(self):
+        self.removed = True
+
+
+class NoticeTab:
+    """A stand-in for a browser tab (a viser client) that records the notifications it is shown."""
+
+    def __init__(self, client_id: int = 7):
+        self.client_id, self.shown = client_id, []
+
+    def add_notification(self, title, body, **kw):
+        self.shown.append(Notice(title, body))
+        return self.shown[-1]

@@ -14,7 +14,7 @@ from apose_studio.studio import MAX_UPLOAD_BYTES
 from apose_studio.studio.state import Event
 
 from ..conftest import SAMPLES
-from .conftest import act, errors
+from .conftest import NoticeTab, act, errors
 
 
 def test_open_add_step_type_pose_save(studio, gearbox_copy, tmp_path):
@@ -360,24 +360,7 @@ def test_undo_closes_the_errors_kept_open_on_the_tab(studio, gearbox_copy):
     """A refusal stays on the tab until its next message; Undo takes back the draft it was about, so it closes it
     (the newcomer saw a refused region's error beside the region Undo had brought back)."""
     st = studio(gearbox_copy)
-
-    class Handle:
-        removed = False
-
-        def remove(self):
-            self.removed = True
-
-    class Tab:
-        client_id = 7
-
-        def __init__(self):
-            self.shown = []
-
-        def add_notification(self, title, body, **kw):
-            self.shown.append(Handle())
-            return self.shown[-1]
-
-    tab = Tab()
+    tab = NoticeTab()
     type(st).notify(st, tab, "Set region", "its roi holds none of the mesh", error=True)
     st.files.f_name.value = "renamed"  # a change to undo
     st.undo_redo("Undo", tab)

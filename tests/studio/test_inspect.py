@@ -8,7 +8,7 @@ from apose_studio.geometry import se3
 from apose_studio.studio import serve
 
 from ..conftest import SAMPLES, free_port, mssd_to_truth, plain_bop_scene
-from .conftest import act, errors, open_capture
+from .conftest import NoticeTab, act, errors, open_capture
 
 
 def test_inspect_estimate_replay_and_cache(studio, gearbox_dataset):
@@ -627,26 +627,8 @@ def test_a_prompt_that_goes_through_closes_the_refusal_its_earlier_try_left(stud
     st = open_capture(studio, capture)
     monkeypatch.setattr(st, "notify", types.MethodType(type(st).notify, st))  # the real notices, as a tab sees them
 
-    class Handle:
-        def __init__(self, title):
-            self.title, self.removed = title, False
-
-        def remove(self):
-            self.removed = True
-
-    class Tab:
-        client_id = 7
-
-        def __init__(self):
-            self.shown = []
-
-        def add_notification(self, title, body, **kw):
-            self.shown.append(Handle(title))
-            self.shown[-1].body = body
-            return self.shown[-1]
-
     class Typed:
-        client = Tab()
+        client = NoticeTab()
 
     tab = Typed.client
     monkeypatch.setattr(st.server, "get_clients", lambda: {7: tab})
