@@ -27,6 +27,7 @@ from apose_studio.studio.widgets import LAYERS, SHARP_EDGE_DEG, esc, legend_html
 log = logging.getLogger(__name__)
 
 REPLAY_SECONDS_PER_STAGE = 0.4  # in an exported replay page
+SCENE_UNDER_ESTIMATE = 0.4  # the scene cloud's discs shrink to this share of a pixel's footprint under an estimate
 REPLAY_HOLD_S = 2.0  # ... and how long it holds the final pose before it loops
 
 
@@ -50,6 +51,7 @@ class ResultsView:
         self._ghost: tuple = (None, None)  # (the part's mesh, widgets.shaded of it): the ghost drawn at the estimate
         self._gripper: tuple = (None, None)  # ((grasp width, gripper), (vertices, faces)): the gripper drawn at the grasp
         self._drawn_frame: tuple | None = None  # what identifies the frame whose camera and scene cloud are drawn
+        self._scene_footprint = 0.001  # a pixel's footprint at the drawn frame's depth (metres; draw_scene)
         self._meshes_drawn: dict = {}  # node name -> the mesh it shows (posed_mesh)
         self._source_of: list | None = None  # the replay whose source cloud the "/inspect/source" node holds
         self._label_layers: dict[str, str | None] = {}  # label node -> the layer of what it names (label_layer)
@@ -137,6 +139,9 @@ class ResultsView:
                 if name in self.app.nodes:
                     self.app.nodes.pop(name).remove()
         labels += self.draw_robot(fr)
+        scene_node = self.app.nodes.get("/inspect/scene")
+        if scene_node is not None and scene_node.point_size != self.scene_point_size():  # (a small message, not the cloud)
+            scene_node.point_size = self.scene_point_size()
         if r is not None and len(r.target_cloud):
             tgt = inspection.thin(r.target_cloud, 20000).astype(np.float32)
             self.app.node("/inspect/target", scene.add_point_cloud("/inspect/target", tgt, inspection.RED, point_size=d / 120,
@@ -188,9 +193,17 @@ class ResultsView:
         stride = max(1, int(np.ceil(np.sqrt(fr.depth.size / 60000))))
         # about one pixel's footprint at the scene's depth: dense, but never blobs that hide the boxes
         footprint = 0.5 * float(np.median(se3.transform_points(se3.inv(Tc), pts)[:, 2])) / cam.fx * stride if len(pts) else 0.001
-        self.app.node("/inspect/scene", scene.add_point_cloud("/inspect/scene", pts, cols, point_size=footprint,
+        self._scene_footprint = footprint
+        self.app.node("/inspect/scene", scene.add_point_cloud("/inspect/scene", pts, cols, point_size=self.scene_point_size(),
                                                            point_shape="circle", point_shading="flat"))  # flat
         # discs read as a surface; the default shading draws every point as a ball
+
+    def scene_point_size(self) -> float:
+        """The scene cloud's disc size: a pixel's footprint, or SCENE_UNDER_ESTIMATE of it while an estimate is drawn,
+        whose outline and box lie on the very surface the discs show: the view closes in on the estimate and the full
+        discs hid the base's outline and box (a newcomer saw the fit only after unticking the scene cloud)."""
+        r = self.app.state.inspect.result
+        return self._scene_footprint * (SCENE_UNDER_ESTIMATE if r is not None and r.ok else 1.0)
 
     def draw_gripper(self, T_world_part: np.ndarray):
         """The gripper holding the inspected step's part at T_world_part by its first grasp (the assembly file's

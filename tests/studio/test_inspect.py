@@ -650,3 +650,28 @@ def test_a_prompt_that_goes_through_closes_the_refusal_its_earlier_try_left(stud
     st.prompt.i_prompt.value = "260,218,356,342"
     type_prompt(Typed)
     assert not saved.removed  # ... is not the prompt's to close
+
+
+def test_the_scene_cloud_thins_under_an_estimate_so_its_outline_shows(studio, capture, gearbox_dataset):
+    """The view closes in on an estimate, whose outline and box lie on the surface the scene cloud's discs show: full
+    discs hid them (a newcomer saw the fit only after unticking the scene cloud). Under an estimate the discs shrink to
+    SCENE_UNDER_ESTIMATE of a pixel's footprint, by a message to the cloud drawn already (not the cloud again), and come
+    back when the estimate goes (a new prompt)."""
+    from apose_studio.data.dataset import Dataset
+    from apose_studio.estimation import truth_box
+    from apose_studio.studio.results_view import SCENE_UNDER_ESTIMATE
+
+    st = open_capture(studio, capture)
+    scene = st.nodes["/inspect/scene"]
+    full = scene.point_size
+    assert full > 0
+    st.prompt.i_prompt.value = ",".join(map(str, truth_box(Dataset(gearbox_dataset).frame(1, 1).base_mask())))
+    act(st, lambda c: st.prompt.on_prompt_typed())
+    act(st, st.inspect.run_estimation, False)
+    assert st.inspect.result is not None and st.inspect.result.ok, st.notes
+    assert st.nodes["/inspect/scene"] is scene and scene.point_size < 0.6 * full
+    assert np.isclose(scene.point_size, SCENE_UNDER_ESTIMATE * full)
+    x0, y0, x1, y1 = truth_box(Dataset(gearbox_dataset).frame(1, 1).base_mask())
+    st.prompt.i_prompt.value = f"{x0 + 1},{y0},{x1},{y1}"  # another prompt: the estimate goes
+    act(st, lambda c: st.prompt.on_prompt_typed())
+    assert st.inspect.result is None and st.nodes["/inspect/scene"] is scene and np.isclose(scene.point_size, full)
