@@ -145,9 +145,14 @@ def draw_boxes(rgb: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarra
     return out
 
 
-def draw_outline(image: np.ndarray, mask: np.ndarray, colour: tuple[int, int, int], thickness: int = 1) -> np.ndarray:
+def draw_outline(image: np.ndarray, mask: np.ndarray, colour: tuple[int, int, int], thickness: int = 1,
+                 inset: int = 0) -> np.ndarray:
     """`mask`'s outer and inner outlines drawn onto `image` (in place, returned): a mask shown as its edge
-    keeps the pixels under it visible, so the fit can be judged by eye."""
+    keeps the pixels under it visible, so the fit can be judged by eye. `inset` (pixels): the outlines of the mask
+    eroded by that much, so that they run inside another outline drawn on the mask's own edge (the estimate's mask
+    is the model's silhouette less what hides it: drawn on the edge, the model's outline covered it but for dots)."""
+    if inset > 0:
+        mask = cv2.erode(np.ascontiguousarray(mask, dtype=np.uint8), np.ones((2 * inset + 1, 2 * inset + 1), np.uint8))
     contours, _ = cv2.findContours(np.ascontiguousarray(mask, dtype=np.uint8), cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
     cv2.drawContours(image, contours, -1, colour, thickness, cv2.LINE_8)
     return image

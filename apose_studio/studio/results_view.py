@@ -313,7 +313,7 @@ class ResultsView:
         if r is not None and r.ok and r.T_world_base is not None:
             outlines.append((r.T_world_base, inspection.GREEN))
         if prompted is not None:  # the prompt's mask (or the estimate's) as its outline, under the model's
-            inspection.draw_outline(image, prompted, inspection.CYAN)
+            inspection.draw_outline(image, prompted, inspection.CYAN, inset=1 if outlines else 0)
         typed = typed_prompt(ins)
         if typed is not None:  # the box (or point) typed: what the mask was asked for
             inspection.draw_prompt(image, *typed)

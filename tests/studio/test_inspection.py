@@ -145,3 +145,22 @@ def test_the_metrics_panel_names_its_errors_against_the_truth():
     r = RegistrationResult(ok=True, fitness=0.9, inlier_rmse=0.001, coverage=0.95, spread=0.0)
     text = inspection.metrics_markdown(score, r)
     assert "| te (translation error) | 0.40 mm |" in text and "| re (rotation error) | 0.50° |" in text
+
+
+def test_an_inset_outline_runs_inside_the_one_drawn_on_the_edge():
+    """The estimate's mask is the model's silhouette less what hides it: its outline drawn on its own edge lay under
+    the model's outline, drawn after it, and showed only as dots where the two differ (a newcomer's report). With
+    inset=1 it runs one pixel inside, so both show side by side."""
+    from apose_studio.studio.inspection import CYAN, GREEN, draw_outline
+
+    mask = np.zeros((40, 40), bool)
+    mask[10:30, 8:32] = True
+    image = np.zeros((40, 40, 3), np.uint8)
+    draw_outline(image, mask, CYAN, inset=1)
+    draw_outline(image, mask, GREEN)
+    cyan = (image == np.array(CYAN, np.uint8)).all(axis=-1)
+    green = (image == np.array(GREEN, np.uint8)).all(axis=-1)
+    assert green[10, 8:32].all() and green[10:30, 8].all()  # the edge's own outline
+    assert cyan[11, 9:31].all() and cyan[11:29, 9].all() and not cyan[10].any() and not cyan[:, 8].any()
+    plain = draw_outline(np.zeros((40, 40, 3), np.uint8), mask, CYAN)
+    assert (plain == np.array(CYAN, np.uint8)).all(axis=-1)[10, 8:32].all()  # without the inset: on the edge
