@@ -28,7 +28,7 @@ from apose_studio.geometry import se3
 from apose_studio.params import Params
 from apose_studio.registration.base import BaseObject, raycast_source
 from apose_studio.registration.pipeline import estimate, judge, observe
-from apose_studio.registration.refine import POLISH_ITERATIONS, polish, refine_from, tied
+from apose_studio.registration.refine import POLISH_ITERATIONS, polish, refine_and_polish, tied
 from apose_studio.registration.scoring import discriminate, distinct_placements, poses_within, score_pose, twin_placements
 from apose_studio.registration.stages import cloud, icp, project_to_cloud
 from apose_studio.registration.task import Task, prepare_task
@@ -147,7 +147,7 @@ def _weigh(first: RegistrationResult, problems: dict[int, Task], order: list[int
     # the first view before any view weighs it, as the single view fits its own close twins (refine._add_twins_of):
     # left as turned, a block's true placement scored 0.966 against 0.993 in the first view, was dropped there, and
     # the one placement left standing in both views, a wrong one, came out confident
-    poses = poses[:1] + [fitted(pb0, T) for T in poses[1:]]
+    poses = poses[:1] + [refine_and_polish(pb0, T) for T in poses[1:]]
     weights = {i: len(problems[i].fine_pts) for i in order}
     total = float(sum(weights.values()))
     per_view = {i: [at_first[i] if k == 0 else score_pose(problems[i], T) for k, T in enumerate(poses)]
@@ -181,15 +181,6 @@ def _weigh(first: RegistrationResult, problems: dict[int, Task], order: list[int
     obs = pb0.observation
     result = judge(result, View(obs.depth, obs.mask, pb0.cam, pb0.T_world_camera), base)
     return replace(result, equivalent=twin_placements(T, result.T_world_part, base.symmetries) if result.ok else [])
-
-
-def fitted(pb: Task, T_world_base: np.ndarray) -> np.ndarray:
-    """T_world_base refined on one view (the coarse ICP a start gets, then the polish where the preset has one), or
-    as it was where that view sees too little of the base there (refine.refine_from keeps it)."""
-    T = refine_from(pb, T_world_base)
-    if pb.params.polish_voxel_factor > 0:
-        T, _ = polish(pb, T, None)
-    return T
 
 
 def fused_polish(problems: dict[int, Task], order: list[int], T_world_base: np.ndarray, voxel: float,

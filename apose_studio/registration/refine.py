@@ -23,8 +23,7 @@ from apose_studio.registration.scoring import (
     score_pose,
     score_seen,
 )
-from apose_studio.registration.solvers import icp_point_to_plane_many
-from apose_studio.registration.stages import cloud, icp
+from apose_studio.registration.stages import cloud, icp, icp_many
 from apose_studio.registration.types import (
     CONFIDENT_COVERAGE,
     MIN_POINTS,
@@ -88,14 +87,8 @@ def refine_candidates(pb, starts: list[Start], trace_iterations: bool) -> list[R
         shown = icp_source(pb, src_w)  # less what stands in front of a mostly hidden base
         views.append((src_w, src_n, cloud(se3.transform_points(se3.inv(s.T_coarse), src_w[shown])).voxel_down_sample(voxel)))
     traces: list[list | None] = [[] if trace_iterations else None for _ in views]
-    if p.deterministic:  # the starts' ICPs side by side, one k-d tree query a step for all (the same poses)
-        fine = pb.fine
-        Ts = icp_point_to_plane_many([np.asarray(v[2].points) for v in views], np.asarray(fine.points),
-                                     np.asarray(fine.normals), [s.T_coarse for s in starts[:len(views)]], pb.vg,
-                                     p.icp_max_iterations, pb.fine_tree, traces)
-    else:
-        Ts = [icp(v[2], pb.fine, s.T_coarse, pb.vg, p.icp_max_iterations, tr, False)
-              for v, s, tr in zip(views, starts, traces)]
+    Ts = icp_many([np.asarray(v[2].points) for v in views], pb.fine, [s.T_coarse for s in starts[:len(views)]], pb.vg,
+                  p.icp_max_iterations, traces, p.deterministic, pb.fine_tree)  # side by side: one query a step for all
     for s, (src_w, src_n, src), T, trace in zip(starts, views, Ts, traces):
         if any(poses_within(T, r.candidate.T_world_base, voxel, 2.0) for r in out):
             continue  # converged onto a pose already refined: nothing new to score
@@ -146,12 +139,19 @@ def _add_twins_of(pb, refined: list[Refined], best: Refined) -> None:
         if k > exact:  # a close twin maps the base only nearly onto itself (a turn a few degrees off): refined
             # as a start is, then polished, before it is scored (a hole punch's right pose, derived 3 mm and 7
             # degrees off, lost to its half-turned twin)
-            T = refine_from(pb, T)
-            if pb.params.polish_voxel_factor > 0:
-                T, _ = polish(pb, T, None)
+            T = refine_and_polish(pb, T)
         cand, src_w, src_n = score_pose(pb, T, k)
         trace = None if best.trace is None else [T_ @ S for T_ in best.trace]
         refined.append(Refined(cand, best.T_start @ S, trace, src_w, src_n))
+
+
+def refine_and_polish(pb, T_world_base: np.ndarray) -> np.ndarray:
+    """T_world_base refined as a start is (refine_from), then polished where the preset has a polish: how a pose derived
+    by a turn a few degrees off the one that fits (a close twin) is fitted before it is scored."""
+    T = refine_from(pb, T_world_base)
+    if pb.params.polish_voxel_factor > 0:
+        T, _ = polish(pb, T, None)
+    return T
 
 
 def refine_from(pb, T: np.ndarray) -> np.ndarray:

@@ -21,12 +21,12 @@ from apose_studio.geometry.plane import table_axes
 from apose_studio.registration.base import place_source, raycast_source
 from apose_studio.registration.refine import polish
 from apose_studio.registration.scoring import agreement_tolerance, icp_source, score_seen, visible_agreement
-from apose_studio.registration.solvers import icp_point_to_plane_many
 from apose_studio.registration.stages import (
     cloud,
     estimate_normals,
     global_registration,
     icp,
+    icp_many,
     normals_fpfh,
     trace_stages,
 )
@@ -267,12 +267,8 @@ class ModelSearch:
             # mostly hidden base leaves ICP nothing to match)
             if len(src_b) >= MIN_POINTS:
                 todo.append((k, T0, src_b))
-        if pb.params.deterministic:  # the starts' ICPs side by side: one query a step for all (the same poses)
-            target = pb.target
-            Ts = icp_point_to_plane_many([s_ for _, _, s_ in todo], np.asarray(target.points), np.asarray(target.normals),
-                                         [T0 for _, T0, _ in todo], 2.0 * vg, 8, pb.target_tree)
-        else:
-            Ts = [icp(cloud(s_), pb.target, T0, 2.0 * vg, 8, None, False) for _, T0, s_ in todo]
+        Ts = icp_many([s_ for _, _, s_ in todo], pb.target, [T0 for _, T0, _ in todo], 2.0 * vg, 8, None,
+                      pb.params.deterministic, pb.target_tree)  # side by side: one k-d tree query a step for all
         seen = [se3.transform_points(T, facing(self.model_pts, self.model_nrm, T, cam_pos)) for T in Ts]
         shares = near_target_shares(pb, seen)
         return sorted([Start(e, k, T0, T) for (k, T0, _), T, e in zip(todo, Ts, shares)], key=lambda x: -x.explained)

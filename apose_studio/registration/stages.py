@@ -14,7 +14,7 @@ from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.geometry.metrics import fitness_rmse
 from apose_studio.params import Params
-from apose_studio.registration.solvers import icp_point_to_plane
+from apose_studio.registration.solvers import icp_point_to_plane, icp_point_to_plane_many
 from apose_studio.registration.types import Candidate, Stage
 
 _RANSAC = threading.Lock()  # global_registration: Open3D's seeded random engine is shared by every thread
@@ -119,6 +119,18 @@ def icp(source, target, T_init: np.ndarray, threshold: float, iterations: int, t
             break
         prev = res.inlier_rmse
     return T
+
+
+def icp_many(sources: list[np.ndarray], target, T_inits: list[np.ndarray], threshold: float, iterations: int,
+             traces: list[list | None] | None = None, deterministic: bool = True, target_tree=None) -> list[np.ndarray]:
+    """`icp` of each source (points, (N, 3)) from its own start onto one target: with `deterministic`, side by side
+    (solvers.icp_point_to_plane_many: one k-d tree query a step for all, the same poses as one `icp` each), else
+    Open3D's one at a time. `traces`: per source, a list for each iteration's T, or None."""
+    traces = traces if traces is not None else [None] * len(sources)
+    if deterministic:
+        return icp_point_to_plane_many(sources, np.asarray(target.points), np.asarray(target.normals), T_inits, threshold,
+                                       iterations, target_tree, traces)
+    return [icp(cloud(s), target, T, threshold, iterations, tr, False) for s, T, tr in zip(sources, T_inits, traces)]
 
 
 def stage(name, T, target, source_base, threshold) -> Stage:

@@ -27,8 +27,8 @@ from apose_studio.studio.widgets import LAYERS, SHARP_EDGE_DEG, esc, legend_html
 log = logging.getLogger(__name__)
 
 REPLAY_SECONDS_PER_STAGE = 0.4  # in an exported replay page
-SCENE_UNDER_ESTIMATE = 0.4  # the scene cloud's discs shrink to this share of a pixel's footprint under an estimate
 REPLAY_HOLD_S = 2.0  # ... and how long it holds the final pose before it loops
+SCENE_UNDER_ESTIMATE = 0.4  # the scene cloud's discs shrink to this share of a pixel's footprint under an estimate
 
 
 def inject_caption(page: str, caption_html: str) -> str:
@@ -139,9 +139,9 @@ class ResultsView:
                 if name in self.app.nodes:
                     self.app.nodes.pop(name).remove()
         labels += self.draw_robot(fr)
-        scene_node = self.app.nodes.get("/inspect/scene")
-        if scene_node is not None and scene_node.point_size != self.scene_point_size():  # (a small message, not the cloud)
-            scene_node.point_size = self.scene_point_size()
+        scene_node, size = self.app.nodes.get("/inspect/scene"), self.scene_point_size()
+        if scene_node is not None and scene_node.point_size != size:  # (a small message, not the cloud again)
+            scene_node.point_size = size
         if r is not None and len(r.target_cloud):
             tgt = inspection.thin(r.target_cloud, 20000).astype(np.float32)
             self.app.node("/inspect/target", scene.add_point_cloud("/inspect/target", tgt, inspection.RED, point_size=d / 120,

@@ -116,7 +116,7 @@ def test_the_advice_gives_views_that_settle_it_and_a_fused_result_is_never_confi
     either that or an ambiguous result with the right placement among its alternatives, never a confident wrong one.
     From 80 degrees up 25 the fused result was confident and wrong: the true placement entered the weighing as the
     chosen pose turned by a close twin, unfitted, scored 0.966 against 0.993 in the first look and was dropped there
-    (fusion.fitted). From -90 degrees (up 35) and 80 degrees (up 25), the advice stays open here: two cameras tie in
+    (refine.refine_and_polish). From -90 degrees (up 35) and 80 degrees (up 25), the advice stays open here: two cameras tie in
     how well they tell the rivals apart, and the one a pixel's rounding puts first faces the wrong placement's notch
     (on another CPU the same test's single look had been settled)."""
     base = bossed[2]
