@@ -44,3 +44,14 @@ def escaped(text: str, allow: str = "") -> str:
     if _PLAIN.fullmatch(text):
         return text
     return "".join(_escape(c) if c not in allow and _unsafe(c) else c for c in text)
+
+
+LONG_VALUE = 200  # characters without a space: a value longer than this is shortened in messages
+_LONG = re.compile(r"\S{%d,}" % (LONG_VALUE + 1))
+
+
+def shorten_values(text: str) -> str:
+    """`text` with each run of more than LONG_VALUE non-space characters (a 5000-digit number, a pasted
+    blob) cut to its start and end and its length: a value in a message is quoted only when short. The CLI's
+    refusals and the studio's notices both pass through it."""
+    return _LONG.sub(lambda m: f"{m[0][:80]}…({len(m[0])} characters)…{m[0][-40:]}", text)

@@ -14,9 +14,10 @@ from pathlib import Path
 
 from apose_studio import __version__
 from apose_studio.assembly.summary import show_json, show_text
-from apose_studio.cli.common import Printable, check_output_file, estimator_args, shorten_values
+from apose_studio.cli.common import Printable, check_output_file, estimator_args
 from apose_studio.errors import AposeError, os_error_text
 from apose_studio.safeio import check_path_text
+from apose_studio.text import shorten_values
 
 REPO = Path(__file__).resolve().parents[2]  # the checkout: apose_studio/cli/commands.py -> the repo
 SAMPLES = REPO / "sample_assemblies"

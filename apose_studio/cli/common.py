@@ -5,7 +5,6 @@ shortened)."""
 from __future__ import annotations
 
 import argparse
-import re
 from pathlib import Path
 
 import numpy as np
@@ -122,19 +121,11 @@ def parse_prompt(args, flag: str, k: int | None = None, views: int = 1):
 # separators, zero-width and tag characters) is printed as an escape; newlines, tabs and the progress
 # bars' \r pass, because the CLI writes them itself (names and paths that hold them are refused where
 # they are read).
-LONG_VALUE = 200  # characters without a space: a value longer than this is shortened in error messages
-_LONG = re.compile(r"\S{%d,}" % (LONG_VALUE + 1))
 
 
 def printable(text: str) -> str:
     """`text` with every control or invisible character shown as an escape (\\x1b, \\u202e)."""
     return escaped(text, allow="\t\n\r")
-
-
-def shorten_values(text: str) -> str:
-    """`text` with each run of more than LONG_VALUE non-space characters (a 5000-digit number, a pasted
-    blob) cut to its start and end and its length: a value in a message is quoted only when short."""
-    return _LONG.sub(lambda m: f"{m[0][:80]}…({len(m[0])} characters)…{m[0][-40:]}", text)
 
 
 class Printable:

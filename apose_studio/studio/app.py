@@ -50,6 +50,7 @@ from apose_studio.studio.views_panel import ViewsPanel
 from apose_studio.studio.viser_adapter import limit_uploads, screen_messages
 from apose_studio.studio.webguard import Workspace, check_token, new_token, start_viser, studio_url
 from apose_studio.studio.widgets import ACTIVE, MAX_UPLOAD_BYTES, VIEWS, send_download
+from apose_studio.text import shorten_values
 
 log = logging.getLogger(__name__)
 RENDER_TIMEOUT_S = 30.0  # for a page's image of its 3D view (software WebGL takes ~1 s)
@@ -142,7 +143,9 @@ class Studio:
         """Tell the tab that acted (or every tab when no one did). An error stays until closed, but only until
         the tab's next message: an old error beside a newer success reads as if the success had failed.
         `others_of`: tell every tab but that one (what another tab's action changed here), in yellow, kept
-        as an error is. `keep`: a success kept the same way (a result to read, such as a step's summary)."""
+        as an error is. `keep`: a success kept the same way (a result to read, such as a step's summary). A long value
+        in `body` (a field's text quoted back: the page may send a megabyte) is shortened, as the CLI's messages are."""
+        body = shorten_values(body)
         (log.warning if error else log.info)("%s: %s", title, body)
         if others_of is not None:
             if self.tab is not None:  # the other tabs have studios of their own

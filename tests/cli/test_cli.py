@@ -259,7 +259,8 @@ def test_demo_refuses_a_folder_it_did_not_make(tmp_path):
 def test_bidi_controls_are_escaped_and_long_values_shortened(tmp_path):
     """#24 minors: a right-to-left override in a path was printed raw (the terminal shows 'x\\u202elmay.yaml'
     as 'xyaml.yml'), and a 5000-character value was echoed whole in an error."""
-    from apose_studio.cli.common import printable, shorten_values
+    from apose_studio.cli.common import printable
+    from apose_studio.text import shorten_values
 
     r = run("show", tmp_path / "x\u202elmay.yaml")
     assert r.returncode == 2 and "\u202e" not in r.stderr and "x\\u202elmay.yaml" in r.stderr, r.stderr

@@ -637,6 +637,9 @@ def test_a_prompt_that_goes_through_closes_the_refusal_its_earlier_try_left(stud
     st.prompt.i_prompt.value = "nan,1,2,3"
     type_prompt(Typed)
     assert tab.shown[-1].body.startswith("Prompt (px) nan,1,2,3: expected four pixel numbers") and "--box" not in tab.shown[-1].body
+    st.prompt.i_prompt.value = "1" * 100_000 + ",2,3,4"  # a page may send a megabyte: quoted back shortened
+    type_prompt(Typed)
+    assert len(tab.shown[-1].body) < 400 and "(100007 characters)" in tab.shown[-1].body  # the run up to the colon, tab.shown[-1].body[:300]
     st.prompt.i_prompt.value = "356,342,262,218"  # corners the other way round
     type_prompt(Typed)
     refusal = tab.shown[-1]
