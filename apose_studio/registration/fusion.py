@@ -147,7 +147,7 @@ def _weigh(first: RegistrationResult, problems: dict[int, Task], order: list[int
     # the first view before any view weighs it, as the single view fits its own close twins (refine._add_twins_of):
     # left as turned, a block's true placement scored 0.966 against 0.993 in the first view, was dropped there, and
     # the one placement left standing in both views, a wrong one, came out confident
-    poses = poses[:1] + [refine_and_polish(pb0, T) for T in poses[1:]]
+    poses = poses[:1] + refine_and_polish(pb0, poses[1:])
     weights = {i: len(problems[i].fine_pts) for i in order}
     total = float(sum(weights.values()))
     per_view = {i: [at_first[i] if k == 0 else score_pose(problems[i], T) for k, T in enumerate(poses)]

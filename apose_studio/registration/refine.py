@@ -132,36 +132,54 @@ def _add_twins_of(pb, refined: list[Refined], best: Refined) -> None:
     exact = len(pb.base.symmetries) - 1
     T_b = best.candidate.T_world_base
     turns = list(pb.base.symmetries[1:]) + list(pb.base.close_twins)
+
+    def known(T: np.ndarray) -> bool:
+        return any(poses_within(T, r.candidate.T_world_base, pb.voxel, 2.0) for r in refined)
+
+    # the close twins' ICPs side by side (refine_from_many), for every one not known yet: the loop below only
+    # adds poses, so each it refines is among these
+    close = [k for k in range(exact + 1, len(turns) + 1) if not known(T_b @ turns[k - 1])]
+    fitted = dict(zip(close, refine_from_many(pb, [T_b @ turns[k - 1] for k in close])))
     for k, S in enumerate(turns, start=1):
         T = T_b @ S
-        if any(poses_within(T, r.candidate.T_world_base, pb.voxel, 2.0) for r in refined):
+        if known(T):
             continue
         if k > exact:  # a close twin maps the base only nearly onto itself (a turn a few degrees off): refined
             # as a start is, then polished, before it is scored (a hole punch's right pose, derived 3 mm and 7
             # degrees off, lost to its half-turned twin)
-            T = refine_and_polish(pb, T)
+            T = polished(pb, fitted[k])
         cand, src_w, src_n = score_pose(pb, T, k)
         trace = None if best.trace is None else [T_ @ S for T_ in best.trace]
         refined.append(Refined(cand, best.T_start @ S, trace, src_w, src_n))
 
 
-def refine_and_polish(pb, T_world_base: np.ndarray) -> np.ndarray:
-    """T_world_base refined as a start is (refine_from), then polished where the preset has a polish: how a pose derived
-    by a turn a few degrees off the one that fits (a close twin) is fitted before it is scored."""
-    T = refine_from(pb, T_world_base)
-    if pb.params.polish_voxel_factor > 0:
-        T, _ = polish(pb, T, None)
-    return T
+def refine_and_polish(pb, Ts: list[np.ndarray]) -> list[np.ndarray]:
+    """Each T_world_base refined as a start is (refine_from_many), then polished where the preset has a polish: how a
+    pose derived by a turn a few degrees off the one that fits (a close twin) is fitted before it is scored."""
+    return [polished(pb, T) for T in refine_from_many(pb, Ts)]
 
 
-def refine_from(pb, T: np.ndarray) -> np.ndarray:
-    """ICP of what the camera would see of the base at T onto the target, at the coarse threshold (as
-    refine_candidates refines a start)."""
-    src_w, _ = raycast_source(pb.base, T, pb.T_world_camera, pb.cam)
-    if len(src_w) < MIN_POINTS:
-        return T
-    src = cloud(se3.transform_points(se3.inv(T), src_w)).voxel_down_sample(pb.voxel)
-    return icp(src, pb.fine, T, pb.vg, pb.params.icp_max_iterations, None, pb.params.deterministic, pb.fine_tree)
+def polished(pb, T_world_base: np.ndarray) -> np.ndarray:
+    """T_world_base polished where the preset has a polish (else as it is)."""
+    return polish(pb, T_world_base, None)[0] if pb.params.polish_voxel_factor > 0 else T_world_base
+
+
+def refine_from_many(pb, Ts: list[np.ndarray]) -> list[np.ndarray]:
+    """Each pose T refined as refine_candidates refines a start: ICP of what the camera would see of the base at T
+    onto the target, at the coarse threshold. The ICPs run side by side (stages.icp_many: one k-d tree query a step
+    for all, each pose the one its own ICP gives). A pose the camera would see too little of stays as it is."""
+    out = [np.array(T, dtype=float) for T in Ts]
+    sources, todo = [], []
+    for k, T in enumerate(Ts):
+        src_w, _ = raycast_source(pb.base, T, pb.T_world_camera, pb.cam)
+        if len(src_w) >= MIN_POINTS:
+            sources.append(np.asarray(cloud(se3.transform_points(se3.inv(T), src_w)).voxel_down_sample(pb.voxel).points))
+            todo.append(k)
+    p = pb.params
+    for k, T in zip(todo, icp_many(sources, pb.fine, [Ts[k] for k in todo], pb.vg, p.icp_max_iterations, None,
+                                   p.deterministic, pb.fine_tree)):
+        out[k] = T
+    return out
 
 
 def tied(base, cands: list[Candidate], voxel: float) -> list[int]:
@@ -315,8 +333,7 @@ def neighbour_rivals(pb, refined: list[Refined], chosen: int, slid: bool = False
         return any(poses_within(T, r.candidate.T_world_base, pb.voxel, 2.0) for r in refined)
 
     new: list[int] = []
-    for M in moves:
-        T = refine_from(pb, M @ T_b)
+    for T in refine_from_many(pb, [M @ T_b for M in moves]):  # their ICPs side by side
         if known(T):
             continue  # (before the polish too: most neighbours of a pose the data pins fall back onto it)
         if pb.params.polish_voxel_factor > 0:
@@ -366,14 +383,15 @@ def base_twins_alike(pb, T_world_base: np.ndarray) -> list[np.ndarray]:
     if not alike:
         return []
     own = score_pose(pb, T_world_base)[0].score
+    ties = [score_pose(pb, T)[0].score >= own - TWIN_TIE_MARGIN for T in alike]  # as the turn gives it
+    fitted = iter(refine_from_many(pb, [T for T, tie in zip(alike, ties) if not tie]))  # the others' ICPs side by side
     out: list[np.ndarray] = []
-    for T in alike:
-        turned = score_pose(pb, T)[0].score
-        if turned >= own - TWIN_TIE_MARGIN:  # ties as the turn gives it: no ICP needed to say so
+    for T, tie in zip(alike, ties):
+        if tie:  # ties as the turn gives it: no ICP needed to say so
             if not any(poses_within(T, A, pb.voxel, 2.0) for A in out):
                 out.append(T)
             continue
-        T = refine_from(pb, T)
+        T = next(fitted)
         if poses_within(T, T_world_base, pb.voxel, 2.0) or any(poses_within(T, A, pb.voxel, 2.0) for A in out):
             continue  # refined back onto the pose (or onto one already found)
         if not same_placement(T_part, T @ pb.T_base_part, pb.part_symmetries, 3 * pb.voxel, 5.0):

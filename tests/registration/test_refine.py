@@ -45,3 +45,33 @@ def test_polish_refines_a_noisy_view_onto_the_model(gearbox_step2):
     T_usual = icp(src, fine, T_start, p.polish_threshold_factor * voxel, 30)
     assert adi(T_usual, T_true, base.samples) > 1.5 * err, (adi(T_usual, T_true, base.samples), err)  # 0.09 vs 0.035 mm
 
+
+
+def test_refining_poses_side_by_side_gives_each_the_pose_it_gets_alone(gearbox_step2):
+    """refine_from_many (the close twins', the neighbours' and fusion's rivals' ICPs in one batch) returns for each
+    pose exactly what refining it alone returns, and the batch converges: starts a few millimetres and degrees off
+    the truth end near it. A pose the camera sees nothing of (behind it) comes back unchanged, and does not shift
+    the others' slices of the batch."""
+    from apose_studio.registration import Observation, mask_edge
+    from apose_studio.registration.refine import refine_from_many
+    from apose_studio.registration.task import prepare_task
+
+    _, base, _ = gearbox_step2
+    T_world_camera = se3.look_at([0.25, -0.2, 0.3], [0, 0, 0.01])
+    T_true = se3.make_T(se3.axis_angle_matrix([0, 0, 1.0], np.radians(25)), [0.01, -0.02, 0.0])
+    depth, mask = synthetic_view(base, T_true, T_world_camera)
+    target = project_to_cloud(depth, mask, CAM, T_world_camera)
+    p = resolve_params("default")
+    voxel = p.voxel(base.diameter)
+    pb = prepare_task(target, CAM, T_world_camera, base, np.eye(4), p, voxel, Observation(mask, depth, mask_edge(mask)))
+    offs = [([0, 0, 1.0], 4, [0.003, 0, 0]), ([1.0, 0, 0], -3, [0, 0.002, 0.001]), ([0, 1.0, 0], 6, [-0.002, 0, 0])]
+    starts = [se3.make_T(se3.axis_angle_matrix(a, np.radians(deg)), t) @ T_true for a, deg, t in offs]
+    behind = se3.make_T(t=-3.0 * T_world_camera[:3, 2]) @ T_true  # 3 m behind the camera
+    starts.insert(1, behind)
+    together = refine_from_many(pb, starts)
+    alone = [refine_from_many(pb, [T])[0] for T in starts]
+    assert all(np.array_equal(a, b) for a, b in zip(together, alone))
+    assert np.array_equal(together[1], behind)
+    for T, S in zip([together[0], *together[2:]], [starts[0], *starts[2:]]):
+        assert not np.array_equal(T, S)
+        assert np.linalg.norm(T[:3, 3] - T_true[:3, 3]) < 0.5 * np.linalg.norm(S[:3, 3] - T_true[:3, 3])
