@@ -29,7 +29,7 @@ AMBER = (255, 160, 0)  # ground truth
 CYAN = (0, 200, 255)  # the mask on the RGB overlay
 MAGENTA = (220, 60, 220)  # other placements that fit as well as the estimate (an ambiguous result)
 GRIPPER = (150, 156, 170)  # light steel: the gripper at a grasp (robot/grasping.py), in no part palette
-LEGEND = (("target cloud", RED), ("source cloud", BLUE), ("estimate", GREEN), ("truth (dashed)", AMBER),
+LEGEND = (("target cloud", RED), ("source cloud", BLUE), ("estimate (the part's box)", GREEN), ("truth (dashed)", AMBER),
           ("part at estimate (see-through)", (160, 225, 170)),
           ("base at estimate (outline)", GREEN), ("alternatives", MAGENTA), ("gripper", GRIPPER),
           ("scene cloud (the image's colours)", (150, 150, 150)))

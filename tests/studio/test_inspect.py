@@ -452,6 +452,9 @@ def test_the_legend_lists_only_what_is_drawn(studio, gearbox_dataset, capture):
     act(st, st.inspect.run_estimation, False)
     legend = st.results.i_legend.content
     assert all(name in legend for name in ("truth (dashed)", "estimate", "target cloud", "source cloud")), legend
+    # a newcomer took the green box, drawn where the part will go, for a bad fit of the base they had prompted:
+    # the legend says whose box it is, apart from the base's own outline
+    assert "estimate (the part" in legend and "base at estimate (outline)" in legend, legend
 
 
 def test_an_estimate_does_not_move_a_view_already_framed(studio, gearbox_dataset):
