@@ -88,10 +88,11 @@ class Params:
                             "the machine is); past it a search stops, says so, and the result is never confident",
                             0, 3600, unit="s")
     second_look: bool = _p(True, "bool", "a result that is not confident is estimated again on its mask cut to the "
-                           "model's view at that pose; kept only if that one is confident")
+                           "model's view at that pose, from its candidates (each refined on the cut, their twins and "
+                           "neighbours compared there; no new search); kept only if that one is confident")
     second_look_from_pose: bool = _p(False, "bool", "the second look first refits from the pose it looks again at "
                                      "(ICP on the cut, kept where it is confident; the pose's own rivals were sought on "
-                                     "the whole mask) and searches anew only where that fails; on for a region's part "
+                                     "the whole mask) and refines its candidates on the cut only where that fails; on for a region's part "
                                      "found whole (--instances all)")
     mask_hypotheses: bool = _p(True, "bool", "a result that is not confident is estimated again on other readings of "
                                "the mask (without what lies on the base or stands in front of it); the one whose model "

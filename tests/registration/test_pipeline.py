@@ -439,7 +439,41 @@ def test_second_look_from_pose_refits_without_a_search_and_agrees(gearbox_datase
                                 None, False) is not None and not refits  # ambiguous: the full second look
     searches.clear()
     r = pipeline.second_look(first, view, ctx.base, ctx.view.T_base_part, from_pose, None, False)
-    assert refits == [1] and searches and r.confident  # the refit gave nothing: searched anew
+    assert refits == [1] and not searches and r.confident  # the refit gave nothing: the first look's candidates
+    # refined on the cut, with their twins and neighbours (no search)
+
+
+def test_the_second_look_refines_the_first_looks_candidates_and_compares_their_twins(gearbox_dataset, monkeypatch):
+    """The second look registers on the cut mask from the first look's candidates (pipeline.first_look_starts), without
+    a search of its own: confident and right on the slab-widened mask with one search in all. A first look turned by
+    any of the base's close twins, near-symmetries or half turns is never made confident and wrong by it: the turned
+    pose's twins are refined and compared on the cut (or the result stays the unconfident first look); some come back
+    confident and right."""
+    from dataclasses import replace
+
+    from apose_studio.registration import pipeline
+
+    ctx, fr, view = _slab_beside_the_base(gearbox_dataset)
+    base, T_base_part = ctx.base, ctx.view.T_base_part
+    p = resolve_params("default", mask_hypotheses=False)
+    searches = []
+    search = pipeline.search_poses
+    monkeypatch.setattr(pipeline, "search_poses", lambda *a, **k: searches.append(1) or search(*a, **k))
+    r = estimate(view, base, T_base_part, p)
+    assert searches == [1] and r.confident and r.second_look is not None
+    assert mssd(r.T_world_part, fr.T_world_part, ctx.part.samples) < 0.1 * ctx.part.diameter
+    first = estimate(view, base, T_base_part, replace(p, second_look=False))
+    assert not first.confident
+    back = 0
+    for S in [*base.close_twins, *base.near_symmetries, *base.flips()[1:]]:
+        T = first.T_world_base @ S
+        turned = replace(first, T_world_base=T, T_world_part=T @ T_base_part,
+                         candidates=[replace(first.candidates[0], T_world_base=T, T_world_part=T @ T_base_part)])
+        r = pipeline.second_look(turned, view, base, T_base_part, p, None, False)
+        right = mssd(r.T_world_part, fr.T_world_part, ctx.part.samples) < 0.1 * ctx.part.diameter
+        assert right or not r.confident, S
+        back += bool(right and r.confident)
+    assert back >= 3, back
 
 
 def test_the_second_look_comes_before_the_free_search(gearbox_dataset, monkeypatch):
