@@ -491,20 +491,22 @@ def search_and_choose(pb: Task, prior: np.ndarray | None, trace_iterations: bool
         polish_chosen(pb, refined, chosen)
     close = close + neighbour_rivals(pb, refined, chosen, found.slid)  # a mostly hidden base: neighbours that fit as well
     timings["icp"] += time.perf_counter() - t
-    result = compose(pb, refined, chosen, close, T_world_source, timings)  # T_world_part = T_world_base @ T_base_part
+    result = compose(pb, refined, chosen, close, T_world_source, timings,  # T_world_part = T_world_base @ T_base_part
+                     "global" if starts is None else "first look")
     free_due = bool(found.upright and not result.fits and p.free_after_upright and
                     not pb.out_of_time("the free search after the upright one"))
     return replace(result, out_of_time="; ".join(pb.notes), problem=pb), free_due
 
 
 def compose(pb: Task, refined: list, chosen: int, close: list[int], T_world_source: np.ndarray,
-            timings: dict) -> RegistrationResult:
-    """The result: the chosen pose and its part pose, the replay, every candidate (best first), and the
+            timings: dict, start_name: str = "global") -> RegistrationResult:
+    """The result: the chosen pose and its part pose, the replay (its start stage named `start_name`: "global" after a
+    search, "first look" where the second look refined the first look's pose), every candidate (best first), and the
     other placements that fit as well when the result is ambiguous."""
     cands = [r.candidate for r in refined]
     c, r = cands[chosen], refined[chosen]
     src_b = se3.transform_points(se3.inv(c.T_world_base), r.seen)
-    stages = trace_stages(T_world_source, "global", r.T_start, r.trace, c, src_b, pb.fine_pts, pb.thr)
+    stages = trace_stages(T_world_source, start_name, r.T_start, r.trace, c, src_b, pb.fine_pts, pb.thr)
     order = sorted(range(len(cands)), key=lambda i: -cands[i].score)
     symmetries = pb.base.symmetries
     placements = distinct_placements([c] + [cands[i] for i in close if i != chosen], pb.voxel, symmetries,

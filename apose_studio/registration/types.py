@@ -42,7 +42,7 @@ CONFIDENT_PART_SPREAD = 0.05  # ... and within this share of the placed part's d
 class Stage:
     """One step of the registration, for the studio's replay."""
 
-    name: str  # "initial", "global", "icp 1", ..., "final"
+    name: str  # "initial", "global" (or "prior", or "first look": where a second look began), "icp 1", ..., "final"
     T_world_base: np.ndarray
     fitness: float
     inlier_rmse: float

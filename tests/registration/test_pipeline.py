@@ -445,7 +445,8 @@ def test_second_look_from_pose_refits_without_a_search_and_agrees(gearbox_datase
 
 def test_the_second_look_refines_the_first_looks_candidates_and_compares_their_twins(gearbox_dataset, monkeypatch):
     """The second look registers on the cut mask from the first look's candidates (pipeline.first_look_starts), without
-    a search of its own: confident and right on the slab-widened mask with one search in all. A first look turned by
+    a search of its own: confident and right on the slab-widened mask with one search in all, its replay starting
+    from "first look". A first look turned by
     any of the base's close twins, near-symmetries or half turns is never made confident and wrong by it: the turned
     pose's twins are refined and compared on the cut (or the result stays the unconfident first look); some come back
     confident and right."""
@@ -462,7 +463,9 @@ def test_the_second_look_refines_the_first_looks_candidates_and_compares_their_t
     r = estimate(view, base, T_base_part, p)
     assert searches == [1] and r.confident and r.second_look is not None
     assert mssd(r.T_world_part, fr.T_world_part, ctx.part.samples) < 0.1 * ctx.part.diameter
+    assert r.stages[1].name == "first look"  # the replay names where the cut's ICP started: no global search ran
     first = estimate(view, base, T_base_part, replace(p, second_look=False))
+    assert first.stages[1].name == "global"
     assert not first.confident
     back = 0
     for S in [*base.close_twins, *base.near_symmetries, *base.flips()[1:]]:
