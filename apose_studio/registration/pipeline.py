@@ -157,7 +157,7 @@ def estimate_mask(view: View, base: BaseObject, T_base_part: np.ndarray, params:
                   prior_T_world_base: np.ndarray | None = None, trace_iterations: bool = True,
                   part_symmetries: np.ndarray | None = None, starts: list | None = None) -> RegistrationResult:
     """`estimate` on the view's mask as it is: PROJ3D, the searches, the judge, the second look. `starts`
-    (T_world_base, best first): refine these instead of searching (the second look's)."""
+    ((score, T_world_base), best first; first_look_starts): refine these instead of searching (the second look's)."""
     depth, mask, cam, T_world_camera = view.depth, view.mask, view.camera, view.T_world_camera
     timings: dict[str, float] = {}
     t0 = time.perf_counter()

@@ -132,22 +132,14 @@ def _add_twins_of(pb, refined: list[Refined], best: Refined) -> None:
     exact = len(pb.base.symmetries) - 1
     T_b = best.candidate.T_world_base
     turns = list(pb.base.symmetries[1:]) + list(pb.base.close_twins)
-
-    def known(T: np.ndarray) -> bool:
-        return any(poses_within(T, r.candidate.T_world_base, pb.voxel, 2.0) for r in refined)
-
-    # the close twins' ICPs side by side (refine_from_many), for every one not known yet: the loop below only
-    # adds poses, so each it refines is among these
-    close = [k for k in range(exact + 1, len(turns) + 1) if not known(T_b @ turns[k - 1])]
-    fitted = dict(zip(close, refine_from_many(pb, [T_b @ turns[k - 1] for k in close])))
     for k, S in enumerate(turns, start=1):
         T = T_b @ S
-        if known(T):
+        if any(poses_within(T, r.candidate.T_world_base, pb.voxel, 2.0) for r in refined):
             continue
         if k > exact:  # a close twin maps the base only nearly onto itself (a turn a few degrees off): refined
             # as a start is, then polished, before it is scored (a hole punch's right pose, derived 3 mm and 7
             # degrees off, lost to its half-turned twin)
-            T = polished(pb, fitted[k])
+            T = refine_and_polish(pb, [T])[0]
         cand, src_w, src_n = score_pose(pb, T, k)
         trace = None if best.trace is None else [T_ @ S for T_ in best.trace]
         refined.append(Refined(cand, best.T_start @ S, trace, src_w, src_n))
@@ -156,12 +148,8 @@ def _add_twins_of(pb, refined: list[Refined], best: Refined) -> None:
 def refine_and_polish(pb, Ts: list[np.ndarray]) -> list[np.ndarray]:
     """Each T_world_base refined as a start is (refine_from_many), then polished where the preset has a polish: how a
     pose derived by a turn a few degrees off the one that fits (a close twin) is fitted before it is scored."""
-    return [polished(pb, T) for T in refine_from_many(pb, Ts)]
-
-
-def polished(pb, T_world_base: np.ndarray) -> np.ndarray:
-    """T_world_base polished where the preset has a polish (else as it is)."""
-    return polish(pb, T_world_base, None)[0] if pb.params.polish_voxel_factor > 0 else T_world_base
+    fitted = refine_from_many(pb, Ts)
+    return [polish(pb, T, None)[0] for T in fitted] if pb.params.polish_voxel_factor > 0 else fitted
 
 
 def refine_from_many(pb, Ts: list[np.ndarray]) -> list[np.ndarray]:
@@ -383,15 +371,13 @@ def base_twins_alike(pb, T_world_base: np.ndarray) -> list[np.ndarray]:
     if not alike:
         return []
     own = score_pose(pb, T_world_base)[0].score
-    ties = [score_pose(pb, T)[0].score >= own - TWIN_TIE_MARGIN for T in alike]  # as the turn gives it
-    fitted = iter(refine_from_many(pb, [T for T, tie in zip(alike, ties) if not tie]))  # the others' ICPs side by side
     out: list[np.ndarray] = []
-    for T, tie in zip(alike, ties):
-        if tie:  # ties as the turn gives it: no ICP needed to say so
+    for T in alike:
+        if score_pose(pb, T)[0].score >= own - TWIN_TIE_MARGIN:  # ties as the turn gives it: no ICP needed to say so
             if not any(poses_within(T, A, pb.voxel, 2.0) for A in out):
                 out.append(T)
             continue
-        T = next(fitted)
+        T = refine_from_many(pb, [T])[0]
         if poses_within(T, T_world_base, pb.voxel, 2.0) or any(poses_within(T, A, pb.voxel, 2.0) for A in out):
             continue  # refined back onto the pose (or onto one already found)
         if not same_placement(T_part, T @ pb.T_base_part, pb.part_symmetries, 3 * pb.voxel, 5.0):
