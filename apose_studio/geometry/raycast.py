@@ -99,8 +99,9 @@ def raycast_points(mesh: trimesh.Trimesh, T_world_mesh: np.ndarray, T_world_came
     rays = rays.reshape(-1, 6)
     t = hit["t_hit"].numpy()
     ok = np.isfinite(t)
-    pts = rays[ok, :3] + t[ok, None] * rays[ok, 3:]
-    n = facing_normals(b, hit["primitive_ids"].numpy().view(np.int32)[ok], rays[ok, 3:])
+    dirs = rays[ok, 3:]
+    pts = rays[0, :3] + t[ok, None] * dirs  # every ray starts at the camera
+    n = facing_normals(b, hit["primitive_ids"].numpy().view(np.int32)[ok], dirs)
     return se3.transform_points(T_world_mesh, pts), n @ T_world_mesh[:3, :3].T
 
 

@@ -434,14 +434,15 @@ def frame_noise(depth: np.ndarray, mask: np.ndarray) -> float:
     sigma q / sqrt(12)): sqrt(noise^2 + q^2 / 12). A Kinect's steps (3 mm at 1 m, 7 mm at 1.6 m) leave
     most second differences at zero, so the noise alone reads far too small. 0 when it cannot be
     measured (too few pixels)."""
-    ys, xs = np.nonzero(mask)
+    ys, xs = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))  # the mask's rows and columns
     h, w = mask.shape
     cy, cx, hy, hx = (ys.min() + ys.max()) / 2, (xs.min() + xs.max()) / 2, np.ptp(ys) + 1, np.ptp(xs) + 1
     region = np.zeros_like(mask, dtype=bool)
     region[max(int(cy - hy), 0):min(int(cy + hy) + 1, h), max(int(cx - hx), 0):min(int(cx + hx) + 1, w)] = True
     sigma = estimate_depth_noise(depth, region)
     sigma = sigma if np.isfinite(sigma) else 0.0
-    q = quantisation_step(depth, mask)
+    box = np.s_[ys[0]:ys[-1] + 1, xs[0]:xs[-1] + 1]  # the mask's box: the same pixels, not the whole frame's work
+    q = quantisation_step(depth[box], mask[box])
     return float(np.sqrt(sigma ** 2 + q ** 2 / 12.0))
 
 
@@ -678,12 +679,12 @@ def judge(result: RegistrationResult, view: View, base: BaseObject, plane=_FIT) 
         contradiction = contradicted / max(confirmed + contradicted, 1)
     reason = None
     centre = se3.transform_points(se3.inv(T_world_camera) @ result.T_world_base, base.centre[None])[0]
-    valid = depth[np.isfinite(depth) & (depth > 0)]
+    farthest = float(np.max(depth, where=np.isfinite(depth) & (depth > 0), initial=-np.inf))  # -inf: no depth at all
     if centre[2] <= 0:
         reason = "the pose puts the base behind the camera"
-    elif len(valid) and centre[2] > float(valid.max()) + base.diameter:
+    elif np.isfinite(farthest) and centre[2] > farthest + base.diameter:
         reason = (f"the pose puts the base {centre[2]:.2f} m away, beyond the farthest depth the camera saw "
-                  f"({float(valid.max()):.2f} m)")
+                  f"({farthest:.2f} m)")
     else:
         u, v = cam.project(centre[None])
         margin = cam.fx * base.diameter / centre[2]  # the base's size in pixels: its centre may lie that far out

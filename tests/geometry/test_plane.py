@@ -67,3 +67,47 @@ def test_an_object_seen_only_on_its_top_stands_on_the_table_within_its_own_size(
     n, d, inliers = fit_plane(pts, 0.003, seed=0, towards=camera, above=top, reach=0.12)
     np.testing.assert_allclose(n, [0, 0, 1.0], atol=1e-3)
     assert abs(d) < 1e-3 and inliers[:3000].all() and not inliers[3000:].any()
+
+
+def _supported_counts_by_asking_every_plane(counts, signed, above, tol, reach):
+    """What plane.supported_counts must agree with on the winner: every plane asked (the median and the 5th
+    percentile of the object's heights over it), the object's extent measured outright."""
+    from apose_studio.geometry.plane import extent_of
+
+    supports = (np.median(signed, axis=0) > tol) & (np.percentile(signed, 5, axis=0)
+                                                    < max(10 * tol, 0.5 * extent_of(above), reach))
+    return np.where(supports, counts, -1)
+
+
+def test_asking_the_best_planes_first_picks_the_plane_that_asking_every_plane_picks():
+    """supported_counts asks planes one at a time, best first, and stops at the first the object stands on; it must
+    give the same winner (argmax, ties to the lowest index) and the same count as asking all of them, also where
+    ties in count run between planes that do and do not support the object, where none of the first planes does
+    (a wall and a shelf with more points than the table), where none does at all, and whether or not the
+    object's extent decides the reach."""
+    from apose_studio.geometry.plane import SUPPORT_TRIES, supported_counts
+
+    rng = np.random.default_rng(3)
+    asked_late = nowhere = 0
+    for trial in range(300):
+        planes = rng.integers(5, 60)
+        normals = rng.normal(size=(planes, 3))
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        offsets = rng.normal(scale=0.2, size=planes)
+        if trial % 3 == 0:  # a plane under the object, somewhere in the order
+            normals[rng.integers(planes)] = [0, 0, 1.0]
+        m = int(rng.integers(20, 400))
+        above = np.c_[rng.uniform(-0.05, 0.05, (m, 2)), rng.uniform(0.0, 0.1) + rng.uniform(0.0, 0.1, m)]
+        signed = above @ normals.T + offsets
+        counts = rng.integers(0, 6, planes) * 10  # many ties in count
+        tol, reach = 0.004, float(rng.choice([0.0, 0.03, 0.2]))
+        want = _supported_counts_by_asking_every_plane(counts, signed, above, tol, reach)
+        got = supported_counts(counts, signed, above, tol, reach)
+        assert int(np.argmax(got)) == int(np.argmax(want)), trial
+        assert got[np.argmax(got)] == want[np.argmax(want)], trial
+        assert set(np.flatnonzero(got >= 0)) <= set(np.flatnonzero(want >= 0)), trial  # never a plane that does not hold it
+        order = np.lexsort((np.arange(planes), -counts))
+        first = next((k for k, j in enumerate(order) if want[j] >= 0), None)
+        asked_late += first is not None and first >= SUPPORT_TRIES
+        nowhere += first is None
+    assert asked_late >= 5 and nowhere >= 5, (asked_late, nowhere)  # both slow paths were tried
