@@ -329,6 +329,49 @@ def test_depth_registered_off_the_colour_image_is_moved_back_onto_it():
     assert moved.confident, moved.doubts
 
 
+def test_a_shift_the_edges_suggest_before_any_pose_is_estimated_once_and_checked_on_the_depth_as_it_lay(monkeypatch):
+    """The hole punch on the Kinect desk of the test above, its depth 3 px off the colour image. The edges suggest the
+    shift before any pose, so the depth is moved back by it and estimated, and the check at that pose on the depth as
+    it lay confirms the shift (to within a pixel: there it finds (2, 1) where the edges suggested (3, 1)): one
+    registration, not two (the estimate on the depth as it lay is not made), and the pose right and confident as
+    before. Told a wrong shift instead (the other way, 6 px off in all, beyond what the check calls clear), the
+    estimate on that depth finds no shift left, but the check at its pose on the depth as it lay does not find that
+    shift: it is not taken, and the depth is moved by the shift the check finds."""
+    import apose_studio.estimation as estimation
+
+    frame = rendered_frame(DESK, 3, 1, **REAL_DESK)
+    du, dv = true_shift(frame.depth, rendered_frame(DESK, 3, 1, **{**REAL_DESK, "misregistration_px": 0.0}).depth)
+    asm = load_assembly(DESK)
+    ctx = StepContext(asm, load_parts(asm), 3)
+    box = prompt_box(frame.base_mask())
+    mask = prompted_mask(frame.rgb, frame.depth, frame.camera, box=box).mask
+    depths = []  # the depth each registration ran on, as its shift from the depth as it lay (None: another)
+    registration = estimation.estimate
+
+    def counted(view, *args, **kw):
+        moved = [s for s in [(a, b) for a in range(-6, 7) for b in range(-6, 7)]
+                 if np.array_equal(view.depth, estimation.shift_image(frame.depth, -s[0], -s[1]))]
+        depths.append(moved[0] if moved else None)
+        return registration(view, *args, **kw)
+
+    monkeypatch.setattr(estimation, "estimate", counted)
+    r = estimate_frame(frame, ctx, resolve_params("default"), mask=mask, box=box)
+    err = mssd(r.T_world_part, frame.T_world_part, ctx.part.samples, ctx.part.symmetries)
+    assert abs(r.depth_moved_px[0] - du) <= 1 and abs(r.depth_moved_px[1] - dv) <= 1, (r.depth_moved_px, du, dv)
+    assert depths == [r.depth_moved_px], depths  # one registration, on the depth moved back
+    assert r.confident and err < 0.005 and r.colour_offset == 0, (err, doubts(r))
+
+    wrong = (-r.depth_moved_px[0], -r.depth_moved_px[1])
+    suggest = estimation.edges_suggest_shift
+    monkeypatch.setattr(estimation, "edges_suggest_shift",  # on the depth as it lay: the wrong shift
+                        lambda view: (wrong, suggest(view)[1]) if view.depth is frame.depth else suggest(view))
+    depths.clear()
+    told_wrong = estimate_frame(frame, ctx, resolve_params("default"), mask=mask, box=box)
+    assert depths[0] == wrong and (0, 0) in depths, depths  # tried first, then the depth as it lay
+    assert told_wrong.depth_moved_px == r.depth_moved_px, told_wrong.depth_moved_px
+    assert np.array_equal(told_wrong.T_world_part, r.T_world_part) and told_wrong.confident
+
+
 def test_a_pose_the_depth_may_have_put_off_the_colour_image_is_not_confident():
     """A toy duck on a Kinect desk whose depth lies 3 px off the colour image: its label 7.4 mm off against the
     label's 7 mm line, confident without the colour check. With it, the depth's edges lie 2 px off the colour's
