@@ -399,19 +399,25 @@ def estimate_colour_checked(view: View, ctx: StepContext, params: Params, orient
     def with_look(r: RegistrationResult, spent: float = 0.0) -> RegistrationResult:  # the first look's time counted
         if not params.colour_check:
             return r
-        extra = {"colour check": r.timings.get("colour check", 0.0) + looked, **({"quick estimate": spent} if spent else {}),
-                 **({"estimate on the depth moved back": ahead_spent} if ahead_spent else {})}
+        extra = {"colour check": r.timings.get("colour check", 0.0) + looked, **({"quick estimate": spent} if spent else {})}
         return replace(r, timings={**r.timings, **extra})
 
+    def counted(r: RegistrationResult) -> RegistrationResult:
+        """`r` with the look-ahead's estimate (moved_ahead) counted where it was made and `r` is not it: time spent on
+        a shift that `r` did not keep. (`r` on that same shift is that very estimate, its time in its own timings.)"""
+        if not ahead_spent or r.depth_moved_px == ahead_shift:
+            return r
+        return replace(r, timings={**r.timings, "estimate on the depth moved back": ahead_spent})
+
     moving = params.colour_check and params.move_depth_to_colour
-    tried, spent, ahead_spent = None, 0.0, 0.0
+    tried, spent, ahead_spent, ahead_shift = None, 0.0, 0.0, None
     if moving and first_look is not None and looks_ahead(view):  # the edges suggest a shift: estimate on the depth
         # moved back by it first
         t_ahead = time.perf_counter()
         ahead = moved_ahead(first_look[0], looked)
         if ahead is not None:
             return ahead
-        ahead_spent = time.perf_counter() - t_ahead
+        ahead_spent, ahead_shift = time.perf_counter() - t_ahead, (int(first_look[0][0]), int(first_look[0][1]))
     if moving and first_look is not None and params.mask_hypotheses:  # the edges suggest a shift: the estimate on
         # the mask as given tells whether the shift holds at the pose. Not its other readings, second look or free
         # search, the costly parts: none runs on a result that fits, and one that does not is estimated again
@@ -421,15 +427,15 @@ def estimate_colour_checked(view: View, ctx: StepContext, params: Params, orient
         if quick.ok and quick.colour_offset > 0:
             moved = moved_back(quick, quick.seconds + looked)
             if moved is not None:
-                return moved
+                return counted(moved)
             tried = quick.colour_offset_px
         elif raw.fits:  # the other readings run only on a result that does not fit: this is the whole estimate
-            return with_look(quick)
+            return counted(with_look(quick))
         spent = quick.seconds
     result = with_look(checked(view, params, first_look)[1], spent)
     if moving and result.ok and result.colour_offset > 0 and result.colour_offset_px != tried:
-        return moved_back(result, result.seconds) or result
-    return result
+        return counted(moved_back(result, result.seconds) or result)
+    return counted(result)
 
 
 def region_target(view: View, base: BaseObject) -> View:

@@ -370,6 +370,8 @@ def test_a_shift_the_edges_suggest_before_any_pose_is_estimated_once_and_checked
     assert depths[0] == wrong and (0, 0) in depths, depths  # tried first, then the depth as it lay
     assert told_wrong.depth_moved_px == r.depth_moved_px, told_wrong.depth_moved_px
     assert np.array_equal(told_wrong.T_world_part, r.T_world_part) and told_wrong.confident
+    # the estimate wasted on the wrong shift is counted once, apart; the kept one's own time is in its stages
+    assert told_wrong.timings["estimate on the depth moved back"] > 0 and "estimate on the depth moved back" not in r.timings
 
 
 def test_a_pose_the_depth_may_have_put_off_the_colour_image_is_not_confident():
