@@ -362,31 +362,31 @@ def estimate_colour_checked(view: View, ctx: StepContext, params: Params, orient
 
     on_moved: dict[tuple[int, int], RegistrationResult] = {}  # per shift
 
-    def on_moved_depth(du: int, dv: int) -> RegistrationResult:
-        """The estimate (held to the part, colour-checked) on the depth moved back by (du, dv); made once per shift."""
-        if (int(du), int(dv)) not in on_moved:
-            on_moved[int(du), int(dv)] = checked(replace(view, depth=shift_image(view.depth, -du, -dv)))[1]
-        return on_moved[int(du), int(dv)]
+    def settled(du: int, dv: int) -> RegistrationResult | None:
+        """The estimate (held to the part, colour-checked) on the depth moved back by (du, dv), made once per shift,
+        when its own check finds no shift left; None otherwise."""
+        key = (int(du), int(dv))
+        if key not in on_moved:
+            on_moved[key] = checked(replace(view, depth=shift_image(view.depth, -du, -dv)))[1]
+        again = on_moved[key]
+        return again if again.ok and not again.colour_offset > 0 else None
 
     def moved_back(first: RegistrationResult, before: float) -> RegistrationResult | None:
-        """The estimate on the depth moved back by the shift `first`'s check found, when its own check finds no
-        shift left; None otherwise. `before`: the seconds spent before it (the first estimate's)."""
+        """settled on the shift `first`'s check found. `before`: the seconds spent before it (the first estimate's)."""
         du, dv = first.colour_offset_px
-        again = on_moved_depth(du, dv)
-        if not again.ok or again.colour_offset > 0:
-            return None
-        return replace(again, depth_moved_px=(int(du), int(dv)),
-                       timings={**again.timings, "estimate on the depth as it lay": before})
+        again = settled(du, dv)
+        return None if again is None else replace(again, depth_moved_px=(int(du), int(dv)),
+                                                  timings={**again.timings, "estimate on the depth as it lay": before})
 
     def moved_ahead(shift: tuple[int, int], before: float) -> RegistrationResult | None:
-        """The estimate on the depth moved back by the shift the edges suggest before any pose (`first_look`), when
-        its own check finds no shift left and the check at its pose on the depth as it lay finds that shift, to within
-        a pixel (the base's own edges left out where it is: the colour image's); None otherwise. What the estimate on the
-        depth as it lay would have told (moved_back), without making it: a Kinect-like frame's depth lies a few
-        pixels off on every frame. `before`: the seconds spent before it (the first look's)."""
+        """settled on the shift the edges suggest before any pose (`first_look`), when the check at its pose on the
+        depth as it lay finds that shift, to within a pixel (the base's own edges left out where it is: the colour
+        image's); None otherwise. What the estimate on the depth as it lay would have told (moved_back), without
+        making it: a Kinect-like frame's depth lies a few pixels off on every frame. `before`: the seconds spent
+        before it (the first look's)."""
         du, dv = shift
-        again = on_moved_depth(du, dv)
-        if not again.ok or again.colour_offset > 0:
+        again = settled(du, dv)
+        if again is None:
             return None
         t = time.perf_counter()
         told = colour_checked(again, view, params, ctx.base.mesh, first_look)
