@@ -132,14 +132,24 @@ def _add_twins_of(pb, refined: list[Refined], best: Refined) -> None:
     exact = len(pb.base.symmetries) - 1
     T_b = best.candidate.T_world_base
     turns = list(pb.base.symmetries[1:]) + list(pb.base.close_twins)
+
+    def known(T: np.ndarray) -> bool:
+        return any(poses_within(T, r.candidate.T_world_base, pb.voxel, 2.0) for r in refined)
+
+    # a close twin maps the base only nearly onto itself (a turn a few degrees off): refined as a start is, then
+    # polished, before it is scored (a hole punch's right pose, derived 3 mm and 7 degrees off, lost to its
+    # half-turned twin). Their ICPs run side by side, each the pose its own gives (refine_from_many); one whose
+    # turn lands on a twin added below is refined for nothing, and skipped as before
+    due = [k for k in range(exact + 1, len(turns) + 1) if not known(T_b @ turns[k - 1])]
+    fitted = dict(zip(due, refine_from_many(pb, [T_b @ turns[k - 1] for k in due]))) if due else {}
     for k, S in enumerate(turns, start=1):
         T = T_b @ S
-        if any(poses_within(T, r.candidate.T_world_base, pb.voxel, 2.0) for r in refined):
+        if known(T):
             continue
-        if k > exact:  # a close twin maps the base only nearly onto itself (a turn a few degrees off): refined
-            # as a start is, then polished, before it is scored (a hole punch's right pose, derived 3 mm and 7
-            # degrees off, lost to its half-turned twin)
-            T = refine_and_polish(pb, [T])[0]
+        if k > exact:
+            T = fitted[k]
+            if pb.params.polish_voxel_factor > 0:
+                T = polish(pb, T, None)[0]
         cand, src_w, src_n = score_pose(pb, T, k)
         trace = None if best.trace is None else [T_ @ S for T_ in best.trace]
         refined.append(Refined(cand, best.T_start @ S, trace, src_w, src_n))

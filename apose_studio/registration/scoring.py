@@ -271,20 +271,25 @@ def discriminate(pb: "Task", close: list[int], cands: list[Candidate], traces: l
     outside = ~(mask | observation.edge[window])
     k = np.ones((2 * EDGE_PX + 1, 2 * EDGE_PX + 1), np.uint8)
     zbuf, lo, hi = {}, {}, {}
+    flat = [a.ravel() for a in (depth, valid, mask, mask | outside)]
+    shows = {}  # per placement, at the window's pixels where it shows a surface (flat indices): its depth there, and
+    # the frame's depth, validity, mask and outside there; a pair compares these, not the whole window
     for i in close:
         v, u, z, inside = pix[i]
         zbuf[i] = np.full((v1 - v0, u1 - u0), np.inf, np.float32)
         zbuf[i][v[inside] - v0, u[inside] - u0] = z[inside]
         lo[i], hi[i] = nearest_within(zbuf[i], EDGE_PX), cv2.dilate(zbuf[i], k)  # the depths it shows within EDGE_PX
+        at = np.flatnonzero(np.isfinite(zbuf[i]))
+        shows[i] = (at, zbuf[i].ravel()[at], *(a[at] for a in flat))
 
     def support(a, b):  # (confirmed, contradicted, compared) pixels of a that b shows nowhere near, along the ray
-        za = zbuf[a]
+        at, za, d, ok, in_mask, judged = shows[a]
         with np.errstate(invalid="ignore"):
-            differ = np.isfinite(za) & ((za < lo[b] - tol) | (za > hi[b] + tol))
-        shown = differ & valid
-        confirmed = shown & mask & (np.abs(depth - za) < tol)
-        contradicted = shown & (depth > za + tol) & (mask | outside)
-        return int(confirmed.sum()), int(contradicted.sum()), int(differ.sum())
+            differ = (za < lo[b].ravel()[at] - tol) | (za > hi[b].ravel()[at] + tol)
+        shown = differ & ok
+        confirmed = shown & in_mask & (np.abs(d - za) < tol)
+        contradicted = shown & (d > za + tol) & judged
+        return int(np.count_nonzero(confirmed)), int(np.count_nonzero(contradicted)), int(np.count_nonzero(differ))
 
     lost = set()
     for a_pos, a in enumerate(close):
