@@ -137,9 +137,9 @@ def _add_twins_of(pb, refined: list[Refined], best: Refined) -> None:
         return any(poses_within(T, r.candidate.T_world_base, pb.voxel, 2.0) for r in refined)
 
     # a close twin maps the base only nearly onto itself (a turn a few degrees off): refined as a start is, then
-    # polished, before it is scored (a hole punch's right pose, derived 3 mm and 7 degrees off, lost to its
-    # half-turned twin). Their ICPs run side by side, each the pose its own gives (refine_from_many); one whose
-    # turn lands on a twin added below is refined for nothing, and skipped as before
+    # polished where the preset has a polish, before it is scored (refine_and_polish's fit; a hole punch's right pose,
+    # derived 3 mm and 7 degrees off, lost to its half-turned twin). Their ICPs run side by side, each the pose its
+    # own gives (refine_from_many); one whose turn lands on a twin added below is refined for nothing, and skipped
     due = [k for k in range(exact + 1, len(turns) + 1) if not known(T_b @ turns[k - 1])]
     fitted = dict(zip(due, refine_from_many(pb, [T_b @ turns[k - 1] for k in due]))) if due else {}
     for k, S in enumerate(turns, start=1):
@@ -157,7 +157,8 @@ def _add_twins_of(pb, refined: list[Refined], best: Refined) -> None:
 
 def refine_and_polish(pb, Ts: list[np.ndarray]) -> list[np.ndarray]:
     """Each T_world_base refined as a start is (refine_from_many), then polished where the preset has a polish: how a
-    pose derived by a turn a few degrees off the one that fits (a close twin) is fitted before it is scored."""
+    pose derived by a turn a few degrees off the one that fits (a close twin) is fitted before it is scored.
+    (_add_twins_of fits its close twins so too, the polish deferred to the twins it does not skip.)"""
     fitted = refine_from_many(pb, Ts)
     return [polish(pb, T, None)[0] for T in fitted] if pb.params.polish_voxel_factor > 0 else fitted
 
