@@ -141,15 +141,13 @@ def _add_twins_of(pb, refined: list[Refined], best: Refined) -> None:
     # derived 3 mm and 7 degrees off, lost to its half-turned twin). Their ICPs run side by side, each the pose its
     # own gives (refine_from_many); one whose turn lands on a twin added below is refined for nothing, and skipped
     due = [k for k in range(exact + 1, len(turns) + 1) if not known(T_b @ turns[k - 1])]
-    fitted = dict(zip(due, refine_from_many(pb, [T_b @ turns[k - 1] for k in due]))) if due else {}
+    fitted = dict(zip(due, refine_from_many(pb, [T_b @ turns[k - 1] for k in due])))
     for k, S in enumerate(turns, start=1):
         T = T_b @ S
         if known(T):
             continue
         if k > exact:
-            T = fitted[k]
-            if pb.params.polish_voxel_factor > 0:
-                T = polish(pb, T, None)[0]
+            T = polished(pb, fitted[k])
         cand, src_w, src_n = score_pose(pb, T, k)
         trace = None if best.trace is None else [T_ @ S for T_ in best.trace]
         refined.append(Refined(cand, best.T_start @ S, trace, src_w, src_n))
@@ -158,9 +156,13 @@ def _add_twins_of(pb, refined: list[Refined], best: Refined) -> None:
 def refine_and_polish(pb, Ts: list[np.ndarray]) -> list[np.ndarray]:
     """Each T_world_base refined as a start is (refine_from_many), then polished where the preset has a polish: how a
     pose derived by a turn a few degrees off the one that fits (a close twin) is fitted before it is scored.
-    (_add_twins_of fits its close twins so too, the polish deferred to the twins it does not skip.)"""
-    fitted = refine_from_many(pb, Ts)
-    return [polish(pb, T, None)[0] for T in fitted] if pb.params.polish_voxel_factor > 0 else fitted
+    (_add_twins_of fits its close twins so too, each polished only when it does not skip it.)"""
+    return [polished(pb, T) for T in refine_from_many(pb, Ts)]
+
+
+def polished(pb, T_world_base: np.ndarray) -> np.ndarray:
+    """T_world_base polished (`polish`, no replay) where the preset has a polish; else as it is."""
+    return polish(pb, T_world_base, None)[0] if pb.params.polish_voxel_factor > 0 else T_world_base
 
 
 def refine_from_many(pb, Ts: list[np.ndarray]) -> list[np.ndarray]:
@@ -336,7 +338,7 @@ def neighbour_rivals(pb, refined: list[Refined], chosen: int, slid: bool = False
         if known(T):
             continue  # (before the polish too: most neighbours of a pose the data pins fall back onto it)
         if pb.params.polish_voxel_factor > 0:
-            T, _ = polish(pb, T, None)
+            T = polished(pb, T)
             if known(T):
                 continue
         cand, src_w, src_n = score_pose(pb, T, best.candidate.symmetry)
@@ -393,8 +395,7 @@ def base_twins_alike(pb, T_world_base: np.ndarray) -> list[np.ndarray]:
             continue  # refined back onto the pose (or onto one already found)
         if not same_placement(T_part, T @ pb.T_base_part, pb.part_symmetries, 3 * pb.voxel, 5.0):
             continue
-        if pb.params.polish_voxel_factor > 0:
-            T, _ = polish(pb, T, None)
+        T = polished(pb, T)
         if score_pose(pb, T)[0].score >= own - TWIN_TIE_MARGIN:
             out.append(T)
     return out
