@@ -411,6 +411,29 @@ def test_second_look_cuts_clutter_from_the_mask(gearbox_dataset):
     assert mssd(r.T_world_part, fr.T_world_part, ctx.part.samples) < 0.1 * d and "second look" in r.timings
 
 
+def test_the_second_look_is_for_results_that_do_not_fit(gearbox_dataset, monkeypatch):
+    """The second look cuts clutter out of a mask: it runs on a result that does not fit (the slab beside the base
+    leaves a third of the target unexplained), and not on one that fits and is unconfident only because another
+    placement fits as well (ambiguous): its mask has nothing to cut, and the cut shows the twins alike."""
+    from dataclasses import replace
+
+    from apose_studio.registration import pipeline
+
+    ctx, fr, slabbed = _slab_beside_the_base(gearbox_dataset)
+    p = resolve_params("default", mask_hypotheses=False)
+    looks = []
+    second_look = pipeline.second_look
+    monkeypatch.setattr(pipeline, "second_look", lambda r, *a, **k: looks.append(r) or second_look(r, *a, **k))
+    judged = pipeline.judged
+    clean = replace(slabbed, mask=fr.base_mask())
+    monkeypatch.setattr(pipeline, "judged", lambda r, *a, **k: replace(judged(r, *a, **k), ambiguous=True))
+    r = estimate(clean, ctx.base, ctx.view.T_base_part, p)
+    assert r.ok and r.fits and r.ambiguous and not r.confident and looks == []  # fits: no second look
+    monkeypatch.setattr(pipeline, "judged", judged)
+    r = estimate(slabbed, ctx.base, ctx.view.T_base_part, p)
+    assert len(looks) == 1 and not looks[0].fits and r.confident and r.second_look is not None
+
+
 def test_second_look_from_pose_refits_without_a_search_and_agrees(gearbox_dataset, monkeypatch):
     """`second_look_from_pose` (a region's part found whole): the second look on the slab-widened mask refits from the
     first pose (no search: search_poses is not called again), confident and right, within a millimetre of the full
