@@ -4,7 +4,7 @@
     .venv/bin/python benchmarks/captures.py [--frames 6] [--conditions none,gaussian,realsense,kinect,stacked,hidden,real]
                                             [--assemblies fidget,helical_gearbox,planetary_reducer,desk_objects]
                                             [--preset paper] [--param NAME=VALUE] [--margin-px 10] [--compare-depth] [--align-depth]
-                                            [--depth-scale F] [--json ROWS.json]
+                                            [--depth-scale F] [--json ROWS.json] [--compare BEFORE.json]
 
 Renders `apose render --clutter ...` datasets per condition (kept in artifacts/captures/ for the next
 run), then per frame: the box prompt (the ground truth's visible box, --margin-px wider per side, as
@@ -22,6 +22,10 @@ RealSense-like 4 mm at 1 m) on top of its disparity steps (3 mm at 1 m).
 `--depth-scale F` reads every frame's depth F times too far (a camera.json whose depth_scale is off), to measure
 the depth-scale check (registration/calibration.py): every pose is then wrong by the scale, and a confident one is
 confident-and-wrong.
+
+`--compare BEFORE.json` (a --json file of another run, e.g. of the commit before a change): the frames whose outcome
+changed (right, confident, failed, or the error moved by more than COMPARE_MM), each row's median and total seconds
+before and after, and the goals' rates both ways. A change meant to give the same answers shows "0 of N" here.
 
 Frames are opened as a dataset (the renderer's world frame); the estimate does not depend on the world
 frame (tests/registration/test_world_frame.py), so each answer is the one a capture folder of the same
@@ -225,6 +229,61 @@ def run(ds: Dataset, asm, models, params, margin_px: int, compare_depth: bool = 
     return rows
 
 
+COMPARE_MM = 0.5  # --compare: an error that moved by more than this counts as a changed outcome
+
+
+def frame_key(r: dict) -> tuple:
+    return r["assembly"], r["condition"], r["step"], r["im_id"]
+
+
+def view_cannot_tell(r: dict) -> bool:
+    """The view cannot tell the truth from a twin of the base that puts the part elsewhere (telling_pixels)."""
+    return 0 <= r["telling_px"] < TELL_MIN_PX
+
+
+def outcome_changed(a: dict, b: dict) -> bool:
+    """Two runs' rows of one frame differ in what a user is told: right, confident, failed, or the error by COMPARE_MM."""
+    ea, eb = a["mssd_mm"], b["mssd_mm"]
+    return (a["right"] != b["right"] or a["confident"] != b["confident"] or (ea is None) != (eb is None)
+            or (ea is not None and abs(ea - eb) > COMPARE_MM))
+
+
+def rates(rows: list[dict]) -> str:
+    told = [r for r in rows if not view_cannot_tell(r)]
+    cw = sum(r["confident"] and not r["right"] for r in rows)
+    ur = sum(not r["confident"] and r["right"] for r in told) / max(len(told), 1)
+    recall = np.mean([r["right"] for r in told]) if told else float("nan")
+    return f"confident-and-wrong {cw}, unconfident-and-right {ur:.1%} and recall {recall:.3f} where the view can tell"
+
+
+def compare_rows(before: list[dict], after: list[dict]) -> list[str]:
+    """What --compare prints: the frames whose outcome changed between two runs' rows, each condition's seconds, the
+    rates. Frames in only one of the runs are counted, not compared."""
+    old = {frame_key(r): r for r in before}
+    new = {frame_key(r): r for r in after}
+    common = [k for k in new if k in old]
+    changed = [k for k in common if outcome_changed(old[k], new[k])]
+    lines = [f"compared {len(common)} frames with {len(before)} before ({len(new) - len(common)} new, "
+             f"{len(old) - len(common)} not run now): outcome changed on {len(changed)} of {len(common)}"]
+    for k in changed:
+        a, b = old[k], new[k]
+        err = " -> ".join("failed" if e is None else f"{e:.1f}" for e in (a["mssd_mm"], b["mssd_mm"]))
+        lines.append(f"  {'/'.join(map(str, k))}: right {a['right']} -> {b['right']}, confident {a['confident']} -> "
+                     f"{b['confident']}, error {err} mm; now: {b['doubts'] or '(no doubts)'}")
+    for cond in dict.fromkeys(k[1] for k in common):
+        sa = [old[k]["seconds"] for k in common if k[1] == cond]
+        sb = [new[k]["seconds"] for k in common if k[1] == cond]
+        lines.append(f"  {cond:10s} s/frame median {np.median(sa):.3f} -> {np.median(sb):.3f}, total {sum(sa):.1f} -> "
+                     f"{sum(sb):.1f}")
+    sa, sb = [old[k]["seconds"] for k in common], [new[k]["seconds"] for k in common]
+    if common:
+        lines.append(f"  {'all':10s} s/frame median {np.median(sa):.3f} -> {np.median(sb):.3f}, total {sum(sa):.1f} -> "
+                     f"{sum(sb):.1f}")
+    lines.append(f"before: {rates([old[k] for k in common])}")
+    lines.append(f"after:  {rates([new[k] for k in common])}")
+    return lines
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=6, help="views per step (default 6)")
@@ -245,7 +304,15 @@ def main() -> int:
                     "against the true ones")
     ap.add_argument("--json", help="write every frame's row here (assembly, condition, step, im_id, right, confident, "
                     "doubts, ...)")
+    ap.add_argument("--compare", metavar="BEFORE.json", help="a --json file of another run: print the frames whose "
+                    "outcome changed, each row's seconds and the rates, before -> after")
     args = ap.parse_args()
+    before = None
+    if args.compare:  # read first: a wrong path should not cost a whole run
+        try:
+            before = json.loads(Path(args.compare).read_text())
+        except (OSError, ValueError) as e:
+            ap.error(f"--compare {args.compare}: not a --json file of this benchmark ({e})")
     try:
         params = resolve_params(args.preset, **dict(parse_param(t) for t in args.param))
     except AposeError as e:
@@ -283,8 +350,7 @@ def main() -> int:
           "| base right (ADD/ADI) | base conf & wrong |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
 
-    def hidden(r):  # the view cannot tell the truth from a twin of the base that puts the part elsewhere
-        return 0 <= r["telling_px"] < TELL_MIN_PX
+    hidden = view_cannot_tell
 
     for cond, rows in table.items():
         n = len(rows)
@@ -323,6 +389,8 @@ def main() -> int:
               f"{np.mean([r['final_iou'] for r in table['stacked']]):.3f} (>= 0.90)")
     if args.json:
         Path(args.json).write_text(json.dumps(all_rows, indent=1))
+    if before is not None:
+        print("\n" + "\n".join(compare_rows(before, all_rows)))
     return 0
 
 

@@ -1,0 +1,56 @@
+"""benchmarks/captures.py --compare: what changed between two runs' rows, as the notes and docs/BENCHMARKS.md quote it
+("outcome changed on 0 of 528")."""
+
+import importlib.util
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parent.parent
+SCRIPT = REPO / "benchmarks" / "captures.py"
+
+
+@pytest.fixture(scope="module")
+def captures():
+    spec = importlib.util.spec_from_file_location("captures_benchmark", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _row(im_id, right=True, confident=True, mssd=1.0, seconds=0.2, condition="kinect", telling_px=-1):
+    return {"assembly": "fidget", "condition": condition, "step": 1, "im_id": im_id, "right": right,
+            "confident": confident, "mssd_mm": mssd, "seconds": seconds, "doubts": "" if confident else "ambiguous",
+            "telling_px": telling_px}
+
+
+def test_compare_finds_the_frames_whose_outcome_changed(captures):
+    before = [_row(0), _row(1), _row(2), _row(3), _row(4, condition="hidden", seconds=1.0)]
+    same = captures.compare_rows(before, before)
+    assert "outcome changed on 0 of 5" in same[0] and len([s for s in same if s.startswith("  fidget/")]) == 0
+    after = [_row(0, mssd=1.0 + 0.9 * captures.COMPARE_MM),  # moved within the tolerance: the same outcome
+             _row(1, confident=False),  # lost its confidence
+             _row(2, right=False, mssd=30.0),  # confident and wrong now
+             _row(3, mssd=None, right=False, confident=False),  # failed
+             _row(4, condition="hidden", seconds=0.5),
+             _row(5)]  # a frame the run before did not have
+    lines = captures.compare_rows(before, after)
+    assert "outcome changed on 3 of 5" in lines[0] and "1 new" in lines[0], lines[0]
+    listed = [s for s in lines if s.startswith("  fidget/")]
+    assert [s.split(":")[0].strip() for s in listed] == ["fidget/kinect/1/1", "fidget/kinect/1/2", "fidget/kinect/1/3"]
+    assert "error 1.0 -> failed mm" in listed[2]
+    assert any(s.split()[:2] == ["hidden", "s/frame"] and "total 1.0 -> 0.5" in s for s in lines), lines
+    assert lines[-2].startswith("before: confident-and-wrong 0") and lines[-1].startswith("after:  confident-and-wrong 1")
+    moved = captures.compare_rows(before, [_row(0, mssd=1.0 + 1.1 * captures.COMPARE_MM)])
+    assert "outcome changed on 1 of 1" in moved[0]
+
+
+def test_compare_with_a_file_that_is_not_a_run_fails_before_the_run(tmp_path):
+    """A wrong --compare path is refused at once, named, before minutes of estimates."""
+    bad = tmp_path / "nothing.json"
+    out = subprocess.run([sys.executable, str(SCRIPT), "--compare", str(bad)], capture_output=True, text=True,
+                         timeout=120, cwd=REPO)
+    assert out.returncode == 2 and str(bad) in out.stderr and "--compare" in out.stderr, out.stderr
+    assert "frames" not in out.stdout  # nothing was estimated
