@@ -241,11 +241,30 @@ def view_cannot_tell(r: dict) -> bool:
     return 0 <= r["telling_px"] < TELL_MIN_PX
 
 
+COMPARED_KEYS = ("assembly", "condition", "step", "im_id", "right", "confident", "mssd_mm", "seconds", "doubts",
+                 "telling_px")  # what --compare reads of each row
+
+
+def compare_file_error(rows) -> str | None:
+    """Why a --compare file's contents are not this benchmark's --json rows (None when they are)."""
+    if not isinstance(rows, list) or not rows:
+        return "not a list of frame rows"
+    for i, r in enumerate(rows):
+        missing = [k for k in COMPARED_KEYS if not isinstance(r, dict) or k not in r]
+        if missing:
+            return f"row {i} has no {', '.join(missing)}"
+    return None
+
+
 def outcome_changed(a: dict, b: dict) -> bool:
-    """Two runs' rows of one frame differ in what a user is told: right, confident, failed, or the error by COMPARE_MM."""
+    """Two runs' rows of one frame differ in what a user is told: right, confident, failed, or the error by COMPARE_MM
+    (an error that is NaN in one run and a number in the other has changed too)."""
     ea, eb = a["mssd_mm"], b["mssd_mm"]
-    return (a["right"] != b["right"] or a["confident"] != b["confident"] or (ea is None) != (eb is None)
-            or (ea is not None and abs(ea - eb) > COMPARE_MM))
+    if a["right"] != b["right"] or a["confident"] != b["confident"] or (ea is None) != (eb is None):
+        return True
+    if ea is None:
+        return False
+    return bool(np.isnan(ea) != np.isnan(eb) or abs(ea - eb) > COMPARE_MM)
 
 
 def rates(rows: list[dict]) -> str:
@@ -263,8 +282,12 @@ def compare_rows(before: list[dict], after: list[dict]) -> list[str]:
     new = {frame_key(r): r for r in after}
     common = [k for k in new if k in old]
     changed = [k for k in common if outcome_changed(old[k], new[k])]
-    lines = [f"compared {len(common)} frames with {len(before)} before ({len(new) - len(common)} new, "
-             f"{len(old) - len(common)} not run now): outcome changed on {len(changed)} of {len(common)}"]
+    lines = [f"compared {len(common)} frames ({len(new) - len(common)} only in this run, {len(old) - len(common)} only "
+             f"in the one before): outcome changed on {len(changed)} of {len(common)}"]
+    for name, rows, kept in (("before", before, old), ("now", after, new)):
+        if len(rows) > len(kept):
+            lines.append(f"  {len(rows) - len(kept)} rows {name} repeat a frame (assembly, condition, step, im_id): the "
+                         "last of each is compared")
     for k in changed:
         a, b = old[k], new[k]
         err = " -> ".join("failed" if e is None else f"{e:.1f}" for e in (a["mssd_mm"], b["mssd_mm"]))
@@ -279,8 +302,8 @@ def compare_rows(before: list[dict], after: list[dict]) -> list[str]:
     if common:
         lines.append(f"  {'all':10s} s/frame median {np.median(sa):.3f} -> {np.median(sb):.3f}, total {sum(sa):.1f} -> "
                      f"{sum(sb):.1f}")
-    lines.append(f"before: {rates([old[k] for k in common])}")
-    lines.append(f"after:  {rates([new[k] for k in common])}")
+    lines.append(f"on the {len(common)} frames both runs have, before: {rates([old[k] for k in common])}")
+    lines.append(f"on the {len(common)} frames both runs have, after:  {rates([new[k] for k in common])}")
     return lines
 
 
@@ -313,6 +336,9 @@ def main() -> int:
             before = json.loads(Path(args.compare).read_text())
         except (OSError, ValueError) as e:
             ap.error(f"--compare {args.compare}: not a --json file of this benchmark ({e})")
+        why = compare_file_error(before)
+        if why:
+            ap.error(f"--compare {args.compare}: not a --json file of this benchmark ({why})")
     try:
         params = resolve_params(args.preset, **dict(parse_param(t) for t in args.param))
     except AposeError as e:

@@ -37,20 +37,32 @@ def test_compare_finds_the_frames_whose_outcome_changed(captures):
              _row(4, condition="hidden", seconds=0.5),
              _row(5)]  # a frame the run before did not have
     lines = captures.compare_rows(before, after)
-    assert "outcome changed on 3 of 5" in lines[0] and "1 new" in lines[0], lines[0]
+    assert "5 frames (1 only in this run, 0 only in the one before): outcome changed on 3 of 5" in lines[0], lines[0]
     listed = [s for s in lines if s.startswith("  fidget/")]
     assert [s.split(":")[0].strip() for s in listed] == ["fidget/kinect/1/1", "fidget/kinect/1/2", "fidget/kinect/1/3"]
     assert "error 1.0 -> failed mm" in listed[2]
     assert any(s.split()[:2] == ["hidden", "s/frame"] and "total 1.0 -> 0.5" in s for s in lines), lines
-    assert lines[-2].startswith("before: confident-and-wrong 0") and lines[-1].startswith("after:  confident-and-wrong 1")
+    assert lines[-2].endswith("before: confident-and-wrong 0, unconfident-and-right 0.0% and recall 1.000 where the view "
+                              "can tell")
+    assert "after:  confident-and-wrong 1, unconfident-and-right 20.0% and recall 0.600" in lines[-1], lines[-1]
     moved = captures.compare_rows(before, [_row(0, mssd=1.0 + 1.1 * captures.COMPARE_MM)])
     assert "outcome changed on 1 of 1" in moved[0]
+    nan = captures.compare_rows(before, [_row(0, mssd=float("nan"))])  # an error that became NaN has changed
+    assert "outcome changed on 1 of 1" in nan[0]
+    twice = captures.compare_rows(before, [_row(0), _row(0)])
+    assert "1 rows now repeat a frame" in twice[1], twice
 
 
-def test_compare_with_a_file_that_is_not_a_run_fails_before_the_run(tmp_path):
-    """A wrong --compare path is refused at once, named, before minutes of estimates."""
-    bad = tmp_path / "nothing.json"
+@pytest.mark.parametrize("contents, why", [(None, "No such file"), ("not json", "Expecting value"),
+                                           ('{"rows": []}', "not a list of frame rows"),
+                                           ('[{"assembly": "fidget"}]', "row 0 has no condition")])
+def test_compare_refuses_what_is_not_a_run_before_the_run(tmp_path, contents, why):
+    """A --compare file that is missing or is not this benchmark's --json rows is refused at once, named, before minutes
+    of estimates."""
+    bad = tmp_path / "before.json"
+    if contents is not None:
+        bad.write_text(contents)
     out = subprocess.run([sys.executable, str(SCRIPT), "--compare", str(bad)], capture_output=True, text=True,
                          timeout=120, cwd=REPO)
-    assert out.returncode == 2 and str(bad) in out.stderr and "--compare" in out.stderr, out.stderr
-    assert "frames" not in out.stdout  # nothing was estimated
+    assert out.returncode == 2 and f"--compare {bad}: not a --json file of this benchmark" in out.stderr, out.stderr
+    assert why in out.stderr and out.stdout == "", (out.stderr, out.stdout)

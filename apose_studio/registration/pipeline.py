@@ -200,10 +200,11 @@ def estimate_mask(view: View, base: BaseObject, T_base_part: np.ndarray, params:
 
     def supported(r: RegistrationResult) -> RegistrationResult:
         """ok only when the data supports the pose (the table fitted once per frame, where the search fitted
-        it), with the base's exact twins; then, not confident but not fitting either, the second look. A result that
-        fits (an ambiguous one: another placement fits as well) has no clutter in its mask for the cut to take out,
-        and the cut, one placement's view, shows its twins alike (captures.py, 528 frames: of the 79 second looks on an
-        ambiguous result, 1 came back confident, at 12.6 s in all; docs/BENCHMARKS.md)."""
+        it), with the base's exact twins; then, not confident and not fitting either, the second look. A result that
+        fits (an ambiguous one: another placement fits as well) explains most of its mask already, and the cut, one
+        placement's view, seldom tells its twins apart (captures.py, 528 frames: of the 79 second looks on an ambiguous
+        result, 1 came back confident, at 12.6 s in all; docs/BENCHMARKS.md). (The best of the mask's other readings
+        keeps its second look whenever it is not confident: estimate_readings.)"""
         r = judged(replace(r, depth_noise=noise), view, base, params, pb.table if pb is not None else _FIT)
         if params.second_look and r.ok and not r.confident and not r.fits:
             r = second_look(r, view, base, T_base_part, params, prior_T_world_base, trace_iterations, part_symmetries)
