@@ -153,8 +153,18 @@ def truth_box(mask: np.ndarray, margin: float = BOX_MARGIN) -> tuple[int, int, i
 
 
 def _truth_box_prompt(frame: Frame) -> np.ndarray:
-    box = truth_box(frame.base_mask())
-    return prompted_mask(frame.rgb, frame.depth, frame.camera, box=box).mask if box else frame.base_mask()
+    """The `box` mask source: the prompted mask of the box round the truth's visible mask (truth_box). Where the prompt
+    refuses that box (a base at the image's border showing a few pixels, or nothing in the box standing out of the
+    table) the mask is empty: the frame's estimate then fails with its reason, and an `apose eval --mask box` run goes
+    on to the next frame, as it does where the base is not in view at all."""
+    truth = frame.base_mask()
+    box = truth_box(truth)
+    if box is None:
+        return truth
+    try:
+        return prompted_mask(frame.rgb, frame.depth, frame.camera, box=box).mask
+    except AposeError:
+        return np.zeros_like(truth)
 
 
 MASK_SOURCES: dict[str, Callable[[Frame], np.ndarray]] = {
@@ -588,11 +598,24 @@ def estimate_frame(frame: Frame, ctx: StepContext, params: Params, mask_source: 
 def region_truth_prompt(frame: Frame, ctx: StepContext, mask_source: str) -> tuple[np.ndarray, tuple] | None:
     """(mask, box) for a base that is a region, asked for by a ground-truth source (`gt`, `box`) on a frame with
     truth: the box round what the camera sees of the region (region_truth_box) and its pixels with depth, as a box
-    prompt gives them. None otherwise (or when the camera sees none of the region)."""
+    prompt gives them. None otherwise (or when the camera sees none of the region, or too little to prompt)."""
     if ctx.base.region is None or mask_source not in TRUTH_MASK_SOURCES or not frame.masks or frame.T_world_base is None:
         return None
     box = region_truth_box(frame, ctx.base)
-    return (box_depth(frame.depth, box), box) if box is not None else None
+    mask = box_pixels(frame.depth, box)
+    return (mask, box) if mask is not None else None
+
+
+def box_pixels(depth: np.ndarray, box: tuple[int, int, int, int] | None) -> np.ndarray | None:
+    """The pixels with depth in a box the code drew round what the camera sees of a place (masks.prompt.box_depth); None
+    where there is no box, or where it is too small or too far off the image to prompt: a place at the image's border
+    that shows a few pixels (an engine head's corner seat, 2 x 2 pixels, stopped `--instances all` with a traceback)."""
+    if box is None:
+        return None
+    try:
+        return box_depth(depth, box)
+    except AposeError:
+        return None
 
 
 def region_truth_box(frame: Frame, base: BaseObject, margin: float = BOX_MARGIN) -> tuple[int, int, int, int] | None:
@@ -709,7 +732,8 @@ def estimate_region_instances(frame: Frame, ctx: StepContext, params: Params,
     look-alike (Region.twins), each refined from where the part's pose puts it (refined_at), or searched for in the
     box round what of it is the part's first surface there where that fails. Each keeps its own confidence, but none
     is confident where the part's pose is not, or where the region slid off its place (REGION_PLACE_SLACK); places
-    out of view are left out. Left to right in the image by the region's centre."""
+    out of view, or showing too few pixels to prompt (box_pixels), are left out. Left to right in the image by the
+    region's centre."""
     body = body_base(ctx)
     whole = SimpleNamespace(view=replace(ctx.view, T_base_part=np.eye(4)), base=body, part=ctx.part)
     # the part's pose only starts each region's own refinement (refined_at): no polish of it (a quarter of the time);
@@ -726,9 +750,10 @@ def estimate_region_instances(frame: Frame, ctx: StepContext, params: Params,
     for name, S in ((ctx.view.base[0], np.eye(4)), *region.region.twins):
         T = head.T_world_base @ S
         box = truth_box(region_in_front(region, T, z_body, frame), BOX_MARGIN)
-        if box is None:
+        pixels = box_pixels(frame.depth, box)
+        if pixels is None:  # out of view, or too little of it to prompt
             continue
-        view = replace(View.of(frame, box_depth(frame.depth, box)), box=box)
+        view = replace(View.of(frame, pixels), box=box)
         place = _RegionAt(ctx, name, S)
         r = refined_at(frame, place, params, head, T)  # from where the part's pose puts it: a short ICP
         if not r.ok:  # else searched for in the box

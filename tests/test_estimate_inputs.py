@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from apose_studio.data.dataset import Dataset
+from apose_studio.errors import AposeError
 from apose_studio.estimation import truth_box
 
 from .conftest import mssd_to_truth, write_capture
@@ -542,3 +543,29 @@ def test_a_grey_or_rgba_colour_image_is_read_as_rgb():
     got = check_colour(listed, (3, 4))
     assert got.dtype == np.uint8
     np.testing.assert_array_equal(got, np.array(listed))
+
+
+@pytest.mark.parametrize("where", ["corner", "bare table"])
+def test_the_box_mask_source_gives_an_empty_mask_where_the_prompt_refuses_the_truths_box(where):
+    """`--mask box` prompts with the box round the truth's visible mask. A base showing 2 x 2 pixels at the image's
+    corner, or a box with nothing standing out of the table, is a box the prompt refuses: the mask is then empty (the
+    frame's estimate fails with its reason) instead of an error that stops a whole `apose eval` run."""
+    from types import SimpleNamespace
+
+    from apose_studio.estimation import MASK_SOURCES
+    from apose_studio.geometry.camera import CameraIntrinsics
+    from apose_studio.masks.prompt import prompted_mask
+
+    cam = CameraIntrinsics()
+    depth = np.full((cam.height, cam.width), 0.6, np.float32)  # a bare table facing the camera
+    rgb = np.full((cam.height, cam.width, 3), 128, np.uint8)
+    truth = np.zeros(depth.shape, bool)
+    if where == "corner":
+        truth[-2:, -2:] = True
+    else:
+        truth[200:260, 300:380] = True
+    frame = SimpleNamespace(rgb=rgb, depth=depth, camera=cam, base_mask=lambda: truth)
+    with pytest.raises(AposeError):  # what the box source met before
+        prompted_mask(rgb, depth, cam, box=truth_box(truth))
+    mask = MASK_SOURCES["box"](frame)
+    assert mask.shape == truth.shape and not mask.any()
