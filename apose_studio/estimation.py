@@ -736,9 +736,11 @@ def estimate_region_instances(frame: Frame, ctx: StepContext, params: Params,
     region's centre."""
     body = body_base(ctx)
     whole = SimpleNamespace(view=replace(ctx.view, T_base_part=np.eye(4)), base=body, part=ctx.part)
-    # the part's pose only starts each region's own refinement (refined_at): no polish of it (a quarter of the time);
-    # what stands on or against the part keeps its first estimate unconfident, and the second look refits from it
-    head_params = replace(params, polish_voxel_factor=0.0, second_look_from_pose=True)
+    # the part's pose only starts each region's own refinement (refined_at): no polish of it (a quarter of the time).
+    # Its second look is the full one, which compares the pose's twins on the cut: refitting the pose alone there
+    # (second_look_from_pose) confirmed a head turned half round onto its near-symmetric twin, confident and 220 mm
+    # off by ADD, its seat_8 placed 102 mm from every seat (benchmarks/seats.py --instances, step 8, frame 4)
+    head_params = replace(params, polish_voxel_factor=0.0)
     parts = [i.result for i in estimate_instances(frame, whole, head_params, orientation_prior, first_confident=True)
              if i.result.ok]
     if not parts:
