@@ -200,13 +200,15 @@ def estimate_mask(view: View, base: BaseObject, T_base_part: np.ndarray, params:
 
     def supported(r: RegistrationResult) -> RegistrationResult:
         """ok only when the data supports the pose (the table fitted once per frame, where the search fitted
-        it), with the base's exact twins; then, not confident and not fitting either, the second look. A result that
-        fits (an ambiguous one: another placement fits as well) explains most of its mask already, and the cut, one
-        placement's view, seldom tells its twins apart (captures.py, 528 frames: of the 79 second looks on an ambiguous
-        result, 1 came back confident, at 12.6 s in all; docs/BENCHMARKS.md). (The best of the mask's other readings
-        keeps its second look whenever it is not confident: estimate_readings.)"""
+        it), with the base's exact twins; then, not confident, the second look, but for a result that fits and is
+        ambiguous (another placement fits as well): it explains most of its mask already, and the cut, one placement's
+        view, seldom tells its twins apart (captures.py, 528 frames: of the 79 second looks on an ambiguous result, 1
+        came back confident, at 12.6 s in all; docs/BENCHMARKS.md). A region of a larger part keeps it: its mask is
+        the box's depth, much of it the rest of the part, which the cut takes out (on the engine head's seats under
+        Kinect-like noise it made 2 of 45 right, ambiguous views confident: benchmarks/seats.py). (The best of the
+        mask's other readings keeps its second look whenever it is not confident: estimate_readings.)"""
         r = judged(replace(r, depth_noise=noise), view, base, params, pb.table if pb is not None else _FIT)
-        if params.second_look and r.ok and not r.confident and not r.fits:
+        if params.second_look and r.ok and not r.confident and not (r.fits and r.ambiguous and base.region is None):
             r = second_look(r, view, base, T_base_part, params, prior_T_world_base, trace_iterations, part_symmetries)
         return r
 

@@ -414,7 +414,7 @@ def test_second_look_cuts_clutter_from_the_mask(gearbox_dataset):
 def test_the_second_look_is_for_results_that_do_not_fit(gearbox_dataset, monkeypatch):
     """The second look cuts clutter out of a mask: it runs on a result that does not fit (the slab beside the base
     leaves a third of the target unexplained), and not on one that fits and is unconfident only because another
-    placement fits as well (ambiguous): its mask has nothing to cut, and the cut shows the twins alike."""
+    placement fits as well (ambiguous): it explains most of its mask, and the cut seldom tells the twins apart."""
     from dataclasses import replace
 
     from apose_studio.registration import pipeline
