@@ -267,11 +267,18 @@ def outcome_changed(a: dict, b: dict) -> bool:
     return bool(np.isnan(ea) != np.isnan(eb) or abs(ea - eb) > COMPARE_MM)
 
 
-def rates(rows: list[dict]) -> str:
+def goal_counts(rows: list[dict]) -> tuple[int, float, float, int]:
+    """#26's rates over rows: (confident-and-wrong, unconfident-and-right and recall over the frames whose view can
+    tell the base from its twins, how many those are)."""
     told = [r for r in rows if not view_cannot_tell(r)]
     cw = sum(r["confident"] and not r["right"] for r in rows)
     ur = sum(not r["confident"] and r["right"] for r in told) / max(len(told), 1)
-    recall = np.mean([r["right"] for r in told]) if told else float("nan")
+    recall = float(np.mean([r["right"] for r in told])) if told else float("nan")
+    return cw, ur, recall, len(told)
+
+
+def rates(rows: list[dict]) -> str:
+    cw, ur, recall, _ = goal_counts(rows)
     return f"confident-and-wrong {cw}, unconfident-and-right {ur:.1%} and recall {recall:.3f} where the view can tell"
 
 
@@ -376,8 +383,6 @@ def main() -> int:
           "| base right (ADD/ADI) | base conf & wrong |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
 
-    hidden = view_cannot_tell
-
     for cond, rows in table.items():
         n = len(rows)
         ious, secs = [r["iou"] for r in rows], [r["seconds"] for r in rows]
@@ -385,26 +390,24 @@ def main() -> int:
         def rate(conf, right):
             return sum(r["confident"] == conf and r["right"] == right for r in rows) / n
 
-        told = [r["right"] for r in rows if not hidden(r)]
+        told = [r["right"] for r in rows if not view_cannot_tell(r)]
         print(f"| {cond} | {n} | {np.median([r['visible'] for r in rows]):.2f} | {np.mean(ious):.3f} / {np.min(ious):.3f} "
               f"| {np.mean([r['final_iou'] for r in rows]):.3f} | {np.mean([r['right'] for r in rows]):.3f} "
               f"({np.mean([r['strict'] for r in rows]):.3f}) | {sum(r['near_twin'] for r in rows)} "
               f"| {np.median(secs):.3f} ({np.percentile(secs, 90):.3f}) | "
               f"{np.median([r['noise_mm'] for r in rows]):.2f} | {rate(True, True):.1%} | {rate(True, False):.1%} | "
-              f"{rate(False, True):.1%} | {rate(False, False):.1%} | {sum(hidden(r) for r in rows)} | "
+              f"{rate(False, True):.1%} | {rate(False, False):.1%} | {sum(view_cannot_tell(r) for r in rows)} | "
               f"{np.mean(told) if told else float('nan'):.3f} | {np.mean([r['base_right'] for r in rows]):.3f} | "
               f"{sum(r['base_confident'] and not r['base_right'] for r in rows)} |")
     all_rows = [r for rows in table.values() for r in rows]
     print("\nwhere the time went, over all frames (a result's timings_s; 'other readings' holds their whole estimates):\n")
     print(stage_table([r["stages"] for r in all_rows]))
-    told = [r for r in all_rows if not hidden(r)]
-    cw = sum(r["confident"] and not r["right"] for r in all_rows)
+    cw, ur_told, recall, n_told = goal_counts(all_rows)
     ur = sum(not r["confident"] and r["right"] for r in all_rows) / max(len(all_rows), 1)
-    ur_told = sum(not r["confident"] and r["right"] for r in told) / max(len(told), 1)
     print(f"\ngoals over all {len(all_rows)} frames: confident-and-wrong {cw} (goal 0), unconfident-and-right {ur:.1%} "
-          f"(goal <= 10 %; {ur_told:.1%} of the {len(told)} frames whose view can tell the base from its twins: where it "
+          f"(goal <= 10 %; {ur_told:.1%} of the {n_told} frames whose view can tell the base from its twins: where it "
           f"cannot, 'not confident' is the honest answer and a right pose is luck), recall where the view can tell "
-          f"{np.mean([r['right'] for r in told]) if told else float('nan'):.3f} (goal >= 0.95), median s/frame "
+          f"{recall:.3f} (goal >= 0.95), median s/frame "
           f"{np.median([r['seconds'] for r in all_rows]):.3f} (goal <= 0.3)")
     print(f"the base objects' own poses (as a real-frame check scores an object prompted as the base): right "
           f"{np.mean([r['base_right'] for r in all_rows]):.3f}, confident-and-wrong "
