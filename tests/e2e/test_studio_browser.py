@@ -1148,9 +1148,9 @@ def test_robot_targets_of_a_capture_in_the_robot_frame(browser, studio, tmp_path
 
 def test_play_a_recording_with_the_base_tracked(browser, studio, tmp_path):
     """A ROS 2 recording (MCAP written from a rendered trajectory) opened in the Inspect tab, step 2 chosen, a
-    box typed on its first frame, Play pressed in the Sequence folder: every frame is shown in turn with its
-    result, the Frame slider follows, the status line counts the tracked frames, and the last frame's pose
-    is on the renderer's truth."""
+    box typed on its first frame, Play pressed in the Sequence folder: the frames are shown in turn with their
+    results (or counted as skipped where one was not ready in time), the Frame slider follows, the status line
+    counts the tracked frames, and the last frame's pose is on the renderer's truth."""
     from apose_studio.assembly.model import load_assembly
     from apose_studio.data.dataset import Dataset
     from apose_studio.data.recording import write_recording
@@ -1179,8 +1179,14 @@ def test_play_a_recording_with_the_base_tracked(browser, studio, tmp_path):
     page.get_by_role("button", name="Pause", exact=True).wait_for(timeout=20000)
     page.get_by_text(re.compile(r"stopped \(the end\)")).first.wait_for(timeout=120000)
     status = page.get_by_text(re.compile(r"stopped \(the end\)")).first.inner_text()
-    assert "5 shown" in status and "tracked" in status, status
-    assert played == sorted(played) and played[-1] == 4, played
+    # played in real time: a frame still due when the one before is shown is skipped, as a live camera's would be
+    # (a busy machine, e.g. the CI with other work beside it); every frame is shown or counted as skipped, the last
+    # shown, and every frame shown after the first is tracked from the one before
+    counts = re.search(r"(\d+) shown, (\d+) skipped \(not ready in time\); (\d+) tracked", status)
+    assert counts is not None, status
+    shown, skipped, tracked = map(int, counts.groups())
+    assert shown + skipped == 5 and shown >= 2 and tracked == shown - 1, status
+    assert played == sorted(set(played)) and len(played) == shown and played[0] == 0 and played[-1] == 4, played
     expect(field(page, "Frame").first).to_have_value("4", timeout=10000)
     r, fr = studio.inspect.result, studio.inspect.frame
     truth = ds.frame(2, 4)
