@@ -4,6 +4,7 @@ checked against that truth; Pause; refusals."""
 
 from __future__ import annotations
 
+import re
 import threading
 import time
 
@@ -68,12 +69,16 @@ def test_a_recording_plays_with_the_base_tracked_and_every_frame_shown_is_right(
     _wait(st)
     assert not errors(st), st.notes
     summary = st.sequence.last_summary
-    assert summary.startswith("stopped (the end)") and f"{FRAMES} shown, 0 skipped" in summary, summary
+    assert summary.startswith("stopped (the end)"), summary
+    # in real time a frame not ready when due is skipped (and counted), as a live camera's would be: at 2 frames/s
+    # none is on a quiet machine, but a CI machine with other work beside it may skip one
+    n_shown, n_skipped, tracked = map(int, re.search(r"(\d+) shown, (\d+) skipped .*?; (\d+) tracked", summary).groups())
+    assert n_shown + n_skipped == FRAMES and n_shown >= FRAMES - 2, summary
     assert st.sequence.s_play.label == "Play"
-    assert [s[0] for s in shown] == list(range(FRAMES))
-    assert [s[3] for s in shown] == list(range(FRAMES))  # the Frame slider followed
-    tracked = int(summary.split(" tracked")[0].rsplit(" ", 1)[-1])
-    assert tracked >= FRAMES - 2, summary  # after the first detection, tracked (not estimated anew)
+    ids = [s[0] for s in shown]
+    assert len(ids) == n_shown and ids == sorted(set(ids)) and ids[0] == 0 and ids[-1] == FRAMES - 1, ids
+    assert [s[3] for s in shown] == ids  # the Frame slider followed
+    assert tracked >= n_shown - 2, summary  # after the first detection, tracked (not estimated anew)
     for im_id, result, frame, _ in shown:  # against the renderer's truth, in the frame's own camera
         truth = ds.frame(2, im_id)
         T_camera_part = se3.inv(frame.T_world_camera) @ result.T_world_part
