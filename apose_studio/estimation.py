@@ -31,7 +31,7 @@ from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.geometry.raycast import own_edges, raycast_depth
 from apose_studio.geometry.sensor import SHIFT_MIN_PX, depth_colour_shift, shift_evidence, shift_image
-from apose_studio.masks.prompt import box_depth, prompted_mask
+from apose_studio.masks.prompt import PromptError, box_depth, prompted_mask
 from apose_studio.masks.segment import depth_mask, load_model, table_objects
 from apose_studio.registration import BaseObject, Params, RegistrationResult, doubts, estimate, failed, prepare_base
 from apose_studio.registration.base import PLAIN_SHARE, Region, plainness, raycast_source
@@ -163,7 +163,7 @@ def _truth_box_prompt(frame: Frame) -> np.ndarray:
         return truth
     try:
         return prompted_mask(frame.rgb, frame.depth, frame.camera, box=box).mask
-    except AposeError:
+    except PromptError:
         return np.zeros_like(truth)
 
 
@@ -614,7 +614,7 @@ def box_pixels(depth: np.ndarray, box: tuple[int, int, int, int] | None) -> np.n
         return None
     try:
         return box_depth(depth, box)
-    except AposeError:
+    except PromptError:
         return None
 
 

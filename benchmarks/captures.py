@@ -300,14 +300,10 @@ def compare_rows(before: list[dict], after: list[dict]) -> list[str]:
         err = " -> ".join("failed" if e is None else f"{e:.1f}" for e in (a["mssd_mm"], b["mssd_mm"]))
         lines.append(f"  {'/'.join(map(str, k))}: right {a['right']} -> {b['right']}, confident {a['confident']} -> "
                      f"{b['confident']}, error {err} mm; now: {b['doubts'] or '(no doubts)'}")
-    for cond in dict.fromkeys(k[1] for k in common):
-        sa = [old[k]["seconds"] for k in common if k[1] == cond]
-        sb = [new[k]["seconds"] for k in common if k[1] == cond]
-        lines.append(f"  {cond:10s} s/frame median {np.median(sa):.3f} -> {np.median(sb):.3f}, total {sum(sa):.1f} -> "
-                     f"{sum(sb):.1f}")
-    sa, sb = [old[k]["seconds"] for k in common], [new[k]["seconds"] for k in common]
-    if common:
-        lines.append(f"  {'all':10s} s/frame median {np.median(sa):.3f} -> {np.median(sb):.3f}, total {sum(sa):.1f} -> "
+    groups = [(cond, [k for k in common if k[1] == cond]) for cond in dict.fromkeys(k[1] for k in common)]
+    for label, keys in groups + ([("all", common)] if common else []):
+        sa, sb = [old[k]["seconds"] for k in keys], [new[k]["seconds"] for k in keys]
+        lines.append(f"  {label:10s} s/frame median {np.median(sa):.3f} -> {np.median(sb):.3f}, total {sum(sa):.1f} -> "
                      f"{sum(sb):.1f}")
     lines.append(f"on the {len(common)} frames both runs have, before: {rates([old[k] for k in common])}")
     lines.append(f"on the {len(common)} frames both runs have, after:  {rates([new[k] for k in common])}")
@@ -390,14 +386,14 @@ def main() -> int:
         def rate(conf, right):
             return sum(r["confident"] == conf and r["right"] == right for r in rows) / n
 
-        told = [r["right"] for r in rows if not view_cannot_tell(r)]
+        recall_told = goal_counts(rows)[2]
         print(f"| {cond} | {n} | {np.median([r['visible'] for r in rows]):.2f} | {np.mean(ious):.3f} / {np.min(ious):.3f} "
               f"| {np.mean([r['final_iou'] for r in rows]):.3f} | {np.mean([r['right'] for r in rows]):.3f} "
               f"({np.mean([r['strict'] for r in rows]):.3f}) | {sum(r['near_twin'] for r in rows)} "
               f"| {np.median(secs):.3f} ({np.percentile(secs, 90):.3f}) | "
               f"{np.median([r['noise_mm'] for r in rows]):.2f} | {rate(True, True):.1%} | {rate(True, False):.1%} | "
               f"{rate(False, True):.1%} | {rate(False, False):.1%} | {sum(view_cannot_tell(r) for r in rows)} | "
-              f"{np.mean(told) if told else float('nan'):.3f} | {np.mean([r['base_right'] for r in rows]):.3f} | "
+              f"{recall_told:.3f} | {np.mean([r['base_right'] for r in rows]):.3f} | "
               f"{sum(r['base_confident'] and not r['base_right'] for r in rows)} |")
     all_rows = [r for rows in table.values() for r in rows]
     print("\nwhere the time went, over all frames (a result's timings_s; 'other readings' holds their whole estimates):\n")
