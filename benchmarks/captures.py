@@ -277,6 +277,28 @@ def goal_counts(rows: list[dict]) -> tuple[int, float, float, int]:
     return cw, ur, recall, len(told)
 
 
+REAL_LIKE = ("stacked", "hidden", "real")  # #26's item-3 rows: what a real desk and sensor add to the bench
+
+
+def row_goals(table: dict[str, list[dict]]) -> list[str]:
+    """#26's rendered goals checked on each real-like row on its own (REAL_LIKE): the rates over all rows let the
+    four easy bench rows hide a hard row that misses them. One line per row present, each goal 'met' or 'MISSED'."""
+    out = []
+    for cond in REAL_LIKE:
+        rows = table.get(cond)
+        if not rows:
+            continue
+        cw, ur, recall, n_told = goal_counts(rows)
+        checks = [(f"confident-and-wrong {cw}", cw == 0), (f"unconfident-and-right {ur:.1%}", ur <= 0.10),
+                  (f"recall {recall:.3f}", recall >= 0.95)]
+        if cond == "stacked":
+            iou = float(np.mean([r["final_iou"] for r in rows]))
+            checks.append((f"the result's mask IoU {iou:.3f}", iou >= 0.90))
+        out.append(f"goals ({cond}, {n_told} of {len(rows)} frames whose view can tell): "
+                   + ", ".join(f"{text} {'met' if ok else 'MISSED'}" for text, ok in checks))
+    return out
+
+
 def rates(rows: list[dict]) -> str:
     cw, ur, recall, _ = goal_counts(rows)
     return f"confident-and-wrong {cw}, unconfident-and-right {ur:.1%} and recall {recall:.3f} where the view can tell"
@@ -409,6 +431,7 @@ def main() -> int:
           f"{np.mean([r['base_right'] for r in all_rows]):.3f}, confident-and-wrong "
           f"{sum(r['base_confident'] and not r['base_right'] for r in all_rows)} (`base_confident`; by `confident`, "
           f"which is about the part's placement: {sum(r['confident'] and not r['base_right'] for r in all_rows)})")
+    print("\n".join(row_goals(table)))
     if "stacked" in table:
         print(f"goal (stacked): prompted-mask IoU {np.mean([r['iou'] for r in table['stacked']]):.3f}, the result's mask "
               f"{np.mean([r['final_iou'] for r in table['stacked']]):.3f} (>= 0.90)")
