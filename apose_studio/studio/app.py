@@ -523,7 +523,7 @@ class Studio:
         nothing (a prompt typed anew and sent with Enter) reads as if the new try had been refused too."""
         if client is None or not shown:
             return
-        mine = [h for h in shown if self._error_titles.get(id(h)) == title]
+        mine = [h for h in shown if title is None or self._error_titles.get(id(h)) == title]  # (None: every one shown)
         if not mine:
             return
         left = [h for h in self._errors_shown.get(client.client_id, []) if not any(h is m for m in mine)]
@@ -534,6 +534,14 @@ class Studio:
                 old.remove()
             except Exception:  # a tab that just closed
                 pass
+
+    def close_refusals(self, client) -> None:
+        """Close the errors (red) kept open on `client`'s tab, leaving kept results (a step's summary): another frame or
+        step on show, which they were about ("frame 1: not confident" stayed up over frame 0's result)."""
+        if client is None:
+            return
+        shown = self._errors_shown.get(client.client_id, [])
+        self.close_errors_of(client, None, [h for h in shown if id(h) in self._error_titles])
 
     def clear_errors(self, client) -> None:
         """Close the errors kept open on `client`'s tab: an action that takes back what they were about (Undo)."""

@@ -36,12 +36,23 @@ from apose_studio.params import PRESETS, resolve_params
 from apose_studio.registration import doubts, project_to_cloud
 from apose_studio.registration.next_view import next_view
 from apose_studio.studio import inspection
-from apose_studio.studio.prompt_panel import PROMPT_SOURCE, colour_aligned, prompt_of, prompted_mask
+from apose_studio.studio.prompt_panel import PROMPT_SOURCE, colour_aligned, prompt_of, prompted_mask, typed_prompt
 from apose_studio.studio.state import Event, shared
 from apose_studio.studio.widgets import VECTOR_MM, scene_point_at_ray
 
+
+def step_labels(asm: Assembly, steps: list[int] | None = None) -> list[str]:
+    """The Inspect step choices: each step's number, the part it places and the base it registers ("2. label_can on
+    watering_can"): the base is what must be in view and what a prompt marks (a newcomer looked for the object to
+    box among the parts' names). `steps`: those numbers only (1-based; a dataset's), else all."""
+    steps = steps if steps is not None else range(1, len(asm.steps) + 1)
+    return [f"{k}. {asm.steps[k - 1].part} on {', '.join(asm.steps[k - 1].base)}" for k in steps]
+
+
 log = logging.getLogger(__name__)
 OPENED = itertools.count(1)  # live cameras opened: their results are cached apart (frame numbers restart)
+
+
 @dataclass(frozen=True)
 class EstimateJob:
     """What one press of Estimate computes, fixed when it is pressed (see Studio._job)."""
@@ -108,9 +119,9 @@ class InspectPanel:
                                           "scene_gt.json each part is, PART=OBJ_ID separated by commas (e.g. housing=5)")
             self.i_obj_map.on_update(self.app.guarded("BOP object ids")(lambda c: self.on_obj_map(c)))
             self.i_step = gui.add_dropdown("Inspect step", ("—",))
-            self.i_step.on_update(self.app.guarded("Step")(lambda c: self.on_frame_changed()))
+            self.i_step.on_update(self.app.guarded("Step")(lambda c: self.on_other_frame(c)))
             self.i_frame = gui.add_slider("Frame", 0, 1, 1, 0)
-            self.i_frame.on_update(self.app.guarded("Frame")(lambda c: self.on_frame_changed()))
+            self.i_frame.on_update(self.app.guarded("Frame")(lambda c: self.on_other_frame(c)))
         with gui.add_folder("Estimate") as self.estimate_folder:
             self.i_preset = gui.add_dropdown("Preset", tuple(PRESETS), initial_value="default")
             sources = tuple(MASK_SOURCES)
@@ -188,7 +199,7 @@ class InspectPanel:
             if not self.app.valid_asm.steps:
                 raise AposeError("a recording needs an assembly: open one in the Assembly tab first")
             frames.frame(0)  # read now: a refusal leaves what is shown as it was
-            steps = [f"{i + 1}. {s.part}" for i, s in enumerate(self.app.valid_asm.steps)]
+            steps = step_labels(self.app.valid_asm)
         elif isinstance(frames, BopScene):
             if not self.app.valid_asm.steps:
                 raise AposeError("a BOP scene needs an assembly: open one in the Assembly tab first")
@@ -197,11 +208,11 @@ class InspectPanel:
                 raise AposeError(f"{text}: its scene_camera.json lists no images")
             frames.obj_of_part = self.obj_map(self.app.valid_asm, frames)  # the typed ids, checked against these parts
             frames.frame(ids[0], self.app.valid_asm.steps[0])  # read now: a refusal leaves what is shown as it was
-            steps = [f"{i + 1}. {s.part}" for i, s in enumerate(self.app.valid_asm.steps)]
+            steps = step_labels(self.app.valid_asm)
         elif isinstance(frames, Dataset):
             if confine:  # a dataset named on the command line at start is the user's choice
                 self.app.workspace.check_assembly(frames.assembly)
-            steps = [f"{s}. {frames.assembly.steps[s - 1].part}" for s in frames.steps]
+            steps = step_labels(frames.assembly, frames.steps)
             first = frames.steps[0] if frames.steps else None
             ids = frames.image_ids(first) if first is not None else []
             if ids:  # its first frame read now (scene files, images): a refusal leaves what is shown as it was
@@ -209,7 +220,7 @@ class InspectPanel:
         else:
             if not self.app.valid_asm.steps:
                 raise AposeError("a capture needs an assembly: open one in the Assembly tab first")
-            steps = [f"{i + 1}. {s.part}" for i, s in enumerate(self.app.valid_asm.steps)]
+            steps = step_labels(self.app.valid_asm)
         self.show_frames(frames, str(Path(text).expanduser().resolve()), steps)
 
     def open_live(self, serial: str | None) -> None:
@@ -223,7 +234,7 @@ class InspectPanel:
         except BaseException:
             cam.close()
             raise
-        steps = [f"{i + 1}. {s.part}" for i, s in enumerate(self.app.valid_asm.steps)]
+        steps = step_labels(self.app.valid_asm)
         self.show_frames(cam, f"{cam.name} (opened {time.strftime('%Y-%m-%d %H:%M:%S')}, #{next(OPENED)})", steps,
                          "realsense" + (f":{serial}" if serial else ""))
 
@@ -233,7 +244,7 @@ class InspectPanel:
         that is gone leaves the one now in its place (the last) on show."""
         if self.frames is None or isinstance(self.frames, Dataset) or not self.app.valid_asm.steps:
             return
-        steps = [f"{i + 1}. {s.part}" for i, s in enumerate(self.app.valid_asm.steps)]
+        steps = step_labels(self.app.valid_asm)
         if list(self.i_step.options) == steps:
             return
         before = self.i_step.value
@@ -380,6 +391,8 @@ class InspectPanel:
         the frame has depth."""
         mask = fr.base_mask()
         estimated = not mask.any() and self.result is not None and len(self.result.target_cloud)
+        if not mask.any() and not estimated:
+            mask = self.prompt_region(fr)
         if estimated:
             pts = self.result.target_cloud
         else:
@@ -401,15 +414,35 @@ class InspectPanel:
         direction[2] = max(direction[2], 0.6 * np.linalg.norm(direction[:2]))  # from above the table
         return "beside", np.concatenate([centre, [1.3 * radius], direction])
 
+    PROMPT_POINT_PX = 40  # a point prompt is framed with the pixels this far round it
+
+    def prompt_region(self, fr) -> np.ndarray:
+        """The pixels the typed prompt marks on `fr` (its box, or the square round its point), none without a usable
+        one: before an estimate, a capture is framed on what the user pointed at, not on the image's middle."""
+        out = np.zeros(fr.depth.shape, bool)
+        prompt = typed_prompt(self.app.state.inspect)
+        if prompt is None:
+            return out
+        box, point = prompt
+        if box is None:
+            r = self.PROMPT_POINT_PX
+            box = (point[0] - r, point[1] - r, point[0] + r + 1, point[1] + r + 1)
+        x0, y0, x1, y1 = (int(v) for v in box)
+        out[max(y0, 0):max(y1, 0), max(x0, 0):max(x1, 0)] = True
+        return out
+
     def on_prompt_changed(self) -> None:
         """A new prompt typed while Mask is 'prompt': the frame shows the result made with this prompt (the cache's),
         or none, never one made with the prompt before (a newcomer typed a malformed box and still saw the last
         box's pose, 'ok and confident', beside the refusal)."""
         if self.frame is None or self.app.state.inspect.mask_source != PROMPT_SOURCE:
             return
-        cached = self.app.cache.get(self.cache_key(self.app.state.inspect.step, int(self.frame.im_id)))
+        key = self.cache_key(self.app.state.inspect.step, int(self.frame.im_id))
+        cached = self.app.cache.get(key)
         result, score = cached if cached is not None else (None, None)
-        if result is not self.result:
+        refusal = self.app.state.inspect.refusals.get(key) if cached is None else None
+        if result is not self.result or refusal != self.app.state.inspect.refusal:
+            self.app.state.inspect.refusal = refusal
             self.result, self.score = result, score
             self.app.events.emit(Event.FRAME_CHANGED)
 
@@ -498,10 +531,53 @@ class InspectPanel:
             im_id = self.frames.last.im_id if isinstance(self.frames, LiveCamera) else 0
         self.app.state.inspect.step = step
         self.frame = self.load_frame(step, im_id)
-        cached = self.app.cache.get(self.cache_key(step, im_id))
+        self.follow_prompt()
+        key = self.cache_key(step, im_id)
+        cached = self.app.cache.get(key)
         self.result, self.score = cached if cached is not None else (None, None)
+        self.app.state.inspect.refusal = self.app.state.inspect.refusals.get(key) if cached is None else None
         self.app.events.emit(Event.FRAME_CHANGED)
         self.warm_in_background(step)
+
+    def on_other_frame(self, client) -> None:
+        """Another step or frame chosen: the refusals on screen were about the one shown before, and go."""
+        if not self._syncing:
+            self.app.close_refusals(client)
+        self.on_frame_changed()
+        if not self._syncing:  # each frame its own camera, its object elsewhere in view: framed on it
+            self.frame_camera_on_frame(again=False)
+
+    def image_key(self) -> tuple:
+        """The image a prompt marks the base in: the frame on show (its data, file and number), or for a live
+        camera or a recording the stream as a whole (the player and the live view prompt their newest frame)."""
+        if isinstance(self.frames, (LiveCamera, Recording)):
+            return ("stream", self.frames_path)
+        return (self.frames_path, self.frame.source, int(self.frame.im_id))
+
+    def follow_prompt(self) -> None:
+        """A prompt marks the base in the image it was typed on: another image on show (other data opened, another
+        frame or scene) shows the prompt typed there, or none, and Mask leaves 'prompt' for the truth's masks (or
+        depth) where that image has none. Coming back brings the image's prompt back, and with it its cached
+        estimate. (A newcomer's box typed on a capture was estimated on the next dataset's image, and the failure
+        read as a wrong step.)"""
+        ins = self.app.state.inspect
+        key = self.image_key()
+        if key == ins.prompt_image:
+            return
+        if ins.prompt_image is not None:
+            if ins.prompt_text.strip():
+                ins.prompts[ins.prompt_image] = ins.prompt_text
+            else:
+                ins.prompts.pop(ins.prompt_image, None)
+        ins.prompt_image = key
+        ins.prompt_text = ins.prompts.get(key, "")
+        if not ins.prompt_text.strip() and self.i_mask.value == PROMPT_SOURCE:
+            syncing, self._syncing = self._syncing, True
+            try:
+                self.i_mask.value = "gt" if "gt" in self.i_mask.options else "depth"
+            finally:
+                self._syncing = syncing
+            ins.mask_source = self.i_mask.value
 
     def frame_ids(self, step: int) -> list[int]:
         """The im_ids the Frame slider runs through: a dataset's step's frames, a BOP scene's or a recording's."""
@@ -516,7 +592,9 @@ class InspectPanel:
 
     def on_frame_played(self, im_id: int) -> None:
         """The Sequence folder's player showed frame `im_id`: the Frame slider follows (the frame, its result and
-        the view are the player's)."""
+        the view are the player's), and so does the Prompt field: a frame of a dataset or BOP scene shows its own
+        prompt, so that Estimate frame on the frame paused at never uses the box drawn on the first one."""
+        self.follow_prompt()
         ids = self.frame_ids(self.current_step())
         if im_id in ids and self.i_frame.value != ids.index(im_id):
             self._syncing = True
@@ -713,10 +791,15 @@ class InspectPanel:
                     unsure.append(f"frame {im_id}: {doubts(result)}")
                 self.i_progress.value = 100.0 * (k + 1) / len(ids)
             dt = time.perf_counter() - t0
-        except BaseException:
+        except BaseException as e:
             self.app.lock.acquire()
             self.app.busy.release()
             self.i_progress.visible = False
+            if isinstance(e, AposeError) and len(ids) == 1:  # the Result folder says why, beside the frame, not only
+                # a notice that fades (a newcomer read "No estimate for this frame yet" after a refused box)
+                if len(self.app.state.inspect.refusals) > 256:
+                    self.app.state.inspect.refusals.clear()
+                self.app.state.inspect.refusals[job.key(self.app.cache, ids[0])] = str(e)
             # what stays on screen is what is cached for these settings: never an older estimate that looks
             # like the answer to the prompt that just failed
             self.on_frame_changed()
@@ -744,8 +827,12 @@ class InspectPanel:
             self.app.notify(client, "Estimated, not confident", "\n".join(unsure[:5] + hint), error=True)
         else:
             # a step's summary is a result to read: it stays (until the tab's next message), a frame's fades
-            self.app.notify(client, "Estimated", f"{len(ids)} frame(s) in {dt:.1f} s{self.truth_summary(job, ids)}",
-                            keep=len(ids) > 1)
+            if len(ids) == 1:  # the verdict where the button was pressed: the Result folder is a screen further down
+                self.app.notify(client, "Estimated", f"frame {ids[0]}: ok and confident ({dt:.1f} s)"
+                                f"{self.truth_summary(job, ids)}")
+            else:
+                self.app.notify(client, "Estimated", f"{len(ids)} frame(s) in {dt:.1f} s{self.truth_summary(job, ids)}",
+                                keep=True)
 
     def advise(self, job: "EstimateJob") -> bool:
         """For an ambiguous result on show: the camera from which its rival placements look most different
@@ -763,9 +850,11 @@ class InspectPanel:
     def truth_summary(self, job: "EstimateJob", ids: list[int]) -> str:
         """Against the ground truth of a step's frames, where it has one: how many are right (MSSD under 10 %
         of the part's diameter, the paper's recall, modulo the base's exact symmetries as `apose eval` counts
-        it) and their median MSSD; '' for one frame or no truth."""
+        it) and their median MSSD; one frame's MSSD; '' without truth."""
         scores = [c[1] for c in (self.app.cache.get(job.key(self.app.cache, i)) for i in ids) if c is not None]
         mssd = [m for m in map(inspection.placement_mssd, scores) if m is not None]  # modulo exact symmetries
+        if len(ids) == 1 and mssd:
+            return f"; MSSD to the truth {mssd[0] * 1000:.2f} mm"
         if len(ids) < 2 or not mssd:
             return ""
         d = self.app.state.part_model().diameter

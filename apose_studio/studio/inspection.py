@@ -273,8 +273,11 @@ def mssd_text(score) -> str:
     return f"{m * 1000:.2f} mm"
 
 
-def metrics_markdown(score, result: RegistrationResult | None) -> str:
-    """The metrics panel: errors against ground truth (when known) and the estimator's own numbers."""
+def metrics_markdown(score, result: RegistrationResult | None, refusal: str | None = None) -> str:
+    """The metrics panel: errors against ground truth (when known) and the estimator's own numbers; without a
+    result, why the last Estimate of this frame with these settings was refused (`refusal`), else how to get one."""
+    if result is None and refusal:
+        return f"**Not estimated:** {html.escape(refusal)}"
     if result is None:
         return "_No estimate for this frame yet: press **Estimate frame**._"
     if not result.ok:

@@ -99,6 +99,20 @@ def overlay_mask(ins: InspectState, frame, region: bool = False) -> np.ndarray |
 class PromptPanel:
     def __init__(self, app):
         self.app = app
+        self._quiet = False
+        app.events.on(Event.FRAME_CHANGED, self.show_prompt_of_image)
+        app.events.on(Event.FRAME_PLAYED, lambda im_id: self.show_prompt_of_image())
+
+    def show_prompt_of_image(self) -> None:
+        """The Prompt field shows the prompt of the image on show (`state.inspect.prompt_text`, which the Inspect
+        panel keeps per image), without acting on it as a prompt typed."""
+        text = self.app.state.inspect.prompt_text
+        if getattr(self, "i_prompt", None) is not None and self.i_prompt.value != text:
+            self._quiet = True
+            try:
+                self.i_prompt.value = text
+            finally:
+                self._quiet = False
 
     def build(self) -> None:
         gui = self.app.ui.gui
@@ -120,6 +134,8 @@ class PromptPanel:
     def on_prompt_typed(self) -> None:
         """A prompt typed (and sent with Enter) is the one to estimate with: Mask switches to prompt. A
         malformed one says what is wrong and leaves the Mask choice alone."""
+        if self._quiet:  # (the field following the image on show: not typed)
+            return
         changed = self.app.state.inspect.prompt_text != self.i_prompt.value
         self.app.state.inspect.prompt_text = self.i_prompt.value
         if changed:
@@ -132,6 +148,7 @@ class PromptPanel:
             check_box(box, fr.depth.shape)  # an inverted box (x,y,w,h typed) or one off the image: said now, not at Estimate
         if self.app.state.inspect.mask_source != PROMPT_SOURCE:
             self.app.events.emit(Event.MASK_SOURCE_CHOSEN, source=PROMPT_SOURCE)
+        self.app.events.emit(Event.FRAMING_ASKED)  # the view turns to what the prompt marks (a newcomer's stayed put)
 
     def prompt(self) -> tuple[tuple | None, tuple | None]:
         """The typed prompt as (box, point)."""

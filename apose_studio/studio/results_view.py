@@ -171,7 +171,7 @@ class ResultsView:
         finally:
             self._syncing = False
         self.show_stage()
-        self.i_metrics.content = inspection.metrics_markdown(self.app.state.inspect.score, r)
+        self.i_metrics.content = inspection.metrics_markdown(self.app.state.inspect.score, r, self.app.state.inspect.refusal)
         self.i_pose.content = inspection.pose_markdown(inspection.pose_report(r, Tc)) if (r is not None and r.ok) else ""
         self.draw_overlay()
         self.apply_layers()
@@ -336,8 +336,9 @@ class ResultsView:
             x0, y0, x1, y1 = inspection.crop_window(fr.rgb.shape[:2], uv)
             image = image[y0:y1, x0:x1]
         self.i_image.image = inspection.enlarge(image)
-        truth = ", truth (amber)" if fr.T_world_part is not None else ""
-        self.i_image.label = (f"RGB: estimate (green: the base's outline, the part's box){truth}" if boxes else "RGB") + (
+        drawn = (["estimate (green: the base's outline, the part's box)"] if r is not None and r.ok else []) + (
+            ["truth (amber)"] if fr.T_world_part is not None else [])  # (no estimate named where none is drawn)
+        self.i_image.label = ("RGB: " + ", ".join(drawn) if drawn else "RGB") + (
             f"; {what} (cyan outline), {int(prompted.sum())} pixels" if prompted is not None else "") + (
             "; the typed prompt (white)" if typed is not None else "")
 

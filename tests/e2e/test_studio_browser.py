@@ -1168,7 +1168,7 @@ def test_play_a_recording_with_the_base_tracked(browser, studio, tmp_path):
     page = open_sample_and_data(browser, studio, asm_path, rec, "the recording's first frame")
     page.get_by_text("a recording of 5 frames").first.wait_for(timeout=20000)
     field(page, "Inspect step").first.click()
-    page.get_by_role("option", name="2. wheel", exact=True).click()
+    page.get_by_role("option", name="2. wheel on casing, pinion", exact=True).click()
     wait_until(lambda: studio.state.inspect.step == 2, "step 2 to be shown")
     type_into(page, "Prompt (px)", ",".join(map(str, truth_box(ds.frame(2, 0).base_mask()))))
     wait_until(lambda: studio.inspect.i_mask.value == "prompt", "Mask to switch to prompt")

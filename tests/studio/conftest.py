@@ -76,7 +76,10 @@ class NoticeTab:
     """A stand-in for a browser tab (a viser client) that records the notifications it is shown."""
 
     def __init__(self, client_id: int = 7):
+        import types
+
         self.client_id, self.shown = client_id, []
+        self.camera = types.SimpleNamespace()  # (a tab's view, which an action may move)
 
     def add_notification(self, title, body, **kw):
         self.shown.append(Notice(title, body))

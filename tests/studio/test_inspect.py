@@ -182,7 +182,14 @@ def test_a_capture_offers_the_masks_that_work_and_a_typed_prompt_is_used(studio,
     act(st, lambda c: st.prompt.on_prompt_typed())
     act(st, st.inspect.run_estimation, False)
     assert "holds nothing standing on the table" in errors(st)[-1][1]
-    assert st.inspect.result is None and "No estimate for this frame yet" in st.results.i_metrics.content
+    # ... and the Result folder says why there is none, beside the frame (not "no estimate yet": it was asked for)
+    assert st.inspect.result is None and st.results.i_metrics.content.startswith("**Not estimated:** box 2,2,40,40 holds")
+    st.prompt.i_prompt.value = good  # another prompt: its own result, and the refusal of the other one goes
+    act(st, lambda c: st.prompt.on_prompt_typed())
+    assert "Not estimated" not in st.results.i_metrics.content
+    st.prompt.i_prompt.value = "2,2,40,40"  # typed again: the refusal it had (no result cached under it) is back
+    act(st, lambda c: st.prompt.on_prompt_typed())
+    assert st.results.i_metrics.content.startswith("**Not estimated:** box 2,2,40,40 holds")
     with st.lock:  # as if named at start (not a page action: the start-up files are the user's own)
         st.inspect.open_frames(str(gearbox_dataset), None, confine=False)
     assert {"gt", "box"} <= set(st.inspect.i_mask.options), st.notes[-1]
@@ -681,3 +688,51 @@ def test_the_scene_cloud_thins_under_an_estimate_so_its_outline_shows(studio, ca
     st.prompt.i_prompt.value = f"{x0 + 1},{y0},{x1},{y1}"  # another prompt: the estimate goes
     act(st, lambda c: st.prompt.on_prompt_typed())
     assert st.inspect.result is None and st.nodes["/inspect/scene"] is scene and np.isclose(scene.point_size, full)
+
+
+def test_a_prompt_stays_with_the_image_it_was_typed_on(studio, capture, gearbox_dataset):
+    """A box typed on one image is never used on another: opening other data, or moving to another frame, shows
+    that image's own prompt (none at first, Mask back on the truth's masks or depth), and coming back brings the
+    box back with its cached estimate. (A newcomer's capture box was estimated on the next dataset's image.)"""
+    import os
+    from pathlib import Path
+
+    from apose_studio.data.dataset import Dataset
+    from apose_studio.estimation import truth_box
+
+    st = studio(SAMPLES / "helical_gearbox" / "assembly.yaml", root=Path(os.path.commonpath([capture, gearbox_dataset])))
+    st.inspect.i_path.value = str(capture)
+    act(st, lambda c: st.inspect.on_open_data(c))
+    box = ",".join(map(str, truth_box(Dataset(gearbox_dataset).frame(1, 1).base_mask())))
+    st.prompt.i_prompt.value = box
+    act(st, lambda c: st.prompt.on_prompt_typed())
+    act(st, st.inspect.run_estimation, False)
+    on_capture = st.inspect.result
+    assert on_capture is not None and on_capture.ok and st.inspect.i_mask.value == "prompt"
+    st.inspect.i_path.value = str(gearbox_dataset)
+    act(st, lambda c: st.inspect.on_open_data(c))
+    assert st.prompt.i_prompt.value == "" and st.state.inspect.prompt_text == "", errors(st)
+    assert st.inspect.i_mask.value == "gt" and st.state.inspect.mask_source == "gt" and st.inspect.result is None
+    n_errors = len(errors(st))
+    act(st, st.inspect.run_estimation, False)  # the dataset's own masks: no prompt from elsewhere refuses it
+    assert st.inspect.result is not None and st.inspect.result.ok and len(errors(st)) == n_errors, st.notes[-1]
+    # a prompt on frame 0 of the dataset, then frame 1: none there; back on frame 0: the box and its estimate
+    ds = Dataset(gearbox_dataset)
+    box0 = ",".join(map(str, truth_box(ds.frame(1, ds.image_ids(1)[0]).base_mask())))
+    st.prompt.i_prompt.value = box0
+    act(st, lambda c: st.prompt.on_prompt_typed())
+    assert st.inspect.i_mask.value == "prompt"
+    act(st, st.inspect.run_estimation, False)
+    on_frame0 = st.inspect.result
+    assert on_frame0 is not None and on_frame0.ok and len(errors(st)) == n_errors, st.notes[-1]
+    st.inspect.i_frame.value = 1
+    assert st.prompt.i_prompt.value == "" and st.inspect.i_mask.value == "gt" and st.inspect.result is None
+    st.inspect.i_mask.value = "prompt"  # Mask chosen back by hand: the frame's (empty) prompt is not another's
+    assert st.state.inspect.prompt_text == ""
+    st.inspect.i_frame.value = 0
+    assert st.prompt.i_prompt.value == box0 and st.inspect.result is on_frame0
+    st.inspect.i_path.value = str(capture)  # the capture again: its box and its cached estimate
+    act(st, lambda c: st.inspect.on_open_data(c))
+    assert not errors(st)[n_errors:], errors(st)
+    assert st.prompt.i_prompt.value == box and st.inspect.i_mask.value == "prompt"
+    assert st.inspect.result is not None and np.array_equal(st.inspect.result.T_world_part, on_capture.T_world_part)

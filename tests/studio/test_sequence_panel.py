@@ -300,3 +300,25 @@ def test_play_after_pause_goes_on_tracking_from_the_pose_on_show(studio, recordi
     after = played[n:]
     assert after and all(r.confident and r.tracked for _, r in after), [(i, r.tracked, r.confident) for i, r in after]
     assert after[-1][0] == FRAMES - 1  # the last frame is shown, even when frames before it are skipped
+
+
+def test_a_dataset_played_shows_each_frame_s_own_prompt(studio, recording):
+    """A box drawn on a dataset's first frame prompts that frame only: played on, the Prompt field follows the frame on
+    show (none on the others, Mask back on gt), so that Estimate frame on the frame paused at never uses the first
+    frame's box; back on the first frame, its box is there again."""
+    rec, ds = recording
+    st = studio(GEARBOX, root=rec.parent)
+    st.inspect.i_path.value = str(ds.root)
+    act(st, st.inspect.on_open_data)
+    assert not errors(st), st.notes
+    box = ",".join(map(str, truth_box(ds.frame(2, ds.image_ids(2)[0]).base_mask())))
+    st.prompt.i_prompt.value = box
+    assert st.inspect.i_mask.value == "prompt"
+    st.sequence.s_rate.value = 5.0
+    act(st, st.sequence.on_play)
+    _wait(st)
+    assert not errors(st), st.notes
+    assert st.inspect.i_frame.value == FRAMES - 1 and st.inspect.result is not None  # the player's last frame
+    assert st.prompt.i_prompt.value == "" and st.state.inspect.prompt_text == "" and st.inspect.i_mask.value == "gt"
+    st.inspect.i_frame.value = 0
+    assert st.prompt.i_prompt.value == box and st.state.inspect.prompt_text == box

@@ -380,7 +380,8 @@ def test_the_inspected_step_list_follows_the_draft(desk, capture, tmp_path):
     b.set(_button(vb, "Step actions"), value="Delete")
     assert wait(lambda: len(d.draft.asm.steps) == 2)
     b.settle()
-    assert tuple(va.inspect.i_step.options) == ("1. pinion", "2. wheel") and va.inspect.current_step() == 2
+    assert tuple(va.inspect.i_step.options) == ("1. pinion on casing", "2. wheel on casing, pinion")
+    assert va.inspect.current_step() == 2
     notes = []
     va.notify = lambda c, title, body, error=False, **k: notes.append((title, body, error))
     a.set(va.inspect.i_preset, value=next(p for p in va.inspect.i_preset.options if p != va.inspect.i_preset.value))
