@@ -310,6 +310,10 @@ class MaskRequest:
     box: tuple[int, int, int, int] | None = None
     point: tuple[int, int] | None = None
 
+    def __post_init__(self):
+        if self.box is not None and self.point is not None:  # (the box alone was used, the point dropped unsaid)
+            raise AposeError("--box and --point: give one prompt, a box round the base or a point on it")
+
 
 def find_mask(frame: Frame, request: MaskRequest, asm: Assembly, name: str = "",
               region: bool = False) -> tuple[np.ndarray, str]:

@@ -448,6 +448,9 @@ def decode_image(data: bytes, path, flags: int, what: str = "an image", depth: b
     why = damaged(data, fmt)  # refused here: the decoder would print its own complaint on stderr, or decode half
     if why:
         raise AposeError(f"{path}: not a readable {fmt} image ({why}); save {what} again, or copy it whole")
+    if flags >= 0:  # pixels as stored: an RGB-D image is registered to its depth pixel by pixel, and a JPEG's EXIF
+        # orientation (a phone's tag) would turn the colour against the depth (a "portrait" tag read as damaged)
+        flags |= cv2.IMREAD_IGNORE_ORIENTATION
     try:
         img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)  # OpenCV's own pixel cap: set in __init__.py
     except cv2.error as e:  # a decoder's own refusal (e.g. its pixel cap) is bad input, not a bug

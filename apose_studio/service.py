@@ -54,7 +54,7 @@ import numpy as np
 from apose_studio import safeio
 from apose_studio.api import estimate_pose, grasp_of
 from apose_studio.assembly.model import Assembly, load_assembly
-from apose_studio.data.dataset import check_camera_entry, depth_metres
+from apose_studio.data.dataset import check_camera_entry, checked_pose_unit, depth_metres
 from apose_studio.errors import AposeError
 from apose_studio.estimation import pick_base, step_context
 from apose_studio.params import Params, resolve_params
@@ -381,7 +381,7 @@ def parse_request(body: bytes, n_steps: int, max_pixels: int = 1920 * 1200, npz:
         if rgb.shape[:2] != (h, w):
             raise BadRequest(f"the colour image is {rgb.shape[1]}x{rgb.shape[0]} but {dkey} is {w}x{h}; align depth "
                              "to colour first")
-        cam, depth_scale, T_world_camera = check_camera_entry(req["camera"], "camera", w, h)
+        cam, depth_scale, T_world_camera = checked_pose_unit(check_camera_entry(req["camera"], "camera", w, h), "camera")
         depth = depth_metres(raw, head, depth_scale, dkey, "the request's camera")
         hand_eye = hand_eye_from_data(req["hand_eye"], "hand_eye") if req.get("hand_eye") is not None else None
         flange = matrix(req["T_robot_flange"], "request", "T_robot_flange") if req.get("T_robot_flange") is not None else None

@@ -241,6 +241,10 @@ def test_every_bad_input_exits_2_with_one_line(capture, tmp_path):
         (capture["ours"], ["--box", f"{w + 5},{h + 5},{w + 90},{h + 90}"], "lies outside the"),
         (capture["ours"], ["--point", f"3,{h - 3}"], "falls on the table"),
         (capture["ours"], ["--mask", wrong_mask], "same size as the image"),
+        (capture["ours"], ["--box", box, "--point", "300,280"], "--box and --point: give one prompt"),
+        (_variant(capture, tmp_path, "pose_m", camera={"cam_K": cam.K.reshape(-1).tolist(), "depth_scale": 1.0,
+                                                      "cam_R_w2c": np.eye(3).reshape(-1).tolist(), "cam_t_w2c": [0.1, 0.2, 0.7]}),
+         ["--box", box], "if these numbers are metres (as ROS gives them), multiply them by 1000"),
         (capture["ours"], ["--box", box, "--no-assembly"], "give --assembly"),
         (capture["ours"], ["--box", box, "--step", 9], "step 9 does not exist"),
     ]
@@ -569,3 +573,46 @@ def test_the_box_mask_source_gives_an_empty_mask_where_the_prompt_refuses_the_tr
         prompted_mask(rgb, depth, cam, box=truth_box(truth))
     mask = MASK_SOURCES["box"](frame)
     assert mask.shape == truth.shape and not mask.any()
+
+
+def test_a_sensor_s_no_reading_code_is_no_reading(capture, tmp_path):
+    """Some tools write a sensor's "no reading" as all ones (a Kinect v1's 2047, 65535) instead of 0. Taken as depth,
+    those pixels in the prompt's box made the target span 7 times the base and the capture was refused as "depth_scale
+    10x too large" (an outsider's capture, depth in mm and depth_scale 1.0 right). Read as no reading: the true pose.
+    A depth image without a single reading is refused naming the file."""
+    src = capture["bop"]
+    coded = tmp_path / "coded"
+    shutil.copytree(src, coded)
+    depth = cv2.imread(str(coded / "depth.png"), cv2.IMREAD_UNCHANGED)
+    x0, y0, x1, y1 = map(int, capture["box"].split(","))
+    rng = np.random.default_rng(0)
+    near = np.zeros(depth.shape, bool)
+    near[y0:y1, x0:x1] = ~capture["frame"].base_mask()[y0:y1, x0:x1] & (rng.random((y1 - y0, x1 - x0)) < 0.3)
+    depth[near | (depth == 0)] = 2047  # shadows and misses round the base, as such a tool writes them
+    assert (depth == 2047).mean() > 0.005
+    cv2.imwrite(str(coded / "depth.png"), depth)
+    r = run("estimate", coded, "--assembly", capture["asm"], "--step", 2, "--box", capture["box"], "--json")
+    assert r.returncode == 0, r.stderr
+    T = np.asarray(json.loads(r.stdout)["T_camera_part"])
+    assert np.linalg.norm(T[:3, 3] - _T_camera_part_truth(capture["frame"])[:3, 3]) < 0.005
+    for value in (0, 65535):
+        blank = tmp_path / f"blank{value}"
+        shutil.copytree(src, blank)
+        cv2.imwrite(str(blank / "depth.png"), np.full(depth.shape, value, np.uint16))
+        r = run("estimate", blank, "--assembly", capture["asm"], "--step", 2, "--box", capture["box"])
+        assert r.returncode == 2 and f"{blank / 'depth.png'}: no pixel has a depth reading" in r.stderr, r.stderr
+
+
+def test_a_box_reaching_past_the_image_is_said_as_used(capture):
+    """A box drawn past the image's edge is cut to the image, and both say so: the text as typed and as used, the
+    JSON both boxes."""
+    h, w = capture["frame"].depth.shape
+    x0, y0, x1, y1 = map(int, capture["box"].split(","))
+    wide = f"{x0},{y0},{w + 40},{y1}"
+    r = run("estimate", capture["ours"], "--assembly", capture["asm"], "--step", 2, "--box", wide)
+    assert r.returncode in (0, 1) and f"box: {wide} reaches past the {w}x{h} image; used {x0},{y0},{w},{y1}" in r.stdout
+    r = run("estimate", capture["ours"], "--assembly", capture["asm"], "--step", 2, "--box", wide, "--json")
+    mask = json.loads(r.stdout)["mask"]
+    assert mask["prompt_box"] == [x0, y0, w + 40, y1] and mask["prompt_box_used"] == [x0, y0, w, y1]
+    r = run("estimate", capture["ours"], "--assembly", capture["asm"], "--step", 2, "--box", capture["box"])
+    assert "reaches past" not in r.stdout

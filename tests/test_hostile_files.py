@@ -676,3 +676,27 @@ def test_random_bytes_named_stl_are_called_corrupt_not_too_big(tmp_path):
     with pytest.raises(MeshError, match=r"but the file is 3000 bytes.*corrupt or truncated: export it again") as e:
         load_mesh(tmp_path / "corrupt.stl")
     assert "decimate" not in str(e.value)
+
+
+def _with_exif_orientation(jpeg: bytes, orientation: int) -> bytes:
+    """The JPEG with an EXIF APP1 segment whose only tag is Orientation (0x0112), as a phone or an editor writes it."""
+    tiff = b"MM\x00*\x00\x00\x00\x08" + struct.pack(">H", 1) + struct.pack(">HHIHH", 0x0112, 3, 1, orientation, 0) + b"\x00" * 4
+    app1 = b"Exif\x00\x00" + tiff
+    return jpeg[:2] + b"\xff\xe1" + struct.pack(">H", len(app1) + 2) + app1 + jpeg[2:]
+
+
+def test_a_jpeg_s_exif_orientation_does_not_turn_the_colour_against_the_depth(tmp_path):
+    """An RGB-D colour image is registered to its depth pixel by pixel as stored: an EXIF orientation tag (3: shown
+    upside down) must not turn it (OpenCV applies it by default), and a portrait-stored one is not called damaged."""
+    from apose_studio.data.dataset import read_rgb
+
+    img = np.zeros((48, 64, 3), np.uint8)
+    img[:10, :20] = (255, 0, 0)  # red in the top-left corner, as stored
+    ok, jpeg = cv2.imencode(".jpg", img[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 100])
+    assert ok
+    (tmp_path / "tagged.jpg").write_bytes(_with_exif_orientation(jpeg.tobytes(), 3))
+    assert cv2.imread(str(tmp_path / "tagged.jpg"))[:10, :20, 2].mean() < 100  # OpenCV alone turns it round
+    rgb = read_rgb(tmp_path / "tagged.jpg")
+    assert rgb.shape == (48, 64, 3) and rgb[:10, :20, 0].mean() > 200 and rgb[-10:, -20:, 0].mean() < 50
+    (tmp_path / "portrait.jpg").write_bytes(_with_exif_orientation(jpeg.tobytes(), 6))  # shown turned a quarter
+    assert read_rgb(tmp_path / "portrait.jpg").shape == (48, 64, 3)  # (before: "header says ... damaged or crafted")

@@ -32,7 +32,7 @@ from apose_studio.estimation import (
 )
 from apose_studio.evaluate import evaluate, evaluate_split, format_table, score_frame, score_results
 from apose_studio.geometry import se3
-from apose_studio.masks.prompt import parse_box, parse_point
+from apose_studio.masks.prompt import check_box, parse_box, parse_point
 from apose_studio.registration.types import View
 from apose_studio.robot.handeye import HandEye, capture_flange, read_hand_eye
 from apose_studio.robot.ros2 import write_mcap
@@ -156,6 +156,8 @@ def cmd_estimate(args) -> int:
     if args.json:
         doc = est.to_json()  # its "mask": the result's (cut to the model's view); the prompt's beside it
         doc["mask"].update(prompt_source=source, prompt_pixels=int(mask.sum()))
+        if request.box is not None:  # as used: within the image (a box reaching past its edge is cut to it)
+            doc["mask"].update(prompt_box=list(request.box), prompt_box_used=list(check_box(request.box, mask.shape)))
         doc.update(step=args.step, frame=args.frame, preset=params.preset, part=ctx.part.id, base=list(ctx.view.base),
                    stages=[{"name": st.name, "T_world_base": st.T_world_base.tolist(), "fitness": st.fitness,
                             "inlier_rmse": st.inlier_rmse} for st in r.stages],
@@ -174,6 +176,10 @@ def cmd_estimate(args) -> int:
         return 0 if r.ok else failed_exit(r)
     print(f"step {args.step}, frame {args.frame}: place {ctx.part.id} on [{', '.join(ctx.view.base)}]  (preset {params.preset})")
     print(f"mask: {source}, {int(mask.sum())} pixels ({est.timings['mask'] * 1000:.0f} ms; --json: mask.prompt_pixels)")
+    if request.box is not None and check_box(request.box, mask.shape) != tuple(request.box):
+        h, w = mask.shape
+        print(f"box: {','.join(map(str, request.box))} reaches past the {w}x{h} image; used "
+              f"{','.join(map(str, check_box(request.box, mask.shape)))}")
     if shift != (0, 0):
         print(f"depth: lay {shift[0]:+d}, {shift[1]:+d} px (right, down) off the colour image around the prompt; moved back "
               "before the mask and the registration")
@@ -192,8 +198,9 @@ def cmd_estimate(args) -> int:
     print("T_camera_part:")
     print("\n".join(pose_lines(est.T_camera_part)))
     print(f"registration: fitness {r.fitness:.4f}, inlier RMSE {r.inlier_rmse * 1000:.3f} mm, voxel {r.voxel * 1000:.2f} mm, "
-          f"{len(r.stages) - 3} ICP iterations, {r.seconds * 1000:.0f} ms "
-          f"({', '.join(f'{k} {v * 1000:.0f}' for k, v in r.timings.items())} ms)")
+          f"{len(r.stages) - 3} ICP iterations, {est.timings['registration'] * 1000:.0f} ms in all (--json: timings_s); the "
+          f"pose's own estimate {r.seconds * 1000:.0f} ms ({', '.join(f'{k} {v * 1000:.0f}' for k, v in r.timings.items())}"
+          " ms), the rest other readings of the mask and checks whose estimates were not kept")
     if sc is not None and sc.mask_iou is not None and ctx.base.region is None:  # a region's truth mask is its whole part's
         print(f"mask ({source}): IoU {sc.mask_iou:.3f} against the ground-truth base mask")
     if r.reading:  # the pose came from another reading of the mask (registration/hypotheses.py)

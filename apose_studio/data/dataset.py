@@ -123,6 +123,13 @@ def read_rgb(path: Path) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
+NO_READING_CODES = (2047, 4095, 8191, 16383, 32767, 65535)  # all ones in 11-16 bits: what some tools write where a
+# sensor has no reading (a Kinect v1's raw 2047), instead of 0
+NO_READING_SHARE = 0.005  # ... read as "no reading" when the image's largest value is one of them on this share of its
+# pixels: a real surface farthest in view at exactly 2047 mm on 1,500 pixels of a 640 x 480 image is not a scene; taken
+# as depth, those pixels inside a prompt made the target span 7 times the base and read as "depth_scale 10x too large"
+
+
 def read_depth(path: Path, depth_scale_mm: float, scale_from: str = "") -> np.ndarray:
     """uint16 depth PNG -> metres (float32); NaN, negative and missing become 0. `scale_from`: the file that gave
     depth_scale, named when the depth it gives looks wrong."""
@@ -139,6 +146,12 @@ def depth_metres(raw: np.ndarray, head, depth_scale_mm: float, path, scale_from:
     if raw.dtype != np.uint16:
         raise DatasetError(f"{path}: a {raw.dtype} depth image; expected 16-bit integers (depth in mm = value x "
                            "depth_scale), as RealSense, Kinect and BOP write them")
+    top = int(raw.max()) if raw.size else 0
+    if top in NO_READING_CODES and np.count_nonzero(raw == top) >= NO_READING_SHARE * raw.size:
+        raw = np.where(raw == top, np.uint16(0), raw)  # a sensor's "no reading", not a surface 2 or 65 m away
+    if not raw.any():
+        raise DatasetError(f"{path}: no pixel has a depth reading (all 0{f', or the no-reading code {top}' if top else ''});"
+                           " is it the depth image of this frame, aligned to the colour image?")
     valid = raw[::4, ::4][raw[::4, ::4] > 0]  # every 16th pixel: the median of a sanity check, at a 16th of the cost
     if len(valid) and np.median(valid) * depth_scale_mm < 20.0:
         median = f"{path}: the median depth is {np.median(valid) * depth_scale_mm:g} mm"
@@ -151,6 +164,10 @@ def depth_metres(raw: np.ndarray, head, depth_scale_mm: float, path, scale_from:
     d = raw.astype(np.float32) * np.float32(depth_scale_mm / 1000.0)
     d[~np.isfinite(d) | (d < 0)] = 0.0
     return d
+
+
+METRES_LIKE_MM = 10.0  # a camera.json's camera closer than this to the world's origin (but not at it) had its cam_t_w2c
+# in metres: an outsider's ROS pose (0.29, 0.71 m) was read as 0.7 mm, and the part came out 657 mm under the table
 
 
 def _T_from_Rt(R_flat, t_mm) -> np.ndarray:
@@ -315,7 +332,20 @@ def read_capture_camera(path: Path, width: int, height: int) -> tuple[CameraIntr
     Two forms: ours ({fx, fy, cx, cy, depth_scale}) and BOP's ({cam_K: row-major 3x3, depth_scale});
     either may add BOP's cam_R_w2c / cam_t_w2c (mm) for the camera pose (else None: load_capture puts
     the world on the table)."""
-    return check_camera_entry(read_json(path), str(path), width, height)
+    return checked_pose_unit(check_camera_entry(read_json(path), str(path), width, height), str(path))
+
+
+def checked_pose_unit(entry: tuple, where: str) -> tuple:
+    """A capture's (or a request's) camera entry (check_camera_entry's), refused when its camera pose looks given in
+    metres: the camera closer than METRES_LIKE_MM to the world's origin, but not at it (the camera as the world). Not
+    for a BOP scene's images, which may lie millimetres apart in a world of its first camera."""
+    T_world_camera = entry[2]
+    t_mm = float(np.linalg.norm(T_world_camera[:3, 3])) * 1000.0 if T_world_camera is not None else 0.0
+    if 0.0 < t_mm < METRES_LIKE_MM:
+        raise DatasetError(f"{where}: cam_t_w2c puts the camera {t_mm:.2g} mm from the world's origin; cam_t_w2c is in "
+                           "millimetres (BOP's unit): if these numbers are metres (as ROS gives them), multiply them by "
+                           "1000")
+    return entry
 
 
 def check_camera_entry(cam, where: str, width: int, height: int) -> tuple[CameraIntrinsics, float, np.ndarray | None]:

@@ -91,3 +91,21 @@ def test_icp_many_runs_each_start_through_the_solver_the_setting_names():
     theirs = icp_many(srcs, target, starts, 0.006, 30, None, False)
     for T, U, T0 in zip(mine, theirs, starts):
         assert np.linalg.norm(T[:3, 3] - U[:3, 3]) < 1e-5 and np.linalg.norm(T[:3, 3] - T0[:3, 3]) > 1e-4
+
+
+def test_a_pose_at_the_camera_sees_nothing(gearbox_step2):
+    """A candidate pose that puts the base's face through the camera (a free search's start did, on a 1280 x 960
+    capture) cast every ray of the image onto it: no depth camera sees a base from there, so nothing is seen."""
+    from apose_studio.registration.base import NEAREST_M
+
+    _, base, _ = gearbox_step2
+    T_world_camera = se3.look_at([0.25, -0.2, 0.3], [0, 0, 0.01])
+    lo, hi = base.mesh.bounds
+    eye_in_base = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2] - 0.5 * NEAREST_M])  # just under its bottom
+    R = T_world_camera[:3, :3]  # the base's +z along the camera's view: its bottom face fills the view from 2 cm
+    T_world_base = se3.make_T(R, T_world_camera[:3, 3] - R @ eye_in_base)
+    assert np.allclose(se3.transform_points(se3.inv(T_world_base), T_world_camera[:3, 3][None])[0], eye_in_base)
+    seen, normals = raycast_source(base, T_world_base, T_world_camera, CAM)
+    assert seen.shape == (0, 3) and normals.shape == (0, 3)
+    T_away = se3.make_T(R, T_world_base[:3, 3] + 0.3 * R[:, 2])  # 30 cm farther along the view: seen
+    assert 100 < len(raycast_source(base, T_away, T_world_camera, CAM)[0]) < 0.5 * CAM.width * CAM.height
