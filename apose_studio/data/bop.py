@@ -130,8 +130,9 @@ class BopScene:
         key = str(im_id)
         if key not in self.camera:
             ids = self.image_ids()
-            raise DatasetError(f"{self.dir}: no image {im_id} in scene_camera.json; images are "
-                               f"{ids[0]}..{ids[-1]}" if ids else f"{self.dir}: scene_camera.json lists no images")
+            listed = ", ".join(map(str, ids)) if len(ids) <= 8 else f"{len(ids)} from {ids[0]} to {ids[-1]}, not every number"
+            raise DatasetError(f"{self.dir}: no image {im_id} in scene_camera.json; its images are {listed}" if ids
+                               else f"{self.dir}: scene_camera.json lists no images")
         rgb_path = self._image("rgb", im_id)
         if not rgb_path.exists() and self._image("gray", im_id).exists():
             rgb_path = self._image("gray", im_id)

@@ -170,6 +170,14 @@ METRES_LIKE_MM = 10.0  # a camera.json's camera closer than this to the world's 
 # in metres: an outsider's ROS pose (0.29, 0.71 m) was read as 0.7 mm, and the part came out 657 mm under the table
 
 
+def json_text(v) -> str:
+    """A JSON value as the file spells it (null, true, "text"), for a message about the file."""
+    try:
+        return json.dumps(v)
+    except (TypeError, ValueError):
+        return repr(v)
+
+
 def _T_from_Rt(R_flat, t_mm) -> np.ndarray:
     return se3.make_T(np.asarray(R_flat, float).reshape(3, 3), np.asarray(t_mm, float).reshape(3) / 1000.0)
 
@@ -357,13 +365,15 @@ def check_camera_entry(cam, where: str, width: int, height: int) -> tuple[Camera
     def number(key, value=None):
         v = cam.get(key) if value is None else value
         if not is_number(v):
-            raise DatasetError(f"{where}: {key} must be a finite number, got {v!r}"[:200])
+            raise DatasetError(f"{where}: {key} must be a finite number, got {json_text(v)}"[:200])
         return float(v)
 
     if "cam_K" in cam:
         K = cam["cam_K"]
         if not (isinstance(K, list) and len(K) == 9):
-            raise DatasetError(f"{where}: cam_K must be 9 numbers (a row-major 3x3 matrix, BOP's form)")
+            nested = isinstance(K, list) and len(K) == 3 and all(isinstance(r, list) and len(r) == 3 for r in K)
+            raise DatasetError(f"{where}: cam_K must be 9 numbers (a row-major 3x3 matrix, BOP's form)"
+                               + ("; it is 3 rows of 3: write them one after the other in one list" if nested else ""))
         k = [number(f"cam_K[{i}]", K[i]) for i in range(9)]
         fx, skew, cx, _, fy, cy = k[:6]
         if k[3] != 0 or k[6] != 0 or k[7] != 0 or abs(k[8] - 1.0) > 1e-9:

@@ -13,6 +13,7 @@ from apose_studio.assembly.mesh import diameter, sample_surface
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
 from apose_studio.geometry.nn import NearestTree
+from apose_studio.geometry.raycast import body as cast_body
 from apose_studio.geometry.raycast import raycast_points
 from apose_studio.geometry.symmetry import (
     EXACT_SYMMETRY_MAX_M,
@@ -245,15 +246,15 @@ def raycast_source(base: BaseObject, T_world_source: np.ndarray, T_world_camera:
     at the target's centre); otherwise it is the real camera. Returns world points and normals.
     """
     T_cam = T_world_camera if look_at is None else se3.look_at(T_world_camera[:3, 3], look_at)
-    eye = se3.transform_points(se3.inv(T_world_source), T_cam[:3, 3][None])[0]
-    lo, hi = base.mesh.bounds
-    if np.all(eye > lo - NEAREST_M) and np.all(eye < hi + NEAREST_M):  # no depth camera sees the base from there
-        return np.zeros((0, 3)), np.zeros((0, 3))
     key = (np.asarray(T_world_source, float).tobytes(), np.asarray(T_cam, float).tobytes(), cam)
     with _RAYS_LOCK:
         rays = base._features.setdefault("rays", OrderedDict())
         hit = rays.get(key)
     if hit is None:  # else the same cast again (the judge's at the chosen pose, then the mask cut there): ~4 ms
+        corners = cast_body(base.mesh).corners  # (its box's lowest corner first, its highest last)
+        eye = se3.transform_points(se3.inv(T_world_source), T_cam[:3, 3][None])[0]
+        if np.all(eye > corners[0] - NEAREST_M) and np.all(eye < corners[-1] + NEAREST_M):  # no depth camera sees
+            return np.zeros((0, 3)), np.zeros((0, 3))  # the base from there
         hit = raycast_points(base.mesh, T_world_source, T_cam, cam)
         with _RAYS_LOCK:
             rays[key] = hit
