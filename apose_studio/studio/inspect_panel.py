@@ -408,11 +408,21 @@ class InspectPanel:
             # nearer along the sensor's ray: the object small amid the whole bench was hard to judge)
             radius = float(np.percentile(np.linalg.norm(pts - centre, axis=1), 95)) if estimated else 0.0
             return "sensor", np.concatenate([centre, fr.T_world_camera[:3, :].ravel(), [radius]])
-        radius = max(float(np.percentile(np.linalg.norm(pts - centre, axis=1), 95)), 0.02)
+        radius = max(float(np.percentile(np.linalg.norm(pts - centre, axis=1), 95)), 0.02, self.base_radius())
         to_camera = fr.T_world_camera[:3, 3] - centre
         direction = se3.axis_angle_matrix([0.0, 0.0, 1.0], np.radians(35.0)) @ to_camera
         direction[2] = max(direction[2], 0.6 * np.linalg.norm(direction[:2]))  # from above the table
         return "beside", np.concatenate([centre, [1.3 * radius], direction])
+
+    def base_radius(self) -> float:
+        """Half the largest diameter among the inspected step's base parts (0 where unknown): a base mostly hidden
+        shows a small patch, and framed on that patch alone the view closed in until the scene's points were discs
+        the size of the objects (a newcomer could not tell the watering can among them)."""
+        try:
+            models, asm = self.inspect_models(), self.inspect_assembly()
+            return 0.5 * max(models[b].diameter for b in asm.steps[self.app.state.inspect.step - 1].base)
+        except (AposeError, KeyError, IndexError, TypeError, ValueError):
+            return 0.0
 
     PROMPT_POINT_PX = 40  # a point prompt is framed with the pixels this far round it
 

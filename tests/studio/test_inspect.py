@@ -736,3 +736,49 @@ def test_a_prompt_stays_with_the_image_it_was_typed_on(studio, capture, gearbox_
     assert not errors(st)[n_errors:], errors(st)
     assert st.prompt.i_prompt.value == box and st.inspect.i_mask.value == "prompt"
     assert st.inspect.result is not None and np.array_equal(st.inspect.result.T_world_part, on_capture.T_world_part)
+
+
+def test_each_frame_is_framed_on_its_base_whole(studio, gearbox_dataset, monkeypatch):
+    """A dataset's frame is framed on its base at the base's own size (not on the patch of it in view, which closed
+    the view in until the scene's points were discs the size of the objects), and another frame, each with its own
+    camera, is framed anew; an estimate then leaves the view where it is."""
+    from apose_studio.data.dataset import Dataset
+
+    st = studio(SAMPLES / "helical_gearbox" / "assembly.yaml", gearbox_dataset)
+    cam = st.server.initial_camera
+    ds = Dataset(gearbox_dataset)
+
+    def looks_at_base(im_id):
+        fr = ds.frame(1, im_id)
+        base = st.state.inspect_models()["casing"]
+        centre = se3.transform_points(fr.T_world_base, base.mesh.bounds.mean(axis=0)[None])[0]
+        distance = np.linalg.norm(np.asarray(cam.position) - np.asarray(cam.look_at))
+        fov = float(cam.fov) if 0.05 < float(cam.fov) < 3.0 else np.radians(50.0)
+        radius = 0.5 * base.diameter
+        return np.linalg.norm(np.asarray(cam.look_at) - centre) < radius and distance >= radius / np.sin(fov / 2), (
+            np.linalg.norm(np.asarray(cam.look_at) - centre), distance, radius, fov)
+
+    ok, why = looks_at_base(ds.image_ids(1)[0])
+    assert ok, why
+    st.inspect.i_frame.value = 1
+    ok, why = looks_at_base(ds.image_ids(1)[1])
+    assert ok, why
+    position = np.asarray(cam.position, float).copy()
+    act(st, st.inspect.run_estimation, False)
+    np.testing.assert_allclose(cam.position, position)
+    # a base mostly hidden: a patch of 60 pixels in view; framed at the base's size all the same
+    from apose_studio.data.dataset import Frame
+
+    whole = Frame.base_mask
+
+    def patch(self):
+        m = whole(self)
+        v, u = np.nonzero(m)
+        out = np.zeros_like(m)
+        out[v[:60], u[:60]] = True
+        return out
+
+    monkeypatch.setattr(Frame, "base_mask", patch)
+    st.inspect.i_frame.value = 0
+    ok, why = looks_at_base(ds.image_ids(1)[0])
+    assert ok, why
