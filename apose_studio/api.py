@@ -33,6 +33,7 @@ from apose_studio.estimation import (
 )
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
+from apose_studio.masks.prompt import check_box
 from apose_studio.registration import Params, doubts, resolve_params
 from apose_studio.registration.types import RegistrationResult, View
 from apose_studio.robot.handeye import HandEye, read_hand_eye
@@ -70,6 +71,7 @@ class PoseEstimate:
     # moved back: around the prompt before the mask (align_depth, estimation.colour_registered), or after a first
     # estimate whose colour check found it off (estimation.estimate_view, `move_depth_to_colour`)
     world: str = ""  # what T_world_camera's world is, in words (data.dataset.world_frame; a dataset's Frame.world)
+    prompt_box: tuple[int, int, int, int] | None = None  # the box that prompted the mask, as given (None: no box)
     depth_scale_better: float = 1.0  # a factor on the depth that the model explains clearly better: the depth_scale or
     # the intrinsics look off, and the pose with them (registration.calibration); 1.0: none, or not checked
 
@@ -87,7 +89,9 @@ class PoseEstimate:
                 "equivalent": [m(T) for T in self.equivalent],
                 "base_confident": bool(self.confident and not self.base_alternatives),
                 "base_alternatives": [m(T) for T in self.base_alternatives],
-                "mask": {"source": self.mask_source, "pixels": int(self.mask.sum())},
+                "mask": {"source": self.mask_source, "pixels": int(self.mask.sum()), **({} if self.prompt_box is None else {
+                    "prompt_box": [int(v) for v in self.prompt_box],  # and as used: within the image
+                    "prompt_box_used": [int(v) for v in check_box(self.prompt_box, self.mask.shape)]})},
                 "timings_s": {k: round(v, 4) for k, v in self.timings.items()},
                 "depth_shift_px": [int(v) for v in self.depth_shift_px],
                 "depth_scale_better": round(float(self.depth_scale_better), 4),
@@ -232,8 +236,10 @@ def run_registration(view: View, source: str, ctx: StepContext, params: Params, 
         source = f"{source}, {r.reading}"
     if r.model_mask is not None:  # what the model shows at the pose: occluders and clutter cut, what the prompt missed added
         mask, source = r.model_mask, f"{source}, cut to the model's view"
-    return pose_estimate(r, view.T_world_camera, ctx.view, mask, source,
-                         {"load": t_load, "mask": t_mask, "registration": t2 - t1, "total": t2 - t0})
+    est = pose_estimate(r, view.T_world_camera, ctx.view, mask, source,
+                        {"load": t_load, "mask": t_mask, "registration": t2 - t1, "total": t2 - t0})
+    est.prompt_box = view.box
+    return est
 
 
 def pose_estimate(r: RegistrationResult, T_world_camera, view, mask, source, timings) -> PoseEstimate:

@@ -497,6 +497,7 @@ def test_the_api_raises_on_depth_in_the_wrong_unit(capture):
     (dict(pick_box=(0, 0, float("inf"), 5)), "pick_box must be 4 finite"),
     (dict(step="1"), "step must be a whole number"),
     (dict(step=True), "step must be a whole number"),
+    (dict(box=(10, 10, 40, 40), point=(20, 20)), "a box and a point: give one prompt"),  # (the point was dropped unsaid)
 ])
 def test_the_api_names_a_bad_prompt_or_step(kw, said):
     """estimate_pose with a prompt or step a program got wrong: an AposeError naming it, not numpy's or int()'s."""
@@ -599,6 +600,16 @@ def test_a_sensor_s_no_reading_code_is_no_reading(capture, tmp_path):
     assert r.returncode == 0, r.stderr
     T = np.asarray(json.loads(r.stdout)["T_camera_part"])
     assert np.linalg.norm(T[:3, 3] - _T_camera_part_truth(capture["frame"])[:3, 3]) < 0.005
+    few = tmp_path / "few65535"  # 65535 is never a reading, on however few pixels: a patch in the box's corner
+    shutil.copytree(src, few)
+    depth = cv2.imread(str(src / "depth.png"), cv2.IMREAD_UNCHANGED)
+    depth[y0:y0 + 12, x0:x0 + 12] = 65535
+    assert (depth == 65535).mean() < 0.005
+    cv2.imwrite(str(few / "depth.png"), depth)
+    r = run("estimate", few, "--assembly", capture["asm"], "--step", 2, "--box", capture["box"], "--json")
+    assert r.returncode == 0, r.stderr
+    T = np.asarray(json.loads(r.stdout)["T_camera_part"])
+    assert np.linalg.norm(T[:3, 3] - _T_camera_part_truth(capture["frame"])[:3, 3]) < 0.005
     for value in (0, 65535):
         blank = tmp_path / f"blank{value}"
         shutil.copytree(src, blank)
@@ -620,3 +631,18 @@ def test_a_box_reaching_past_the_image_is_said_as_used(capture):
     assert mask["prompt_box"] == [x0, y0, w + 40, y1] and mask["prompt_box_used"] == [x0, y0, w, y1]
     r = run("estimate", capture["ours"], "--assembly", capture["asm"], "--step", 2, "--box", capture["box"])
     assert "reaches past" not in r.stdout
+
+
+def test_a_camera_pose_in_metres_is_told_from_one_at_the_origin():
+    """cam_t_w2c is in mm: a camera 0.05-10 mm from the world's origin had its pose written in metres (refused, the fix
+    named); nearer, it is at the origin, written with a float's noise (accepted, as the exact origin is)."""
+    from apose_studio.data.dataset import DatasetError, checked_pose_unit
+    from apose_studio.geometry import se3
+
+    for t_m in (0.0, 1e-7, 1e-5):
+        entry = (None, 1.0, se3.make_T(t=[0.0, 0.0, t_m]))
+        assert checked_pose_unit(entry, "camera.json") is entry
+    assert checked_pose_unit((None, 1.0, None), "camera.json")[2] is None
+    for t_m in (0.7e-3, 0.29e-3, 9e-3):  # (0.29, 0.71 m read as mm: under a millimetre)
+        with pytest.raises(DatasetError, match="multiply them by 1000"):
+            checked_pose_unit((None, 1.0, se3.make_T(t=[0.0, t_m, 0.0])), "camera.json")

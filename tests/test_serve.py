@@ -76,6 +76,8 @@ def test_a_good_request_answers_as_the_api_does(server, frame, tmp_path):
     np.testing.assert_array_equal(np.asarray(doc["T_camera_part"]), est.T_camera_part)  # deterministic: the same bits
     np.testing.assert_array_equal(np.asarray(doc["T_robot_gripper_place"]), est.targets.T_robot_gripper_place)
     assert doc["part"] == "housing" and doc["step"] == 2 and "service" in doc["timings_s"]
+    box = list(truth_box(frame.base_mask()))
+    assert doc["mask"]["prompt_box"] == box and doc["mask"]["prompt_box_used"] == box  # the box as given, as used
     status, health = call(server, "GET", "/health")
     assert status == 200 and health["served"] >= 1 and health["steps"] == 4
 
@@ -104,6 +106,11 @@ def test_bad_requests_get_a_4xx_naming_the_problem_and_the_service_goes_on(serve
         (json.dumps(dict(good, hand_eye={"T_robot_camera": np.eye(4).tolist()}, grasp="handle")).encode(), 400,
          "its grasps: ring"),
         (b"\xff\xfe", 400, "UTF-8"),
+        (json.dumps(dict(good, point=[300, 200])).encode(), 400, "box and point: give one way"),
+        (json.dumps(dict(good, hand_eye={"T_robot_camera": np.eye(4).tolist()}, pick_box=[10, 10, 90, 90],
+                         pick_point=[600, 50])).encode(), 400, "a box and a point: give one prompt"),
+        (json.dumps(dict(good, camera=dict(good["camera"], cam_R_w2c=np.eye(3).reshape(-1).tolist(),
+                                           cam_t_w2c=[0.29, 0.71, 0.5]))).encode(), 400, "multiply them by 1000"),
     ]
     for raw, status, words in cases:
         got, doc = call(server, "POST", "/estimate", raw=raw, headers={"Content-Type": "application/json"})

@@ -156,8 +156,6 @@ def cmd_estimate(args) -> int:
     if args.json:
         doc = est.to_json()  # its "mask": the result's (cut to the model's view); the prompt's beside it
         doc["mask"].update(prompt_source=source, prompt_pixels=int(mask.sum()))
-        if request.box is not None:  # as used: within the image (a box reaching past its edge is cut to it)
-            doc["mask"].update(prompt_box=list(request.box), prompt_box_used=list(check_box(request.box, mask.shape)))
         doc.update(step=args.step, frame=args.frame, preset=params.preset, part=ctx.part.id, base=list(ctx.view.base),
                    stages=[{"name": st.name, "T_world_base": st.T_world_base.tolist(), "fitness": st.fitness,
                             "inlier_rmse": st.inlier_rmse} for st in r.stages],

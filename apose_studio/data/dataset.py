@@ -127,7 +127,9 @@ NO_READING_CODES = (2047, 4095, 8191, 16383, 32767, 65535)  # all ones in 11-16 
 # sensor has no reading (a Kinect v1's raw 2047), instead of 0
 NO_READING_SHARE = 0.005  # ... read as "no reading" when the image's largest value is one of them on this share of its
 # pixels: a real surface farthest in view at exactly 2047 mm on 1,500 pixels of a 640 x 480 image is not a scene; taken
-# as depth, those pixels inside a prompt made the target span 7 times the base and read as "depth_scale 10x too large"
+# as depth, those pixels inside a prompt made the target span 7 times the base and read as "depth_scale 10x too large".
+# 65535 on any pixel: a saturated 16-bit value (65 m in mm, 6.5 m in 0.1 mm) is never a reading (1,200 pixels of it in
+# a prompt's corners, 0.4 % of the image, turned a confident pose into an ambiguous one 10 mm off)
 
 
 def read_depth(path: Path, depth_scale_mm: float, scale_from: str = "") -> np.ndarray:
@@ -147,7 +149,7 @@ def depth_metres(raw: np.ndarray, head, depth_scale_mm: float, path, scale_from:
         raise DatasetError(f"{path}: a {raw.dtype} depth image; expected 16-bit integers (depth in mm = value x "
                            "depth_scale), as RealSense, Kinect and BOP write them")
     top = int(raw.max()) if raw.size else 0
-    if top in NO_READING_CODES and np.count_nonzero(raw == top) >= NO_READING_SHARE * raw.size:
+    if top == 65535 or (top in NO_READING_CODES and np.count_nonzero(raw == top) >= NO_READING_SHARE * raw.size):
         raw = np.where(raw == top, np.uint16(0), raw)  # a sensor's "no reading", not a surface 2 or 65 m away
     if not raw.any():
         raise DatasetError(f"{path}: no pixel has a depth reading (all 0{f', or the no-reading code {top}' if top else ''});"
@@ -168,6 +170,8 @@ def depth_metres(raw: np.ndarray, head, depth_scale_mm: float, path, scale_from:
 
 METRES_LIKE_MM = 10.0  # a camera.json's camera closer than this to the world's origin (but not at it) had its cam_t_w2c
 # in metres: an outsider's ROS pose (0.29, 0.71 m) was read as 0.7 mm, and the part came out 657 mm under the table
+METRES_AT_LEAST_MM = 0.05  # ... nearer than this it is at the origin, written with a float's noise (a camera 5 cm from
+# the robot's origin in metres reads 0.05 mm)
 
 
 def json_text(v) -> str:
@@ -345,11 +349,12 @@ def read_capture_camera(path: Path, width: int, height: int) -> tuple[CameraIntr
 
 def checked_pose_unit(entry: tuple, where: str) -> tuple:
     """A capture's (or a request's) camera entry (check_camera_entry's), refused when its camera pose looks given in
-    metres: the camera closer than METRES_LIKE_MM to the world's origin, but not at it (the camera as the world). Not
+    metres: the camera METRES_AT_LEAST_MM to METRES_LIKE_MM from the world's origin (nearer: at it, the camera as the
+    world). Not
     for a BOP scene's images, which may lie millimetres apart in a world of its first camera."""
     T_world_camera = entry[2]
     t_mm = float(np.linalg.norm(T_world_camera[:3, 3])) * 1000.0 if T_world_camera is not None else 0.0
-    if 0.0 < t_mm < METRES_LIKE_MM:
+    if METRES_AT_LEAST_MM <= t_mm < METRES_LIKE_MM:
         raise DatasetError(f"{where}: cam_t_w2c puts the camera {t_mm:.2g} mm from the world's origin; cam_t_w2c is in "
                            "millimetres (BOP's unit): if these numbers are metres (as ROS gives them), multiply them by "
                            "1000")

@@ -277,6 +277,8 @@ def prompted_mask(rgb: np.ndarray, depth: np.ndarray, cam: CameraIntrinsics, box
         raise PromptError(f"RGB is {rgb.shape[1]}x{rgb.shape[0]} but depth is {w}x{h}; align depth to colour first")
     if box is None and point is None:
         raise PromptError("give a box (x0,y0,x1,y1) or a point (u,v) on the object")
+    if box is not None and point is not None:  # (the box alone was used, the point dropped unsaid: the API, serve's pick)
+        raise PromptError("a box and a point: give one prompt, a box (x0,y0,x1,y1) round the object or a point (u,v) on it")
     if region:
         if box is None:
             raise PromptError(f"point {point[0]},{point[1]}: this step's base is a region of a larger part (its roi), and "

@@ -575,16 +575,18 @@ class InspectPanel:
         if key == ins.prompt_image:
             return
         if ins.prompt_image is not None:
-            if ins.prompt_text.strip():
-                ins.prompts[ins.prompt_image] = ins.prompt_text
+            if ins.prompt_text.strip():  # (with the Mask choice it was left with: estimated with it or not)
+                ins.prompts[ins.prompt_image] = (ins.prompt_text, self.i_mask.value == PROMPT_SOURCE)
             else:
                 ins.prompts.pop(ins.prompt_image, None)
         ins.prompt_image = key
-        ins.prompt_text = ins.prompts.get(key, "")
-        if not ins.prompt_text.strip() and self.i_mask.value == PROMPT_SOURCE:
+        ins.prompt_text, prompting = ins.prompts.get(key, ("", False))
+        if prompting != (self.i_mask.value == PROMPT_SOURCE) and (prompting or not ins.prompt_text.strip()):
+            # back on an image prompted: Mask 'prompt' again, its estimate found in the cache and used by Estimate
+            # frame (an outsider saw the box back beside Mask 'gt'); an image without one: its truth, or depth
             syncing, self._syncing = self._syncing, True
             try:
-                self.i_mask.value = "gt" if "gt" in self.i_mask.options else "depth"
+                self.i_mask.value = PROMPT_SOURCE if prompting else ("gt" if "gt" in self.i_mask.options else "depth")
             finally:
                 self._syncing = syncing
             ins.mask_source = self.i_mask.value

@@ -116,7 +116,8 @@ class InspectState:
     mask_source: str = ""  # the Mask dropdown's choice (gt, depth, box, prompt, or a model path)
     prompt_text: str = ""  # the Prompt field: a box x0,y0,x1,y1 or a point u,v, in pixels, on the image on show
     prompt_image: object | None = None  # the image `prompt_text` marks the base in (InspectPanel.image_key)
-    prompts: dict = field(default_factory=dict)  # image key -> the prompt typed there: each image keeps its own
+    prompts: dict = field(default_factory=dict)  # image key -> (the prompt typed there, whether Mask was 'prompt' when
+    # the image was left): each image keeps its own
     prompt_masks: dict = field(default_factory=dict)  # (frame source, im_id, step, prompt, align) -> mask
     mask_asked: bool = False  # Show mask was pressed: the RGB shows the prompt's mask (not the estimate's) until the
     # frame is drawn anew (another frame, prompt or estimate)

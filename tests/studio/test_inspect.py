@@ -729,8 +729,14 @@ def test_a_prompt_stays_with_the_image_it_was_typed_on(studio, capture, gearbox_
     assert st.prompt.i_prompt.value == "" and st.inspect.i_mask.value == "gt" and st.inspect.result is None
     st.inspect.i_mask.value = "prompt"  # Mask chosen back by hand: the frame's (empty) prompt is not another's
     assert st.state.inspect.prompt_text == ""
-    st.inspect.i_frame.value = 0
+    st.inspect.i_frame.value = 0  # (frame 1 left with Mask 'prompt' and no prompt: frame 0 is prompted all the same)
     assert st.prompt.i_prompt.value == box0 and st.inspect.result is on_frame0
+    st.inspect.i_frame.value = 1  # frame 1 left on gt this time: back on frame 0, Mask is 'prompt' again, and its
+    assert st.inspect.i_mask.value == "gt"  # estimate is the one shown and the one Estimate frame finds
+    st.inspect.i_frame.value = 0
+    assert st.inspect.i_mask.value == "prompt" and st.inspect.result is on_frame0
+    act(st, st.inspect.run_estimation, False)
+    assert st.inspect.result is on_frame0
     st.inspect.i_path.value = str(capture)  # the capture again: its box and its cached estimate
     act(st, lambda c: st.inspect.on_open_data(c))
     assert not errors(st)[n_errors:], errors(st)
