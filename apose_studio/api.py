@@ -236,14 +236,14 @@ def run_registration(view: View, source: str, ctx: StepContext, params: Params, 
         source = f"{source}, {r.reading}"
     if r.model_mask is not None:  # what the model shows at the pose: occluders and clutter cut, what the prompt missed added
         mask, source = r.model_mask, f"{source}, cut to the model's view"
-    est = pose_estimate(r, view.T_world_camera, ctx.view, mask, source,
-                        {"load": t_load, "mask": t_mask, "registration": t2 - t1, "total": t2 - t0})
-    est.prompt_box = view.box
-    return est
+    return pose_estimate(r, view.T_world_camera, ctx.view, mask, source,
+                         {"load": t_load, "mask": t_mask, "registration": t2 - t1, "total": t2 - t0}, view.box)
 
 
-def pose_estimate(r: RegistrationResult, T_world_camera, view, mask, source, timings) -> PoseEstimate:
-    """A registration result as the robot-facing record (T_camera_part, the approach pose, the doubts)."""
+def pose_estimate(r: RegistrationResult, T_world_camera, view, mask, source, timings,
+                  prompt_box: tuple[int, int, int, int] | None = None) -> PoseEstimate:
+    """A registration result as the robot-facing record (T_camera_part, the approach pose, the doubts); `prompt_box`:
+    the box that prompted the mask, as given."""
     ok = bool(r.ok)
     approach = view.approach.start(r.T_world_part, r.T_world_base) if ok and view.approach is not None else None
     return PoseEstimate(ok, r.reason, T_world_camera, r.T_world_base if ok else None, r.T_world_part if ok else None,
@@ -251,4 +251,4 @@ def pose_estimate(r: RegistrationResult, T_world_camera, view, mask, source, tim
                         bool(r.ambiguous), [c.T_world_part for c in r.alternatives], mask, source, dict(timings), r,
                         "" if r.confident or not ok else doubts(r), r.equivalent if ok else [], approach,
                         base_alternatives=list(r.base_alternatives) if ok else [], depth_shift_px=r.depth_moved_px,
-                        depth_scale_better=float(r.depth_scale_better))
+                        depth_scale_better=float(r.depth_scale_better), prompt_box=prompt_box)

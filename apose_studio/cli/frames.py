@@ -32,7 +32,7 @@ from apose_studio.estimation import (
 )
 from apose_studio.evaluate import evaluate, evaluate_split, format_table, score_frame, score_results
 from apose_studio.geometry import se3
-from apose_studio.masks.prompt import check_box, parse_box, parse_point
+from apose_studio.masks.prompt import parse_box, parse_point
 from apose_studio.registration.types import View
 from apose_studio.robot.handeye import HandEye, capture_flange, read_hand_eye
 from apose_studio.robot.ros2 import write_mcap
@@ -174,10 +174,10 @@ def cmd_estimate(args) -> int:
         return 0 if r.ok else failed_exit(r)
     print(f"step {args.step}, frame {args.frame}: place {ctx.part.id} on [{', '.join(ctx.view.base)}]  (preset {params.preset})")
     print(f"mask: {source}, {int(mask.sum())} pixels ({est.timings['mask'] * 1000:.0f} ms; --json: mask.prompt_pixels)")
-    if request.box is not None and check_box(request.box, mask.shape) != tuple(request.box):
+    used = est.to_json()["mask"].get("prompt_box_used")  # (the box as the API records it, as given and as used)
+    if used is not None and used != [int(v) for v in est.prompt_box]:
         h, w = mask.shape
-        print(f"box: {','.join(map(str, request.box))} reaches past the {w}x{h} image; used "
-              f"{','.join(map(str, check_box(request.box, mask.shape)))}")
+        print(f"box: {','.join(map(str, est.prompt_box))} reaches past the {w}x{h} image; used {','.join(map(str, used))}")
     if shift != (0, 0):
         print(f"depth: lay {shift[0]:+d}, {shift[1]:+d} px (right, down) off the colour image around the prompt; moved back "
               "before the mask and the registration")
