@@ -278,6 +278,7 @@ def goal_counts(rows: list[dict]) -> tuple[int, float, float, int]:
 
 
 REAL_LIKE = ("stacked", "hidden", "real")  # #26's item-3 rows: what a real desk and sensor add to the bench
+GOAL_SECONDS = 0.3  # #26: warm time per object on a 640 x 480 frame, mask included (median)
 
 
 def row_goals(table: dict[str, list[dict]]) -> list[str]:
@@ -294,6 +295,8 @@ def row_goals(table: dict[str, list[dict]]) -> list[str]:
         if cond == "stacked":
             iou = float(np.mean([r["final_iou"] for r in rows]))
             checks.append((f"the result's mask IoU {iou:.3f}", iou >= 0.90))
+        seconds = float(np.median([r["seconds"] for r in rows]))  # a real desk's frame, mask included
+        checks.append((f"median {seconds:.3f} s/frame", seconds <= GOAL_SECONDS))
         out.append(f"goals ({cond}, {n_told} of {len(rows)} frames whose view can tell): "
                    + ", ".join(f"{text} {'met' if ok else 'MISSED'}" for text, ok in checks))
     return out
@@ -426,7 +429,7 @@ def main() -> int:
           f"(goal <= 10 %; {ur_told:.1%} of the {n_told} frames whose view can tell the base from its twins: where it "
           f"cannot, 'not confident' is the honest answer and a right pose is luck), recall where the view can tell "
           f"{recall:.3f} (goal >= 0.95), median s/frame "
-          f"{np.median([r['seconds'] for r in all_rows]):.3f} (goal <= 0.3)")
+          f"{np.median([r['seconds'] for r in all_rows]):.3f} (goal <= {GOAL_SECONDS})")
     print(f"the base objects' own poses (as a real-frame check scores an object prompted as the base): right "
           f"{np.mean([r['base_right'] for r in all_rows]):.3f}, confident-and-wrong "
           f"{sum(r['base_confident'] and not r['base_right'] for r in all_rows)} (`base_confident`; by `confident`, "

@@ -72,7 +72,8 @@ def test_each_real_like_row_is_held_to_the_goals_on_its_own(captures):
     """The rates over all rows let easy bench rows hide a hard row: each real-like row gets its own goal line, and a
     row that misses a goal says so even where the rows together meet it."""
     easy = [_row(i) for i in range(40)]
-    hard = [_row(i, condition="hidden", confident=i >= 3) for i in range(10)]  # 3 of 10 right ones unconfident
+    hard = [_row(i, condition="hidden", confident=i >= 3, seconds=1.5) for i in range(10)]  # 3 of 10 right ones
+    # unconfident, and slow
     hard += [_row(10, condition="hidden", right=False, confident=False, mssd=40.0, telling_px=5)]  # view cannot tell
     stacked = [dict(_row(i, condition="stacked"), final_iou=0.95) for i in range(5)]
     lines = captures.row_goals({"kinect": easy, "hidden": hard, "stacked": stacked})
@@ -80,8 +81,9 @@ def test_each_real_like_row_is_held_to_the_goals_on_its_own(captures):
     assert "MISSED" not in lines[0] and "mask IoU 0.950 met" in lines[0]
     assert "unconfident-and-right 30.0% MISSED" in lines[1] and "confident-and-wrong 0 met" in lines[1]
     assert "recall 1.000 met" in lines[1]  # the frame the view cannot tell is left out of the recall
+    assert "median 0.200 s/frame met" in lines[0] and "median 1.500 s/frame MISSED" in lines[1]  # each row's own time
     together = captures.goal_counts(easy + hard)
     assert together[1] <= 0.10  # ... which the rates over all rows would have let pass
     wrong = captures.row_goals({"real": [_row(0, condition="real", right=False, mssd=30.0)]})
     assert wrong == ["goals (real, 1 of 1 frames whose view can tell): confident-and-wrong 1 MISSED, "
-                     "unconfident-and-right 0.0% met, recall 0.000 MISSED"]
+                     "unconfident-and-right 0.0% met, recall 0.000 MISSED, median 0.200 s/frame met"]

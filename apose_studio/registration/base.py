@@ -23,6 +23,7 @@ from apose_studio.geometry.symmetry import (
     surface_offsets,
 )
 from apose_studio.params import Params
+from apose_studio.registration.side_by_side import check as check_wanted
 from apose_studio.registration.stages import cloud, normals_fpfh
 
 RAYS_KEPT = 8  # the last casts of a base kept (raycast_source): a frame casts ~8, the last one again
@@ -245,6 +246,7 @@ def raycast_source(base: BaseObject, T_world_source: np.ndarray, T_world_camera:
     With `look_at`, the virtual camera turns to look at that point (the paper's virtual camera looks
     at the target's centre); otherwise it is the real camera. Returns world points and normals.
     """
+    check_wanted()  # a reading computed ahead and no longer wanted stops here (side_by_side)
     T_cam = T_world_camera if look_at is None else se3.look_at(T_world_camera[:3, 3], look_at)
     key = (np.asarray(T_world_source, float).tobytes(), np.asarray(T_cam, float).tobytes(), cam)
     with _RAYS_LOCK:

@@ -46,6 +46,7 @@ from apose_studio.registration.scoring import (
     twin_placements,
 )
 from apose_studio.registration.searches import ModelSearch, search_poses, try_prior
+from apose_studio.registration.side_by_side import in_order
 from apose_studio.registration.stages import project_to_cloud, trace_stages
 from apose_studio.registration.table import table_plane
 from apose_studio.registration.task import Task, prepare_task, scale_problem, target_span
@@ -120,15 +121,20 @@ def estimate_readings(view: View, base: BaseObject, T_base_part: np.ndarray, par
     best, best_score, best_mask = first, first_score, view.mask
     # each reading once, upright where a table is seen; the chosen one gets the second look below
     quick = replace(params, second_look=False, free_after_upright=table is None)
+
+    def estimated(reading: tuple[str, np.ndarray]) -> RegistrationResult:
+        return estimate_mask(replace(view, mask=reading[1]), base, T_base_part, quick, prior_T_world_base,
+                             trace_iterations, part_symmetries)
+
     for round_ in range(2):
-        for name, mask in todo:
-            other = estimate_mask(replace(view, mask=mask), base, T_base_part, quick, prior_T_world_base,
-                                  trace_iterations, part_symmetries)
-            score = explained(other, view, base, region)
-            if (other.ok, uncontradicted(other), score) > (best.ok, uncontradicted(best), best_score):
-                best, best_score, best_mask = replace(other, reading=name), score, mask
-            if best.confident and best_score >= first_score:
-                break  # a confident reading that explains the frame at least as well: the others cannot do better
+        # side by side on params.threads, taken in this order: the same answer as one after the other
+        with in_order(estimated, todo, params.threads) as others:
+            for (name, mask), other in zip(todo, others):
+                score = explained(other, view, base, region)
+                if (other.ok, uncontradicted(other), score) > (best.ok, uncontradicted(best), best_score):
+                    best, best_score, best_mask = replace(other, reading=name), score, mask
+                if best.confident and best_score >= first_score:
+                    break  # a confident reading that explains the frame at least as well: the others cannot do better
         if round_ or best.confident:
             break
         if best is first:  # no reading beat the mask as given: each may have left out one of two things; both out

@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from apose_studio.geometry.nn import NearestTree
+from apose_studio.registration.side_by_side import check as check_wanted
 
 
 def _small_rotation(w: np.ndarray) -> np.ndarray:
@@ -88,6 +89,7 @@ def icp_point_to_plane(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.ndarray
     p, idx, fit, rmse = match(T)
     extent = 2.0 * float(np.linalg.norm(src - src.mean(axis=0), axis=1).max()) if min_step > 0 else 0.0  # any frame
     for _ in range(iterations):
+        check_wanted()  # a reading computed ahead and no longer wanted stops here (side_by_side)
         if len(p) < 6:
             break
         step = _step(p, tgt[idx], tgt_normals[idx])
@@ -161,6 +163,7 @@ def icp_point_to_plane_many(srcs: list[np.ndarray], tgt: np.ndarray, tgt_normals
     live = [k for k in range(len(srcs)) if len(srcs[k])]
     state = dict(zip(live, match(live))) if live else {}
     for _ in range(iterations):
+        check_wanted()
         stepped = []
         for k in live:
             p, idx = state[k][0], state[k][1]

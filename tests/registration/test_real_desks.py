@@ -194,6 +194,22 @@ def test_two_readings_that_each_leave_out_one_thing_leave_out_both_together():
     assert iou(r.model_mask, frame.base_mask()) > 0.7
 
 
+def test_the_readings_side_by_side_give_the_answer_of_one_after_the_other(monkeypatch):
+    """The frame above goes through both rounds of readings (four, then what two of them both keep): estimated
+    with them side by side on two threads and one after the other, the pose is the same to the last bit, from
+    the same reading, judged alike."""
+    from apose_studio.registration import side_by_side
+
+    monkeypatch.setattr(side_by_side, "usable_cpus", lambda: 2)
+    results = [estimate_prompted(DESK, 3, 3, resolve_params("default", threads=n), clutter="bench,stacked", **KINECT)[1]
+               for n in (1, 2)]
+    one, two = results
+    assert one.reading.count(", ") == 1  # the second round ran
+    assert np.array_equal(one.T_world_part, two.T_world_part)
+    assert (one.reading, one.confident, one.coverage, one.contradiction, one.spread) == \
+        (two.reading, two.confident, two.coverage, two.contradiction, two.spread)
+
+
 def test_the_object_in_front_is_left_out_of_a_mostly_hidden_base():
     """A watering can three quarters hidden behind a box; the box drawn around what is seen of the can takes
     in the box's corner, which stands in front of the can where the two meet. Without the front-most patch

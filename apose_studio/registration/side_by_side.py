@@ -1,0 +1,77 @@
+"""Independent estimates run side by side on threads, their results taken in the order a sequential loop
+would take them, so the answer is the same on any number of threads.
+
+The mask's readings (pipeline.estimate_readings) are up to four full estimates, each a pure function of the
+frame and its own mask: on the real-like captures (benchmarks/captures.py `stacked`, `hidden`, `real`) they
+are 50-75 % of a frame's time. Their many numpy steps, k-d tree queries and ray casts release Python's lock
+for most of their work, so two of them on two cores take less time than one after the other. Whatever is
+shared between them is built once under a lock and never changed after (the base's ray casts and trees,
+`registration.base`) or drawn under one (Open3D's seeded RANSAC, `stages.global_registration`).
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
+from typing import TypeVar
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+
+class Abandoned(Exception):
+    """Raised by `check` in a worker whose result the caller no longer wants (it found what it looked for)."""
+
+
+_WORKER = threading.local()  # .stop: the Event of the `in_order` call this thread works for
+
+
+def check() -> None:
+    """Raise Abandoned when this thread computes an item ahead for an `in_order` call that has ended. The long
+    loops call it (each ICP step, each ray cast): a reading computed ahead of the one that settled the frame stops
+    within about a millisecond instead of running on for a quarter of a second that the caller would wait for.
+    Nothing when called outside such a worker."""
+    stop = getattr(_WORKER, "stop", None)
+    if stop is not None and stop.is_set():
+        raise Abandoned
+
+
+def usable_cpus() -> int:
+    """The CPUs this process may run on (its affinity where the system tells it, else the machine's)."""
+    try:
+        return max(len(os.sched_getaffinity(0)), 1)
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+@contextmanager
+def in_order(fn: Callable[[T], R], items: Sequence[T], threads: int) -> Iterator[Iterator[R]]:
+    """`fn` of each item, yielded in the items' order. With `threads` > 1 (at most the usable CPUs), items
+    further down are computed ahead on a pool while the caller looks at the first ones; leaving the `with`
+    early (a caller that found what it looked for) cancels what has not started, stops what has at its next
+    `check` and waits for it, so no work outlives the call. An exception in `fn` is raised where its item is
+    reached, as in a loop."""
+    threads = min(threads, usable_cpus(), len(items))
+    if threads <= 1:
+        yield (fn(item) for item in items)
+        return
+    stop = threading.Event()
+
+    def work(item: T) -> R:
+        _WORKER.stop = stop
+        try:
+            return fn(item)
+        finally:
+            _WORKER.stop = None
+
+    with ThreadPoolExecutor(threads, thread_name_prefix="apose-side-by-side") as pool:
+        futures = [pool.submit(work, item) for item in items]
+        try:
+            yield (f.result() for f in futures)
+        finally:
+            stop.set()
+            for f in futures:
+                f.cancel()
