@@ -113,6 +113,13 @@ def reads_within(roots):
         _READS.roots = previous
 
 
+def read_roots() -> tuple[Path, ...] | None:
+    """The folders this thread may read files from (`reads_within`), None where it may read anywhere: work handed
+    to another thread takes them along (registration.side_by_side), or it would read outside the studio's
+    workspace."""
+    return getattr(_READS, "roots", None)
+
+
 def _check_within(fd: int, path: Path) -> None:
     roots = getattr(_READS, "roots", None)
     if roots is None:

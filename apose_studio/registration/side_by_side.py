@@ -3,8 +3,9 @@ would take them, so the answer is the same on any number of threads.
 
 The mask's readings (pipeline.estimate_readings) are up to four full estimates, each a pure function of the
 frame and its own mask: on the real-like captures (benchmarks/captures.py `stacked`, `hidden`, `real`) they
-are 50-75 % of a frame's time. Their many numpy steps, k-d tree queries and ray casts release Python's lock
-for most of their work, so two of them on two cores take less time than one after the other. Whatever is
+are 50-75 % of a frame's time. Their numpy steps, k-d tree queries and ray casts release Python's lock for part
+of their work, so two of them on two cores take about a sixth less time than one after the other (docs/BENCHMARKS.md:
+1.2x on two cores; their many small steps take turns on the lock, the rest runs side by side). Whatever is
 shared between them is built once under a lock and never changed after (the base's ray casts and trees,
 `registration.base`) or drawn under one (Open3D's seeded RANSAC, `stages.global_registration`).
 """
@@ -17,6 +18,8 @@ from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from typing import TypeVar
+
+from apose_studio import safeio
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -53,17 +56,19 @@ def in_order(fn: Callable[[T], R], items: Sequence[T], threads: int) -> Iterator
     further down are computed ahead on a pool while the caller looks at the first ones; leaving the `with`
     early (a caller that found what it looked for) cancels what has not started, stops what has at its next
     `check` and waits for it, so no work outlives the call. An exception in `fn` is raised where its item is
-    reached, as in a loop."""
+    reached, as in a loop. A worker reads files only where its caller may (`safeio.reads_within`)."""
     threads = min(threads, usable_cpus(), len(items))
     if threads <= 1:
         yield (fn(item) for item in items)
         return
     stop = threading.Event()
+    roots = safeio.read_roots()  # the caller's confinement (the studio's workspace) holds in its workers too
 
     def work(item: T) -> R:
         _WORKER.stop = stop
         try:
-            return fn(item)
+            with safeio.reads_within(roots):
+                return fn(item)
         finally:
             _WORKER.stop = None
 

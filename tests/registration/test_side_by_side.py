@@ -1,5 +1,6 @@
 """Estimates side by side on threads, taken in the order a loop takes them (registration.side_by_side)."""
 
+import os
 import threading
 import time
 
@@ -132,3 +133,30 @@ def test_a_frame_s_readings_computed_ahead_stop_inside_the_estimate(two_cpus, mo
         icp_point_to_plane(pts, pts, normals, np.eye(4), 0.01, 10)
     monkeypatch.setattr(side_by_side._WORKER, "stop", None)
     assert np.allclose(icp_point_to_plane(pts, pts, normals, np.eye(4), 0.01, 10), np.eye(4))
+
+
+def test_a_worker_reads_files_only_where_its_caller_may(two_cpus, tmp_path):
+    """The studio confines every page action's file reads to its workspace (a thread-local setting): work handed to
+    a worker thread is confined alike, or a path into the readers there would read anywhere."""
+    from apose_studio import safeio
+    from apose_studio.errors import AposeError
+
+    inside, outside = tmp_path / "workspace", tmp_path / "elsewhere"
+    inside.mkdir()
+    outside.mkdir()
+    (inside / "a.txt").write_text("a")
+    (outside / "b.txt").write_text("b")
+
+    def read(path):
+        fd, _ = safeio.open_regular(path)
+        os.close(fd)
+        return path.name
+
+    with safeio.reads_within([inside]):
+        with in_order(read, [inside / "a.txt", inside / "a.txt"], threads=2) as results:
+            assert list(results) == ["a.txt", "a.txt"]
+        with pytest.raises(AposeError, match="outside the studio's workspace"):
+            with in_order(read, [inside / "a.txt", outside / "b.txt"], threads=2) as results:
+                list(results)
+    with in_order(read, [outside / "b.txt", outside / "b.txt"], threads=2) as results:  # no confinement: anywhere
+        assert list(results) == ["b.txt", "b.txt"]
