@@ -87,8 +87,9 @@ class Params:
                             "are bounded by the counts above, so the same input gives the same answer however busy "
                             "the machine is); past it a search stops, says so, and the result is never confident",
                             0, 3600, unit="s")
-    threads: int = _p(2, "int", "the mask's other readings are estimated this many at a time (at most the CPUs the "
-                      "process may use; 1: one after the other); the answer is the same on any number", 1, 64)
+    threads: int = _p(2, "int", "the mask's other readings after the first are estimated this many at a time (at "
+                      "most the CPUs the process may use; 1: one after the other); the answer is the same on any "
+                      "number", 1, 64)
     second_look: bool = _p(True, "bool", "a result that is not confident is estimated again on its mask cut to the "
                            "model's view at that pose, from its candidates (each refined on the cut, their twins and "
                            "neighbours compared there; no new search); kept only if that one is confident")
