@@ -28,13 +28,18 @@ import pykdtree
 from pykdtree.kdtree import KDTree
 
 
+def usable_cpus() -> int:
+    """The CPUs this process may run on (its affinity where the system tells it, else the machine's), at least 1."""
+    try:
+        return max(len(os.sched_getaffinity(0)), 1)
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
 def _thread_count() -> int:
     """APOSE_NN_THREADS when it is a whole number from 1 to the CPUs this process may use (more threads than
     CPUs only wait on each other; 99999 would try to start as many), else up to 4 of those CPUs."""
-    try:
-        cpus = len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        cpus = os.cpu_count() or 1
+    cpus = usable_cpus()
     wanted = os.environ.get("APOSE_NN_THREADS", "").strip()
     if wanted.isascii() and wanted.isdigit() and int(wanted) > 0:
         return min(int(wanted), max(cpus, 1))

@@ -12,7 +12,6 @@ shared between them is built once under a lock and never changed after (the base
 
 from __future__ import annotations
 
-import os
 import threading
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -20,6 +19,7 @@ from contextlib import contextmanager
 from typing import TypeVar
 
 from apose_studio import safeio
+from apose_studio.geometry.nn import usable_cpus  # (the k-d tree's own thread count reads it too)
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -40,14 +40,6 @@ def check() -> None:
     stop = getattr(_WORKER, "stop", None)
     if stop is not None and stop.is_set():
         raise Abandoned
-
-
-def usable_cpus() -> int:
-    """The CPUs this process may run on (its affinity where the system tells it, else the machine's)."""
-    try:
-        return max(len(os.sched_getaffinity(0)), 1)
-    except (AttributeError, OSError):
-        return os.cpu_count() or 1
 
 
 @contextmanager

@@ -165,16 +165,21 @@ def test_a_worker_reads_files_only_where_its_caller_may(two_cpus, tmp_path):
     (inside / "a.txt").write_text("a")
     (outside / "b.txt").write_text("b")
 
+    in_workers = []
+
     def read(path):
+        in_workers.append(threading.current_thread() is not threading.main_thread())
         fd, _ = safeio.open_regular(path)
         os.close(fd)
         return path.name
 
+    a, b = inside / "a.txt", outside / "b.txt"
     with safeio.reads_within([inside]):
-        with in_order(read, [inside / "a.txt", inside / "a.txt"], threads=2) as results:
-            assert list(results) == ["a.txt", "a.txt"]
+        with in_order(read, [a, a, a], threads=2) as results:
+            assert list(results) == ["a.txt"] * 3
         with pytest.raises(AposeError, match="outside the studio's workspace"):
-            with in_order(read, [inside / "a.txt", outside / "b.txt"], threads=2) as results:
+            with in_order(read, [a, a, b], threads=2) as results:  # the outside file read in a worker
                 list(results)
-    with in_order(read, [outside / "b.txt", outside / "b.txt"], threads=2) as results:  # no confinement: anywhere
-        assert list(results) == ["b.txt", "b.txt"]
+    assert in_workers[1:3] == [True, True] and in_workers[4:6] == [True, True]
+    with in_order(read, [b, b, b], threads=2) as results:  # no confinement: anywhere
+        assert list(results) == ["b.txt"] * 3
