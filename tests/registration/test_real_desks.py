@@ -210,6 +210,27 @@ def test_the_readings_side_by_side_give_the_answer_of_one_after_the_other(monkey
         (two.reading, two.confident, two.coverage, two.contradiction, two.spread)
 
 
+def test_the_mask_as_given_is_searched_freely_only_when_no_reading_of_it_settles_the_frame(monkeypatch):
+    """A gearbox under a flat object, prompted by a box: on the mask as given the upright pose does not fit, so the
+    free search is due there (it runs when the readings are off). With the readings on, the reading below the base's
+    height settles the frame (right and confident) and the free search of the mask as given never runs (before: it
+    ran first, 0.25 s, and lost). On a frame that no reading settles it still runs, once."""
+    from apose_studio.registration import pipeline
+
+    runs = []
+    free_search = pipeline.better_of_free_search
+    monkeypatch.setattr(pipeline, "better_of_free_search", lambda *a, **k: runs.append(1) or free_search(*a, **k))
+    stacked = dict(clutter="bench,stacked", **KINECT)
+    estimate_prompted(GEARBOX, 3, 3, resolve_params("default", mask_hypotheses=False), **stacked)
+    assert runs  # due on the mask as given
+    runs.clear()
+    _, r, _, err = estimate_prompted(GEARBOX, 3, 3, **stacked)
+    assert r.confident and err < 0.1 and r.reading == "below the base's height", (r.reading, err)
+    assert not runs
+    _, r, _, _ = estimate_prompted(GEARBOX, 3, 1, **stacked)
+    assert not r.confident and runs == [1]
+
+
 def test_the_object_in_front_is_left_out_of_a_mostly_hidden_base():
     """A watering can three quarters hidden behind a box; the box drawn around what is seen of the can takes
     in the box's corner, which stands in front of the can where the two meet. Without the front-most patch
