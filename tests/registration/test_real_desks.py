@@ -214,7 +214,7 @@ def test_the_mask_as_given_is_searched_freely_only_when_no_reading_of_it_settles
     """A gearbox under a flat object, prompted by a box: on the mask as given the upright pose does not fit, so the
     free search is due there (it runs when the readings are off). With the readings on, the reading below the base's
     height settles the frame (right and confident) and the free search of the mask as given never runs (before: it
-    ran first, 0.25 s, and lost). On a frame that no reading settles it still runs, once."""
+    ran first and lost). On a frame that no reading settles it still runs, once."""
     from apose_studio.registration import pipeline
 
     runs = []
