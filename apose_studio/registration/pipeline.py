@@ -110,9 +110,10 @@ def estimate_readings(view: View, base: BaseObject, T_base_part: np.ndarray, par
     """`estimate` but the base's twins: the mask as given, then its other readings when that does not fit.
 
     The mask as given is searched upright first; the free search it may be due after that (the upright pose does not
-    fit) runs only when no reading of the mask is confident: a box prompt's mask that holds clutter as well fits no
-    pose, upright or free, and one of its readings settles it (benchmarks/captures.py's stacked, hidden and real rows:
-    on the mask as given, the free search never ended confident)."""
+    fit) runs only when no reading of the mask is confident: a box prompt's mask that also holds what lies on or
+    beside the base fits no pose, upright or free, and one of its readings settles it (an outside tester's desk
+    capture: the free search and its second look, 1.1 s, left it unconfident; the first reading settled it). Where no
+    reading is confident it runs then, and its result is weighed against the best reading's (docs/ESTIMATOR.md)."""
     hypotheses = params.mask_hypotheses and params.global_source != "raycast"
     deferred: list = []
     first = estimate_mask(view, base, T_base_part, params, prior_T_world_base, trace_iterations, part_symmetries,
