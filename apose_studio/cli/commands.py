@@ -315,7 +315,8 @@ def cmd_render(args) -> int:
     settings = RenderSettings(frames=args.frames, seed=args.seed, noise=args.noise, noise_sigma_at_05m=args.noise_sigma,
                               base_pose=args.base_pose, distractors=args.distractors, clutter=args.clutter,
                               views_per_scene=args.views_per_scene, trajectory=args.trajectory, depth_bias_m=args.depth_bias / 1000.0,
-                              misregistration_px=args.misregistration, base_fill=args.base_fill)
+                              misregistration_px=args.misregistration, bleed_px=args.bleed,
+                              base_fill=args.base_fill)
     if asm.camera is not None:
         settings = replace(settings, camera=asm.camera)
     for name, attr in (("yaw_range", "yaw_range_deg"), ("pitch_range", "pitch_range_deg"),
@@ -441,6 +442,10 @@ def _add_render(sub) -> None:
     p.add_argument("--misregistration", type=float, default=0.0, metavar="PX",
                    help="the depth image shifted against the colour image by this many pixels, in a direction drawn "
                    "per frame (masks and poses agree with the colour image; default 0)")
+    p.add_argument("--bleed", type=int, default=0, metavar="PX",
+                   help="near surfaces read this many pixels wider in depth than in colour, over farther ones (a "
+                   "sensor's correlation window fattens foreground objects; kinect noise bleeds 1 px of its own; "
+                   "default 0)")
     p.add_argument("--base-fill", type=lambda t: _pair(t, "--base-fill"), default=(0.25, 0.5), metavar="MIN,MAX",
                    help="the share of the image's short side the base spans, which sets the camera distance unless "
                    "--distance-range is given (default 0.25,0.5; a far, small base: 0.1,0.2)")

@@ -48,6 +48,7 @@ def shift_image(image: np.ndarray, du: int, dv: int) -> np.ndarray:
 
 
 SHIFT_MAX_PX = 6  # the misregistration searched for, each way
+BLEED_MAX_PX = 3  # ... and how far near surfaces may bleed into far ones beside it (shift_and_bleed)
 SHIFT_MIN_PX = 2  # a shift found shorter than this (along both axes) is not applied: edge bleeding alone (a Kinect's
 # near surfaces reach a pixel into far ones, and the camera sees more top and right edges than others) moved
 # the depth's edges by (1, -1) against the colour's on renders registered exactly
@@ -81,20 +82,34 @@ def occluding_edges(depth: np.ndarray) -> np.ndarray:
     """(H, W) bool: the near side of each depth jump between two valid neighbours (median-filtered 5x5; a jump
     larger than 4 mm or 1.2 % of the depth): an object's outline as the depth sees it. Holes (no depth) make no
     edge: a Kinect's projector shadows and dropouts lie beside outlines, not on them."""
+    return occluding_edges_toward(depth)[0]
+
+
+def occluding_edges_toward(depth: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(edges, sx, sy): occluding_edges, and at each of its pixels which way the farther surface lies (int8: sx +1
+    right, -1 left, sy +1 down, -1 up; 0 where neither way, or both ways). A sensor that bleeds near surfaces into
+    far ones moves each outline that way (noise.bleed); a misregistration moves every outline alike."""
     valid = np.isfinite(depth) & (depth > 0)
     z = np.where(valid, depth, 0).astype(np.float32)
     z = np.where(valid, cv2.medianBlur(z, 5), 0)
     valid &= z > 0
-
-    def along_rows(z: np.ndarray, valid: np.ndarray) -> np.ndarray:  # jumps between left and right neighbours
-        a, b = z[:, :-1], z[:, 1:]
-        jump = valid[:, :-1] & valid[:, 1:] & depth_jump(a, b)
-        out = np.zeros(z.shape, bool)
-        out[:, :-1] |= jump & (a < b)
-        out[:, 1:] |= jump & (b < a)
-        return out
-
-    return along_rows(z, valid) | along_rows(z.T, valid.T).T
+    edges = np.zeros(z.shape, bool)
+    sx, sy = np.zeros(z.shape, np.int8), np.zeros(z.shape, np.int8)
+    a, b = z[:, :-1], z[:, 1:]  # left and right neighbours
+    jump = valid[:, :-1] & valid[:, 1:] & depth_jump(a, b)
+    near_a, near_b = jump & (a < b), jump & (b < a)
+    edges[:, :-1] |= near_a
+    edges[:, 1:] |= near_b
+    sx[:, :-1] += near_a
+    sx[:, 1:] -= near_b
+    a, b = z[:-1], z[1:]  # upper and lower neighbours
+    jump = valid[:-1] & valid[1:] & depth_jump(a, b)
+    near_a, near_b = jump & (a < b), jump & (b < a)
+    edges[:-1] |= near_a
+    edges[1:] |= near_b
+    sy[:-1] += near_a
+    sy[1:] -= near_b
+    return edges, sx, sy
 
 
 def depth_colour_shift(rgb: np.ndarray, depth: np.ndarray, box: tuple[int, int, int, int] | None = None) -> tuple[int, int]:
@@ -125,27 +140,44 @@ def shift_evidence(rgb: np.ndarray, depth: np.ndarray, box: tuple[int, int, int,
     4 px wider); the colour's over the whole image (Canny's hysteresis follows an edge beyond any window).
     `explained` ((H, W) bool): colour edges that say nothing about the shift, left out (colour_edge_distance):
     the base's own creases and inner outlines at its estimated pose (estimation.colour_checked)."""
+    (du, dv), _, ratio = shift_and_bleed(rgb, depth, box, explained)
+    return (du, dv), ratio
+
+
+def shift_and_bleed(rgb: np.ndarray, depth: np.ndarray, box: tuple[int, int, int, int] | None = None,
+                    explained: np.ndarray | None = None) -> tuple[tuple[int, int], int, float]:
+    """((du, dv), bleed, ratio): shift_evidence's search, the depth's outlines allowed to lie up to BLEED_MAX_PX
+    pixels beyond the colour's too, each toward whatever lies behind it (occluding_edges_toward): a sensor's
+    correlation window bleeds near surfaces into far ones (noise.bleed). A shift moves every outline alike; a bleed
+    moves each away from its own near surface, so a Kinect-like frame registered exactly, its outlines bled right
+    and up (the projector's shadow leaves no outline on an object's left, the table none at its foot), showed a
+    "shift" of 2-3 px and moved its depth by it (benchmarks/captures.py's `bleed` row: four confident poses 2-5 mm
+    off). Where only the outline's ways bleed and shift cannot tell apart, the shorter shift wins (ties: the
+    shortest shift, then the least bleed). `ratio`: the best shift's mean distance over the best with no shift."""
     if rgb is None or rgb.ndim != 3:
-        return (0, 0), 1.0
+        return (0, 0), 0, 1.0
     h, w = depth.shape
     if box is None:
-        vs, us = np.nonzero(occluding_edges(depth))
+        edges, sxs, sys_ = occluding_edges_toward(depth)
+        vs, us = np.nonzero(edges)
+        sx, sy = sxs[vs, us], sys_[vs, us]
     else:
         x0, y0, x1, y1 = (int(v) for v in box)
         m = WINDOW_MARGIN_PX
         cx0, cy0, cx1, cy1 = max(x0 - m - 4, 0), max(y0 - m - 4, 0), min(x1 + m + 4, w), min(y1 + m + 4, h)
         if cx1 <= cx0 or cy1 <= cy0:
-            return (0, 0), 1.0
-        edges = occluding_edges(depth[cy0:cy1, cx0:cx1])
+            return (0, 0), 0, 1.0
+        edges, sxs, sys_ = occluding_edges_toward(depth[cy0:cy1, cx0:cx1])
         edges &= box_region(edges.shape, (x0 - cx0, y0 - cy0, x1 - cx0, y1 - cy0), m)
         vs, us = np.nonzero(edges)
+        sx, sy = sxs[vs, us], sys_[vs, us]
         vs, us = vs + cy0, us + cx0
     if len(us) < SHIFT_MIN_EDGES:
-        return (0, 0), 1.0
+        return (0, 0), 0, 1.0
     if len(us) > MAX_EDGE_PX:
         step = -(-len(us) // MAX_EDGE_PX)
-        vs, us = vs[::step], us[::step]
-    r = SHIFT_MAX_PX
+        vs, us, sx, sy = vs[::step], us[::step], sx[::step], sy[::step]
+    r = SHIFT_MAX_PX + BLEED_MAX_PX  # how far any shift and bleed together may move an edge
     # the colour's edges in the edges' box, COLOUR_PAD_PX wider (the filters and the distance transform then
     # read the same there as over the whole image, but where Canny's hysteresis follows an edge from afar)
     p = COLOUR_PAD_PX
@@ -153,19 +185,26 @@ def shift_evidence(rgb: np.ndarray, depth: np.ndarray, box: tuple[int, int, int,
     cx1, cy1 = min(int(us.max()) + p + 1, w), min(int(vs.max()) + p + 1, h)
     dist = colour_edge_distance(rgb[cy0:cy1, cx0:cx1], None if explained is None else explained[cy0:cy1, cx0:cx1])
     us, vs, w, h = us - cx0, vs - cy0, cx1 - cx0, cy1 - cy0
-    clear = us.min() >= r and vs.min() >= r and us.max() < w - r and vs.max() < h - r  # no shift leaves the crop
+    clear = us.min() >= r and vs.min() >= r and us.max() < w - r and vs.max() < h - r  # no move leaves the crop
     flat, at = dist.ravel(), vs * w + us
+    sx, sy = sx.astype(np.int64), sy.astype(np.int64)
 
-    def mean_distance(du: int, dv: int) -> float:  # some shifts leave the crop: only the edges inside count
-        u, v = us - du, vs - dv
+    def mean_distance(du: int, dv: int, k: int) -> float:  # some moves leave the crop: only the edges inside count
+        u, v = us - du - k * sx, vs - dv - k * sy
         inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
         return float(dist[v[inside], u[inside]].mean()) if inside.any() else EDGE_DIST_CAP_PX
 
-    shifts = [(du, dv) for dv in range(-r, r + 1) for du in range(-r, r + 1)]
-    if clear:  # every shift in one gather: row k holds the distances under the edges moved by shifts[k]
-        means = flat[at[None, :] - np.array([dv * w + du for du, dv in shifts])[:, None]].mean(axis=1)
-        scores = {sh: float(m) for sh, m in zip(shifts, means)}
-    else:
-        scores = {(du, dv): mean_distance(du, dv) for du, dv in shifts}
-    best = min(scores, key=lambda s: (scores[s], abs(s[0]) + abs(s[1]), s))  # ties: the shortest, then fixed order
-    return best, scores[best] / max(scores[(0, 0)], 1e-9)
+    s_max = SHIFT_MAX_PX
+    shifts = [(du, dv) for dv in range(-s_max, s_max + 1) for du in range(-s_max, s_max + 1)]
+    scores: dict[tuple[int, int, int], float] = {}
+    for k in range(BLEED_MAX_PX + 1):
+        if clear:  # every shift in one gather: row j holds the distances under the edges moved by shifts[j] and k
+            moved = at - k * (sy * w + sx)
+            means = flat[moved[None, :] - np.array([dv * w + du for du, dv in shifts])[:, None]].mean(axis=1)
+            scores.update({(du, dv, k): float(m) for (du, dv), m in zip(shifts, means)})
+        else:
+            scores.update({(du, dv, k): mean_distance(du, dv, k) for du, dv in shifts})
+    # ties: the shortest shift, then the least bleed, then a fixed order
+    best = min(scores, key=lambda t: (scores[t], abs(t[0]) + abs(t[1]), t[2], t))
+    unshifted = min(scores[(0, 0, k)] for k in range(BLEED_MAX_PX + 1))
+    return (best[0], best[1]), best[2], scores[best] / max(unshifted, 1e-9)

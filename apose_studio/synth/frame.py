@@ -19,7 +19,7 @@ from apose_studio.assembly.model import StepView
 from apose_studio.errors import RenderError
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
-from apose_studio.geometry.noise import NOISE_MODELS, add_depth_noise, noise_texture
+from apose_studio.geometry.noise import NOISE_MODELS, add_depth_noise, bleed, noise_texture
 from apose_studio.geometry.raycast import RayGrid, body, pixel_window
 from apose_studio.geometry.sensor import shift_image
 from apose_studio.synth.clutter import Pattern, clutter_around, hide_base, stack_on
@@ -53,6 +53,8 @@ class RenderSettings:
     depth_bias_m: float = 0.0  # added to every depth reading (a Kinect reads a few mm off)
     misregistration_px: float = 0.0  # depth registered to the colour image this many pixels off, per frame in a
     # random direction (the colour image, the masks and the poses agree; the depth is shifted)
+    bleed_px: int = 0  # near surfaces read this many pixels wider in depth than in colour, over farther ones (a
+    # correlation window's foreground fattening: geometry.noise.bleed), on top of the noise model's own
     base_fill: tuple[float, float] = (0.25, 0.5)  # share of the image's short side the base's diameter spans (sets the
     # camera distance when distance_range_m is None)
 
@@ -108,6 +110,8 @@ class RenderSettings:
             raise RenderError(f"--depth-bias {self.depth_bias_m * 1000:g}: expected millimetres from -50 to 50")
         if not 0 <= self.misregistration_px <= 20:
             raise RenderError(f"--misregistration {self.misregistration_px:g}: expected pixels from 0 to 20")
+        if not (isinstance(self.bleed_px, int) and 0 <= self.bleed_px <= MAX_BLEED_PX):
+            raise RenderError(f"--bleed {self.bleed_px}: expected whole pixels from 0 to {MAX_BLEED_PX}")
         a, b = self.base_fill
         if not 0.02 <= a <= b <= 1.0:
             raise RenderError(f"--base-fill {a:g},{b:g}: expected min,max with 0.02 <= min <= max <= 1 (the share of the "
@@ -119,6 +123,7 @@ class RenderSettings:
 
 MAX_FRAMES = 100_000  # per step
 MAX_DISTRACTORS = 50
+MAX_BLEED_PX = 8
 
 
 @dataclass
@@ -454,10 +459,12 @@ def view_of(scene: Scene, T_world_camera: np.ndarray, grid: RayGrid, rng: np.ran
 
 
 def noisy_depth(frame: RenderedFrame, settings: RenderSettings) -> np.ndarray:
-    """The frame's depth as the sensor gives it: its noise model, then a constant bias (`depth_bias_m`) and the
-    depth image shifted against the colour image by `misregistration_px` in a direction drawn per frame."""
+    """The frame's depth as the sensor gives it: its noise model, near surfaces bled `bleed_px` wider, then a
+    constant bias (`depth_bias_m`) and the depth image shifted against the colour image by `misregistration_px` in
+    a direction drawn per frame."""
     depth = add_depth_noise(frame.hits.depth, settings.noise, settings.noise_sigma_at_05m,
                             np.random.default_rng(frame.noise_seed), settings.camera.fx, rgb=frame.rgb)
+    depth = bleed(depth, settings.bleed_px)
     if settings.depth_bias_m:
         depth = np.where(depth > 0, depth + np.float32(settings.depth_bias_m), 0).astype(np.float32)
     if settings.misregistration_px:

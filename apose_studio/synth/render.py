@@ -120,6 +120,7 @@ def _start_dataset(asm: Assembly, out, settings: RenderSettings, numbers: list[i
                          "distractors": settings.distractors, "views_per_scene": settings.views_per_scene,
                          "trajectory": settings.trajectory,
                          "clutter": list(settings.clutter), "depth_bias_m": settings.depth_bias_m,
-                         "misregistration_px": settings.misregistration_px, "base_fill": list(settings.base_fill)}}
+                         "misregistration_px": settings.misregistration_px, "bleed_px": settings.bleed_px,
+                         "base_fill": list(settings.base_fill)}}
     write_manifest(out, info)
     return obj_ids, info

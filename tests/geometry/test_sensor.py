@@ -5,6 +5,7 @@ here by comparing the render with the same render unshifted (numpy alone, not th
 import numpy as np
 import pytest
 
+from apose_studio.geometry import sensor
 from apose_studio.geometry.sensor import depth_colour_shift, shift_image
 
 from ..conftest import SAMPLES, rendered_frame, true_shift
@@ -88,7 +89,8 @@ def test_colour_edges_the_object_makes_itself_are_left_out_of_the_comparison():
     own[[104, 109, 130], 40:280] = True  # the rim's inner edge, the wall's foot, the crease above the side face
     box = (35, 95, 285, 165)
     (du, dv), ratio = shift_evidence(rgb, depth, box)
-    assert (du, dv) == (0, -3) and ratio < 0.5, ((du, dv), ratio)  # fooled
+    # fooled (a bleed of the outline upward explains a part of the 4 px too, so the shift gains less than it did)
+    assert (du, dv) == (0, -3) and ratio < 0.75, ((du, dv), ratio)
     (du, dv), ratio = shift_evidence(rgb, depth, box, own)
     assert ratio > 0.9, ((du, dv), ratio)
     painted = rgb.copy()
@@ -117,3 +119,59 @@ def test_nearest_within_sees_nothing_beyond_the_image():
     assert np.isfinite(out).sum() == 8 * 9  # the 4 x 5 patch, 2 px wider each way; nothing at the image's edge
     window = nearest_within(z[7:17, 17:28], 2)  # a window 3 px round the patch
     np.testing.assert_array_equal(window, out[7:17, 17:28])
+
+
+def block_scene(h: int = 240, w: int = 320) -> tuple[np.ndarray, np.ndarray]:
+    """(rgb, depth): a yellow block 0.9 m away on a grey table 1.0 m away, its outline in colour and depth alike."""
+    rgb = np.full((h, w, 3), 60, np.uint8)
+    rgb[80:160, 100:220] = (220, 200, 40)
+    depth = np.full((h, w), 1.0, np.float32)
+    depth[80:160, 100:220] = 0.9
+    return rgb, depth
+
+
+@pytest.mark.parametrize("px", [1, 2, 3])
+def test_depth_bled_round_an_outline_is_a_bleed_not_a_shift(px):
+    """A block whose depth is registered exactly but bleeds `px` pixels into the table all round (noise.bleed, a
+    correlation window's fattening): every outline lies px farther out in depth than in colour, each away from the
+    block, which no shift explains. The bleed is found and no shift; the same depth moved (2, -1) as well: that
+    shift, and the bleed."""
+    from apose_studio.geometry.noise import bleed
+    from apose_studio.geometry.sensor import shift_and_bleed
+
+    rgb, depth = block_scene()
+    bled = bleed(depth, px)
+    assert (bled != depth).sum() > 300
+    box = (90, 70, 230, 170)
+    # to within a pixel (the depth's edge is its near side's pixel, Canny's the one of steepest colour)
+    (du, dv), found, _ = shift_and_bleed(rgb, bled, box)
+    assert max(abs(du), abs(dv)) <= 1 and abs(found - px) <= 1, ((du, dv), found)
+    assert depth_colour_shift(rgb, bled, box) == (0, 0)
+    moved = shift_image(bled, 2, -1)
+    moved[moved == 0] = 1.0
+    (du, dv), found, ratio = shift_and_bleed(rgb, moved, box)
+    assert abs(du - 2) <= 1 and abs(dv + 1) <= 1 and abs(found - px) <= 1 and ratio < 0.75, ((du, dv), found, ratio)
+
+
+def test_an_outline_seen_only_on_two_sides_bled_is_not_taken_for_a_shift(monkeypatch):
+    """A Kinect's view of a block on a table: the projector's shadow leaves no depth left of it and its foot meets
+    the table, so its depth shows only its top and right outlines, and a 2 px bleed moves both up and right, as a
+    shift of (2, -2) would. Bleed and shift explain the edges alike, and the shorter shift wins: none (a depth moved
+    on that evidence put four confident gearbox poses 2-5 mm off, benchmarks/captures.py's `bleed` row)."""
+    from apose_studio.geometry.noise import bleed
+    from apose_studio.geometry.sensor import shift_and_bleed
+
+    rgb, depth = block_scene()
+    v = np.arange(depth.shape[0], dtype=np.float32)[:, None]
+    depth[:] = 0.9 + 0.002 * (160 - v)  # the table seen aslant: farther up the image, at the block's depth at its foot
+    depth[80:160, 100:220] = 0.9
+    bled = bleed(depth, 2)
+    bled[70:160, 90:100] = 0  # the projector's shadow: no depth beside the block's left outline
+    box = (90, 70, 230, 170)
+    (du, dv), found, _ = shift_and_bleed(rgb, bled, box)
+    assert max(abs(du), abs(dv)) <= 1 and found >= 1, ((du, dv), found)
+    assert depth_colour_shift(rgb, bled, box) == (0, 0)
+    monkeypatch.setattr(sensor, "BLEED_MAX_PX", 0)  # a search that knows no bleed takes it for a shift
+    (du, dv), found, ratio = shift_and_bleed(rgb, bled, box)
+    assert du >= 1 and dv <= -1 and max(du, -dv) >= 2 and ratio < 0.75, ((du, dv), ratio)  # up and right
+    assert depth_colour_shift(rgb, bled, box) != (0, 0)

@@ -3,6 +3,7 @@
 import json
 from dataclasses import replace
 
+import cv2
 import numpy as np
 import open3d as o3d
 import pytest
@@ -490,6 +491,42 @@ def test_sensor_effects_are_recorded_and_reproducible(planetary, tmp_path):
         np.testing.assert_array_equal(a.rgb, b.rgb)
     info = json.loads((tmp_path / "real" / "dataset_info.json").read_text())["settings"]
     assert info["depth_bias_m"] == 0.003 and info["misregistration_px"] == 3.0
+
+
+def test_bleed_widens_near_surfaces_in_depth_over_farther_ones(planetary, tmp_path):
+    """--bleed 2: the depth round the base (the renderer's own visible mask, not the code under test) reads the
+    base's depth up to 2 px beyond its outline where the table lies far behind it, and nowhere farther out; the
+    colour image and the masks stay as they were, and the dataset records the setting."""
+    asm, models = planetary
+    base = RenderSettings(frames=2, seed=4, camera=SMALL_CAM)
+    render_dataset(asm, tmp_path / "plain", base, steps=[1], progress=False, models=models)
+    render_dataset(asm, tmp_path / "bled", replace(base, bleed_px=2), steps=[1], progress=False, models=models)
+    plain, bled = Dataset(tmp_path / "plain"), Dataset(tmp_path / "bled")
+    ring_cells = 0
+    for im_id in (0, 1):
+        a, b = plain.frame(1, im_id), bled.frame(1, im_id)
+        np.testing.assert_array_equal(a.base_mask(), b.base_mask())
+        np.testing.assert_array_equal(a.rgb, b.rgb)
+        changed = a.depth != b.depth
+        assert changed.any()
+        assert np.all(b.depth[changed] < a.depth[changed]) and np.all(a.depth[changed] > 0)  # only ever nearer
+        assert np.array_equal(a.depth == 0, b.depth == 0)  # holes stay holes
+        mask = a.base_mask()
+        k = lambda n: np.ones((2 * n + 1, 2 * n + 1), np.uint8)  # noqa: E731
+        base_near = cv2.erode(np.where(mask & (a.depth > 0), a.depth, np.inf).astype(np.float32), k(1),
+                              borderType=cv2.BORDER_CONSTANT, borderValue=float("inf"))  # the base's depth 1 px away
+        # pixels just outside the base's outline whose surface lies well behind the base's edge there
+        edge_ring = ~mask & (a.depth > 0) & np.isfinite(base_near) & (a.depth > base_near + 0.03)
+        assert edge_ring.sum() > 20
+        assert np.all(b.depth[edge_ring] <= base_near[edge_ring])  # read the base's depth (or a nearer one) now
+        nearest = cv2.erode(np.where(a.depth > 0, a.depth, np.inf).astype(np.float32), k(2),
+                            borderType=cv2.BORDER_CONSTANT, borderValue=float("inf"))
+        assert not (changed & (nearest > a.depth - 0.004)).any()  # nothing without a nearer surface within 2 px
+        ring_cells += int(edge_ring.sum())
+    info = json.loads((tmp_path / "bled" / "dataset_info.json").read_text())["settings"]
+    assert info["bleed_px"] == 2 and ring_cells > 0
+    with pytest.raises(RenderError, match="--bleed 9"):
+        replace(base, bleed_px=9).validate()
 
 
 def test_textured_prints_patterns_on_the_table(planetary):
