@@ -29,8 +29,8 @@ from apose_studio.data.dataset import Frame, read_image
 from apose_studio.errors import AposeError
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics
-from apose_studio.geometry.raycast import own_edges, raycast_depth
-from apose_studio.geometry.sensor import SHIFT_MIN_PX, depth_colour_shift, shift_evidence, shift_image
+from apose_studio.geometry.raycast import own_edges, raycast_depth, silhouette_outline
+from apose_studio.geometry.sensor import SHIFT_MIN_PX, depth_colour_shift, outline_shift_ratio, shift_evidence, shift_image
 from apose_studio.masks.prompt import PromptError, box_depth, prompted_mask
 from apose_studio.masks.segment import depth_mask, load_model, table_objects
 from apose_studio.registration import BaseObject, Params, RegistrationResult, doubts, estimate, failed, prepare_base
@@ -383,7 +383,7 @@ def estimate_colour_checked(view: View, ctx: StepContext, params: Params, orient
         if key not in on_moved:
             on_moved[key] = checked(replace(view, depth=shift_image(view.depth, -du, -dv)))[1]
         again = on_moved[key]
-        return again if again.ok and not again.colour_offset > 0 else None
+        return again if again.ok and not shifted(again) else None
 
     def moved_back(first: RegistrationResult, before: float) -> RegistrationResult | None:
         """settled on the shift `first`'s check found. `before`: the seconds spent before it (the first estimate's)."""
@@ -404,7 +404,7 @@ def estimate_colour_checked(view: View, ctx: StepContext, params: Params, orient
             return None
         t = time.perf_counter()
         told = colour_checked(again, view, params, ctx.base.mesh, first_look)
-        if not (told.colour_offset > 0 and max(abs(told.colour_offset_px[0] - du), abs(told.colour_offset_px[1] - dv)) <= 1):
+        if not (shifted(told) and max(abs(told.colour_offset_px[0] - du), abs(told.colour_offset_px[1] - dv)) <= 1):
             return None  # the check's own resolution is a pixel (at the pose on the depth as it lay it finds the same)
         return replace(again, depth_moved_px=(int(du), int(dv)),
                        timings={**again.timings, "colour check": again.timings.get("colour check", 0.0) + before
@@ -438,7 +438,7 @@ def estimate_colour_checked(view: View, ctx: StepContext, params: Params, orient
         # (benchmarks/captures.py, 528 frames: every outcome the same, the `real` row's first estimates 12.4 -> 6.4 s)
         quick_params = replace(params, mask_hypotheses=False, second_look=False, free_after_upright=False)
         raw, quick = checked(view, quick_params, first_look)
-        if quick.ok and quick.colour_offset > 0:
+        if quick.ok and shifted(quick):
             moved = moved_back(quick, quick.seconds + looked)
             if moved is not None:
                 return counted(moved)
@@ -447,7 +447,7 @@ def estimate_colour_checked(view: View, ctx: StepContext, params: Params, orient
             return counted(with_look(quick))
         spent = quick.seconds
     result = with_look(checked(view, params, first_look)[1], spent)
-    if moving and result.ok and result.colour_offset > 0 and result.colour_offset_px != tried:
+    if moving and result.ok and shifted(result) and result.colour_offset_px != tried:
         return counted(moved_back(result, result.seconds) or result)
     return counted(result)
 
@@ -510,6 +510,18 @@ CLEAR_SHIFT_GAIN = 0.75  # ... and lays the depth's edges at most this share of 
 # below; none of the 720 frames registered exactly below at <= 4 px (with the own edges in: 36)
 
 
+OUTLINE_BLEED = 0.95  # colour_checked: where the edges read as a shift alone but not beside a bleed, the model's
+# outline at the pose moved back by that shift (to within a pixel) lying no nearer the colour's edges than this share of
+# its distance as it is says the pose lies on the colour's outline: the depth bleeds, and no shift is held against it
+
+
+def shifted(result: RegistrationResult) -> bool:
+    """colour_checked found the depth's edges clearly off the colour's by a shift, a bleed of the outlines beside it
+    (colour_offset_bleed: a bleed explains them as well, so the depth is not moved by it, only held against the
+    confidence)."""
+    return result.colour_offset > 0 and not result.colour_offset_bleed
+
+
 def clear_shift(du: int, dv: int, ratio: float) -> bool:
     """A shift of the depth against the colour image clear enough to count (CLEAR_SHIFT_MAX_PX, CLEAR_SHIFT_GAIN)."""
     return SHIFT_MIN_PX <= max(abs(du), abs(dv)) <= CLEAR_SHIFT_MAX_PX and ratio < CLEAR_SHIFT_GAIN
@@ -520,7 +532,7 @@ def check_window(view: View) -> tuple[int, int, int, int] | None:
     return view.box if view.box is not None else truth_box(view.mask, 0.0)
 
 
-def edges_suggest_shift(view: View) -> tuple[tuple[int, int], float] | None:
+def edges_suggest_shift(view: View, bleed: bool = True) -> tuple[tuple[int, int], float] | None:
     """The depth's edges against all the colour image's in the prompt's box (or the mask's), before any pose
     (geometry.sensor.shift_evidence): ((du, dv), ratio) when they suggest a clear shift, else None. Leaving an
     object's own edges out (colour_checked) only takes evidence away: over the 744 renders of
@@ -530,8 +542,26 @@ def edges_suggest_shift(view: View) -> tuple[tuple[int, int], float] | None:
     window = check_window(view)
     if view.rgb is None or window is None:
         return None
-    (du, dv), ratio = shift_evidence(np.asarray(view.rgb), view.depth, window)
-    return ((du, dv), ratio) if clear_shift(du, dv, ratio) else None
+    return clear_shift_found(np.asarray(view.rgb), view.depth, window, None, bleed)
+
+
+def clear_shift_found(rgb: np.ndarray, depth: np.ndarray, window, explained, bleed: bool = True):
+    """((du, dv), ratio) of a clear shift of the depth against the colour image in `window`, else None. The edges
+    compared as a shift alone must find it (CLEAR_SHIFT_MAX_PX, CLEAR_SHIFT_GAIN); with `bleed`, the comparison that
+    allows the depth's outlines to bleed past the colour's (geometry.sensor.shift_and_bleed) must find it too, to
+    within a pixel each way, and its shift is the one returned (it is exact where the alone's is a pixel off toward
+    the bleed). A bleed never suggests a shift the edges alone do not: joined with a shift it can explain edges that
+    neither explains alone (on a RealSense-like gearbox frame registered exactly, a "shift" of (3, -4) that moved the
+    depth and the pose 3.0 mm)."""
+    (du, dv), ratio = shift_evidence(rgb, depth, window, explained, bleed=False)
+    if not clear_shift(du, dv, ratio):
+        return None
+    if not bleed:
+        return (du, dv), ratio
+    (bu, bv), b_ratio = shift_evidence(rgb, depth, window, explained)
+    if clear_shift(bu, bv, b_ratio) and max(abs(bu - du), abs(bv - dv)) <= 1:
+        return (bu, bv), b_ratio
+    return None
 
 
 NOT_LOOKED = object()  # colour_checked's `look` when edges_suggest_shift has not looked at the view yet
@@ -562,18 +592,35 @@ def colour_checked(result: RegistrationResult, view: View, params: Params, mesh,
     t0 = time.perf_counter()
     if look is NOT_LOOKED:
         look = edges_suggest_shift(view)
-    if look is None:  # nothing suggests a shift; leaving edges out only takes evidence away
+    if look is None and edges_suggest_shift(view, bleed=False) is None:  # nothing suggests a shift, read with a
+        # bleed or without; leaving edges out only takes evidence away
         return replace(result, timings={**result.timings, "colour check": time.perf_counter() - t0})
     explained = own_edges(mesh, result.T_world_base, view.T_world_camera, view.camera)
-    (du, dv), ratio = shift_evidence(np.asarray(view.rgb), view.depth, check_window(view), explained)
-    if clear_shift(du, dv, ratio):
+    rgb, window = np.asarray(view.rgb), check_window(view)
+    alone = clear_shift_found(rgb, view.depth, window, explained, bleed=False)
+    both = clear_shift_found(rgb, view.depth, window, explained) if alone is not None else None
+    ambiguous = False
+    if alone is not None and both is None:  # a shift alone explains the edges, a bleed beside one does not need
+        # it: the outlines lie off the colour's as a bleed or as that shift puts them. The model's own outline at
+        # the pose tells which: a pose fitted to depth lying off lies as far off the colour's edges; one fitted to
+        # depth that only bleeds lies on them
+        du, dv = alone[0]
+        outline = silhouette_outline(mesh, result.T_world_base, view.T_world_camera, view.camera)
+        told = min(outline_shift_ratio(rgb, outline, du + a, dv + b, explained) for a in (-1, 0, 1) for b in (-1, 0, 1)
+                   if (du + a, dv + b) != (0, 0))  # to within a pixel, as the edges find a shift
+        if told >= OUTLINE_BLEED:  # the pose's outline lies on the colour's as it is: a bleed, no shift
+            alone = None
+        ambiguous = not told < CLEAR_SHIFT_GAIN  # moved back it lies clearly nearer: the shift is real
+    found = both or alone
+    if found is not None:
+        (du, dv), ratio = found
         region = result.model_mask if result.model_mask is not None and result.model_mask.shape == view.depth.shape \
             else view.mask
         z = view.depth[region & np.isfinite(view.depth) & (view.depth > 0)]
         zc = float(np.median(z)) if len(z) else float(se3.transform_points(se3.inv(view.T_world_camera),
                                                                             result.T_world_base[None, :3, 3])[0, 2])
         result = replace(result, colour_offset=float(np.hypot(du * zc / view.camera.fx, dv * zc / view.camera.fy)),
-                         colour_offset_px=(int(du), int(dv)))
+                         colour_offset_px=(int(du), int(dv)), colour_offset_bleed=ambiguous)
     return replace(result, timings={**result.timings, "colour check": time.perf_counter() - t0})
 
 

@@ -136,6 +136,16 @@ def _cast(mesh: trimesh.Trimesh, T_world_mesh: np.ndarray, T_world_camera: np.nd
     return b, w, rays, b.scene.cast_rays(o3d.core.Tensor(rays.reshape(-1, 6)), nthreads=0)
 
 
+def _cast_depths(mesh: trimesh.Trimesh, T_world_mesh: np.ndarray, T_world_camera: np.ndarray, cam: CameraIntrinsics):
+    """_cast's (scene, window, rays, hits) and each ray's distance to its hit ((h, w) of the window, inf: none), or
+    None where the mesh is not in view."""
+    cast = _cast(mesh, T_world_mesh, T_world_camera, cam)
+    if cast is None:
+        return None
+    b, w, rays, hit = cast
+    return b, w, rays, hit, hit["t_hit"].numpy().reshape(rays.shape[:2])
+
+
 CREASE_DEG = 25.0  # own_edges: neighbouring pixels whose surface normals lie farther apart than this show a crease
 
 
@@ -147,12 +157,11 @@ def own_edges(mesh: trimesh.Trimesh, T_world_mesh: np.ndarray, T_world_camera: n
     colour may change there in any image, so colour edges there say nothing about how the depth lies against
     the colour image (geometry.sensor.shift_evidence). The outline against what lies behind is not marked."""
     out = np.zeros((cam.height, cam.width), bool)
-    cast = _cast(mesh, T_world_mesh, T_world_camera, cam)
+    cast = _cast_depths(mesh, T_world_mesh, T_world_camera, cam)
     if cast is None:
         return out
-    b, w, rays, hit = cast
-    h, wd = rays.shape[:2]
-    t = hit["t_hit"].numpy().reshape(h, wd)
+    b, w, rays, hit, t = cast
+    h, wd = t.shape
     ok = np.isfinite(t)
     n = np.zeros((h, wd, 3))
     n[ok] = facing_normals(b, hit["primitive_ids"].numpy().view(np.int32).reshape(h, wd)[ok], rays[ok][:, 3:])
@@ -165,4 +174,24 @@ def own_edges(mesh: trimesh.Trimesh, T_world_mesh: np.ndarray, T_world_camera: n
         edges[a] |= e
         edges[c] |= e
     out[w[0]:w[1], w[2]:w[3]] = edges
+    return out
+
+
+def silhouette_outline(mesh: trimesh.Trimesh, T_world_mesh: np.ndarray, T_world_camera: np.ndarray,
+                       cam: CameraIntrinsics) -> np.ndarray:
+    """(H, W) bool: the pixels of a mesh's silhouette at a pose, alone in the image, that border a pixel it does not
+    cover (its outline against whatever lies behind). Where the pose is right, the colour image's edges run there
+    (geometry.sensor.outline_shift_ratio); where it was fitted to depth lying off the colour image, they run that
+    far off."""
+    out = np.zeros((cam.height, cam.width), bool)
+    cast = _cast_depths(mesh, T_world_mesh, T_world_camera, cam)
+    if cast is None:
+        return out
+    w, ok = cast[1], np.isfinite(cast[4])
+    inner = ok.copy()
+    inner[1:] &= ok[:-1]
+    inner[:-1] &= ok[1:]
+    inner[:, 1:] &= ok[:, :-1]
+    inner[:, :-1] &= ok[:, 1:]
+    out[w[0]:w[1], w[2]:w[3]] = ok & ~inner
     return out

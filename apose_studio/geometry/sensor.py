@@ -115,15 +115,24 @@ def occluding_edges_toward(depth: np.ndarray) -> tuple[np.ndarray, np.ndarray, n
 def depth_colour_shift(rgb: np.ndarray, depth: np.ndarray, box: tuple[int, int, int, int] | None = None) -> tuple[int, int]:
     """(du, dv): how many pixels right and down the depth image lies shifted against the colour image (the
     depth at (u, v) shows what the colour shows at (u - du, v - dv)); (0, 0) when no shift is clear
-    (shift_evidence, gated by SHIFT_MIN_PX and SHIFT_GAIN)."""
+    (shift_evidence, gated by SHIFT_MIN_PX and SHIFT_GAIN): the edges compared as a shift alone must find it, and
+    compared allowing a bleed of the depth's outlines too, to within a pixel each way (that one's shift is returned:
+    a bleed explains a pixel of the alone's); a shift the bleed explains away is none, and a bleed never suggests a
+    shift the edges alone do not."""
+    def gated(best: tuple[int, int], ratio: float) -> bool:
+        return max(abs(best[0]), abs(best[1])) >= SHIFT_MIN_PX and ratio < SHIFT_GAIN
+
+    alone, ratio = shift_evidence(rgb, depth, box, bleed=False)
+    if not gated(alone, ratio):
+        return 0, 0
     best, ratio = shift_evidence(rgb, depth, box)
-    if max(abs(best[0]), abs(best[1])) < SHIFT_MIN_PX or not ratio < SHIFT_GAIN:
+    if not gated(best, ratio) or max(abs(best[0] - alone[0]), abs(best[1] - alone[1])) > 1:
         return 0, 0
     return best
 
 
 def shift_evidence(rgb: np.ndarray, depth: np.ndarray, box: tuple[int, int, int, int] | None = None,
-                   explained: np.ndarray | None = None) -> tuple[tuple[int, int], float]:
+                   explained: np.ndarray | None = None, bleed: bool = True) -> tuple[tuple[int, int], float]:
     """((du, dv), ratio): the shift of the depth image against the colour image that lays their edges nearest,
     and their mean distance there over unshifted (1.0, and (0, 0), when there is nothing to compare).
 
@@ -140,12 +149,12 @@ def shift_evidence(rgb: np.ndarray, depth: np.ndarray, box: tuple[int, int, int,
     4 px wider); the colour's over the whole image (Canny's hysteresis follows an edge beyond any window).
     `explained` ((H, W) bool): colour edges that say nothing about the shift, left out (colour_edge_distance):
     the base's own creases and inner outlines at its estimated pose (estimation.colour_checked)."""
-    (du, dv), _, ratio = shift_and_bleed(rgb, depth, box, explained)
+    (du, dv), _, ratio = shift_and_bleed(rgb, depth, box, explained, BLEED_MAX_PX if bleed else 0)
     return (du, dv), ratio
 
 
 def shift_and_bleed(rgb: np.ndarray, depth: np.ndarray, box: tuple[int, int, int, int] | None = None,
-                    explained: np.ndarray | None = None) -> tuple[tuple[int, int], int, float]:
+                    explained: np.ndarray | None = None, bleed_max: int | None = None) -> tuple[tuple[int, int], int, float]:
     """((du, dv), bleed, ratio): shift_evidence's search, the depth's outlines allowed to lie up to BLEED_MAX_PX
     pixels beyond the colour's too, each toward whatever lies behind it (occluding_edges_toward): a sensor's
     correlation window bleeds near surfaces into far ones (noise.bleed). A shift moves every outline alike; a bleed
@@ -153,7 +162,11 @@ def shift_and_bleed(rgb: np.ndarray, depth: np.ndarray, box: tuple[int, int, int
     and up (the projector's shadow leaves no outline on an object's left, the table none at its foot), showed a
     "shift" of 2-3 px and moved its depth by it (benchmarks/captures.py's `bleed` row: four confident poses 2-5 mm
     off). Where only the outline's ways bleed and shift cannot tell apart, the shorter shift wins (ties: the
-    shortest shift, then the least bleed). `ratio`: the best shift's mean distance over the best with no shift."""
+    shortest shift, then the least bleed). Used to confirm a shift the edges alone show, never to suggest one
+    (depth_colour_shift, estimation.clear_shift_found): joined with a shift, a bleed can explain edges neither
+    explains alone. `ratio`: the best shift's mean distance over the best with no shift.
+    `bleed_max`: the most bleed tried (default BLEED_MAX_PX; 0: a shift alone, as shift_evidence(bleed=False))."""
+    bleed_max = BLEED_MAX_PX if bleed_max is None else bleed_max
     if rgb is None or rgb.ndim != 3:
         return (0, 0), 0, 1.0
     h, w = depth.shape
@@ -177,7 +190,7 @@ def shift_and_bleed(rgb: np.ndarray, depth: np.ndarray, box: tuple[int, int, int
     if len(us) > MAX_EDGE_PX:
         step = -(-len(us) // MAX_EDGE_PX)
         vs, us, sx, sy = vs[::step], us[::step], sx[::step], sy[::step]
-    r = SHIFT_MAX_PX + BLEED_MAX_PX  # how far any shift and bleed together may move an edge
+    r = SHIFT_MAX_PX + bleed_max  # how far any shift and bleed together may move an edge
     # the colour's edges in the edges' box, COLOUR_PAD_PX wider (the filters and the distance transform then
     # read the same there as over the whole image, but where Canny's hysteresis follows an edge from afar)
     p = COLOUR_PAD_PX
@@ -197,7 +210,7 @@ def shift_and_bleed(rgb: np.ndarray, depth: np.ndarray, box: tuple[int, int, int
     s_max = SHIFT_MAX_PX
     shifts = [(du, dv) for dv in range(-s_max, s_max + 1) for du in range(-s_max, s_max + 1)]
     scores: dict[tuple[int, int, int], float] = {}
-    for k in range(BLEED_MAX_PX + 1):
+    for k in range(bleed_max + 1):
         if clear:  # every shift in one gather: row j holds the distances under the edges moved by shifts[j] and k
             moved = at - k * (sy * w + sx)
             means = flat[moved[None, :] - np.array([dv * w + du for du, dv in shifts])[:, None]].mean(axis=1)
@@ -206,5 +219,31 @@ def shift_and_bleed(rgb: np.ndarray, depth: np.ndarray, box: tuple[int, int, int
             scores.update({(du, dv, k): mean_distance(du, dv, k) for du, dv in shifts})
     # ties: the shortest shift, then the least bleed, then a fixed order
     best = min(scores, key=lambda t: (scores[t], abs(t[0]) + abs(t[1]), t[2], t))
-    unshifted = min(scores[(0, 0, k)] for k in range(BLEED_MAX_PX + 1))
+    unshifted = min(scores[(0, 0, k)] for k in range(bleed_max + 1))
     return (best[0], best[1]), best[2], scores[best] / max(unshifted, 1e-9)
+
+
+def outline_shift_ratio(rgb: np.ndarray, outline: np.ndarray, du: int, dv: int,
+                        explained: np.ndarray | None = None) -> float:
+    """How near the colour image's edges a model's outline at its pose lies once moved back by (du, dv) (the shift
+    the depth may lie off the colour image), over how near it lies as it is: their mean distances (each capped at
+    EDGE_DIST_CAP_PX). A pose fitted to depth registered (du, dv) off lies that far off the colour's outline, so the
+    outline moved back lies nearer (a ratio well under 1); a pose fitted to depth that only bleeds past its outlines
+    lies on the colour's (a ratio of 1 or more). 1.0 when there is no outline to compare. `explained`: colour edges
+    left out, as in shift_evidence (the model's own creases and inner outlines: a casing's inner wall runs a wall's
+    thickness inside its outer outline, where the rim is as grey as the table)."""
+    vs, us = np.nonzero(outline)
+    if len(us) < SHIFT_MIN_EDGES or rgb is None or rgb.ndim != 3:
+        return 1.0
+    h, w = outline.shape
+    p = COLOUR_PAD_PX
+    cx0, cy0 = max(int(us.min()) - p, 0), max(int(vs.min()) - p, 0)
+    cx1, cy1 = min(int(us.max()) + p + 1, w), min(int(vs.max()) + p + 1, h)
+    dist = colour_edge_distance(rgb[cy0:cy1, cx0:cx1], None if explained is None else explained[cy0:cy1, cx0:cx1])
+    us, vs = us - cx0, vs - cy0
+    u, v = us - du, vs - dv
+    inside = (u >= 0) & (u < cx1 - cx0) & (v >= 0) & (v < cy1 - cy0)
+    if not inside.any():
+        return 1.0
+    as_is = float(dist[vs[inside], us[inside]].mean())
+    return float(dist[v[inside], u[inside]].mean()) / max(as_is, 1e-9)

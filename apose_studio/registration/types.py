@@ -113,6 +113,9 @@ class RegistrationResult:
     # `colour_offset_px` (right, down) off the colour image by its edges (estimation.colour_checked): it counts
     # against the confidence with the spread; 0: no shift found
     colour_offset_px: tuple[int, int] = (0, 0)
+    colour_offset_bleed: bool = False  # the edges lie off by colour_offset_px as a shift alone puts them, but a bleed
+    # of the depth's outlines past the colour's explains them as well (geometry.sensor.shift_and_bleed): the depth is
+    # not moved by it, and it counts against the confidence all the same
     depth_moved_px: tuple[int, int] = (0, 0)  # the depth lay this far (right, down) off the colour image, by its edges,
     # and the result is the estimate on the depth moved back (estimation.estimate_view, `move_depth_to_colour`)
     reading: str = ""  # the reading of the mask the result came from ("": the mask as given; hypotheses.readings)
@@ -180,7 +183,10 @@ def doubts(result: RegistrationResult) -> str:
                    "a cylinder's side, pins it down poorly)")
     elif result.colour_offset and result.spread + result.colour_offset > result.spread_allowed:
         du, dv = result.colour_offset_px
-        why.append(f"the depth's edges lie {du:+d}, {dv:+d} px (right, down) off the colour image's here: if the depth is "
+        bled = " (or its outlines bleed past the colour's by as much: the edges cannot tell which)" \
+            if result.colour_offset_bleed else ""
+        why.append(f"the depth's edges lie {du:+d}, {dv:+d} px (right, down) off the colour image's here{bled}: if the "
+                   "depth is "
                    f"registered that far off, the pose is {result.colour_offset * 1000:.1f} mm off, more than the "
                    f"{result.spread_allowed * 1000:.1f} mm the placement allows with what the view leaves free; if it is "
                    "(a Kinect's often is), align depth to colour (--align-depth) to move it back first")

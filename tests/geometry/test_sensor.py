@@ -2,6 +2,7 @@
 Kinect-like desk renders whose depth the renderer shifted against the colour image: the true shift is found
 here by comparing the render with the same render unshifted (numpy alone, not the code under test)."""
 
+import cv2
 import numpy as np
 import pytest
 
@@ -175,3 +176,19 @@ def test_an_outline_seen_only_on_two_sides_bled_is_not_taken_for_a_shift(monkeyp
     (du, dv), found, ratio = shift_and_bleed(rgb, bled, box)
     assert du >= 1 and dv <= -1 and max(du, -dv) >= 2 and ratio < 0.75, ((du, dv), ratio)  # up and right
     assert depth_colour_shift(rgb, bled, box) != (0, 0)
+
+
+def test_a_pose_outline_off_the_colour_outline_tells_a_shift_from_a_bleed():
+    """The model's outline at a pose fitted to depth lying (2, -1) px off the colour image lies as far off the
+    colour's edges: moved back by that shift it lies on them (a ratio well under 1). At a pose fitted to depth that
+    only bleeds past its outlines the model's outline lies on the colour's already, and any move takes it off."""
+    from apose_studio.geometry.sensor import outline_shift_ratio
+
+    rgb, _ = block_scene()
+    block = np.zeros(rgb.shape[:2], bool)
+    block[80:160, 100:220] = True
+    outline = block & ~(cv2.erode(block.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0)
+    off = np.roll(outline, (-1, 2), axis=(0, 1))  # the pose's outline 2 px right and 1 px up
+    assert outline_shift_ratio(rgb, off, 2, -1) < 0.5
+    assert all(outline_shift_ratio(rgb, outline, du, dv) > 1.0 for du, dv in [(2, -1), (2, -2), (1, -3), (-2, 0)])
+    assert outline_shift_ratio(rgb, np.zeros_like(outline), 2, -1) == 1.0  # nothing to compare

@@ -377,8 +377,8 @@ def test_a_shift_the_edges_suggest_before_any_pose_is_estimated_once_and_checked
     shift: it is not taken, and the depth is moved by the shift the check finds."""
     import apose_studio.estimation as estimation
 
-    frame = rendered_frame(DESK, 3, 0, **REAL_DESK)
-    du, dv = true_shift(frame.depth, rendered_frame(DESK, 3, 0, **{**REAL_DESK, "misregistration_px": 0.0}).depth)
+    frame = rendered_frame(DESK, 3, 4, **REAL_DESK)
+    du, dv = true_shift(frame.depth, rendered_frame(DESK, 3, 4, **{**REAL_DESK, "misregistration_px": 0.0}).depth)
     asm = load_assembly(DESK)
     ctx = StepContext(asm, load_parts(asm), 3)
     box = prompt_box(frame.base_mask())
@@ -402,7 +402,8 @@ def test_a_shift_the_edges_suggest_before_any_pose_is_estimated_once_and_checked
     wrong = (-r.depth_moved_px[0], -r.depth_moved_px[1])
     suggest = estimation.edges_suggest_shift
     monkeypatch.setattr(estimation, "edges_suggest_shift",  # on the depth as it lay: the wrong shift
-                        lambda view: (wrong, suggest(view)[1]) if view.depth is frame.depth else suggest(view))
+                        lambda view, bleed=True: (wrong, suggest(view)[1]) if bleed and view.depth is frame.depth
+                        else suggest(view, bleed=bleed))
     depths.clear()
     told_wrong = estimate_frame(frame, ctx, resolve_params("default"), mask=mask, box=box)
     assert depths[0] == wrong and (0, 0) in depths, depths  # tried first, then the depth as it lay
