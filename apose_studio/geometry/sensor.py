@@ -118,17 +118,31 @@ def depth_colour_shift(rgb: np.ndarray, depth: np.ndarray, box: tuple[int, int, 
     (shift_evidence, gated by SHIFT_MIN_PX and SHIFT_GAIN): the edges compared as a shift alone must find it, and
     compared allowing a bleed of the depth's outlines too, to within a pixel each way (that one's shift is returned:
     a bleed explains a pixel of the alone's); a shift the bleed explains away is none, and a bleed never suggests a
-    shift the edges alone do not."""
-    def gated(best: tuple[int, int], ratio: float) -> bool:
-        return max(abs(best[0]), abs(best[1])) >= SHIFT_MIN_PX and ratio < SHIFT_GAIN
+    shift the edges alone do not (shift_looks)."""
+    def gated(du: int, dv: int, ratio: float) -> bool:
+        return max(abs(du), abs(dv)) >= SHIFT_MIN_PX and ratio < SHIFT_GAIN
 
-    alone, ratio = shift_evidence(rgb, depth, box, bleed=False)
-    if not gated(alone, ratio):
-        return 0, 0
-    best, ratio = shift_evidence(rgb, depth, box)
-    if not gated(best, ratio) or max(abs(best[0] - alone[0]), abs(best[1] - alone[1])) > 1:
-        return 0, 0
-    return best
+    confirmed = shift_looks(rgb, depth, box, None, gated)[1]
+    return (0, 0) if confirmed is None else confirmed[0]
+
+
+Shift = tuple[tuple[int, int], float]  # ((du, dv), ratio): a shift of the depth against the colour, as shift_evidence
+
+
+def shift_looks(rgb: np.ndarray, depth: np.ndarray, box, explained: np.ndarray | None,
+                gate) -> tuple[Shift | None, Shift | None]:
+    """(alone, confirmed): the shift the edges compared as a shift alone find, when `gate(du, dv, ratio)` passes it;
+    and that shift as the comparison allowing a bleed too (shift_and_bleed) confirms it: passed by the gate and
+    within a pixel of the alone's each way (its shift, exact where the alone's is a pixel off toward the bleed).
+    Either None where there is none. Both comparisons read the same edges, prepared once (EdgeComparison); the one
+    beside a bleed is made only where the alone's passes."""
+    comparison = EdgeComparison(rgb, depth, box, explained)
+    (du, dv), _, ratio = comparison.search(0)
+    if not gate(du, dv, ratio):
+        return None, None
+    (bu, bv), _, b_ratio = comparison.search()
+    confirmed = ((bu, bv), b_ratio) if gate(bu, bv, b_ratio) and max(abs(bu - du), abs(bv - dv)) <= 1 else None
+    return ((du, dv), ratio), confirmed
 
 
 def shift_evidence(rgb: np.ndarray, depth: np.ndarray, box: tuple[int, int, int, int] | None = None,
@@ -163,64 +177,93 @@ def shift_and_bleed(rgb: np.ndarray, depth: np.ndarray, box: tuple[int, int, int
     "shift" of 2-3 px and moved its depth by it (benchmarks/captures.py's `bleed` row: four confident poses 2-5 mm
     off). Where only the outline's ways bleed and shift cannot tell apart, the shorter shift wins (ties: the
     shortest shift, then the least bleed). Used to confirm a shift the edges alone show, never to suggest one
-    (depth_colour_shift, estimation.clear_shift_found): joined with a shift, a bleed can explain edges neither
+    (depth_colour_shift, estimation.edge_look): joined with a shift, a bleed can explain edges neither
     explains alone. `ratio`: the best shift's mean distance over the best with no shift.
     `bleed_max`: the most bleed tried (default BLEED_MAX_PX; 0: a shift alone, as shift_evidence(bleed=False))."""
-    bleed_max = BLEED_MAX_PX if bleed_max is None else bleed_max
-    if rgb is None or rgb.ndim != 3:
-        return (0, 0), 0, 1.0
-    h, w = depth.shape
-    if box is None:
-        edges, sxs, sys_ = occluding_edges_toward(depth)
-        vs, us = np.nonzero(edges)
-        sx, sy = sxs[vs, us], sys_[vs, us]
-    else:
-        x0, y0, x1, y1 = (int(v) for v in box)
-        m = WINDOW_MARGIN_PX
-        cx0, cy0, cx1, cy1 = max(x0 - m - 4, 0), max(y0 - m - 4, 0), min(x1 + m + 4, w), min(y1 + m + 4, h)
-        if cx1 <= cx0 or cy1 <= cy0:
-            return (0, 0), 0, 1.0
-        edges, sxs, sys_ = occluding_edges_toward(depth[cy0:cy1, cx0:cx1])
-        edges &= box_region(edges.shape, (x0 - cx0, y0 - cy0, x1 - cx0, y1 - cy0), m)
-        vs, us = np.nonzero(edges)
-        sx, sy = sxs[vs, us], sys_[vs, us]
-        vs, us = vs + cy0, us + cx0
-    if len(us) < SHIFT_MIN_EDGES:
-        return (0, 0), 0, 1.0
-    if len(us) > MAX_EDGE_PX:
-        step = -(-len(us) // MAX_EDGE_PX)
-        vs, us, sx, sy = vs[::step], us[::step], sx[::step], sy[::step]
-    r = SHIFT_MAX_PX + bleed_max  # how far any shift and bleed together may move an edge
-    # the colour's edges in the edges' box, COLOUR_PAD_PX wider (the filters and the distance transform then
-    # read the same there as over the whole image, but where Canny's hysteresis follows an edge from afar)
-    p = COLOUR_PAD_PX
-    cx0, cy0 = max(int(us.min()) - p, 0), max(int(vs.min()) - p, 0)
-    cx1, cy1 = min(int(us.max()) + p + 1, w), min(int(vs.max()) + p + 1, h)
-    dist = colour_edge_distance(rgb[cy0:cy1, cx0:cx1], None if explained is None else explained[cy0:cy1, cx0:cx1])
-    us, vs, w, h = us - cx0, vs - cy0, cx1 - cx0, cy1 - cy0
-    clear = us.min() >= r and vs.min() >= r and us.max() < w - r and vs.max() < h - r  # no move leaves the crop
-    flat, at = dist.ravel(), vs * w + us
-    sx, sy = sx.astype(np.int64), sy.astype(np.int64)
+    return EdgeComparison(rgb, depth, box, explained).search(bleed_max)
 
-    def mean_distance(du: int, dv: int, k: int) -> float:  # some moves leave the crop: only the edges inside count
-        u, v = us - du - k * sx, vs - dv - k * sy
-        inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        return float(dist[v[inside], u[inside]].mean()) if inside.any() else EDGE_DIST_CAP_PX
 
-    s_max = SHIFT_MAX_PX
-    shifts = [(du, dv) for dv in range(-s_max, s_max + 1) for du in range(-s_max, s_max + 1)]
-    scores: dict[tuple[int, int, int], float] = {}
-    for k in range(bleed_max + 1):
-        if clear:  # every shift in one gather: row j holds the distances under the edges moved by shifts[j] and k
-            moved = at - k * (sy * w + sx)
-            means = flat[moved[None, :] - np.array([dv * w + du for du, dv in shifts])[:, None]].mean(axis=1)
-            scores.update({(du, dv, k): float(m) for (du, dv), m in zip(shifts, means)})
+class EdgeComparison:
+    """shift_and_bleed's inputs, prepared once for several searches (a shift alone, then beside a bleed:
+    shift_looks): the depth's occluding edges in the window (their pixels and which way each one's far side lies) and
+    the colour image's edge distances round them. The searches' scores are kept per bleed, so a second search
+    repeats none of the first's work; each search returns what shift_and_bleed alone returns, to the bit."""
+
+    def __init__(self, rgb: np.ndarray, depth: np.ndarray, box: tuple[int, int, int, int] | None = None,
+                 explained: np.ndarray | None = None):
+        self.ready = False
+        self._scores: dict[tuple[int, bool], dict[tuple[int, int], float]] = {}
+        if rgb is None or rgb.ndim != 3:
+            return
+        h, w = depth.shape
+        if box is None:
+            edges, sxs, sys_ = occluding_edges_toward(depth)
+            vs, us = np.nonzero(edges)
+            sx, sy = sxs[vs, us], sys_[vs, us]
         else:
-            scores.update({(du, dv, k): mean_distance(du, dv, k) for du, dv in shifts})
-    # ties: the shortest shift, then the least bleed, then a fixed order
-    best = min(scores, key=lambda t: (scores[t], abs(t[0]) + abs(t[1]), t[2], t))
-    unshifted = min(scores[(0, 0, k)] for k in range(bleed_max + 1))
-    return (best[0], best[1]), best[2], scores[best] / max(unshifted, 1e-9)
+            x0, y0, x1, y1 = (int(v) for v in box)
+            m = WINDOW_MARGIN_PX
+            cx0, cy0, cx1, cy1 = max(x0 - m - 4, 0), max(y0 - m - 4, 0), min(x1 + m + 4, w), min(y1 + m + 4, h)
+            if cx1 <= cx0 or cy1 <= cy0:
+                return
+            edges, sxs, sys_ = occluding_edges_toward(depth[cy0:cy1, cx0:cx1])
+            edges &= box_region(edges.shape, (x0 - cx0, y0 - cy0, x1 - cx0, y1 - cy0), m)
+            vs, us = np.nonzero(edges)
+            sx, sy = sxs[vs, us], sys_[vs, us]
+            vs, us = vs + cy0, us + cx0
+        if len(us) < SHIFT_MIN_EDGES:
+            return
+        if len(us) > MAX_EDGE_PX:
+            step = -(-len(us) // MAX_EDGE_PX)
+            vs, us, sx, sy = vs[::step], us[::step], sx[::step], sy[::step]
+        # the colour's edges in the edges' box, COLOUR_PAD_PX wider (the filters and the distance transform then
+        # read the same there as over the whole image, but where Canny's hysteresis follows an edge from afar)
+        p = COLOUR_PAD_PX
+        cx0, cy0 = max(int(us.min()) - p, 0), max(int(vs.min()) - p, 0)
+        cx1, cy1 = min(int(us.max()) + p + 1, w), min(int(vs.max()) + p + 1, h)
+        self.dist = colour_edge_distance(rgb[cy0:cy1, cx0:cx1],
+                                         None if explained is None else explained[cy0:cy1, cx0:cx1])
+        self.us, self.vs, self.w, self.h = us - cx0, vs - cy0, cx1 - cx0, cy1 - cy0
+        self.sx, self.sy = sx.astype(np.int64), sy.astype(np.int64)
+        self.flat, self.at = self.dist.ravel(), self.vs * self.w + self.us
+        self.ready = True
+
+    def _clear(self, r: int) -> bool:
+        """No move of up to r pixels takes an edge out of the colour's crop."""
+        return bool(self.us.min() >= r and self.vs.min() >= r and self.us.max() < self.w - r and self.vs.max() < self.h - r)
+
+    def _scored(self, k: int, clear: bool) -> dict[tuple[int, int], float]:
+        """The mean capped distance of the edges moved by every shift and a bleed of k pixels."""
+        key = (k, clear)
+        if key in self._scores:
+            return self._scores[key]
+        us, vs, sx, sy, w, h, dist = self.us, self.vs, self.sx, self.sy, self.w, self.h, self.dist
+        s_max = SHIFT_MAX_PX
+        shifts = [(du, dv) for dv in range(-s_max, s_max + 1) for du in range(-s_max, s_max + 1)]
+        if clear:  # every shift in one gather: row j holds the distances under the edges moved by shifts[j] and k
+            moved = self.at - k * (sy * w + sx)
+            means = self.flat[moved[None, :] - np.array([dv * w + du for du, dv in shifts])[:, None]].mean(axis=1)
+            out = {(du, dv): float(m) for (du, dv), m in zip(shifts, means)}
+        else:  # some moves leave the crop: only the edges inside count
+            out = {}
+            for du, dv in shifts:
+                u, v = us - du - k * sx, vs - dv - k * sy
+                inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+                out[(du, dv)] = float(dist[v[inside], u[inside]].mean()) if inside.any() else EDGE_DIST_CAP_PX
+        self._scores[key] = out
+        return out
+
+    def search(self, bleed_max: int | None = None) -> tuple[tuple[int, int], int, float]:
+        """shift_and_bleed's answer: ((du, dv), bleed, ratio) for bleeds up to `bleed_max` (default BLEED_MAX_PX)."""
+        bleed_max = BLEED_MAX_PX if bleed_max is None else bleed_max
+        if not self.ready:
+            return (0, 0), 0, 1.0
+        clear = self._clear(SHIFT_MAX_PX + bleed_max)  # how far any shift and bleed together may move an edge
+        scores = {(du, dv, k): m for k in range(bleed_max + 1) for (du, dv), m in self._scored(k, clear).items()}
+        # ties: the shortest shift, then the least bleed, then a fixed order
+        best = min(scores, key=lambda t: (scores[t], abs(t[0]) + abs(t[1]), t[2], t))
+        unshifted = min(scores[(0, 0, k)] for k in range(bleed_max + 1))
+        return (best[0], best[1]), best[2], scores[best] / max(unshifted, 1e-9)
 
 
 def outline_shift_ratio(rgb: np.ndarray, outline: np.ndarray, du: int, dv: int,

@@ -37,7 +37,7 @@ import cv2
 import numpy as np
 
 from apose_studio.geometry import se3
-from apose_studio.geometry.camera import box_region
+from apose_studio.geometry.camera import box_region, valid_mask_pixels
 from apose_studio.geometry.noise import depth_edges
 from apose_studio.registration.base import BaseObject, raycast_source
 from apose_studio.registration.scoring import MASK_MARGIN_PX, agreement_tolerance, depth_window, mask_edge
@@ -186,7 +186,7 @@ def too_high(view: View, base: BaseObject, table: tuple[np.ndarray, float], tol:
     """(H, W) bool: masked pixels whose depth lies higher above the table than the base reaches standing
     on it as modelled (its CAD z extent), by more than `tol`."""
     mask, depth, cam = view.mask, view.depth, view.camera
-    vs, us = np.nonzero(mask & np.isfinite(depth) & (depth > 0))
+    vs, us = valid_mask_pixels(mask, depth)
     pts = se3.transform_points(view.T_world_camera, cam.backproject(us, vs, depth[vs, us]))
     normal, offset = table
     lo, hi = np.asarray(base.mesh.bounds)

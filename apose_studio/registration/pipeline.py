@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 
 from apose_studio.geometry import se3
-from apose_studio.geometry.camera import box_region
+from apose_studio.geometry.camera import box_region, mask_pixels
 from apose_studio.geometry.nn import NearestTree
 from apose_studio.geometry.noise import estimate_depth_noise
 from apose_studio.geometry.raycast import raycast_depth
@@ -356,7 +356,7 @@ def like_nearest_depth(depth: np.ndarray, which: np.ndarray, where: np.ndarray) 
     surface, and in the shadow beside what stands in front of it, which do not (their nearest depth is that
     object's)."""
     out = np.zeros(depth.shape, bool)
-    vs, us = np.nonzero(where)
+    vs, us = mask_pixels(where)
     if len(vs) == 0:
         return out
     m = HOLE_SEARCH_PX

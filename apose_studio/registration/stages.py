@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 
 from apose_studio.errors import AposeError
 from apose_studio.geometry import se3
-from apose_studio.geometry.camera import CameraIntrinsics
+from apose_studio.geometry.camera import CameraIntrinsics, valid_mask_pixels
 from apose_studio.geometry.metrics import fitness_rmse
 from apose_studio.params import Params
 from apose_studio.registration.solvers import icp_point_to_plane, icp_point_to_plane_many
@@ -24,7 +24,7 @@ def project_to_cloud(depth: np.ndarray, mask: np.ndarray, cam: CameraIntrinsics,
     """PROJ3D: masked depth pixels (metres; 0, NaN and inf ignored) back-projected to world points (N, 3)."""
     if depth.shape != mask.shape:
         raise AposeError(f"mask is {mask.shape[1]}x{mask.shape[0]} but depth is {depth.shape[1]}x{depth.shape[0]}")
-    vs, us = np.nonzero(mask & np.isfinite(depth) & (depth > 0))
+    vs, us = valid_mask_pixels(mask, depth)
     return se3.transform_points(T_world_camera, cam.backproject(us, vs, depth[vs, us]))
 
 

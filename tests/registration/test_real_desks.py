@@ -401,9 +401,13 @@ def test_a_shift_the_edges_suggest_before_any_pose_is_estimated_once_and_checked
 
     wrong = (-r.depth_moved_px[0], -r.depth_moved_px[1])
     suggest = estimation.edges_suggest_shift
-    monkeypatch.setattr(estimation, "edges_suggest_shift",  # on the depth as it lay: the wrong shift
-                        lambda view, bleed=True: (wrong, suggest(view)[1]) if bleed and view.depth is frame.depth
-                        else suggest(view, bleed=bleed))
+
+    def wrongly(view):  # on the depth as it lay: the wrong shift, alone and confirmed
+        look = suggest(view)
+        return estimation.EdgeLook((wrong, look.confirmed[1]), (wrong, look.confirmed[1])) \
+            if view.depth is frame.depth else look
+
+    monkeypatch.setattr(estimation, "edges_suggest_shift", wrongly)
     depths.clear()
     told_wrong = estimate_frame(frame, ctx, resolve_params("default"), mask=mask, box=box)
     assert depths[0] == wrong and (0, 0) in depths, depths  # tried first, then the depth as it lay
