@@ -39,7 +39,15 @@ from apose_studio.registration.calibration import scale_checked
 from apose_studio.registration.fusion import estimate_views
 from apose_studio.registration.next_view import next_view
 from apose_studio.registration.table import table_plane
-from apose_studio.registration.track import TABLE_TOLERANCES, final_distance, predict, table_now, track
+from apose_studio.registration.track import (
+    HIDDEN_TOLERANCES,
+    TABLE_TOLERANCES,
+    final_distance,
+    hidden_points,
+    predict,
+    table_now,
+    track,
+)
 from apose_studio.registration.types import CONFIDENT_PART_SPREAD, View
 
 BOX_MARGIN = 0.04  # the `box` source: the ground truth's visible box, this much wider on each side
@@ -955,13 +963,15 @@ class Tracker:
     depth_shift: tuple[int, int] = (0, 0)  # how far (right, down) the camera's depth lies off its colour image, as the
     # detection tracking started from found it (RegistrationResult.depth_moved_px): a sensor's registration does
     # not change between frames, so the tracked frames' depth is moved back by as much
+    hidden: np.ndarray | None = None  # the last confident result's source points (base frame) that something stood over
+    # in its frame (registration.track.hidden_points): the next frame registers none of the depth where they fall
 
     def step(self, frame: Frame) -> TrackStep:
         t0 = time.perf_counter()
         why, tried = "", self.last is not None
         start = self.expected(frame.im_id) if tried else None
         if tried:
-            pred = predict(start, frame.T_world_camera, frame.camera)
+            pred = predict(start, frame.T_world_camera, frame.camera, self.hidden)
             depth = self._depth(frame)
             self.plane = table_now(self.plane, depth, frame.camera, frame.T_world_camera, pred, self.ctx.base,
                                    TABLE_TOLERANCES * final_distance(self.params, self.ctx.base, start))
@@ -969,22 +979,22 @@ class Tracker:
                                    self.ctx.view.T_base_part, self.params, start, self.plane, pred), self.ctx.part)
             r = replace(r, depth_moved_px=self.depth_shift)
             if r.confident:
-                return self._done(TrackStep(frame.im_id, r, "tracked", time.perf_counter() - t0), r)
+                return self._done(TrackStep(frame.im_id, r, "tracked", time.perf_counter() - t0), r, frame)
             why = r.reason if not r.ok else doubts(r)
         box = last_seen_box(start, frame) if tried else None
         r = self.detect(frame, box)
         if r.confident:
             self.plane, self.pending = getattr(r.problem, "table", None), None
             return self._done(TrackStep(frame.im_id, r, "re-detected" if tried else "detected",
-                                        time.perf_counter() - t0, why), r)
-        self.last = None
+                                        time.perf_counter() - t0, why), r, frame)
+        self.last, self.hidden = None, None
         self.seen.clear()
         if self.pending is not None and r.ok and r.model_mask is not None and near_view(frame.T_world_camera,
                                                                                         *self.pending[1:]):
             fused = estimate_frames([self.pending[0], View.of(frame, r.model_mask)], self.ctx, self.params)
             if fused.confident:
                 self.pending, self.plane = None, getattr(r.problem, "table", None)
-                return self._done(TrackStep(frame.im_id, fused, "fused", time.perf_counter() - t0, why), fused)
+                return self._done(TrackStep(frame.im_id, fused, "fused", time.perf_counter() - t0, why), fused, frame)
         if self.pending is None and r.ok and r.ambiguous and r.model_mask is not None:
             advice = next_view(r, self.ctx.base, [frame.T_world_camera], frame.camera)
             if advice is not None:
@@ -999,6 +1009,7 @@ class Tracker:
         mask = result.model_mask if result.model_mask is not None else np.zeros(frame.depth.shape, bool)
         self.last, self.pending, self.depth_shift = result, None, result.depth_moved_px
         self.seen = [(frame.im_id, result.T_world_base)]
+        self.hidden = self._hidden(result, frame)
         self.plane = table_plane(self._depth(frame), mask, frame.camera, frame.T_world_camera, base_size=self.ctx.base.diameter)
 
     def _depth(self, frame: Frame) -> np.ndarray:
@@ -1017,12 +1028,19 @@ class Tracker:
         step = se3.scale_motion(se3.inv(T0) @ T1, (im_id - i1) / (i1 - i0))
         return replace(self.last, T_world_base=T1 @ step)
 
-    def _done(self, s: TrackStep, confident: RegistrationResult | None = None) -> TrackStep:
+    def _hidden(self, result: RegistrationResult, frame: Frame) -> np.ndarray:
+        """hidden_points of `result` in `frame` (its depth moved back by depth_shift), at the tracker's final
+        distance (HIDDEN_TOLERANCES)."""
+        tol = HIDDEN_TOLERANCES * final_distance(self.params, self.ctx.base, result)
+        return hidden_points(result, self._depth(frame), frame.camera, frame.T_world_camera, tol)
+
+    def _done(self, s: TrackStep, confident: RegistrationResult | None = None, frame: Frame | None = None) -> TrackStep:
         if confident is not None:
             if not confident.tracked:  # an estimate: the depth's shift it found (or none) holds from here on
                 self.depth_shift = confident.depth_moved_px
             self.last = confident
             self.seen = [*self.seen[-1:], (s.im_id, confident.T_world_base)]
+            self.hidden = None if frame is None else self._hidden(confident, frame)
         self.steps.append(s)
         return s
 

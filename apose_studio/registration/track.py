@@ -32,7 +32,7 @@ from apose_studio.geometry.sensor import nearest_within
 from apose_studio.params import Params
 from apose_studio.registration.base import BaseObject, raycast_source
 from apose_studio.registration.pipeline import judged
-from apose_studio.registration.scoring import NOISE_SIGMAS, agreement_tolerance, depth_window, pixel_box
+from apose_studio.registration.scoring import NOISE_SIGMAS, agreement_tolerance, depth_window, pixel_box, pixels
 from apose_studio.registration.solvers import icp_point_to_plane
 from apose_studio.registration.stages import down_sample
 from apose_studio.registration.table import table_plane
@@ -74,23 +74,69 @@ def half_resolution(depth: np.ndarray, cam: CameraIntrinsics) -> tuple[np.ndarra
 class Prediction:
     """Where the base should be in the new frame: T_world_base, the depth its surface would show in the
     pixel window that holds it (inf where it shows none), and that window (v0, v1, u0, u1), or None when
-    it is out of the image."""
+    it is out of the image. `hidden`: the window's pixels where something stood over the base in the frame the
+    pose came from (hidden_window), or None when not known."""
 
     T_world_base: np.ndarray
     zbuf: np.ndarray  # (v1 - v0, u1 - u0): the window's pixels
     window: tuple[int, int, int, int] | None
+    hidden: np.ndarray | None = None
 
 
-def predict(last: RegistrationResult, T_world_camera: np.ndarray, cam: CameraIntrinsics) -> Prediction:
+def predict(last: RegistrationResult, T_world_camera: np.ndarray, cam: CameraIntrinsics,
+            hidden: np.ndarray | None = None) -> Prediction:
     """The base at the last pose seen from the new camera: what the camera saw of it then (the last
     result's source cloud, one point per pixel), splatted into the new image, its gaps closed (the
-    window's depth, `Prediction.zbuf`)."""
+    window's depth, `Prediction.zbuf`). `hidden`: the source's points (base frame) that something stood over in
+    the last frame (hidden_points), splatted alike into the same window (`Prediction.hidden`)."""
     seen = se3.transform_points(last.T_world_base, last.source_cloud)
     zbuf, window = depth_window(seen, T_world_camera, cam, 1)
     if window is None or min(zbuf.shape) < 3:
         return Prediction(last.T_world_base, zbuf.astype(np.float32), None)
     zbuf = nearest_within(zbuf, 1)  # the nearest of each 3x3: the splat's gaps closed
-    return Prediction(last.T_world_base, zbuf, window)
+    covered = None
+    if hidden is not None and len(hidden):
+        covered = hidden_window(se3.transform_points(last.T_world_base, hidden), T_world_camera, cam, window)
+    return Prediction(last.T_world_base, zbuf, window, covered)
+
+
+def hidden_window(points_world: np.ndarray, T_world_camera: np.ndarray, cam: CameraIntrinsics,
+                  window: tuple[int, int, int, int]) -> np.ndarray:
+    """(v1 - v0, u1 - u0) bool: the window's pixels the points fall in, their gaps closed (3 x 3), specks narrower
+    than HIDDEN_MIN_PX dropped (a morphological opening) and the rest a pixel wider (the mixed pixels along the
+    edge of what stood there). A few scattered points that Kinect-like noise put behind the depth are no object;
+    each, cut from the region with the tracker's inward margin round it, had taken away 50 pixels of the base."""
+    v0, v1, u0, u1 = window
+    v, u, z, inside = pixels(points_world, T_world_camera, cam)
+    inside &= (v >= v0) & (v < v1) & (u >= u0) & (u < u1) & (z > 0)
+    splat = np.zeros((v1 - v0, u1 - u0), np.uint8)
+    splat[v[inside] - v0, u[inside] - u0] = 1
+    closed = cv2.dilate(splat, np.ones((3, 3), np.uint8))
+    k = np.ones((HIDDEN_MIN_PX + 2,) * 2, np.uint8)  # + 2: the closing's pixel each side
+    return cv2.dilate(cv2.erode(closed, k), k) > 0
+
+
+HIDDEN_MIN_PX = 3  # hidden_window: a region of hidden points narrower than this many pixels is taken for noise
+HIDDEN_TOLERANCES = 2.0  # hidden_points: a point whose pixel's depth lies more than this many of the tracker's
+# final distances (final_distance) in front of it is hidden
+
+
+def hidden_points(result: RegistrationResult, depth: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray,
+                  tol: float) -> np.ndarray:
+    """The result's source points (base frame: what the camera sees of the model at its pose) that something nearer
+    hides in this frame: those whose pixel's depth lies more than `tol` in front of them. A flat object lying on the
+    base, or one standing in front, stands over the points it hides; tracked from them, its depth lies within the
+    tracker's reach of the base's predicted surface and was registered as the base's (a desk object under a flat
+    one 14-21 mm above its top: the next frame's pose pulled 22-29 mm up, and the base detected anew on every frame
+    of a camera holding still). The next frame's region leaves out where they fall (hidden_window)."""
+    pts = result.source_cloud
+    if len(pts) == 0:
+        return pts
+    v, u, z, inside = pixels(se3.transform_points(result.T_world_base, pts), T_world_camera, cam)
+    d = depth[v, u]
+    with np.errstate(invalid="ignore"):
+        hidden = inside & np.isfinite(d) & (d > 0) & (d < z - tol)
+    return pts[hidden]
 
 
 def region_points(depth: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.ndarray, pred: Prediction,
@@ -104,6 +150,8 @@ def region_points(depth: np.ndarray, cam: CameraIntrinsics, T_world_camera: np.n
     v0, v1, u0, u1 = pred.window
     z = pred.zbuf
     inside = cv2.erode(np.isfinite(z).astype(np.uint8), np.ones((2 * shrink + 1,) * 2, np.uint8)) > 0
+    if pred.hidden is not None:  # not where something stood over the base in the last frame
+        inside &= ~pred.hidden
     d = depth[v0:v1, u0:u1]
     with np.errstate(invalid="ignore"):
         ok = inside & np.isfinite(d) & (d > 0) & (np.abs(d - z) < motion)

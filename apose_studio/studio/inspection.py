@@ -297,7 +297,9 @@ def metrics_markdown(score, result: RegistrationResult | None, refusal: str | No
                      "moved back, and the pose estimated on it"))
     if result.ok and result.colour_offset > 0:  # estimation.colour_checked found the depth's edges off the colour's
         du, dv = result.colour_offset_px
-        rows.append(("depth vs colour", f"edges {du:+d}, {dv:+d} px apart (right, down): up to "
+        bleed = (", or the depth's outlines bleed past the colour's by as much (the edges cannot tell which: the depth "
+                 "was not moved)") if result.colour_offset_bleed else ""
+        rows.append(("depth vs colour", f"edges {du:+d}, {dv:+d} px apart (right, down){bleed}: up to "
                      f"{result.colour_offset * 1000:.1f} mm off; tick Align depth to colour if the depth is registered off"))
     flags = []
     if result.ambiguous:

@@ -95,6 +95,11 @@ def test_the_metrics_panel_says_when_the_depth_lies_off_the_colour_image():
     assert "depth vs colour" not in inspection.metrics_markdown(None, r)
     text = inspection.metrics_markdown(None, replace(r, colour_offset=0.0042, colour_offset_px=(3, -2)))
     assert "| depth vs colour | edges +3, -2 px apart (right, down): up to 4.2 mm off; tick Align depth to colour" in text
+    assert "bleed" not in text
+    text = inspection.metrics_markdown(None, replace(r, colour_offset=0.0042, colour_offset_px=(3, -2),
+                                                     colour_offset_bleed=True))  # a bleed explains the edges as well
+    assert ("| depth vs colour | edges +3, -2 px apart (right, down), or the depth's outlines bleed past the colour's by "
+            "as much (the edges cannot tell which: the depth was not moved): up to 4.2 mm off") in text
     text = inspection.metrics_markdown(None, replace(r, depth_moved_px=(-2, 3)))  # estimation.estimate_view moved it
     assert "| depth vs colour | the depth's edges lay -2, +3 px (right, down) off the colour image's: moved back" in text
 
