@@ -1,10 +1,11 @@
 #!/usr/bin/env python3
 """Tracking against per-frame estimation on the same rendered trajectories (issue #30, item 3).
 
-    .venv/bin/python benchmarks/track.py [--frames 60] [--data artifacts/track] [--noise kinect]
+    .venv/bin/python benchmarks/track.py [--frames 60] [--data artifacts/track] [--noise kinect] [--clutter bench]
 
 Renders (once, kept in --data) a camera approaching each sample assembly's steps over a cluttered bench
-(`apose render --trajectory approach --clutter bench`, Kinect-like depth unless --noise says otherwise),
+(`apose render --trajectory approach --clutter bench`, Kinect-like depth unless --noise says otherwise; `--clutter
+bench,stacked`: a flat object lying on the base too, what a tracker must not take for the base's top),
 then runs every frame twice, frame by frame in turn so that the machine's drift in speed falls on both
 alike: (a) estimated on its own with a box prompt (the renderer's visible box, 4 % wider: what a user or a
 detector gives; `--mask box` of `apose eval`) and (b) with the ground truth's mask (an oracle no camera has),
@@ -45,11 +46,12 @@ SAMPLES = ("helical_gearbox", "planetary_reducer", "step_bracket")
 
 
 def rendered(name: str, args) -> Dataset:
-    out = Path(args.data) / f"{name}_{args.noise}_{args.frames}"
+    clutter = tuple(c for c in args.clutter.split(",") if c)
+    out = Path(args.data) / f"{name}_{args.noise}_{args.frames}{''.join('_' + c for c in clutter if c != 'bench')}"
     if not (out / "dataset_info.json").is_file():
         asm = load_assembly(REPO / "sample_assemblies" / name / "assembly.yaml")
         render_dataset(asm, out, RenderSettings(frames=args.frames, trajectory="approach", noise=args.noise,
-                                                clutter=("bench",), seed=11), overwrite=True, progress=False)
+                                                clutter=clutter, seed=11), overwrite=True, progress=False)
     return Dataset(out)
 
 
@@ -96,6 +98,7 @@ def main() -> int:
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--data", default=str(REPO / "artifacts" / "track"))
     ap.add_argument("--noise", default="kinect")
+    ap.add_argument("--clutter", default="bench", help="apose render's --clutter kinds, e.g. bench,stacked")
     args = ap.parse_args()
     print(f"{'assembly':<18} {'step':>4} {'n':>3} | per-frame box: right c&w med ms | gt mask: right c&w | tracker: trk "
           f"lost re-det right c&w  med ms  p95 ms | median err mm on tracked frames: box / gt / tracked")

@@ -132,10 +132,18 @@ def hidden_points(result: RegistrationResult, depth: np.ndarray, cam: CameraIntr
     pts = result.source_cloud
     if len(pts) == 0:
         return pts
-    v, u, z, inside = pixels(se3.transform_points(result.T_world_base, pts), T_world_camera, cam)
+    world = se3.transform_points(result.T_world_base, pts)
+    v, u, z, inside = pixels(world, T_world_camera, cam)
+    inside &= z > 0
+    own, window = depth_window(world, T_world_camera, cam, 0)  # the model's own nearest surface per pixel
+    if window is None:
+        return pts[:0]
+    front = np.zeros(len(pts), bool)  # a point the model itself hides from this camera (a fused result's source holds
+    # what another camera saw) is not hidden by anything else
+    front[inside] = z[inside] <= own[v[inside] - window[0], u[inside] - window[2]] + tol
     d = depth[v, u]
     with np.errstate(invalid="ignore"):
-        hidden = inside & np.isfinite(d) & (d > 0) & (d < z - tol)
+        hidden = front & np.isfinite(d) & (d > 0) & (d < z - tol)
     return pts[hidden]
 
 

@@ -243,3 +243,35 @@ def test_a_base_filling_the_view_is_judged_at_half_resolution_with_the_same_pose
     iou = (half.model_mask & full.model_mask).sum() / (half.model_mask | full.model_mask).sum()
     assert iou > 0.75, iou  # the casing's thin walls: pixels of Kinect-like depth agree or not one by one
     assert len(half.source_cloud) < 0.4 * len(full.source_cloud)  # judged on a quarter of the pixels
+
+
+def test_hidden_points_are_those_something_stands_over_not_those_the_model_hides_itself():
+    """registration.track.hidden_points on a 10 cm cube 0.5 m in front of the camera: with a plate 2 cm above its
+    left half, the points under the plate; none where the depth is the cube's own (noise within the tolerance);
+    and the far faces of a source that another camera saw (a fused result's) are not taken for hidden behind the
+    cube's own front face."""
+    import trimesh
+
+    from apose_studio.geometry.camera import CameraIntrinsics
+    from apose_studio.geometry.raycast import raycast_depth, raycast_points
+    from apose_studio.registration.track import hidden_points
+    from apose_studio.registration.types import RegistrationResult
+
+    cam = CameraIntrinsics(160, 120, 150.0, 150.0, 80.0, 60.0)
+    cube = trimesh.creation.box((0.1, 0.1, 0.1))
+    T_world_base = np.eye(4)
+    T_world_base[:3, 3] = (0.0, 0.0, 0.5)
+    seen, _ = raycast_points(cube, T_world_base, np.eye(4), cam)
+    depth = raycast_depth(cube, T_world_base, np.eye(4), cam).astype(np.float32)
+    depth[~np.isfinite(depth)] = 0
+    result = RegistrationResult(ok=True, T_world_base=T_world_base, source_cloud=seen - T_world_base[:3, 3])
+    rng = np.random.default_rng(0)
+    noisy = np.where(depth > 0, depth + rng.normal(0, 0.001, depth.shape).astype(np.float32), 0)
+    assert len(hidden_points(result, noisy, cam, np.eye(4), 0.005)) == 0
+    plate = depth.copy()
+    plate[:, :80][plate[:, :80] > 0] -= 0.02  # something 2 cm nearer over the cube's left half
+    hidden = hidden_points(result, plate, cam, np.eye(4), 0.005)
+    xs = hidden[:, 0]
+    assert len(hidden) > 0.3 * len(seen) and (xs <= 0.001).all(), (len(hidden), len(seen), xs.max())
+    back = np.concatenate([result.source_cloud, result.source_cloud * np.array([1.0, 1.0, -1.0])])  # + the far face
+    assert len(hidden_points(replace(result, source_cloud=back), noisy, cam, np.eye(4), 0.005)) == 0
