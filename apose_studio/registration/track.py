@@ -117,7 +117,7 @@ def hidden_window(points_world: np.ndarray, T_world_camera: np.ndarray, cam: Cam
 
 
 HIDDEN_MIN_PX = 3  # hidden_window: a region of hidden points narrower than this many pixels is taken for noise
-HIDDEN_TOLERANCES = 2.0  # hidden_points: a point whose pixel's depth lies more than this many of the tracker's
+HIDDEN_TOLERANCES = 1.0  # hidden_points: a point whose pixel's depth lies more than this many of the tracker's
 # final distances (final_distance) in front of it is hidden
 
 
