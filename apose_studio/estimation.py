@@ -1040,7 +1040,9 @@ class Tracker:
                 self.depth_shift = confident.depth_moved_px
             self.last = confident
             self.seen = [*self.seen[-1:], (s.im_id, confident.T_world_base)]
+            t = time.perf_counter()
             self.hidden = None if frame is None else self._hidden(confident, frame)
+            s = replace(s, seconds=s.seconds + time.perf_counter() - t)  # the next frame's start is this frame's work
         self.steps.append(s)
         return s
 
