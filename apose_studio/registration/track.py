@@ -104,8 +104,9 @@ def hidden_window(points_world: np.ndarray, T_world_camera: np.ndarray, cam: Cam
                   window: tuple[int, int, int, int]) -> np.ndarray:
     """(v1 - v0, u1 - u0) bool: the window's pixels the points fall in, their gaps closed (3 x 3), specks narrower
     than HIDDEN_MIN_PX dropped (a morphological opening) and the rest a pixel wider (the mixed pixels along the
-    edge of what stood there). A few scattered points that Kinect-like noise put behind the depth are no object;
-    each, cut from the region with the tracker's inward margin round it, had taken away 50 pixels of the base."""
+    edge of what stood there). A few scattered points that Kinect-like noise put behind the depth are no object: cut
+    from the region with the tracker's inward margin round each, they let a desk object's pose wander 1.6-7.3 mm over
+    five repeats of one still frame (0.2-1.9 mm without them)."""
     v0, v1, u0, u1 = window
     v, u, z, inside = pixels(points_world, T_world_camera, cam)
     inside &= (v >= v0) & (v < v1) & (u >= u0) & (u < u1) & (z > 0)
