@@ -30,7 +30,7 @@ from apose_studio.errors import AposeError
 from apose_studio.geometry import se3
 from apose_studio.geometry.camera import CameraIntrinsics, mask_bounds
 from apose_studio.geometry.raycast import own_edges, raycast_depth, silhouette_outline
-from apose_studio.geometry.sensor import SHIFT_MIN_PX, depth_colour_shift, outline_shift_ratio, shift_image, shift_looks
+from apose_studio.geometry.sensor import SHIFT_MIN_PX, depth_colour_shift, outline_shift_ratios, shift_image, shift_looks
 from apose_studio.masks.prompt import PromptError, box_depth, prompted_mask
 from apose_studio.masks.segment import depth_mask, load_model, table_objects
 from apose_studio.registration import BaseObject, Params, RegistrationResult, doubts, estimate, failed, prepare_base
@@ -617,8 +617,8 @@ def colour_checked(result: RegistrationResult, view: View, params: Params, mesh,
         # depth that only bleeds lies on them
         du, dv = alone[0]
         outline = silhouette_outline(mesh, result.T_world_base, view.T_world_camera, view.camera)
-        told = min(outline_shift_ratio(rgb, outline, du + a, dv + b, explained) for a in (-1, 0, 1) for b in (-1, 0, 1)
-                   if (du + a, dv + b) != (0, 0))  # to within a pixel, as the edges find a shift
+        near = [(du + a, dv + b) for a in (-1, 0, 1) for b in (-1, 0, 1) if (du + a, dv + b) != (0, 0)]
+        told = min(outline_shift_ratios(rgb, outline, near, explained))  # to within a pixel, as the edges find a shift
         if told >= OUTLINE_BLEED:  # the pose's outline lies on the colour's as it is: a bleed, no shift
             alone = None
         ambiguous = not told < CLEAR_SHIFT_GAIN  # moved back it lies clearly nearer: the shift is real

@@ -275,18 +275,28 @@ def outline_shift_ratio(rgb: np.ndarray, outline: np.ndarray, du: int, dv: int,
     lies on the colour's (a ratio of 1 or more). 1.0 when there is no outline to compare. `explained`: colour edges
     left out, as in shift_evidence (the model's own creases and inner outlines: a casing's inner wall runs a wall's
     thickness inside its outer outline, where the rim is as grey as the table)."""
+    return outline_shift_ratios(rgb, outline, [(du, dv)], explained)[0]
+
+
+def outline_shift_ratios(rgb: np.ndarray, outline: np.ndarray, shifts, explained: np.ndarray | None = None) -> list[float]:
+    """outline_shift_ratio for each (du, dv) of `shifts`, the colour image's edge distances computed once (Canny and a
+    distance transform: estimation.colour_checked asks for the nine shifts within a pixel of one)."""
     vs, us = np.nonzero(outline)
     if len(us) < SHIFT_MIN_EDGES or rgb is None or rgb.ndim != 3:
-        return 1.0
+        return [1.0] * len(shifts)
     h, w = outline.shape
     p = COLOUR_PAD_PX
     cx0, cy0 = max(int(us.min()) - p, 0), max(int(vs.min()) - p, 0)
     cx1, cy1 = min(int(us.max()) + p + 1, w), min(int(vs.max()) + p + 1, h)
     dist = colour_edge_distance(rgb[cy0:cy1, cx0:cx1], None if explained is None else explained[cy0:cy1, cx0:cx1])
     us, vs = us - cx0, vs - cy0
-    u, v = us - du, vs - dv
-    inside = (u >= 0) & (u < cx1 - cx0) & (v >= 0) & (v < cy1 - cy0)
-    if not inside.any():
-        return 1.0
-    as_is = float(dist[vs[inside], us[inside]].mean())
-    return float(dist[v[inside], u[inside]].mean()) / max(as_is, 1e-9)
+    out = []
+    for du, dv in shifts:
+        u, v = us - du, vs - dv
+        inside = (u >= 0) & (u < cx1 - cx0) & (v >= 0) & (v < cy1 - cy0)
+        if not inside.any():
+            out.append(1.0)
+            continue
+        as_is = float(dist[vs[inside], us[inside]].mean())
+        out.append(float(dist[v[inside], u[inside]].mean()) / max(as_is, 1e-9))
+    return out
