@@ -200,10 +200,11 @@ class NearGrid:
     def contains(self, points: np.ndarray) -> np.ndarray:
         """(N,) whether each point lies within the radius of the cloud."""
         q = (points - self.origin) / self.cell
-        shape = self.occupied.shape
-        inside = np.all((q >= 0) & (q < shape), axis=-1)
+        n0, n1, n2 = self.occupied.shape
+        q0, q1, q2 = q[:, 0], q[:, 1], q[:, 2]  # per axis, not an (N, 3) test reduced along its rows: half the time
+        inside = (q0 >= 0) & (q0 < n0) & (q1 >= 0) & (q1 < n1) & (q2 >= 0) & (q2 < n2)
         i = q.astype(np.intp)  # truncation: the floor wherever q >= 0, which is wherever the answer is looked up
-        flat = (i[:, 0] * shape[1] + i[:, 1]) * shape[2] + i[:, 2]
+        flat = (i[:, 0] * n1 + i[:, 1]) * n2 + i[:, 2]
         return np.take(self.occupied.reshape(-1), flat, mode="clip") & inside
 
 

@@ -259,12 +259,16 @@ def discriminate(pb: "Task", close: list[int], cands: list[Candidate], traces: l
     near_target = {i: dist[i] < thr for i in close}
     far_target = {i: dist[i] == np.inf for i in close}
     pix = {i: pixels(seen[i], T_world_camera, cam) for i in close}  # (v, u, z, inside) of each point seen
-    # a depth buffer per placement, over the image window all of them cover (with a margin for the edges)
-    vin = np.concatenate([pix[i][0][pix[i][3]] for i in close] + [np.zeros(1, int)])
-    uin = np.concatenate([pix[i][1][pix[i][3]] for i in close] + [np.zeros(1, int)])
+    # a depth buffer per placement, over the image window all of them cover, with a margin wider than EDGE_PX: every
+    # pixel compared below lies within EDGE_PX of a placement's surface, so the window reads there as the whole image
+    vin = np.concatenate([pix[i][0][pix[i][3]] for i in close])
+    uin = np.concatenate([pix[i][1][pix[i][3]] for i in close])
     m = EDGE_PX + 1
-    v0, u0 = (max(int(vin.min()) - m, 0), max(int(uin.min()) - m, 0)) if len(vin) > 1 else (0, 0)
-    v1, u1 = min(int(vin.max()) + m + 1, cam.height), min(int(uin.max()) + m + 1, cam.width)
+    if len(vin):
+        v0, u0 = max(int(vin.min()) - m, 0), max(int(uin.min()) - m, 0)
+        v1, u1 = min(int(vin.max()) + m + 1, cam.height), min(int(uin.max()) + m + 1, cam.width)
+    else:  # no placement in view: a corner, nothing to compare there
+        v0, u0, v1, u1 = 0, 0, min(m + 1, cam.height), min(m + 1, cam.width)
     window = (slice(v0, v1), slice(u0, u1))
     depth, mask = observation.depth[window], observation.mask[window]
     valid = np.isfinite(depth) & (depth > 0)
