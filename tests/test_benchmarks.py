@@ -87,3 +87,31 @@ def test_each_real_like_row_is_held_to_the_goals_on_its_own(captures):
     wrong = captures.row_goals({"real": [_row(0, condition="real", right=False, mssd=30.0)]})
     assert wrong == ["goals (real, 1 of 1 frames whose view can tell): confident-and-wrong 1 MISSED, "
                      "unconfident-and-right 0.0% met, recall 0.000 MISSED, median 0.200 s/frame met"]
+
+
+def test_a_twin_is_fitted_where_the_view_would_place_it(captures):
+    """telling_pixels tries each twin of the base also as the view would fit it (`fitted_twin`, an ICP of the
+    benchmark's own): a half turn that a base's self-map shifts 3 mm along its length (the hole punch's) lies off
+    what the camera sees of a box-like base, and the twin moved onto it lies on it, still turned half round."""
+    import numpy as np
+    import trimesh
+
+    from apose_studio.geometry import se3
+
+    box = trimesh.creation.box((0.12, 0.05, 0.04))
+    samples = np.asarray(trimesh.sample.sample_surface_even(box, 20000, seed=1)[0])
+    T_truth = se3.make_T(se3.axis_angle_matrix([0.0, 0.0, 1.0], 0.4), np.array([0.1, -0.05, 0.6]))
+    seen = samples[(samples[:, 2] > 0.0199) | (samples[:, 0] > 0.0599)]  # its top and one end, as a camera sees them
+    points = se3.transform_points(T_truth, seen)
+    S = se3.make_T(se3.axis_angle_matrix([0.0, 0.0, 1.0], np.pi), np.array([0.003, 0.0, 0.0]))
+    raw = T_truth @ S
+
+    def off(T):  # mean distance of the seen points to the surface at T (mm)
+        from scipy.spatial import cKDTree
+        return 1000 * float(np.mean(cKDTree(se3.transform_points(T, samples)).query(points)[0]))
+
+    fitted = captures.fitted_twin(raw, points, samples)
+    assert off(raw) > 1.0 and off(fitted) < 0.5, (off(raw), off(fitted))
+    turn = se3.inv(T_truth) @ fitted
+    assert se3.rotation_angle_deg(turn[:3, :3]) > 179.0  # still the twin, not fitted back onto the truth
+    assert captures.fitted_twin(raw, points[:2], samples) is raw  # too few points: the twin as it is
