@@ -146,15 +146,18 @@ def telling_pixels(frame, ctx: StepContext, shift: tuple[int, int] = (0, 0)) -> 
 
     part, d = ctx.part, frame.depth
 
-    def cast(T, shifted=True):
-        z = raycast_depth(ctx.base.mesh, T, frame.T_world_camera, frame.camera)
-        return shift_image(np.where(np.isfinite(z), z, np.inf), *shift) if shifted and shift != (0, 0) else z
+    def on_depth(z):  # a ray cast moved as the depth image lies against the camera's pixels
+        return shift_image(np.where(np.isfinite(z), z, np.inf), *shift) if shift != (0, 0) else z
 
-    z_truth = cast(frame.T_world_base)
+    def cast(T):
+        return on_depth(raycast_depth(ctx.base.mesh, T, frame.T_world_camera, frame.camera))
 
     def outline(z):  # within 2 px of the silhouette's outline, either side
         return mask_edge(np.isfinite(z), 2)
 
+    z_raw = raycast_depth(ctx.base.mesh, frame.T_world_base, frame.T_world_camera, frame.camera)
+    z_truth = on_depth(z_raw)
+    truth_outline = outline(z_truth)
     with np.errstate(invalid="ignore"):
         seen = np.abs(d - z_truth) < TELL_M  # what the camera sees of the truth (on the depth image's pixels)
     seen_points = None
@@ -164,7 +167,7 @@ def telling_pixels(frame, ctx: StepContext, shift: tuple[int, int] = (0, 0)) -> 
         if metrics.mssd(T_twin @ ctx.view.T_base_part, frame.T_world_part, part.samples, part.symmetries) < 0.1 * part.diameter:
             continue  # the part goes to the same place: not a wrong answer
         if seen_points is None:
-            seen_points = truth_seen_points(frame, ctx, seen, shift)
+            seen_points = truth_seen_points(frame, z_raw, seen, shift)
         fitted = fitted_twin(T_twin, seen_points, ctx.base.samples)
         same = metrics.mssd(fitted @ ctx.view.T_base_part, frame.T_world_part, part.samples, part.symmetries) < \
             0.1 * part.diameter  # fitted back onto the truth's placement: no longer a wrong answer
@@ -172,17 +175,15 @@ def telling_pixels(frame, ctx: StepContext, shift: tuple[int, int] = (0, 0)) -> 
             z_twin = cast(T)
             with np.errstate(invalid="ignore"):
                 past = ~np.isfinite(z_truth) & np.isfinite(z_twin) & (d > z_twin + TELL_M)  # seen past the twin
-                tells = ((seen & ~(np.abs(z_twin - z_truth) < TELL_M)) | past) & ~outline(z_truth) & ~outline(z_twin)
+                tells = ((seen & ~(np.abs(z_twin - z_truth) < TELL_M)) | past) & ~truth_outline & ~outline(z_twin)
             fewest = int(tells.sum()) if fewest < 0 else min(fewest, int(tells.sum()))
     return fewest
 
 
-def truth_seen_points(frame, ctx: StepContext, seen: np.ndarray, shift: tuple[int, int]) -> np.ndarray:
-    """(N, 3) world points of the truth's ray-cast surface (noise-free) at the pixels where the frame's depth lies on
-    it (`seen`, on the depth image's pixels: moved back by the depth's `shift` onto the camera's)."""
-    from apose_studio.geometry.raycast import raycast_depth
-
-    z = raycast_depth(ctx.base.mesh, frame.T_world_base, frame.T_world_camera, frame.camera)
+def truth_seen_points(frame, z: np.ndarray, seen: np.ndarray, shift: tuple[int, int]) -> np.ndarray:
+    """(N, 3) world points of the truth's ray-cast surface `z` (noise-free, on the camera's pixels) at the pixels where
+    the frame's depth lies on it (`seen`, on the depth image's pixels: moved back by the depth's `shift` onto the
+    camera's)."""
     if shift != (0, 0):
         seen = shift_image(seen.astype(np.float32), -shift[0], -shift[1]) > 0.5
     vs, us = np.nonzero(seen & np.isfinite(z))
