@@ -100,6 +100,9 @@ class Params:
     mask_hypotheses: bool = _p(True, "bool", "a result that is not confident is estimated again on other readings of "
                                "the mask (without what lies on the base or stands in front of it); the one whose model "
                                "explains the frame best is kept")
+    settle: bool = _p(True, "bool", "a result that is not confident and that the depth contradicts (the camera sees "
+                      "past the model) is refitted without the depth lying in front of the model's surface (a plate "
+                      "lying on the base tilts the fit towards itself); kept when it explains the frame better")
     scale_check: bool = _p(True, "bool", "a confident result is refitted with the depth scaled 12 % either way about "
                            "the camera; where the model explains a scaled depth clearly better, the depth_scale or the "
                            "intrinsics are off and the result is not confident (registration.calibration)")
@@ -136,7 +139,7 @@ PRESETS: dict[str, dict[str, Any]] = {
                   source_camera=fov_camera(1280, 720, 60.0), use_symmetries=False, use_orientation_prior=True,
                   deterministic=False, global_voxel_factor=1.0, ransac_retry_iterations=0, use_flips=False,
                   prior_fast_path=False, upright=False, polish_voxel_factor=0.0, max_seconds=0.0, second_look=False,
-                  mask_hypotheses=False, colour_check=False,
+                  mask_hypotheses=False, settle=False, colour_check=False,
                   move_depth_to_colour=False, scale_check=False),
 }
 PRESET_PARAMS: dict[str, Params] = {name: Params(**over) for name, over in PRESETS.items()}

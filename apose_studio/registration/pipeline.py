@@ -33,6 +33,7 @@ from apose_studio.registration.refine import (
     polish_contenders,
     refine_candidates,
     select_starts,
+    settle,
 )
 from apose_studio.registration.scoring import (
     agreement_tolerance,
@@ -43,6 +44,7 @@ from apose_studio.registration.scoring import (
     mask_edge,
     pose_spread,
     poses_within,
+    score_pose,
     twin_placements,
 )
 from apose_studio.registration.searches import ModelSearch, search_poses, try_prior
@@ -59,6 +61,7 @@ from apose_studio.registration.types import (
     Found,
     Observation,
     RegistrationResult,
+    Stage,
     Start,
     View,
     failed,
@@ -119,7 +122,7 @@ def estimate_readings(view: View, base: BaseObject, T_base_part: np.ndarray, par
     first = estimate_mask(view, base, T_base_part, params, prior_T_world_base, trace_iterations, part_symmetries,
                           deferred=deferred if hypotheses else None)
     if first.fits or not hypotheses:  # confident, or only ambiguous: a view problem that no reading can settle
-        return deferred[0]() if deferred else first
+        return settled(deferred[0]() if deferred else first, view, base, T_base_part, params, part_symmetries)
     t = time.perf_counter()
     table = table_plane(view.depth, view.mask, view.camera, view.T_world_camera, seed=params.seed,
                         base_size=base.diameter) if params.upright else None
@@ -167,7 +170,8 @@ def estimate_readings(view: View, base: BaseObject, T_base_part: np.ndarray, par
         best = replace(second_look(best, replace(view, mask=best_mask), base, T_base_part, params, prior_T_world_base,
                                    trace_iterations, part_symmetries), reading=best.reading)
     seconds = time.perf_counter() - t - t_free
-    return replace(best, timings={**best.timings, "other readings": seconds})
+    best = replace(best, timings={**best.timings, "other readings": seconds})
+    return settled(best, replace(view, mask=best_mask), base, T_base_part, params, part_symmetries, region)
 
 
 def uncontradicted(result: RegistrationResult) -> bool:
@@ -175,6 +179,38 @@ def uncontradicted(result: RegistrationResult) -> bool:
     readings of a mask, such a result beats one the depth contradicts, whatever each explains: a pose raised onto
     a plate lying on the base explains the plate's pixels too, and only its sides, seen past, give it away."""
     return bool(result.ok and not result.contradiction > CONFIDENT_CONTRADICTION)
+
+
+SETTLE_SIGMAS = 1.5  # settled: what lies more than this many sigmas of the depth's noise (at least a voxel) in front of
+# the model's surface is left out
+
+
+def settled(result: RegistrationResult, view: View, base: BaseObject, T_base_part: np.ndarray, params: Params,
+            part_symmetries: np.ndarray | None = None, region: np.ndarray | None = None) -> RegistrationResult:
+    """`result`, or, where it is not confident and the depth contradicts it (params.settle), its pose refitted on the
+    view's mask without the depth lying in front of the model's surface (refine.settle: something lying on the base,
+    one depth patch with it, tilts the fit towards itself, and the camera then sees past the model's sides), judged
+    as any pose; the refitted one is kept when it explains the frame better, as the mask's readings are compared
+    (`uncontradicted` first, then `explained` over `region`, default the view's mask). Its rivals (`ambiguous`,
+    `alternatives`) are the result's: the refit moves the pose by millimetres, not to another placement."""
+    if not (params.settle and result.ok and not result.confident and result.contradiction > CONFIDENT_CONTRADICTION):
+        return result
+    t = time.perf_counter()
+    timed = replace(result, timings={**result.timings, "settle": 0.0})
+    pb = view_task(view, base, T_base_part, params, part_symmetries, noise=result.depth_noise)
+    T = settle(pb, result.T_world_base, max(pb.voxel, SETTLE_SIGMAS * result.depth_noise)) if pb is not None else None
+    if T is not None:
+        cand, seen, _ = score_pose(pb, T)
+        moved = replace(result, T_world_base=T, T_world_part=cand.T_world_part, target_cloud=pb.fine_pts,
+                        source_cloud=se3.transform_points(se3.inv(T), seen), fitness=cand.fitness,
+                        inlier_rmse=cand.inlier_rmse, coverage=cand.coverage, candidates=[cand, *result.candidates],
+                        stages=[*result.stages, Stage("settled", T, cand.fitness, cand.inlier_rmse)], problem=pb,
+                        model_mask=None, second_look=None)
+        again = judged(moved, view, base, params, pb.table)
+        if (again.ok, uncontradicted(again), explained(again, view, base, region)) > \
+                (result.ok, uncontradicted(result), explained(result, view, base, region)):
+            timed = replace(again, model_mask=cut_to_model(again, view, base))
+    return replace(timed, timings={**timed.timings, "settle": time.perf_counter() - t})
 
 
 def estimate_mask(view: View, base: BaseObject, T_base_part: np.ndarray, params: Params,
@@ -255,10 +291,8 @@ def estimate_mask(view: View, base: BaseObject, T_base_part: np.ndarray, params:
         if not result.ok:
             return result
         t = time.perf_counter()
-        cut = model_cut_mask(result, view if result.second_look is None else replace(view, mask=result.second_look), base,
-                             reach=mask_reach(view))
-        return replace(result, model_mask=cut if cut.sum() >= MIN_POINTS else None,
-                       timings={**result.timings, "mask cut": time.perf_counter() - t})
+        cut = cut_to_model(result, view, base)
+        return replace(result, model_mask=cut, timings={**result.timings, "mask cut": time.perf_counter() - t})
 
     if free_due and not result.confident:  # the upright pose did not fit, and its second look did not settle it
         if deferred is not None:
@@ -267,6 +301,14 @@ def estimate_mask(view: View, base: BaseObject, T_base_part: np.ndarray, params:
         else:
             result = with_free_search(result)
     return with_cut(result)
+
+
+def cut_to_model(result: RegistrationResult, view: View, base: BaseObject) -> np.ndarray | None:
+    """The result's `model_mask`: its mask (the second look's where that gave it) cut to the model's view at its pose
+    (model_cut_mask, within the prompt's box or the mask's reach), or None when fewer than MIN_POINTS pixels are left."""
+    cut = model_cut_mask(result, view if result.second_look is None else replace(view, mask=result.second_look), base,
+                         reach=mask_reach(view))
+    return cut if cut.sum() >= MIN_POINTS else None
 
 
 def model_cut_mask(result: RegistrationResult, view: View, base: BaseObject,

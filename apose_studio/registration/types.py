@@ -43,6 +43,7 @@ class Stage:
     """One step of the registration, for the studio's replay."""
 
     name: str  # "initial", "global" (or "prior", or "first look": where a second look began), "icp 1", ..., "final"
+    # (then "settled" where pipeline.settled refitted it)
     T_world_base: np.ndarray
     fitness: float
     inlier_rmse: float
