@@ -102,7 +102,8 @@ class Params:
                                "explains the frame best is kept")
     settle: bool = _p(True, "bool", "a result that is not confident and that the depth contradicts (the camera sees "
                       "past the model) is refitted without the depth lying in front of the model's surface (a plate "
-                      "lying on the base tilts the fit towards itself); kept when it explains the frame better")
+                      "lying on the base tilts the fit towards itself); kept when it explains the frame better (a whole base, "
+                      "not a region of a larger part)")
     scale_check: bool = _p(True, "bool", "a confident result is refitted with the depth scaled 12 % either way about "
                            "the camera; where the model explains a scaled depth clearly better, the depth_scale or the "
                            "intrinsics are off and the result is not confident (registration.calibration)")

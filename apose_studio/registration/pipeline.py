@@ -192,8 +192,11 @@ def settled(result: RegistrationResult, view: View, base: BaseObject, T_base_par
     one depth patch with it, tilts the fit towards itself, and the camera then sees past the model's sides), judged
     as any pose; the refitted one is kept when it explains the frame better, as the mask's readings are compared
     (`uncontradicted` first, then `explained` over `region`, default the view's mask). Its rivals (`ambiguous`,
-    `alternatives`) are the result's: the refit moves the pose by millimetres, not to another placement."""
-    if not (params.settle and result.ok and not result.confident and result.contradiction > CONFIDENT_CONTRADICTION):
+    `alternatives`) are the result's: the refit moves the pose by millimetres, not to another placement. Not for a
+    region of a larger part: the rest of that part lies in front of the region's surface by nature, and its
+    estimate is judged by what hides it (`sunk`) and by the rest of the part (`body_past`)."""
+    if not (params.settle and base.region is None and result.ok and not result.confident
+            and result.contradiction > CONFIDENT_CONTRADICTION):
         return result
     t = time.perf_counter()
     timed = replace(result, timings={**result.timings, "settle": 0.0})
