@@ -199,7 +199,7 @@ def settled(result: RegistrationResult, view: View, base: BaseObject, T_base_par
             and result.contradiction > CONFIDENT_CONTRADICTION):
         return result
     t = time.perf_counter()
-    timed = replace(result, timings={**result.timings, "settle": 0.0})
+    out = result
     pb = view_task(view, base, T_base_part, params, part_symmetries, noise=result.depth_noise)
     T = settle(pb, result.T_world_base, max(pb.voxel, SETTLE_SIGMAS * result.depth_noise)) if pb is not None else None
     if T is not None:
@@ -212,8 +212,8 @@ def settled(result: RegistrationResult, view: View, base: BaseObject, T_base_par
         again = judged(moved, view, base, params, pb.table)
         if (again.ok, uncontradicted(again), explained(again, view, base, region)) > \
                 (result.ok, uncontradicted(result), explained(result, view, base, region)):
-            timed = replace(again, model_mask=cut_to_model(again, view, base))
-    return replace(timed, timings={**timed.timings, "settle": time.perf_counter() - t})
+            out = replace(again, model_mask=cut_to_model(again, view, base))
+    return replace(out, timings={**out.timings, "settle": time.perf_counter() - t})
 
 
 def estimate_mask(view: View, base: BaseObject, T_base_part: np.ndarray, params: Params,
