@@ -17,6 +17,7 @@ from dataclasses import replace
 import numpy as np
 
 from apose_studio.geometry import se3
+from apose_studio.geometry.nn import NearestTree
 from apose_studio.geometry.plane import table_axes
 from apose_studio.registration.base import place_source, raycast_source
 from apose_studio.registration.refine import polish
@@ -44,10 +45,6 @@ SCREEN_POINTS = 500  # target points the screening looks up per starting pose
 SCREEN_MODEL_POINTS = 200  # model points it projects per slid start (ModelSearch.seen_past)
 
 
-SPARSE_SOURCE = 2.0  # the first, coarse ICP fits from a known orientation run on the model's points thinned to this many
-# voxels (a quarter of them): benchmarks/tune.py's fixed protocol, 39.5 -> 36.5 ms a frame, poses within 0.06 mm
-
-
 def try_prior(pb, prior: np.ndarray, trace_iterations: bool, timings: dict, from_pose: bool = False,
               **kw) -> RegistrationResult | None:
     """Early exit when the caller knows the base's orientation: put the CAD in that orientation where
@@ -55,30 +52,34 @@ def try_prior(pb, prior: np.ndarray, trace_iterations: bool, timings: dict, from
     and accept when the model explains the target and the depth confirms the model (both >= 95 %).
     Otherwise None, and the full search runs (the prior still breaks its ties). `from_pose`: `prior` is a
     pose the base is near already (pipeline.refit): ICP from it at 2 voxels, then as above, and no
-    acceptance test (the judge that follows decides)."""
+    acceptance test (the judge that follows decides).
+
+    From the orientation, the coarse fits (8, 4 and 2 voxels) bring the target onto what the camera sees of the
+    model, with the model's exact normals, as the polish does (`prior_fits`): the target's own normals are then
+    never estimated on this path."""
     base, cam, T_world_camera, p, voxel = pb.base, pb.cam, pb.T_world_camera, pb.params, pb.voxel
-    fine, fine_pts, observation, tp = pb.fine, pb.fine_pts, pb.observation, pb.coarse_pts
+    fine_pts, observation, tp = pb.fine_pts, pb.observation, pb.coarse_pts
     t = time.perf_counter()
     thr = pb.thr
     T_world_source = prior.copy() if from_pose else place_source(base, tp.mean(axis=0), prior[:3, :3])
-    src_w, _ = raycast_source(base, T_world_source, T_world_camera, cam)
+    src_w, src_n = raycast_source(base, T_world_source, T_world_camera, cam)
     if len(src_w) < MIN_POINTS:
         return None
     T0 = T_world_source.copy()
     if not from_pose:
         T0[:3, 3] += tp.mean(axis=0) - src_w.mean(axis=0)  # the visible part's centre on the target's centre
-    src = cloud(se3.transform_points(se3.inv(T_world_source), src_w)).voxel_down_sample(voxel)
-    sparse = src.voxel_down_sample(SPARSE_SOURCE * voxel) if not from_pose else src  # for the fits at 8 and 4 voxels
     trace: list | None = [] if trace_iterations else None
-    T = T0
-    for factor in (2.0,) if from_pose else (8.0, 4.0, 2.0):
-        T = icp(sparse if factor > 2.0 else src, fine, T, factor * voxel, 10, trace, p.deterministic, pb.fine_tree)
+    if from_pose:
+        src = cloud(se3.transform_points(se3.inv(T_world_source), src_w)).voxel_down_sample(voxel)
+        T = icp(src, pb.fine, T0, 2.0 * voxel, 10, trace, p.deterministic, pb.fine_tree)
+    else:
+        T = prior_fits(pb, T0, T_world_source, src_w, src_n, trace)
     if p.polish_voxel_factor > 0:
         T, src_w = polish(pb, T, trace)
     else:
         src_w, _ = raycast_source(base, T, T_world_camera, cam)  # what the camera sees at the refined pose
         src = cloud(se3.transform_points(se3.inv(T), src_w)).voxel_down_sample(voxel)
-        T = icp(src, fine, T, thr, p.icp_max_iterations, trace, p.deterministic, pb.fine_tree)
+        T = icp(src, pb.fine, T, thr, p.icp_max_iterations, trace, p.deterministic, pb.fine_tree)
         src_w, _ = raycast_source(base, T, T_world_camera, cam)
     cand, src_w = score_seen(pb, T, src_w)
     # the depth's word on the model, leaving out what it cannot judge: the mask's outline (mixed
@@ -95,6 +96,29 @@ def try_prior(pb, prior: np.ndarray, trace_iterations: bool, timings: dict, from
                               target_cloud=fine_pts, source_cloud=src_b, stages=stages, fitness=cand.fitness,
                               inlier_rmse=cand.inlier_rmse, timings=timings, candidates=[cand], voxel=voxel,
                               coverage=cand.coverage, **kw)
+
+
+def prior_fits(pb, T0: np.ndarray, T_world_source: np.ndarray, seen_w: np.ndarray, seen_n: np.ndarray,
+               trace: list | None) -> np.ndarray:
+    """T_world_base fitted from T0 at 8, 4 and then 2 voxels, 10 ICP steps each: the target (its coarse points for the
+    first two, its fine ones for the last) onto what the camera sees of the model at T_world_source (`seen_w`,
+    `seen_n`: world points and normals), down-sampled at the fine voxel, with the model's exact normals: the scene
+    onto the model, as the polish fits (refine.polish). The model's view is cast once, at the start: these fits move
+    the base by millimetres. `trace`: each step's T_world_base is appended.
+
+    Model onto scene instead (the model's view onto the target, with the target's normals) took the target's
+    normals, estimated for it alone: 3.9 ms of a frame's 46 on benchmarks/tune.py's fixed protocol."""
+    p, voxel = pb.params, pb.voxel
+    T_source_world = se3.inv(T_world_source)
+    seen = cloud(se3.transform_points(T_source_world, seen_w), seen_n @ T_source_world[:3, :3].T).voxel_down_sample(voxel)
+    tree = NearestTree(np.asarray(seen.points)) if p.deterministic else None
+    steps: list | None = [] if trace is not None else None
+    T = se3.inv(T0)  # T_base_world
+    for factor, scene in ((8.0, pb.coarse_pts), (4.0, pb.coarse_pts), (2.0, pb.fine_pts)):
+        T = icp(cloud(scene), seen, T, factor * voxel, 10, steps, p.deterministic, tree)
+    if trace is not None:
+        trace.extend(se3.inv(S) for S in steps)
+    return se3.inv(T)
 
 
 def upright_starts(base, up: np.ndarray, target_pts: np.ndarray, T_world_camera: np.ndarray,

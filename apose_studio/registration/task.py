@@ -31,15 +31,34 @@ class Task:
     voxel: float  # the fine resolution (metres); the searches work at voxel x params.global_voxel_factor
     target_pts: np.ndarray  # (N, 3) every masked depth point, world frame
     coarse_pts: np.ndarray  # (M, 3) the target down-sampled at the coarse voxel, outliers removed, world frame
-    fine: object  # open3d PointCloud, down-sampled at the fine voxel, with normals facing the camera
-    fine_tree: object  # k-d tree of fine's points
+    fine_pts: np.ndarray  # (K, 3) the target down-sampled at the fine voxel, world frame (`fine`: with normals)
+    fine_tree: object  # k-d tree of fine_pts
     deadline: float = float("inf")  # time.perf_counter() by which the searches stop (params.max_seconds)
     notes: list = field(default_factory=list)  # what the time budget cut short
     part_symmetries: np.ndarray | None = None  # (n, 4, 4) T_part_part of the part to place, identity first: twins of
     # the base that place the part alike (modulo these) are one placement, not an ambiguity
     target_cam: object = None  # open3d PointCloud: `coarse_pts` in the camera's frame (the global search's RANSAC
     # runs there); its normals are estimated when a search first needs them (`target`)
+    fine_cam: object = None  # open3d PointCloud: `fine_pts` in the camera's frame, as down-sampled there
     _down: dict = field(default_factory=dict, repr=False)  # voxel -> target_at(voxel)
+    _fine: dict = field(default_factory=dict, repr=False)  # "fine": `fine`, built once (a replace()d copy shares it)
+
+    @property
+    def fine(self):
+        """open3d PointCloud of `fine_pts` with normals facing the camera (estimated in the camera's frame, then
+        carried into the world, as the points were), for the ICPs onto the target. Built when first asked for: the
+        prior's fast path fits the target onto the model (searches.try_prior) and needs none (3.9 ms a frame on
+        benchmarks/tune.py's fixed protocol)."""
+        pc = self._fine.get("fine")
+        if pc is None:
+            import open3d as o3d  # heavy (~0.9 s to import): loaded where it is used
+
+            pc = o3d.geometry.PointCloud(self.fine_cam)
+            pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=self.params.normal_radius_factor * self.voxel,
+                                                                     max_nn=30))
+            pc.orient_normals_towards_camera_location(np.zeros(3))
+            pc = self._fine["fine"] = pc.transform(self.T_world_camera)
+        return pc
 
     def target_at(self, voxel: float):
         """Every masked depth point down-sampled at `voxel` on a grid fixed to the camera (stages.down_sample),
@@ -80,10 +99,6 @@ class Task:
                            base_size=self.base.diameter)
 
     @property
-    def fine_pts(self) -> np.ndarray:
-        return np.asarray(self.fine.points)
-
-    @property
     def vg(self) -> float:
         """The coarse (global search) voxel."""
         return self.voxel * self.params.global_voxel_factor
@@ -102,9 +117,9 @@ def prepare_task(target_pts: np.ndarray, cam: CameraIntrinsics, T_world_camera: 
                     T_base_part: np.ndarray, p: Params, voxel: float, observation: Observation,
                     deadline: float = float("inf"), light: bool = False,
                     part_symmetries: np.ndarray | None = None, camera_pts: np.ndarray | None = None) -> Task:
-    """The target down-sampled (coarse: flying pixels and speckle removed; fine: with normals). Raises
-    Degenerate when too little of it is left, or when it is a line. `light`: for scoring and polishing
-    only (registration.fusion's other views): no outlier removal, no target normals. `camera_pts`: the target
+    """The target down-sampled (coarse: flying pixels and speckle removed; fine: its normals estimated when first
+    asked for, Task.fine). Raises Degenerate when too little of it is left, or when it is a line. `light`: for scoring
+    and polishing only (registration.fusion's other views): no outlier removal. `camera_pts`: the target
 in the camera's frame, as PROJ3D back-projected it (target_pts carried back there otherwise, which differs
 from it in the last bits)."""
     import open3d as o3d  # heavy (~0.9 s to import): loaded where it is used
@@ -124,14 +139,12 @@ from it in the last bits)."""
     tp = np.asarray(target_cam.points)
     if np.linalg.svd(tp - tp.mean(axis=0), compute_uv=False)[1] < 0.05 * vg:
         raise Degenerate("the target is degenerate: its points lie on a line")
-    fine = in_camera.voxel_down_sample(voxel)
+    fine_cam = in_camera.voxel_down_sample(voxel)
     coarse_pts = np.asarray(o3d.geometry.PointCloud(target_cam).transform(T_world_camera).points)
-    if not light:
-        fine.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=p.normal_radius_factor * voxel, max_nn=30))
-        fine.orient_normals_towards_camera_location(np.zeros(3))
-    fine.transform(T_world_camera)
-    return Task(base, T_base_part, p, cam, T_world_camera, observation, voxel, target_pts, coarse_pts, fine,
-                NearestTree(np.asarray(fine.points)), deadline, part_symmetries=part_symmetries, target_cam=target_cam)
+    fine_pts = np.array(o3d.geometry.PointCloud(fine_cam).transform(T_world_camera).points)  # (as Task.fine carries its)
+    return Task(base, T_base_part, p, cam, T_world_camera, observation, voxel, target_pts, coarse_pts, fine_pts,
+                NearestTree(fine_pts), deadline, part_symmetries=part_symmetries, target_cam=target_cam,
+                fine_cam=fine_cam)
 
 
 def factor_of(ratio: float) -> int:

@@ -192,9 +192,11 @@ def test_a_base_that_hides_part_of_itself_is_not_searched_as_a_hidden_one(fidget
     assert calls["resting"] == 0
 
 
-def test_the_prior_fast_path_leaves_the_coarse_normals_unbuilt(gearbox_step2, monkeypatch):
-    """The coarse target's normals serve only the searches (coarse ICP, RANSAC): a right prior, taken at once, never
-    builds them; a wrong one, which falls back to the search, does. Either way the coarse cloud is the same points."""
+def test_the_prior_fast_path_leaves_the_target_normals_unbuilt(gearbox_step2, monkeypatch):
+    """The target's normals, coarse and fine, serve only the searches (their ICPs onto the target, RANSAC): a right
+    prior, taken at once, fits the target onto the model's exact normals and never builds them, and lands on the pose
+    the view was cast at; a wrong one, which falls back to the search, builds both. Either way each cloud is the same
+    points, its normals facing the camera."""
     import apose_studio.registration.pipeline as pipeline
 
     view, base, _ = gearbox_step2
@@ -212,6 +214,14 @@ def test_the_prior_fast_path_leaves_the_coarse_normals_unbuilt(gearbox_step2, mo
         assert r.ok and ("global" in r.timings) == searched, r.timings
         pb = tasks[0]
         assert ("target" in vars(pb)) == searched  # functools.cached_property keeps a built value in the instance
+        assert ("fine" in pb._fine) == searched  # (Task.fine keeps its cloud there once built)
+        if not searched:
+            assert np.linalg.norm(r.T_world_base[:3, 3] - T_world_base[:3, 3]) < 1e-4
+            assert se3.rotation_angle_deg(r.T_world_base[:3, :3].T @ T_world_base[:3, :3]) < 0.1
+        fine = pb.fine
+        assert np.array_equal(np.asarray(fine.points), pb.fine_pts) and fine.has_normals()
+        towards = T_world_camera[:3, 3] - pb.fine_pts
+        assert (np.einsum("ij,ij->i", np.asarray(fine.normals), towards) > 0).mean() > 0.99
         coarse = pb.target
         assert np.array_equal(np.asarray(coarse.points), pb.coarse_pts) and coarse.has_normals()
         towards = T_world_camera[:3, 3] - pb.coarse_pts
