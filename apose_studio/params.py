@@ -79,6 +79,8 @@ class Params:
     polish_voxel_factor: float = _p(0.5, "float", "> 0: a last ICP of the target (down-sampled at voxel x this) onto "
                                     "the model seen at the chosen pose, with the model's exact normals", 0, 10, unit="voxel")
     polish_threshold_factor: float = _p(1.0, "float", "the polish's correspondence distance, x voxel", 0.05, 20, unit="voxel")
+    polish_min_step: float = _p(0.1, "float", "the polish stops once a step moves the base by less than this, x voxel "
+                                "(0: only when its fit stops changing)", 0, 1, unit="voxel")
     # --- run control
     seed: int = _p(0, "int", "seeds every random choice: the same seed, the same answer", 0, 2 ** 32 - 1)
     deterministic: bool = _p(True, "bool", "numpy's seeded ICP and RANSAC (the same pose in any process) instead of "

@@ -232,7 +232,9 @@ def polish(pb, T_world_base: np.ndarray, trace: list | None, seen_world: tuple |
     the camera sees of the model at T_world_base, using the model's exact normals. With RealSense-like
     noise the target's own normals are noisy and bias the fit; the model's are not (scene-to-model).
     Returns the refined T_world_base and the seen model points moved with it (world): the pose moves by
-    a fraction of a millimetre, so what the camera sees is not cast again. `seen_world`: (points, normals)
+    a fraction of a millimetre, so what the camera sees is not cast again. It stops after POLISH_ITERATIONS steps,
+    when its fit stops changing, or once a step moves the base by less than `polish_min_step` voxels (default 0.1:
+    benchmarks/tune.py, 7-8 % of a frame, the same recall and ADI; docs/BENCHMARKS.md). `seen_world`: (points, normals)
     the camera sees at T_world_base, when already cast."""
     p, voxel = pb.params, pb.voxel
     src_w, src_n = seen_world if seen_world is not None else raycast_source(pb.base, T_world_base, pb.T_world_camera,
@@ -244,7 +246,7 @@ def polish(pb, T_world_base: np.ndarray, trace: list | None, seen_world: tuple |
     v = voxel * p.polish_voxel_factor
     steps: list | None = [] if trace is not None else None
     T = icp(pb.target_at(v), seen.voxel_down_sample(v), T_base_world,
-            p.polish_threshold_factor * voxel, POLISH_ITERATIONS, steps, p.deterministic)
+            p.polish_threshold_factor * voxel, POLISH_ITERATIONS, steps, p.deterministic, min_step=p.polish_min_step * voxel)
     if trace is not None:
         trace.extend(se3.inv(S) for S in steps)
     T_new = se3.inv(T)

@@ -91,16 +91,17 @@ def global_registration(source, target, f_source, f_target, voxel: float, p: Par
 
 
 def icp(source, target, T_init: np.ndarray, threshold: float, iterations: int, trace: list | None = None,
-        deterministic: bool = True, target_tree=None) -> np.ndarray:
+        deterministic: bool = True, target_tree=None, min_step: float = 0.0) -> np.ndarray:
     """Point-to-plane ICP, L(T) = sum ((p - T q) . n_p)^2 with target normals n_p. Returns T_target_source.
 
     With `trace`, appends each iteration's T (same result, for replay). `deterministic`: numpy's
     solver (the same result in every process), with `target_tree` (a k-d tree of the target's points)
-    reused when given; else Open3D's (multi-threaded, not bit-repeatable).
+    reused when given; else Open3D's (multi-threaded, not bit-repeatable). `min_step` (metres, numpy's solver only):
+    also stop once a step moves the source by less than this (solvers.icp_point_to_plane).
     """
     if deterministic:
         return icp_point_to_plane(np.asarray(source.points), np.asarray(target.points), np.asarray(target.normals),
-                                  T_init, threshold, iterations, trace, target_tree)
+                                  T_init, threshold, iterations, trace, target_tree, min_step=min_step)
     import open3d as o3d  # heavy (~0.9 s to import): loaded where it is used
 
     reg = o3d.pipelines.registration
