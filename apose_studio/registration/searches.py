@@ -114,8 +114,9 @@ def prior_fits(pb, T0: np.ndarray, T_world_source: np.ndarray, seen_w: np.ndarra
     tree = NearestTree(np.asarray(seen.points)) if p.deterministic else None
     steps: list | None = [] if trace is not None else None
     T = se3.inv(T0)  # T_base_world
-    for factor, scene in ((8.0, pb.coarse_pts), (4.0, pb.coarse_pts), (2.0, pb.fine_pts)):
-        T = icp(cloud(scene), seen, T, factor * voxel, 10, steps, p.deterministic, tree)
+    coarse, fine = cloud(pb.coarse_pts), cloud(pb.fine_pts)
+    for factor, scene in ((8.0, coarse), (4.0, coarse), (2.0, fine)):
+        T = icp(scene, seen, T, factor * voxel, 10, steps, p.deterministic, tree)
     if trace is not None:
         trace.extend(se3.inv(S) for S in steps)
     return se3.inv(T)
